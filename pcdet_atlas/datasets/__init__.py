@@ -1,0 +1,1 @@
+"""Datasets (OpenPCDet's processed Waymo format, the synthetic default) and their transforms."""

@@ -1,0 +1,262 @@
+"""OpenPCDet's processed Waymo format (``waymo_processed_data_v0_5_0``), written and checked.
+
+One place states the layout, keys, dtypes and shapes that OpenPCDet's converter writes (see
+``docs/data.md``), so the reader, the synthetic generator, the attack writer and the tests agree.
+Layout under ``root``::
+
+    ImageSets/{train,val}.txt                       # one "<sequence>.tfrecord" per line
+    waymo_processed_data_v0_5_0/<seq>/<seq>.pkl     # list of frame info dicts, by sample_idx
+    waymo_processed_data_v0_5_0/<seq>/%04d.npy      # float32 (N, 6): x y z intensity elongation NLZ
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+PROCESSED_DATA_TAG = "waymo_processed_data_v0_5_0"
+WAYMO_CLASSES = ["unknown", "Vehicle", "Pedestrian", "Sign", "Cyclist"]
+NUM_POINT_COLUMNS = 6  # x, y, z, intensity (raw), elongation (raw), NLZ flag (1 in NLZ, -1 not)
+LIDAR_NAMES = ["TOP", "FRONT", "SIDE_LEFT", "SIDE_RIGHT", "REAR"]
+#: (height, width) of the five Waymo cameras, as the converter stores them per frame.
+DEFAULT_IMAGE_SHAPES = {
+    "image_shape_0": (1280, 1920),
+    "image_shape_1": (1280, 1920),
+    "image_shape_2": (1280, 1920),
+    "image_shape_3": (886, 1920),
+    "image_shape_4": (886, 1920),
+}
+INFO_KEYS = ("point_cloud", "frame_id", "metadata", "image", "pose", "num_points_of_each_lidar")
+POINT_CLOUD_KEYS = ("num_features", "lidar_sequence", "sample_idx")
+ANNO_KEYS = (
+    "name",
+    "difficulty",
+    "dimensions",
+    "location",
+    "heading_angles",
+    "obj_ids",
+    "tracking_difficulty",
+    "num_points_in_gt",
+    "speed_global",
+    "accel_global",
+    "gt_boxes_lidar",
+)
+
+
+class WaymoFormatError(ValueError):
+    """Data that does not match OpenPCDet's processed Waymo format."""
+
+
+# ---------------------------------------------------------------------------- paths
+def data_dir(root: str | Path, tag: str = PROCESSED_DATA_TAG) -> Path:
+    return Path(root) / tag
+
+
+def sequence_name_from_line(line: str) -> str:
+    """``segment-..._with_camera_labels.tfrecord`` -> ``segment-..._with_camera_labels``."""
+    return os.path.splitext(line.strip())[0]
+
+
+def sequence_pkl_path(root: str | Path, sequence: str, tag: str = PROCESSED_DATA_TAG) -> Path:
+    return data_dir(root, tag) / sequence / f"{sequence}.pkl"
+
+
+def frame_npy_path(
+    root: str | Path, sequence: str, sample_idx: int, tag: str = PROCESSED_DATA_TAG
+) -> Path:
+    return data_dir(root, tag) / sequence / f"{sample_idx:04d}.npy"
+
+
+def frame_id(sequence: str, sample_idx: int) -> str:
+    """OpenPCDet's ``frame_id``: note ``%03d`` here while the ``.npy`` name uses ``%04d``."""
+    return f"{sequence}_{sample_idx:03d}"
+
+
+# ---------------------------------------------------------------------------- building
+def make_annos(
+    name: Sequence[str],
+    difficulty: Sequence[int],
+    location: np.ndarray,
+    dimensions: np.ndarray,
+    heading_angles: Sequence[float],
+    obj_ids: Sequence[str],
+    num_points_in_gt: Sequence[int],
+    speed_global: np.ndarray,
+    pose: np.ndarray,
+    tracking_difficulty: Sequence[int] | None = None,
+    accel_global: np.ndarray | None = None,
+) -> dict:
+    """An ``annos`` dict exactly as OpenPCDet's ``generate_labels`` writes it.
+
+    ``location`` is the box centre in the vehicle frame, ``dimensions`` is ``[l, w, h]``,
+    ``speed_global`` is the global-frame ``[vx, vy]``; ``gt_boxes_lidar`` gets the speed rotated
+    into the vehicle frame. With zero objects the per-object arrays have shape ``(0,)`` as the
+    converter's ``np.array([])`` gives, and ``gt_boxes_lidar`` is ``(0, 9)``.
+    """
+    n = len(name)
+    if n == 0:
+        empty = np.array([])
+        return {
+            "name": np.array([], dtype="<U10"),
+            "difficulty": np.array([], dtype=np.int64),
+            "dimensions": empty.copy(),
+            "location": empty.copy(),
+            "heading_angles": empty.copy(),
+            "obj_ids": np.array([], dtype="<U1"),
+            "tracking_difficulty": np.array([], dtype=np.int64),
+            "num_points_in_gt": np.array([], dtype=np.int64),
+            "speed_global": empty.copy(),
+            "accel_global": empty.copy(),
+            "gt_boxes_lidar": np.zeros((0, 9)),
+        }
+    location = np.asarray(location, dtype=np.float64).reshape(n, 3)
+    dimensions = np.asarray(dimensions, dtype=np.float64).reshape(n, 3)
+    heading = np.asarray(heading_angles, dtype=np.float64).reshape(n)
+    speed_global = np.asarray(speed_global, dtype=np.float64).reshape(n, 2)
+    accel = np.zeros((n, 2)) if accel_global is None else np.asarray(accel_global, np.float64)
+    global_speed = np.pad(speed_global, ((0, 0), (0, 1)), mode="constant", constant_values=0)
+    pose = np.asarray(pose, dtype=np.float64).reshape(4, 4)
+    speed = np.dot(global_speed, np.linalg.inv(pose[:3, :3].T))[:, :2]
+    gt_boxes_lidar = np.concatenate([location, dimensions, heading[:, None], speed], axis=1)
+    tracking = difficulty if tracking_difficulty is None else tracking_difficulty
+    return {
+        "name": np.array(list(name)),
+        "difficulty": np.array(difficulty, dtype=np.int64).reshape(n),
+        "dimensions": dimensions,
+        "location": location,
+        "heading_angles": heading,
+        "obj_ids": np.array(list(obj_ids)),
+        "tracking_difficulty": np.array(tracking, dtype=np.int64).reshape(n),
+        "num_points_in_gt": np.array(num_points_in_gt, dtype=np.int64).reshape(n),
+        "speed_global": speed_global,
+        "accel_global": accel.reshape(n, 2),
+        "gt_boxes_lidar": gt_boxes_lidar,
+    }
+
+
+def make_frame_info(
+    sequence: str,
+    sample_idx: int,
+    pose: np.ndarray,
+    num_points_of_each_lidar: Sequence[int],
+    timestamp_micros: int,
+    annos: dict | None = None,
+    context_name: str | None = None,
+) -> dict:
+    """One frame info dict with every key of OpenPCDet's converter (``annos`` if labelled)."""
+    info = {
+        "point_cloud": {
+            "num_features": 5,
+            "lidar_sequence": sequence,
+            "sample_idx": int(sample_idx),
+        },
+        "frame_id": frame_id(sequence, sample_idx),
+        "metadata": {
+            "context_name": context_name if context_name is not None else sequence,
+            "timestamp_micros": int(timestamp_micros),
+        },
+        "image": dict(DEFAULT_IMAGE_SHAPES),
+        "pose": np.asarray(pose, dtype=np.float32).reshape(4, 4),
+        "num_points_of_each_lidar": [int(v) for v in num_points_of_each_lidar],
+    }
+    if annos is not None:
+        info["annos"] = annos
+    return info
+
+
+def save_frame_points(path: str | Path, points: np.ndarray) -> None:
+    """Write a ``(N, 6)`` float32 frame (raw intensity/elongation, NLZ flag +-1) atomically."""
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != NUM_POINT_COLUMNS or points.dtype != np.float32:
+        raise WaymoFormatError(
+            f"{path}: frame points must be float32 (N, {NUM_POINT_COLUMNS}), got "
+            f"{points.dtype} {points.shape}"
+        )
+    path = Path(path)
+    tmp = path.with_suffix(".tmp.npy")
+    np.save(tmp, points)
+    os.replace(tmp, path)
+
+
+def save_sequence_infos(path: str | Path, infos: list[dict]) -> None:
+    """Write a per-sequence info pkl atomically (a list of frame infos ordered by sample_idx)."""
+    path = Path(path)
+    tmp = path.with_suffix(".tmp.pkl")
+    with open(tmp, "wb") as f:
+        pickle.dump(infos, f)
+    os.replace(tmp, path)
+
+
+# ---------------------------------------------------------------------------- checking
+def validate_points(points: np.ndarray, where: str | Path) -> None:
+    """Raise :class:`WaymoFormatError` unless ``points`` is a finite float32 ``(N, 6)`` array."""
+    if points.ndim != 2 or points.shape[1] != NUM_POINT_COLUMNS:
+        raise WaymoFormatError(
+            f"{where}: expected a (N, {NUM_POINT_COLUMNS}) array [x, y, z, intensity, elongation, "
+            f"NLZ_flag], got shape {points.shape}"
+        )
+    if points.dtype != np.float32:
+        raise WaymoFormatError(f"{where}: expected float32 points, got {points.dtype}")
+    bad = ~np.isfinite(points)
+    if bad.any():
+        rows = np.nonzero(bad.any(axis=1))[0]
+        raise WaymoFormatError(
+            f"{where}: {rows.size} point(s) with NaN/inf values (first at row {int(rows[0])}: "
+            f"{points[rows[0]].tolist()})"
+        )
+
+
+def validate_frame_info(info: dict, where: str, index: int | None = None) -> None:
+    """Raise :class:`WaymoFormatError` if a frame info dict lacks a key or has a bad shape."""
+    at = f"{where}" + (f" [frame {index}]" if index is not None else "")
+    if not isinstance(info, dict):
+        raise WaymoFormatError(f"{at}: frame info must be a dict, got {type(info).__name__}")
+    for key in INFO_KEYS:
+        if key not in info:
+            raise WaymoFormatError(f"{at}: missing key {key!r} (expected keys: {INFO_KEYS})")
+    for key in POINT_CLOUD_KEYS:
+        if key not in info["point_cloud"]:
+            raise WaymoFormatError(f"{at}: missing key 'point_cloud.{key}'")
+    pose = np.asarray(info["pose"])
+    if pose.shape != (4, 4) or not np.isfinite(pose).all():
+        raise WaymoFormatError(f"{at}: 'pose' must be a finite 4x4 matrix, got shape {pose.shape}")
+    if "annos" in info:
+        annos = info["annos"]
+        for key in ANNO_KEYS:
+            if key not in annos:
+                raise WaymoFormatError(f"{at}: missing key 'annos.{key}' (expected: {ANNO_KEYS})")
+        n = len(annos["name"])
+        boxes = np.asarray(annos["gt_boxes_lidar"])
+        if boxes.ndim != 2 or boxes.shape[0] != n or boxes.shape[1] not in (7, 9):
+            raise WaymoFormatError(
+                f"{at}: 'annos.gt_boxes_lidar' must be ({n}, 9) for {n} objects, got {boxes.shape}"
+            )
+        for key in ("difficulty", "num_points_in_gt", "obj_ids"):
+            if len(annos[key]) != n:
+                raise WaymoFormatError(
+                    f"{at}: 'annos.{key}' has {len(annos[key])} entries for {n} objects"
+                )
+        unknown = sorted(set(map(str, annos["name"])) - set(WAYMO_CLASSES))
+        if unknown:
+            raise WaymoFormatError(
+                f"{at}: unknown class name(s) {unknown} in 'annos.name' (known: {WAYMO_CLASSES})"
+            )
+
+
+def validate_sequence_infos(infos: list, pkl_path: str | Path) -> None:
+    """Check every frame info of a sequence pkl and that ``sample_idx`` runs 0, 1, 2, ... gap-free
+    (multi-frame loading indexes the list by ``sample_idx``)."""
+    if not isinstance(infos, list):
+        raise WaymoFormatError(f"{pkl_path}: expected a list of frame infos, got {type(infos)}")
+    for i, info in enumerate(infos):
+        validate_frame_info(info, str(pkl_path), i)
+        got = info["point_cloud"]["sample_idx"]
+        if got != i:
+            raise WaymoFormatError(
+                f"{pkl_path}: frame index gap: entry {i} has sample_idx {got}, expected {i} "
+                f"(per-sequence pkls must list every frame in order)"
+            )

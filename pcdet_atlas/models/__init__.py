@@ -1,0 +1,1 @@
+"""Pure-torch detectors and their stages (no spconv, no compiled ops)."""

@@ -1,0 +1,38 @@
+"""Logging and small numeric helpers shared by tools and library code."""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+LOG_FORMAT = "%(asctime)s  %(levelname)5s  %(message)s"
+
+
+def create_logger(log_file: str | Path | None = None, rank: int = 0, name: str = "pcdet_atlas"):
+    """OpenPCDet-style logger: INFO on rank 0 (ERROR elsewhere), to the console and ``log_file``."""
+    logger = logging.getLogger(name)
+    logger.setLevel(logging.INFO if rank == 0 else logging.ERROR)
+    logger.propagate = False
+    for handler in list(logger.handlers):
+        logger.removeHandler(handler)
+    formatter = logging.Formatter(LOG_FORMAT)
+    console = logging.StreamHandler()
+    console.setFormatter(formatter)
+    logger.addHandler(console)
+    if log_file is not None:
+        Path(log_file).parent.mkdir(parents=True, exist_ok=True)
+        file_handler = logging.FileHandler(filename=str(log_file))
+        file_handler.setFormatter(formatter)
+        logger.addHandler(file_handler)
+    return logger
+
+
+def limit_period(val, offset: float = 0.5, period: float = 2 * math.pi):
+    """Wrap ``val`` into ``[-offset * period, (1 - offset) * period)`` (numpy or torch)."""
+    if isinstance(val, torch.Tensor):
+        return val - torch.floor(val / period + offset) * period
+    return val - np.floor(val / period + offset) * period

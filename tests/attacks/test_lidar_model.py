@@ -1,0 +1,69 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pcdet_atlas.attacks.lidar_model import LidarModel, waymo_top_inclinations_deg
+from pcdet_atlas.config import ConfigError
+
+
+def test_default_table():
+    deg = waymo_top_inclinations_deg()
+    assert deg.shape == (64,)
+    assert deg[0] == pytest.approx(-17.6) and deg[-1] == pytest.approx(2.4)
+    spacing = np.diff(deg)
+    assert (spacing > 0).all() and spacing[0] > 2 * spacing[-1]  # denser near the horizon
+    lidar = LidarModel.waymo_top()
+    assert lidar.azimuth_bins == 2651 and lidar.num_bins == 64 * 2651
+
+
+def test_bin_index_relative_to_origin_and_edges():
+    lidar = LidarModel.waymo_top()
+    o = lidar.origin
+    # a point at the sensor height straight ahead is on elevation 0 -> nearest beam to 0 deg
+    beam0 = int(np.argmin(np.abs(waymo_top_inclinations_deg())))
+    xyz = torch.tensor([[o[0] + 10.0, 0.0, o[2]]], dtype=torch.float64)
+    bins, fov, rng = lidar.bin_index(xyz)
+    assert int(bins[0]) // lidar.azimuth_bins == beam0
+    assert bool(fov[0]) and float(rng[0]) == pytest.approx(10.0)
+    # azimuth exactly -pi is mapped to +pi (last bin); +pi also last bin; just above -pi bin 0
+    az = torch.tensor([-math.pi, math.pi, -math.pi + 1e-9, 0.0], dtype=torch.float64)
+    idx = lidar.azimuth_index(torch.where(az == -math.pi, torch.full_like(az, math.pi), az))
+    assert idx.tolist()[:3] == [2650, 2650, 0]
+    # a point straight up is outside the field of view
+    up = torch.tensor([[o[0], 0.0, o[2] + 5.0]], dtype=torch.float64)
+    assert not bool(lidar.bin_index(up)[1][0])
+
+
+def test_fit_recovers_table():
+    truth = LidarModel.waymo_top()
+    rng = np.random.default_rng(0)
+    incl = truth.inclinations.numpy() + rng.normal(0, 0.0006, 64)  # a different unit of the sensor
+    incl.sort()
+    beams = rng.integers(0, 64, 50000)
+    az = rng.uniform(-np.pi, np.pi, 50000)
+    r = rng.uniform(5, 70, 50000)
+    el = incl[beams] + rng.normal(0, 2e-4, 50000)
+    o = truth.origin.numpy()
+    pts = np.stack(
+        [
+            o[0] + r * np.cos(el) * np.cos(az),
+            o[1] + r * np.cos(el) * np.sin(az),
+            o[2] + r * np.sin(el),
+        ],
+        1,
+    )
+    fitted = LidarModel.fit(pts)
+    np.testing.assert_allclose(fitted.inclinations.numpy(), incl, atol=2e-4)
+
+
+def test_from_config_and_errors():
+    lidar = LidarModel.from_config({"INCLINATIONS_DEG": [-10.0, -5.0, 0.0], "AZIMUTH_BINS": 100})
+    assert lidar.num_beams == 3 and lidar.azimuth_bins == 100
+    again = LidarModel.from_config(lidar.to_config())
+    assert torch.equal(again.inclinations, lidar.inclinations)
+    with pytest.raises(ConfigError, match="unknown key 'BEAMS'"):
+        LidarModel.from_config({"BEAMS": 64})
+    with pytest.raises(ValueError, match="ascending"):
+        LidarModel([0.1, 0.0])
