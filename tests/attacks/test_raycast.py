@@ -1,0 +1,363 @@
+import math
+from collections import defaultdict
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pcdet_atlas.attacks.counters import AttackCounters
+from pcdet_atlas.attacks.lidar_model import LidarModel
+from pcdet_atlas.attacks.raycast import azimuth_sector_candidates, raycast_merge
+
+DEVICES = [
+    "cpu",
+    pytest.param(
+        "cuda",
+        marks=[
+            pytest.mark.cuda,
+            pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device"),
+        ],
+    ),
+]
+
+
+def reference_merge(scene, spoof, lidar, p_dual=0.0, generator=None):
+    """SPEC §3.3 written plainly: a dict of rays -> lists of (range, index)."""
+    s_bin, s_fov, s_rng = (t.tolist() for t in lidar.bin_index(scene.cpu().double()))
+    p_bin, p_fov, p_rng = (t.tolist() for t in lidar.bin_index(spoof.cpu().double()))
+    scene_rays, spoof_rays = defaultdict(list), defaultdict(list)
+    for i, (b, fov, r) in enumerate(zip(s_bin, s_fov, s_rng)):
+        if fov and r > 0 and math.isfinite(r):
+            scene_rays[b].append((r, i))
+    for j, (b, fov, r) in enumerate(zip(p_bin, p_fov, p_rng)):
+        if fov and 0 < r <= lidar.max_range:
+            spoof_rays[b].append((r, j))
+    keep_scene = [True] * len(s_bin)
+    keep_spoof = [False] * len(p_bin)
+    primary = []
+    for b in sorted(spoof_rays):
+        echo_r, j = min(spoof_rays[b])  # nearest, then lowest index
+        returns = scene_rays.get(b, [])
+        if returns and echo_r >= max(r for r, _ in returns):
+            continue
+        keep_spoof[j] = True
+        for r, i in returns:
+            if r > echo_r:
+                keep_scene[i] = False
+        if returns and echo_r < min(r for r, _ in returns):
+            primary.append(b)
+    if p_dual > 0 and primary:
+        u = torch.rand(len(primary), generator=generator, dtype=torch.float64).tolist()
+        for b, draw in zip(primary, u):
+            if draw < p_dual:
+                keep_scene[min(scene_rays[b])[1]] = True
+    return torch.tensor(keep_scene, dtype=torch.bool), torch.tensor(keep_spoof, dtype=torch.bool)
+
+
+def small_lidar(azimuth_bins=90):
+    return LidarModel(np.deg2rad([-15.0, -10.0, -6.0, -3.0, -1.0, 0.5, 2.0]), azimuth_bins)
+
+
+def ray_points(lidar, beams, cols, ranges, frac_az=None, frac_el=None):
+    """Points on given rays: beam centre elevation, azimuth inside the column, range in metres."""
+    beams = np.asarray(beams)
+    cols = np.asarray(cols)
+    ranges = np.asarray(ranges, dtype=np.float64)
+    width = 2 * np.pi / lidar.azimuth_bins
+    frac_az = 0.5 if frac_az is None else frac_az
+    az = -np.pi + (cols + frac_az) * width
+    el = lidar.inclinations.numpy()[beams] + (0.0 if frac_el is None else frac_el)
+    o = lidar.origin.numpy()
+    xyz = np.stack(
+        [
+            o[0] + ranges * np.cos(el) * np.cos(az),
+            o[1] + ranges * np.cos(el) * np.sin(az),
+            o[2] + ranges * np.sin(el),
+        ],
+        1,
+    )
+    return torch.as_tensor(xyz, dtype=torch.float32)
+
+
+def random_case(seed, lidar, num_scene=3000, num_spoof=300, center_deg=None, spread_deg=20.0):
+    """A scene with several returns per ray in places, and a spoof cluster sharing its rays."""
+    g = np.random.default_rng(seed)
+    M, B = lidar.azimuth_bins, lidar.num_beams
+    center = g.uniform(-180, 180) if center_deg is None else center_deg
+    col_c = int((np.deg2rad(center) + np.pi) / (2 * np.pi / M))
+    span = max(1, int(spread_deg / 360 * M))
+    s_cols = g.integers(0, M, num_scene)
+    near = g.random(num_scene) < 0.5  # half the scene inside the spoof's sector
+    s_cols[near] = (col_c + g.integers(-span, span + 1, near.sum())) % M
+    scene = ray_points(
+        lidar,
+        g.integers(0, B, num_scene),
+        s_cols,
+        g.uniform(2, 90, num_scene),  # some beyond max_range
+        frac_az=g.uniform(0, 1, num_scene),
+        frac_el=g.uniform(-0.004, 0.004, num_scene),
+    )
+    p_cols = (col_c + g.integers(-span, span + 1, num_spoof)) % M
+    spoof = ray_points(
+        lidar,
+        g.integers(0, B, num_spoof),
+        p_cols,
+        g.uniform(3, 85, num_spoof),
+        frac_az=g.uniform(0, 1, num_spoof),
+        frac_el=g.uniform(-0.004, 0.004, num_spoof),
+    )
+    # exact duplicates: equal ranges must tie-break to the lower index
+    spoof[num_spoof // 2 :: 7] = spoof[num_spoof // 2 - 1]
+    scene[::11] = scene[1::11][: scene[::11].shape[0]]
+    return scene, spoof
+
+
+def check_against_reference(scene, spoof, lidar, p_dual=0.0, seed=0, device="cpu"):
+    gen = torch.Generator().manual_seed(seed) if p_dual > 0 else None
+    ref_gen = torch.Generator().manual_seed(seed) if p_dual > 0 else None
+    keep_scene, keep_spoof = raycast_merge(
+        scene.to(device), spoof.to(device), lidar, p_dual=p_dual, generator=gen
+    )
+    assert keep_scene.device.type == device and keep_scene.dtype == torch.bool
+    assert keep_scene.shape == (scene.shape[0],) and keep_spoof.shape == (spoof.shape[0],)
+    exp_scene, exp_spoof = reference_merge(scene, spoof, lidar, p_dual, ref_gen)
+    assert torch.equal(keep_scene.cpu(), exp_scene)
+    assert torch.equal(keep_spoof.cpu(), exp_spoof)
+    return keep_scene.cpu(), keep_spoof.cpu()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("seed", range(6))
+def test_matches_reference_random_scenes(seed, device):
+    lidar = small_lidar() if seed % 2 else LidarModel.waymo_top()
+    scene, spoof = random_case(seed, lidar)
+    keep_scene, keep_spoof = check_against_reference(scene, spoof, lidar, 0.0, device=device)
+    assert 0 < keep_spoof.sum() < spoof.shape[0] and (~keep_scene).sum() > 0  # non-trivial case
+    check_against_reference(scene, spoof, lidar, 0.4, seed=seed, device=device)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_spoof_straddling_pi(device):
+    lidar = LidarModel.waymo_top()
+    for seed in range(3):
+        scene, spoof = random_case(100 + seed, lidar, center_deg=180.0, spread_deg=6.0)
+        _, keep_spoof = check_against_reference(scene, spoof, lidar, device=device)
+        cols = lidar.bin_index(spoof.double())[0] % lidar.azimuth_bins
+        assert (cols[keep_spoof] < 10).any() and (cols[keep_spoof] > 2640).any()
+    # points exactly on the seam (y = 0 behind the sensor, azimuth +-pi) both sides
+    o = lidar.origin
+    seam = torch.tensor(
+        [[o[0] - 20.0, 0.0, o[2]], [o[0] - 30.0, -0.0, o[2]], [o[0] - 10.0, 0.0, o[2]]]
+    )
+    check_against_reference(seam[:2], seam[2:], lidar, device=device)
+    keep_scene, _ = raycast_merge(seam[:2].to(device), seam[2:].to(device), lidar, p_dual=0)
+    assert not keep_scene.any()
+
+
+def test_bin_edges_and_beam_midpoints():
+    lidar = small_lidar(azimuth_bins=48)
+    g = np.random.default_rng(7)
+    n = 800
+    mids = ((lidar.inclinations[1:] + lidar.inclinations[:-1]) / 2).numpy()
+    cols = g.integers(0, 48, n)
+    beams = g.integers(0, lidar.num_beams - 1, n)
+    ranges = g.uniform(2, 60, n)
+    width = 2 * np.pi / 48
+    az = -np.pi + cols * width  # exactly on a column edge (in float64)
+    el = mids[beams]  # exactly on a beam midpoint
+    o = lidar.origin.numpy()
+    xyz = np.stack(
+        [
+            o[0] + ranges * np.cos(el) * np.cos(az),
+            o[1] + ranges * np.cos(el) * np.sin(az),
+            o[2] + ranges * np.sin(el),
+        ],
+        1,
+    )
+    for dtype in (torch.float32, torch.float64):
+        pts = torch.as_tensor(xyz, dtype=dtype)
+        scene, spoof = pts[:600], pts[600:]
+        check_against_reference(scene, spoof, lidar)
+        # the sector prefilter never misses a point of an occupied column
+        s_bin = lidar.bin_index(scene.double())[0] % 48
+        p_cols = torch.unique(lidar.bin_index(spoof.double())[0] % 48)
+        cand = azimuth_sector_candidates(scene, p_cols, lidar)
+        needed = torch.nonzero(torch.isin(s_bin, p_cols)).squeeze(1)
+        assert torch.isin(needed, cand).all()
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    data=st.lists(
+        st.tuples(
+            st.integers(0, 6),  # beam
+            st.integers(0, 11),  # column
+            st.sampled_from([0.0, 5.0, 5.0, 10.0, 20.0, 74.0, 75.0, 80.0]),  # range (dups)
+            st.booleans(),  # spoof?
+        ),
+        max_size=40,
+    )
+)
+def test_property_small_rays(data):
+    lidar = LidarModel(np.deg2rad([-15.0, -10.0, -6.0, -3.0, -1.0, 0.5, 2.0]), 12)
+    if data:
+        beams, cols, ranges, is_spoof = map(np.array, zip(*data))
+        pts = ray_points(lidar, beams, cols, ranges, frac_az=0.5)
+        scene, spoof = pts[~is_spoof], pts[is_spoof]
+    else:
+        scene = spoof = torch.zeros(0, 3)
+    check_against_reference(scene, spoof, lidar)
+    check_against_reference(scene, spoof, lidar, p_dual=0.5, seed=3)
+
+
+def test_range_zero_out_of_fov_and_beyond_max_range():
+    lidar = LidarModel.waymo_top()
+    o = lidar.origin.tolist()
+    beam0 = int(torch.argmin(lidar.inclinations.abs()))
+    spoof = ray_points(lidar, [beam0, beam0, beam0], [1325, 1325, 1325], [10.0, 76.0, 0.0])
+    spoof[2] = torch.tensor(o)  # a spoof point at the sensor: no direction, dropped
+    scene = torch.cat(
+        [
+            torch.tensor([o]),  # range 0: never touched, not a return
+            torch.tensor([[o[0] + 20.0, 0.0, o[2] + 40.0]]),  # above the fan: never touched
+            ray_points(lidar, [beam0], [1325], [80.0]),  # beyond max_range: still a return
+        ]
+    )
+    counters = AttackCounters()
+    keep_scene, keep_spoof = raycast_merge(scene, spoof, lidar, p_dual=0.0, counters=counters)
+    assert keep_spoof.tolist() == [True, False, False]  # 76 m > max_range is dropped
+    assert keep_scene.tolist() == [True, True, False]  # the 80 m return is occluded
+    assert counters.bins_touched == 1
+    check_against_reference(scene, spoof, lidar)
+    # an out-of-FOV spoof point is dropped, a spoof behind every return too
+    spoof2 = torch.cat([spoof[:1] + torch.tensor([0.0, 0.0, 30.0]), spoof[1:2]])
+    keep_scene, keep_spoof = raycast_merge(scene[2:], spoof2[1:], lidar, p_dual=0.0)
+    assert keep_spoof.tolist() == [False] and keep_scene.all()  # 76 m: beyond max_range
+    far_scene = ray_points(lidar, [beam0], [1325], [8.0])
+    keep_scene, keep_spoof = raycast_merge(far_scene, spoof[:1], lidar, p_dual=0.0)
+    assert keep_spoof.tolist() == [False] and keep_scene.tolist() == [True]
+    assert not raycast_merge(scene, spoof2[:1], lidar, p_dual=0.0)[1].any()
+
+
+def test_empty_inputs():
+    lidar = LidarModel.waymo_top()
+    spoof = ray_points(lidar, [10, 10, 20], [5, 5, 7], [10.0, 9.0, 4.0])
+    keep_scene, keep_spoof = raycast_merge(torch.zeros(0, 3), spoof, lidar, p_dual=0.0)
+    assert keep_scene.shape == (0,) and keep_spoof.tolist() == [False, True, True]
+    counters = AttackCounters()
+    scene = spoof.clone()
+    keep_scene, keep_spoof = raycast_merge(
+        scene, torch.zeros(0, 3), lidar, p_dual=0.0, counters=counters
+    )
+    assert keep_scene.all() and keep_spoof.shape == (0,)
+    assert counters.snapshot() == AttackCounters().snapshot()  # no spoof: no work, no draw
+    keep_scene, keep_spoof = raycast_merge(
+        torch.zeros(0, 5), torch.zeros(0, 5), lidar, 0.01, torch.Generator()
+    )
+    assert keep_scene.shape == (0,) and keep_spoof.shape == (0,)
+
+
+def test_ties_break_to_lower_index_and_determinism():
+    lidar = LidarModel.waymo_top()
+    spoof = ray_points(lidar, [30] * 4, [100] * 4, [12.0, 9.0, 9.0, 9.0])
+    spoof[3] = spoof[1]
+    scene = ray_points(lidar, [30] * 4, [100] * 4, [20.0, 15.0, 15.0, 30.0])
+    scene[2] = scene[1]
+    gen = torch.Generator().manual_seed(0)
+    keep_scene, keep_spoof = raycast_merge(scene, spoof, lidar, p_dual=1.0, generator=gen)
+    assert keep_spoof.tolist() == [False, True, False, False]
+    assert keep_scene.tolist() == [False, True, False, False]  # second echo: lower index
+    # same seed -> same result; different seeds differ somewhere over many primary rays
+    scene, spoof = random_case(5, LidarModel.waymo_top(), num_scene=4000, num_spoof=600)
+    a = raycast_merge(scene, spoof, lidar, 0.5, torch.Generator().manual_seed(1))
+    b = raycast_merge(scene, spoof, lidar, 0.5, torch.Generator().manual_seed(1))
+    c = raycast_merge(scene, spoof, lidar, 0.5, torch.Generator().manual_seed(2))
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+    assert not torch.equal(a[0], c[0]) and torch.equal(a[1], c[1])
+
+
+def test_dual_return_frequency():
+    lidar = LidarModel.waymo_top()
+    g = np.random.default_rng(0)
+    n = 4000  # distinct rays, each with a spoof in front of two scene returns
+    flat = g.choice(lidar.num_bins, n, replace=False)
+    beams, cols = flat // lidar.azimuth_bins, flat % lidar.azimuth_bins
+    spoof = ray_points(lidar, beams, cols, g.uniform(5, 10, n))
+    near = ray_points(lidar, beams, cols, g.uniform(20, 40, n))
+    far = ray_points(lidar, beams, cols, g.uniform(50, 70, n))
+    scene = torch.cat([near, far])
+    p = 0.1
+    counters = AttackCounters()
+    gen = torch.Generator().manual_seed(11)
+    keep_scene, keep_spoof = raycast_merge(scene, spoof, lidar, p, gen, counters=counters)
+    assert keep_spoof.all() and not keep_scene[n:].any()  # far returns always occluded
+    kept = int(keep_scene[:n].sum())
+    assert counters.dual_draws == n and counters.bins_touched == n
+    assert abs(kept - n * p) <= 5 * math.sqrt(n * p * (1 - p))
+    # p_dual = 0: deterministic, no draw, no generator needed
+    counters.reset()
+    keep_scene, _ = raycast_merge(scene, spoof, lidar, 0.0, counters=counters)
+    assert not keep_scene.any() and counters.dual_draws == 0
+
+
+def test_work_restricted_to_sector():
+    lidar = LidarModel.waymo_top()
+    scene, spoof = random_case(3, lidar, num_scene=5000, num_spoof=200, center_deg=30.0)
+    spread = scene.shape[0]
+    # spoof sector around +30 deg; add 50k points in the opposite half of the scan
+    g = np.random.default_rng(1)
+    m = 50000
+    far_cols = g.integers(0, lidar.azimuth_bins // 2 - 200, m)  # azimuth in [-180, -30) deg
+    extra = ray_points(
+        lidar, g.integers(0, 64, m), far_cols, g.uniform(2, 70, m), frac_az=g.uniform(0, 1, m)
+    )
+    c1, c2 = AttackCounters(), AttackCounters()
+    k1 = raycast_merge(scene, spoof, lidar, p_dual=0.0, counters=c1)
+    k2 = raycast_merge(torch.cat([scene, extra]), spoof, lidar, p_dual=0.0, counters=c2)
+    assert c1.snapshot() == c2.snapshot()
+    assert torch.equal(k2[0][:spread], k1[0]) and k2[0][spread:].all()
+    assert torch.equal(k1[1], k2[1])
+    assert c1.points_examined < 0.6 * spread + spoof.shape[0]  # far-sector scene points skipped
+    # the examined points grow with the points inside the sector
+    c3 = AttackCounters()
+    raycast_merge(torch.cat([scene, scene]), spoof, lidar, p_dual=0.0, counters=c3)
+    assert c3.points_examined - spoof.shape[0] == 2 * (c1.points_examined - spoof.shape[0])
+
+
+def test_extra_columns_and_float64():
+    lidar = small_lidar()
+    scene, spoof = random_case(9, lidar, num_scene=1000, num_spoof=100)
+    extra = torch.randn(scene.shape[0], 2)
+    a = raycast_merge(torch.cat([scene, extra], 1), spoof, lidar, p_dual=0.0)
+    b = raycast_merge(scene.double(), spoof.double(), lidar, p_dual=0.0)
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+
+
+def test_non_finite_scene_points_untouched():
+    lidar = LidarModel.waymo_top()
+    spoof = ray_points(lidar, [40], [1300], [10.0])
+    scene = torch.cat(
+        [
+            ray_points(lidar, [40], [1300], [30.0]),
+            torch.tensor([[math.nan, 0.0, 0.0], [math.inf, 0.0, 2.0], [5.0, math.inf, 2.0]]),
+        ]
+    )
+    keep_scene, keep_spoof = raycast_merge(scene, spoof, lidar, p_dual=0.0)
+    assert keep_scene.tolist() == [False, True, True, True] and keep_spoof.all()
+
+
+def test_bad_arguments():
+    lidar = LidarModel.waymo_top()
+    pts = torch.zeros(3, 3)
+    with pytest.raises(ValueError, match="explicit torch.Generator"):
+        raycast_merge(pts, pts, lidar, p_dual=0.01)
+    with pytest.raises(ValueError, match="p_dual"):
+        raycast_merge(pts, pts, lidar, p_dual=1.5, generator=torch.Generator())
+    with pytest.raises(ValueError, match="shape"):
+        raycast_merge(torch.zeros(3, 2), pts, lidar, p_dual=0.0)
+    with pytest.raises(TypeError, match="floating"):
+        raycast_merge(torch.zeros(3, 3, dtype=torch.long), pts, lidar, p_dual=0.0)
+    with pytest.raises(ValueError, match="non-finite"):
+        raycast_merge(pts, torch.full((1, 3), math.nan), lidar, p_dual=0.0)
