@@ -1,0 +1,277 @@
+"""The per-frame attack interface shared by every attack family, and building attacks from YAML.
+
+An attack family is one class registered in ``ATTACKS`` that subclasses :class:`BaseAttack` and
+implements three things:
+
+* ``prepare_run(seq, run_id)``: everything a run needs that does not depend on the frame's points
+  (phantom sampling, target tracking). Pure function of ``(seq, run_id)`` and the config, so it is
+  cached per ``(sequence, run)`` and never depends on which frame asked first.
+* ``attack_frame(scene_xyz, seq, frame_idx, run_state, schedule) -> FrameAttack``: the physics of
+  one spoofed frame, from the scene's xyz only (features are carried, never read).
+* ``shadow_meta(seq, frame_idx, run_state, schedule) -> dict``: the metadata of a clean lifecycle
+  frame (the frame before a run and the W frames after it; SPEC §4), without touching points.
+
+:meth:`BaseAttack.simulate` is the one entry point: it looks the frame up in the schedule and
+does **no** work for a clean frame. A new variant is a YAML file; a new family is a registered
+class plus YAML (see ``docs/attacks.md``).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections import OrderedDict
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from pcdet_atlas.attacks import schedule as sched
+from pcdet_atlas.attacks.metadata import make_meta
+from pcdet_atlas.attacks.tracking import FrameLabels
+from pcdet_atlas.config import ConfigError, cfg_from_yaml_file, check_known_keys, key_source
+from pcdet_atlas.registry import ATTACKS
+
+__all__ = [
+    "BaseAttack",
+    "FrameAttack",
+    "ScheduleState",
+    "SequenceData",
+    "build_attack",
+    "attack_from_file",
+    "COMMON_KEYS",
+]
+
+#: Keys every attack YAML may hold (families add their own).
+COMMON_KEYS = {"NAME", "VARIANT", "SEED", "SCHEDULE", "LIDAR", "DEVICE"}
+
+
+@dataclass(frozen=True)
+class ScheduleState:
+    """Where a frame sits in the schedule (SPEC §3.2, §4)."""
+
+    spoofed: bool
+    run_id: int  # spoofing run, or the run whose lifecycle holds this clean frame; -1 if none
+    run_position: int  # 0-based position in the run, -1 if clean
+    lifecycle_k: int  # -1 if in no lifecycle
+
+
+@dataclass
+class SequenceData:
+    """What attacks need of a sequence besides points: poses and labels, by frame index.
+
+    Labels are converted lazily, frame by frame, so building this is cheap.
+    """
+
+    name: str
+    infos: Sequence[Mapping]
+    _labels: dict[int, FrameLabels] = field(default_factory=dict, repr=False)
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.infos)
+
+    def pose(self, frame_idx: int) -> np.ndarray:
+        """``(4, 4)`` float64 vehicle -> world pose of a frame."""
+        return np.asarray(self.infos[frame_idx]["pose"], dtype=np.float64).reshape(4, 4)
+
+    def labels(self, frame_idx: int) -> FrameLabels:
+        if frame_idx not in self._labels:
+            self._labels[frame_idx] = FrameLabels.from_info(self.infos[frame_idx])
+        return self._labels[frame_idx]
+
+
+@dataclass
+class FrameAttack:
+    """The result of attacking one frame.
+
+    Attributes:
+        keep: ``(N,)`` bool mask of scene points kept, or ``None`` (all kept).
+        added: ``(K, 5)`` float32 points added: ``x, y, z`` (vehicle frame, m) and **raw**
+            intensity and elongation (the dataset applies its feature transform, e.g. tanh).
+        meta: the metadata record (:mod:`pcdet_atlas.attacks.metadata`).
+    """
+
+    keep: np.ndarray | None
+    added: np.ndarray
+    meta: dict
+
+    def apply(
+        self,
+        points: np.ndarray,
+        feature_fn: Callable[[np.ndarray], np.ndarray] | None = None,
+        fill_value: float = 0.0,
+    ) -> np.ndarray:
+        """``points[keep]`` followed by the added points as rows of the same width.
+
+        Args:
+            points: ``(N, C)`` scene points, ``C >= 5``.
+            feature_fn: maps the ``(K, 5)`` raw added points into the dataset's feature space.
+            fill_value: value of the columns beyond the fifth for added rows.
+        """
+        kept = points if self.keep is None else points[self.keep]
+        if self.added.shape[0] == 0:
+            return kept
+        added = self.added if feature_fn is None else feature_fn(self.added.copy())
+        rows = np.full((added.shape[0], points.shape[1]), fill_value, dtype=points.dtype)
+        rows[:, :5] = added[:, :5]
+        return np.concatenate([kept, rows], axis=0)
+
+
+class BaseAttack(ABC):
+    """Common state and the schedule-driven entry point of every attack family.
+
+    Args:
+        variant: the variant name recorded in metadata (e.g. ``'inj_global_hard'``).
+        seed: global seed of every random draw of this attack.
+        window: schedule window ``W`` in frames.
+        run_cache_size: how many prepared runs to keep (LRU), per attack instance.
+    """
+
+    family: ClassVar[str] = "base"
+    #: Family-specific YAML keys (beyond :data:`COMMON_KEYS`).
+    config_keys: ClassVar[set[str]] = set()
+
+    def __init__(self, variant: str, seed: int = 0, window: int = sched.DEFAULT_WINDOW,
+                 run_cache_size: int = 64):  # fmt: skip
+        self.variant = str(variant)
+        self.seed = int(seed)
+        self.window = int(window)
+        if self.window < 1:
+            raise ValueError(f"schedule window must be >= 1, got {window}")
+        self._run_cache: OrderedDict[tuple[str, int], Any] = OrderedDict()
+        self._run_cache_size = int(run_cache_size)
+
+    # ------------------------------------------------------------------ config
+    @classmethod
+    def from_config(cls, cfg: Mapping, data_root: str | Path | None = None) -> BaseAttack:
+        """Build from an attack YAML (already loaded). ``data_root`` resolves relative paths."""
+        raise NotImplementedError
+
+    @classmethod
+    def _common_kwargs(cls, cfg: Mapping) -> dict:
+        check_known_keys(cfg, COMMON_KEYS | cls.config_keys, f"attack config {cls.__name__}")
+        schedule_cfg = cfg.get("SCHEDULE", {}) or {}
+        check_known_keys(schedule_cfg, {"WINDOW"}, "SCHEDULE")
+        variant = cfg.get("VARIANT")
+        if not variant:
+            raise ConfigError(
+                f"attack config {cls.__name__}: missing VARIANT (from {key_source(cfg, 'NAME')})"
+            )
+        return {
+            "variant": str(variant),
+            "seed": int(cfg.get("SEED", 0)),
+            "window": int(schedule_cfg.get("WINDOW", sched.DEFAULT_WINDOW)),
+        }
+
+    # ------------------------------------------------------------------ schedule
+    def schedule_state(self, frame_idx: int, num_frames: int) -> ScheduleState:
+        """The schedule state of a frame of a ``num_frames`` sequence."""
+        run_id, pos = sched.run_of_frame(frame_idx, num_frames, self.window)
+        if run_id >= 0:
+            return ScheduleState(True, run_id, pos, pos + 1)
+        run_id, k = sched.lifecycle_of_frame(frame_idx, num_frames, self.window)
+        return ScheduleState(False, run_id, -1, k)
+
+    def run_state(self, seq: SequenceData, run_id: int) -> Any:
+        """The prepared state of a run (cached; a pure function of ``(seq, run_id)``)."""
+        key = (seq.name, run_id)
+        if key in self._run_cache:
+            self._run_cache.move_to_end(key)
+            return self._run_cache[key]
+        state = self.prepare_run(seq, run_id)
+        self._run_cache[key] = state
+        while len(self._run_cache) > self._run_cache_size:
+            self._run_cache.popitem(last=False)
+        return state
+
+    def run_bounds(self, seq: SequenceData, run_id: int) -> tuple[int, int]:
+        """``(start, end_inclusive)`` of a run of ``seq``."""
+        return sched.run_bounds(run_id, seq.num_frames, self.window)
+
+    def needs_simulation(self, frame_idx: int, num_frames: int) -> bool:
+        """Whether a frame's points are changed by this attack (a clean frame never is)."""
+        return self.schedule_state(frame_idx, num_frames).spoofed
+
+    def meta(self, state: ScheduleState, **kwargs) -> dict:
+        """A metadata record of this attack for a frame in ``state``."""
+        return make_meta(
+            self.variant,
+            self.family,
+            spoofed=state.spoofed,
+            run_id=state.run_id,
+            run_position=state.run_position,
+            lifecycle_k=state.lifecycle_k,
+            **kwargs,
+        )
+
+    def simulate(
+        self, scene_xyz: np.ndarray | None, seq: SequenceData, frame_idx: int
+    ) -> FrameAttack:
+        """Attack frame ``frame_idx`` of ``seq`` by its own schedule state.
+
+        Args:
+            scene_xyz: ``(N, 3+)`` scene points of the frame (vehicle frame). Only read for a
+                spoofed frame; may be ``None`` for a clean one.
+        Returns:
+            The :class:`FrameAttack`; for a clean frame ``keep is None`` and nothing is added.
+        """
+        state = self.schedule_state(frame_idx, seq.num_frames)
+        if not state.spoofed:
+            return FrameAttack(None, _EMPTY_ADDED, self.frame_meta(seq, frame_idx, state))
+        if scene_xyz is None:
+            raise ValueError(f"{seq.name} frame {frame_idx} is spoofed: scene points are needed")
+        run = self.run_state(seq, state.run_id)
+        return self.attack_frame(np.asarray(scene_xyz)[:, :3], seq, frame_idx, run, state)
+
+    def frame_meta(
+        self, seq: SequenceData, frame_idx: int, state: ScheduleState | None = None
+    ) -> dict:
+        """Metadata of a clean frame (with its shadow target on lifecycle frames)."""
+        state = state or self.schedule_state(frame_idx, seq.num_frames)
+        if state.spoofed:
+            raise ValueError(f"{seq.name} frame {frame_idx} is spoofed; use simulate()")
+        if state.run_id < 0:
+            return self.meta(state)
+        return self.shadow_meta(seq, frame_idx, self.run_state(seq, state.run_id), state)
+
+    # ------------------------------------------------------------------ family hooks
+    @abstractmethod
+    def prepare_run(self, seq: SequenceData, run_id: int) -> Any:
+        """Per-run state (no point work)."""
+
+    @abstractmethod
+    def attack_frame(
+        self,
+        scene_xyz: np.ndarray,
+        seq: SequenceData,
+        frame_idx: int,
+        run: Any,
+        state: ScheduleState,
+    ) -> FrameAttack:
+        """Attack one spoofed frame. ``scene_xyz`` is ``(N, 3)`` in the frame's vehicle frame."""
+
+    @abstractmethod
+    def shadow_meta(
+        self, seq: SequenceData, frame_idx: int, run: Any, state: ScheduleState
+    ) -> dict:
+        """Metadata of a clean lifecycle frame of ``run`` (shadow target, not attacked)."""
+
+
+_EMPTY_ADDED = np.zeros((0, 5), dtype=np.float32)
+_EMPTY_ADDED.setflags(write=False)
+
+
+def build_attack(cfg: Mapping, data_root: str | Path | None = None) -> BaseAttack:
+    """Build the registered attack named by ``cfg.NAME`` from a loaded attack config."""
+    if "NAME" not in cfg:
+        origin = {key_source(cfg, k) for k in cfg} - {"<unknown>"}
+        raise ConfigError(f"attack config {sorted(origin) or ''}: missing NAME (the attack class)")
+    cls = ATTACKS.get(str(cfg["NAME"]))
+    return cls.from_config(cfg, data_root=data_root)
+
+
+def attack_from_file(path: str | Path, data_root: str | Path | None = None) -> BaseAttack:
+    """Load an attack YAML (with its ``_BASE_CONFIG_`` chain) and build it."""
+    return build_attack(cfg_from_yaml_file(path), data_root=data_root)

@@ -1,0 +1,102 @@
+"""Local ground height under a phantom, from the frame's own scene points (SPEC §3.4).
+
+The estimate is a robust low percentile of the z of the scene points inside a small disc around
+the phantom centre: low, because cars, walls and vegetation in the disc only add points above the
+ground; a percentile rather than the minimum, because of range noise and stray low returns.
+
+Fallback, documented and recorded: when the disc holds fewer than ``min_points`` points the disc
+is widened once to ``fallback_radius``; when that also fails the ground is taken as
+``fallback_z`` (default 0.0 m, the Waymo vehicle frame's origin lies on the ground under the ego),
+i.e. the ground plane under the ego vehicle is assumed to extend to the phantom.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from pcdet_atlas.config import ConfigError, check_known_keys
+
+__all__ = ["GroundEstimator"]
+
+
+@dataclass(frozen=True)
+class GroundEstimate:
+    """``z`` (m, vehicle frame), how it was found (``'disc'``, ``'wide_disc'``, ``'fallback'``)
+    and the number of scene points examined in the disc."""
+
+    z: float
+    source: str
+    num_points: int
+
+
+class GroundEstimator:
+    """Robust local ground height.
+
+    Args:
+        radius: disc radius around the phantom centre, metres.
+        percentile: percentile of point z in the disc taken as the ground (0-100).
+        min_points: fewest disc points for the estimate to be trusted.
+        fallback_radius: wider disc tried when the first has too few points (m).
+        fallback_z: ground height used when both discs are too sparse (m, vehicle frame).
+        max_abs_z: points with |z| above this (m) are ignored (e.g. overhanging structure).
+    """
+
+    def __init__(
+        self,
+        radius: float = 3.0,
+        percentile: float = 10.0,
+        min_points: int = 10,
+        fallback_radius: float = 8.0,
+        fallback_z: float = 0.0,
+        max_abs_z: float = 5.0,
+    ):
+        if not radius > 0 or not fallback_radius >= radius:
+            raise ValueError(f"need 0 < radius <= fallback_radius, got {radius}, {fallback_radius}")
+        if not 0.0 <= percentile <= 100.0:
+            raise ValueError(f"percentile must be in [0, 100], got {percentile}")
+        if int(min_points) < 1:
+            raise ValueError(f"min_points must be >= 1, got {min_points}")
+        self.radius = float(radius)
+        self.percentile = float(percentile)
+        self.min_points = int(min_points)
+        self.fallback_radius = float(fallback_radius)
+        self.fallback_z = float(fallback_z)
+        self.max_abs_z = float(max_abs_z)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping | None) -> GroundEstimator:
+        """Keys (all optional): ``RADIUS``, ``PERCENTILE``, ``MIN_POINTS``, ``FALLBACK_RADIUS``,
+        ``FALLBACK_Z``, ``MAX_ABS_Z``."""
+        cfg = cfg or {}
+        keys = {
+            "RADIUS": "radius",
+            "PERCENTILE": "percentile",
+            "MIN_POINTS": "min_points",
+            "FALLBACK_RADIUS": "fallback_radius",
+            "FALLBACK_Z": "fallback_z",
+            "MAX_ABS_Z": "max_abs_z",
+        }
+        check_known_keys(cfg, keys, "GROUND")
+        try:
+            return cls(**{keys[k]: v for k, v in cfg.items()})
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"GROUND: {err}") from err
+
+    def __call__(self, scene_xyz: np.ndarray, center_xy) -> GroundEstimate:
+        """Ground height at ``center_xy`` (2,) from ``(N, 3+)`` scene points (vehicle frame)."""
+        cx, cy = float(center_xy[0]), float(center_xy[1])
+        xyz = np.asarray(scene_xyz)
+        # cheap square pre-filter on the wide disc, then exact distances on the survivors
+        r_wide = self.fallback_radius
+        box = (np.abs(xyz[:, 0] - cx) <= r_wide) & (np.abs(xyz[:, 1] - cy) <= r_wide)
+        cand = xyz[box]
+        cand = cand[np.abs(cand[:, 2]) <= self.max_abs_z]
+        d2 = (cand[:, 0] - cx) ** 2 + (cand[:, 1] - cy) ** 2
+        for radius, source in ((self.radius, "disc"), (self.fallback_radius, "wide_disc")):
+            z = cand[d2 <= radius * radius, 2]
+            if z.size >= self.min_points:
+                return GroundEstimate(float(np.percentile(z, self.percentile)), source, int(z.size))
+        return GroundEstimate(self.fallback_z, "fallback", int(cand.shape[0]))

@@ -1,0 +1,342 @@
+"""Point injection (SPEC §3.4): a recorded vehicle trace replayed as a phantom through the
+sensor-level raycaster.
+
+Per run (all draws keyed by ``(seed, 'injection', position_mode, sequence, run_start, purpose)``,
+never by the budget, so easy/medium/hard of one position mode share trace, placement and point
+order — *common random numbers*; the easy phantom's points are a prefix of the hard one's):
+
+* a trace of the library, and one permutation of its points;
+* a budget ``n ~ U{lo, hi}`` from one uniform shared by all budgets, capped at the trace size;
+  the phantom is the first ``n`` points of the permutation (sampling without replacement);
+* an offset ``x ~ U(15, 20)``, ``y ~ U(-3, 3)`` m and a yaw ``psi ~ U(-0.2, 0.2)`` rad.
+
+Position modes: ``relative`` keeps the phantom's ego-relative pose in every frame of the run;
+``global`` places it in the run's anchor frame (its last frame) and holds it fixed in the world,
+``p_k = T_k^-1 T_anchor p``.
+
+Per spoofed frame: pose the phantom, set its bottom on the local ground
+(:class:`~pcdet_atlas.attacks.ground.GroundEstimator`), correct intensity and elongation for the
+new range (:class:`~pcdet_atlas.attacks.intensity.RangeIntensityModel`), then
+:func:`~pcdet_atlas.attacks.raycast.raycast_merge` with the frame's scene decides which phantom
+points a real sensor would report and which scene points they occlude.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, ScheduleState, SequenceData
+from pcdet_atlas.attacks.counters import COUNTERS
+from pcdet_atlas.attacks.ground import GroundEstimator
+from pcdet_atlas.attacks.intensity import RangeIntensityModel
+from pcdet_atlas.attacks.lidar_model import LidarModel
+from pcdet_atlas.attacks.raycast import raycast_merge
+from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary
+from pcdet_atlas.config import REPO_ROOT, ConfigError
+from pcdet_atlas.registry import ATTACKS
+from pcdet_atlas.utils.box_utils import transform_boxes, transform_points
+from pcdet_atlas.utils.seeding import numpy_generator, torch_generator
+
+__all__ = ["InjectionAttack", "PhantomRun", "sample_phantom"]
+
+POSITION_MODES = ("relative", "global")
+
+
+@dataclass(frozen=True)
+class PhantomRun:
+    """A run's phantom in its reference ego frame (relative: every frame; global: the anchor).
+
+    Attributes:
+        xyz: ``(n, 3)`` float64 phantom points, bottom of the box at z = 0, m.
+        intensity, elongation, src_range: ``(n,)`` float32 raw values and recording range (m).
+        box: ``(7,)`` float64 phantom box in the same frame.
+        anchor_pose: ``(4, 4)`` vehicle -> world pose of the anchor frame (global mode), or None.
+        trace_index: library index. budget_requested: the drawn ``n`` before capping.
+    """
+
+    run_id: int
+    start: int
+    end: int
+    trace_index: int
+    budget_requested: int
+    xyz: np.ndarray
+    intensity: np.ndarray
+    elongation: np.ndarray
+    src_range: np.ndarray
+    box: np.ndarray
+    anchor_pose: np.ndarray | None
+
+    @property
+    def budget(self) -> int:
+        return int(self.xyz.shape[0])
+
+
+def sample_phantom(
+    library: TraceLibrary,
+    keys: tuple,
+    budget_range: tuple[int, int],
+    offset_x: tuple[float, float] = (15.0, 20.0),
+    offset_y: tuple[float, float] = (-3.0, 3.0),
+    yaw_range: tuple[float, float] = (-0.2, 0.2),
+) -> tuple[int, int, np.ndarray, np.ndarray]:
+    """Draw one run's phantom (common random numbers across budgets).
+
+    Args:
+        keys: seed keys of the run, e.g. ``(seed, 'injection', mode, sequence, run_start)``.
+    Returns:
+        trace index, requested budget, selected point indices into the trace ``(n,)`` (a prefix
+        of one permutation), and the placement ``[x, y, yaw]`` (m, m, rad).
+    """
+    trace_index = int(numpy_generator(*keys, "trace").integers(len(library)))
+    size = int(library.trace_sizes()[trace_index])
+    order = numpy_generator(*keys, "subsample").permutation(size)
+    lo, hi = int(budget_range[0]), int(budget_range[1])
+    u = float(numpy_generator(*keys, "budget").random())
+    requested = min(lo + int(u * (hi - lo + 1)), hi)
+    place = numpy_generator(*keys, "placement").random(3)
+    x = offset_x[0] + place[0] * (offset_x[1] - offset_x[0])
+    y = offset_y[0] + place[1] * (offset_y[1] - offset_y[0])
+    yaw = yaw_range[0] + place[2] * (yaw_range[1] - yaw_range[0])
+    return trace_index, requested, order[: min(requested, size)], np.array([x, y, yaw])
+
+
+def _range_pair(cfg: Mapping, key: str, default, cast=float) -> tuple:
+    val = cfg.get(key, default)
+    if not isinstance(val, (list, tuple)) or len(val) != 2 or cast(val[0]) > cast(val[1]):
+        raise ConfigError(f"{key} must be [lo, hi] with lo <= hi, got {val!r}")
+    return cast(val[0]), cast(val[1])
+
+
+@ATTACKS.register()
+class InjectionAttack(BaseAttack):
+    """Phantom-vehicle injection through the raycaster.
+
+    Args:
+        variant, seed, window: see :class:`BaseAttack`.
+        library: a :class:`TraceLibrary`, or a path loaded on first use.
+        position_mode: ``'relative'`` or ``'global'``.
+        budget: ``(lo, hi)`` point budget (inclusive).
+        offset_x, offset_y: placement ranges in the reference ego frame, m.
+        yaw_range: phantom heading range, rad.
+        ground: local ground estimator. intensity: range correction of features.
+        p_dual: dual-return probability of the raycaster.
+        lidar: sensor model. device: where the raycast runs.
+        trace_filter: the filters the library must have been built with (checked on load).
+    """
+
+    family = "injection"
+    config_keys = {
+        "TRACE_LIBRARY",
+        "POSITION_MODE",
+        "BUDGET",
+        "OFFSET_X",
+        "OFFSET_Y",
+        "YAW",
+        "GROUND",
+        "INTENSITY",
+        "P_DUAL",
+    }
+
+    def __init__(
+        self,
+        variant: str,
+        library: TraceLibrary | str | Path,
+        position_mode: str,
+        budget: tuple[int, int],
+        offset_x: tuple[float, float] = (15.0, 20.0),
+        offset_y: tuple[float, float] = (-3.0, 3.0),
+        yaw_range: tuple[float, float] = (-0.2, 0.2),
+        ground: GroundEstimator | None = None,
+        intensity: RangeIntensityModel | None = None,
+        p_dual: float = 0.01,
+        lidar: LidarModel | None = None,
+        device: str = "cpu",
+        trace_filter: TraceFilter | None = None,
+        seed: int = 0,
+        window: int = 32,
+    ):
+        super().__init__(variant, seed=seed, window=window)
+        if position_mode not in POSITION_MODES:
+            raise ValueError(
+                f"position_mode must be one of {POSITION_MODES}, got {position_mode!r}"
+            )
+        if not 1 <= int(budget[0]) <= int(budget[1]):
+            raise ValueError(f"budget must be [lo, hi] with 1 <= lo <= hi, got {budget}")
+        if not 0.0 <= p_dual <= 1.0:
+            raise ValueError(f"p_dual must be in [0, 1], got {p_dual}")
+        self._library = library if isinstance(library, TraceLibrary) else None
+        self.library_path = None if self._library is not None else Path(library)
+        self.position_mode = position_mode
+        self.budget = (int(budget[0]), int(budget[1]))
+        self.offset_x = tuple(float(v) for v in offset_x)
+        self.offset_y = tuple(float(v) for v in offset_y)
+        self.yaw_range = tuple(float(v) for v in yaw_range)
+        self.ground = ground or GroundEstimator()
+        self.intensity = intensity or RangeIntensityModel()
+        self.p_dual = float(p_dual)
+        self.lidar = lidar or LidarModel.waymo_top()
+        self.device = torch.device(device)
+        self.trace_filter = trace_filter
+        self._origin = self.lidar.origin.numpy()
+
+    @classmethod
+    def from_config(cls, cfg: Mapping, data_root: str | Path | None = None) -> InjectionAttack:
+        """Relative ``TRACE_LIBRARY.PATH`` resolves under ``data_root`` (the dataset root) when
+        given, else under the repository root."""
+        kwargs = cls._common_kwargs(cfg)
+        for key in ("TRACE_LIBRARY", "POSITION_MODE", "BUDGET"):
+            if key not in cfg:
+                raise ConfigError(f"{kwargs['variant']}: InjectionAttack needs {key}")
+        trace_filter = TraceFilter.from_config(cfg["TRACE_LIBRARY"])
+        path = Path(trace_filter.path)
+        if not path.is_absolute():
+            path = Path(data_root if data_root is not None else REPO_ROOT) / path
+        try:
+            return cls(
+                library=path,
+                position_mode=str(cfg["POSITION_MODE"]),
+                budget=_range_pair(cfg, "BUDGET", None, int),
+                offset_x=_range_pair(cfg, "OFFSET_X", (15.0, 20.0)),
+                offset_y=_range_pair(cfg, "OFFSET_Y", (-3.0, 3.0)),
+                yaw_range=_range_pair(cfg, "YAW", (-0.2, 0.2)),
+                ground=GroundEstimator.from_config(cfg.get("GROUND")),
+                intensity=RangeIntensityModel.from_config(cfg.get("INTENSITY")),
+                p_dual=float(cfg.get("P_DUAL", 0.01)),
+                lidar=LidarModel.from_config(cfg.get("LIDAR")),
+                device=str(cfg.get("DEVICE", "cpu")),
+                trace_filter=trace_filter,
+                **kwargs,
+            )
+        except ValueError as err:
+            if isinstance(err, ConfigError):
+                raise
+            raise ConfigError(f"{kwargs['variant']}: {err}") from err
+
+    @property
+    def library(self) -> TraceLibrary:
+        """The trace library (loaded on first use; its build filters must match the config)."""
+        if self._library is None:
+            lib = TraceLibrary.load(self.library_path)
+            if self.trace_filter is not None:
+                built = lib.build_info.get("filters")
+                if built != self.trace_filter.to_dict():
+                    raise ConfigError(
+                        f"{self.library_path}: built with filters {built}, but {self.variant} "
+                        f"asks for {self.trace_filter.to_dict()}; rebuild the library with "
+                        "tools/build_trace_library.py"
+                    )
+            self._library = lib
+        return self._library
+
+    def rng_keys(self, seq_name: str, start: int) -> tuple:
+        """Seed keys of a run: no budget in them (common random numbers across budgets)."""
+        return (self.seed, self.family, self.position_mode, seq_name, int(start))
+
+    # ------------------------------------------------------------------ per run
+    def prepare_run(self, seq: SequenceData, run_id: int) -> PhantomRun:
+        start, end = self.run_bounds(seq, run_id)
+        lib = self.library
+        trace_index, requested, sel, (x, y, yaw) = sample_phantom(
+            lib, self.rng_keys(seq.name, start), self.budget, self.offset_x, self.offset_y,
+            self.yaw_range,
+        )  # fmt: skip
+        trace = lib.trace(trace_index)
+        l, w, h = (float(v) for v in trace.box_size)
+        can = trace.xyz[sel].astype(np.float64)  # (n, 3), box centre at the origin
+        c, s = np.cos(yaw), np.sin(yaw)
+        xyz = np.stack(
+            [
+                c * can[:, 0] - s * can[:, 1] + x,
+                s * can[:, 0] + c * can[:, 1] + y,
+                can[:, 2] + h / 2,
+            ],
+            axis=1,
+        )  # bottom of the box on z = 0 of the reference frame
+        return PhantomRun(
+            run_id=run_id,
+            start=start,
+            end=end,
+            trace_index=trace_index,
+            budget_requested=requested,
+            xyz=xyz,
+            intensity=trace.intensity[sel],
+            elongation=trace.elongation[sel],
+            src_range=trace.src_range[sel],
+            box=np.array([x, y, h / 2, l, w, h, yaw]),
+            anchor_pose=seq.pose(end) if self.position_mode == "global" else None,
+        )
+
+    def phantom_pose(
+        self, seq: SequenceData, frame_idx: int, run: PhantomRun
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Phantom points ``(n, 3)`` and box ``(7,)`` in frame ``frame_idx``'s vehicle frame,
+        before ground anchoring (float64)."""
+        if run.anchor_pose is None:
+            return run.xyz, run.box
+        rel = np.linalg.inv(seq.pose(frame_idx)) @ run.anchor_pose  # anchor ego -> frame ego
+        return transform_points(run.xyz, rel), transform_boxes(run.box[None], rel)[0]
+
+    def phantom_id(self, run: PhantomRun) -> str:
+        return f"phantom_run{run.run_id}"
+
+    # ------------------------------------------------------------------ per frame
+    def attack_frame(
+        self,
+        scene_xyz: np.ndarray,
+        seq: SequenceData,
+        frame_idx: int,
+        run: PhantomRun,
+        state: ScheduleState,
+    ) -> FrameAttack:
+        COUNTERS.add(frames_simulated=1)
+        xyz, box = self.phantom_pose(seq, frame_idx, run)
+        ground = self.ground(scene_xyz, box[:2])
+        dz = ground.z + box[5] / 2 - box[2]
+        box = box.copy()
+        box[2] += dz
+        spoof = (xyz + np.array([0.0, 0.0, dz])).astype(np.float32)  # (n, 3)
+        new_range = np.linalg.norm(spoof.astype(np.float64) - self._origin[None], axis=1)
+        inten, elong = self.intensity(run.intensity, run.elongation, run.src_range, new_range)
+        scene_t = torch.from_numpy(np.ascontiguousarray(scene_xyz[:, :3])).to(self.device)
+        spoof_t = torch.from_numpy(spoof).to(self.device)
+        gen = None
+        if self.p_dual > 0:
+            keys = (*self.rng_keys(seq.name, run.start), frame_idx, "dual")
+            gen = torch_generator(*keys)
+        keep_scene, keep_spoof = raycast_merge(scene_t, spoof_t, self.lidar, self.p_dual, gen)
+        keep_scene = keep_scene.cpu().numpy()
+        keep_spoof = keep_spoof.cpu().numpy()
+        added = np.concatenate(
+            [spoof[keep_spoof], inten[keep_spoof, None], elong[keep_spoof, None]], axis=1
+        )
+        meta = self.meta(
+            state,
+            target_box=box,
+            target_obj_id=self.phantom_id(run),
+            num_spoof_points=run.budget,
+            num_visible=int(keep_spoof.sum()),
+            num_removed=int(keep_scene.size - keep_scene.sum()),
+            tracked=True,
+            fired=True,
+        )
+        return FrameAttack(keep_scene, added.astype(np.float32), meta)
+
+    def shadow_meta(
+        self, seq: SequenceData, frame_idx: int, run: PhantomRun, state: ScheduleState
+    ) -> dict:
+        """The phantom's pose continued into a clean lifecycle frame. No points are read, so
+        the box is not ground-anchored: its bottom stays on the reference frame's z = 0 (the
+        vehicle frame's ground plane), carried by the poses in global mode."""
+        _, box = self.phantom_pose(seq, frame_idx, run)
+        return self.meta(
+            state,
+            target_box=box,
+            target_is_shadow=True,
+            target_obj_id=self.phantom_id(run),
+            num_spoof_points=run.budget,
+        )

@@ -1,0 +1,390 @@
+"""The trace library of recorded vehicles replayed by point injection (SPEC §3.4).
+
+For every annotated vehicle track of a split, the points inside its box are gathered over the
+whole sequence in the **canonical box frame** (box centre at the origin, heading along +x, z up),
+with each point's raw intensity and elongation and its *source range* (distance from the TOP
+sensor origin when it was recorded), plus the track's box size. Aggregating over frames keeps
+the real range-dependent sparsity, self-occlusion and intensity statistics of a LiDAR vehicle.
+
+One file (``.npz``, no pickle) holds the whole library::
+
+    points      (P, 3) float32   canonical xyz of all traces, concatenated
+    intensity   (P,)   float32   raw intensity (as in the .npy frames, before tanh)
+    elongation  (P,)   float32   raw elongation
+    src_range   (P,)   float32   range from the sensor origin at recording time, m
+    offsets     (K+1,) int64     trace k owns rows offsets[k]:offsets[k+1]
+    box_size    (K, 3) float32   [l, w, h] (median over the frames used), m
+    sequence    (K,)   str       source sequence name
+    obj_id      (K,)   str       source object id
+    num_frames  (K,)   int64     frames that contributed points
+    build_info  ()     str       JSON: split, filters, data root, sensor origin, seed
+
+Built by ``tools/build_trace_library.py`` from the *train* split with filters taken from the
+``TRACE_LIBRARY`` section of an injection attack YAML.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pcdet_atlas.config import ConfigError, check_known_keys
+from pcdet_atlas.datasets import waymo_format as wf
+from pcdet_atlas.utils.box_utils import points_in_boxes_mask
+from pcdet_atlas.utils.seeding import numpy_generator
+
+__all__ = ["Trace", "TraceLibrary", "TraceFilter", "build_trace_library", "TRACE_LIBRARY_KEYS"]
+
+#: Keys of the ``TRACE_LIBRARY`` section of an injection YAML.
+TRACE_LIBRARY_KEYS = {
+    "PATH",
+    "SPLIT",
+    "CLASSES",
+    "MIN_POINTS",
+    "MIN_POINTS_PER_FRAME",
+    "MIN_FRAMES",
+    "RANGE_M",
+    "MAX_POINTS_PER_TRACE",
+    "SEED",
+}
+
+
+@dataclass(frozen=True)
+class Trace:
+    """One recorded vehicle in its canonical box frame.
+
+    Attributes:
+        xyz: ``(P, 3)`` float32 canonical points, m.
+        intensity, elongation, src_range: ``(P,)`` float32 (raw, raw, m).
+        box_size: ``(3,)`` float32 ``[l, w, h]``, m.
+    """
+
+    xyz: np.ndarray
+    intensity: np.ndarray
+    elongation: np.ndarray
+    src_range: np.ndarray
+    box_size: np.ndarray
+    sequence: str
+    obj_id: str
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+
+@dataclass(frozen=True)
+class TraceFilter:
+    """Which tracks and frames enter the library.
+
+    Args:
+        classes: object classes kept (default Vehicle).
+        min_points: fewest aggregated points for a track to be kept.
+        min_points_per_frame: a frame's box contributes only if it holds at least this many.
+        min_frames: fewest contributing frames for a track to be kept.
+        range_m: ``(lo, hi)`` band of the box centre's range from the sensor origin (m) for a
+            frame to contribute.
+        max_points_per_trace: cap; larger traces are subsampled without replacement.
+        seed: seed of that subsampling.
+    """
+
+    classes: tuple[str, ...] = ("Vehicle",)
+    min_points: int = 200
+    min_points_per_frame: int = 10
+    min_frames: int = 1
+    range_m: tuple[float, float] = (5.0, 50.0)
+    max_points_per_trace: int = 4000
+    seed: int = 0
+    path: str = field(default="atlas_trace_library.npz", compare=False)
+    split: str = field(default="train", compare=False)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping | None) -> TraceFilter:
+        cfg = cfg or {}
+        check_known_keys(cfg, TRACE_LIBRARY_KEYS, "TRACE_LIBRARY")
+        kwargs: dict = {}
+        names = {
+            "PATH": "path",
+            "SPLIT": "split",
+            "MIN_POINTS": "min_points",
+            "MIN_POINTS_PER_FRAME": "min_points_per_frame",
+            "MIN_FRAMES": "min_frames",
+            "MAX_POINTS_PER_TRACE": "max_points_per_trace",
+            "SEED": "seed",
+        }
+        for key, name in names.items():
+            if key in cfg:
+                kwargs[name] = cfg[key]
+        if "CLASSES" in cfg:
+            kwargs["classes"] = tuple(str(c) for c in cfg["CLASSES"])
+        if "RANGE_M" in cfg:
+            band = list(cfg["RANGE_M"])
+            if len(band) != 2 or not 0 <= float(band[0]) < float(band[1]):
+                raise ConfigError(
+                    f"TRACE_LIBRARY.RANGE_M must be [lo, hi] with 0 <= lo < hi, got {band}"
+                )
+            kwargs["range_m"] = (float(band[0]), float(band[1]))
+        out = cls(**kwargs)
+        unknown = sorted(set(out.classes) - set(wf.WAYMO_CLASSES))
+        if unknown:
+            raise ConfigError(f"TRACE_LIBRARY.CLASSES: unknown class(es) {unknown}")
+        if out.min_points < 1 or out.max_points_per_trace < out.min_points:
+            raise ConfigError(
+                "TRACE_LIBRARY: need 1 <= MIN_POINTS <= MAX_POINTS_PER_TRACE, got "
+                f"{out.min_points}, {out.max_points_per_trace}"
+            )
+        return out
+
+    def to_dict(self) -> dict:
+        return {
+            "classes": list(self.classes),
+            "min_points": int(self.min_points),
+            "min_points_per_frame": int(self.min_points_per_frame),
+            "min_frames": int(self.min_frames),
+            "range_m": [float(v) for v in self.range_m],
+            "max_points_per_trace": int(self.max_points_per_trace),
+            "seed": int(self.seed),
+        }
+
+
+class TraceLibrary:
+    """The concatenated traces with their offsets (see the module docstring for the arrays)."""
+
+    ARRAYS = ("points", "intensity", "elongation", "src_range", "offsets", "box_size")
+
+    def __init__(
+        self,
+        points: np.ndarray,
+        intensity: np.ndarray,
+        elongation: np.ndarray,
+        src_range: np.ndarray,
+        offsets: np.ndarray,
+        box_size: np.ndarray,
+        sequence: Iterable[str],
+        obj_id: Iterable[str],
+        num_frames: np.ndarray,
+        build_info: Mapping | None = None,
+        path: str | Path | None = None,
+    ):
+        self.points = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3)
+        self.intensity = np.asarray(intensity, dtype=np.float32).reshape(-1)
+        self.elongation = np.asarray(elongation, dtype=np.float32).reshape(-1)
+        self.src_range = np.asarray(src_range, dtype=np.float32).reshape(-1)
+        self.offsets = np.asarray(offsets, dtype=np.int64).reshape(-1)
+        self.box_size = np.asarray(box_size, dtype=np.float32).reshape(-1, 3)
+        self.sequence = np.asarray(list(sequence), dtype=str)
+        self.obj_id = np.asarray(list(obj_id), dtype=str)
+        self.num_frames = np.asarray(num_frames, dtype=np.int64).reshape(-1)
+        self.build_info = dict(build_info or {})
+        self.path = None if path is None else str(path)
+        self._check()
+
+    def _check(self) -> None:
+        where = self.path or "trace library"
+        p, k = self.points.shape[0], self.box_size.shape[0]
+        if self.offsets.shape != (k + 1,) or self.offsets[0] != 0 or self.offsets[-1] != p:
+            raise ValueError(f"{where}: offsets must be (K+1,) from 0 to {p}, got {self.offsets}")
+        if (np.diff(self.offsets) <= 0).any():
+            raise ValueError(f"{where}: every trace must hold at least one point")
+        for name in ("intensity", "elongation", "src_range"):
+            if getattr(self, name).shape != (p,):
+                raise ValueError(f"{where}: {name} must have {p} entries")
+        for name in ("sequence", "obj_id", "num_frames"):
+            if getattr(self, name).shape != (k,):
+                raise ValueError(f"{where}: {name} must have {k} entries")
+        if not np.isfinite(self.points).all() or not (self.box_size > 0).all():
+            raise ValueError(f"{where}: non-finite points or non-positive box sizes")
+
+    def __len__(self) -> int:
+        return int(self.box_size.shape[0])
+
+    def trace(self, index: int) -> Trace:
+        if not 0 <= index < len(self):
+            raise IndexError(f"trace {index} outside a library of {len(self)} traces")
+        lo, hi = int(self.offsets[index]), int(self.offsets[index + 1])
+        return Trace(
+            xyz=self.points[lo:hi],
+            intensity=self.intensity[lo:hi],
+            elongation=self.elongation[lo:hi],
+            src_range=self.src_range[lo:hi],
+            box_size=self.box_size[index],
+            sequence=str(self.sequence[index]),
+            obj_id=str(self.obj_id[index]),
+        )
+
+    def trace_sizes(self) -> np.ndarray:
+        return np.diff(self.offsets)
+
+    # ------------------------------------------------------------------ io
+    def save(self, path: str | Path) -> Path:
+        """Write the library atomically as one ``.npz``."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        np.savez(
+            tmp,
+            points=self.points,
+            intensity=self.intensity,
+            elongation=self.elongation,
+            src_range=self.src_range,
+            offsets=self.offsets,
+            box_size=self.box_size,
+            sequence=self.sequence,
+            obj_id=self.obj_id,
+            num_frames=self.num_frames,
+            build_info=np.array(json.dumps(self.build_info, sort_keys=True)),
+        )
+        os.replace(tmp, path)
+        self.path = str(path)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> TraceLibrary:
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"trace library not found: {path}. Build it with "
+                "`python tools/build_trace_library.py --cfg <injection yaml> --data_path <root>`"
+            )
+        with np.load(path, allow_pickle=False) as data:
+            missing = [
+                k
+                for k in (*cls.ARRAYS, "sequence", "obj_id", "num_frames", "build_info")
+                if k not in data
+            ]
+            if missing:
+                raise ValueError(f"{path}: not a trace library (missing arrays {missing})")
+            arrays = {k: data[k] for k in data.files}
+        info = json.loads(str(arrays.pop("build_info")))
+        return cls(**arrays, build_info=info, path=path)
+
+
+# ---------------------------------------------------------------------------- building
+def _canonical(points_xyz: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """``(P, 3)`` vehicle-frame points -> the canonical frame of ``box`` (7,)."""
+    rel = points_xyz - box[None, :3]
+    c, s = np.cos(box[6]), np.sin(box[6])
+    x = rel[:, 0] * c + rel[:, 1] * s
+    y = -rel[:, 0] * s + rel[:, 1] * c
+    return np.stack([x, y, rel[:, 2]], axis=1)
+
+
+def _read_split(root: Path, split: str) -> list[str]:
+    path = root / "ImageSets" / f"{split}.txt"
+    if not path.is_file():
+        raise FileNotFoundError(f"split file not found: {path}")
+    return [
+        wf.sequence_name_from_line(line) for line in path.read_text().splitlines() if line.strip()
+    ]
+
+
+def build_trace_library(
+    root_path: str | Path,
+    filters: TraceFilter,
+    split: str = "train",
+    sensor_origin: Iterable[float] = (1.43, 0.0, 2.184),
+    tag: str = wf.PROCESSED_DATA_TAG,
+    progress: Callable[[Iterable], Iterable] | None = None,
+    logger=None,
+) -> TraceLibrary:
+    """Gather every track of ``filters.classes`` of a split into a :class:`TraceLibrary`.
+
+    Reads the processed Waymo layout directly (per-sequence pkls and raw ``.npy`` frames), so
+    intensity and elongation stay raw. A sequence without labels contributes nothing.
+    Raises ``ValueError`` if no track passes the filters (an empty library is never written).
+    """
+    root = Path(root_path)
+    origin = np.asarray(list(sensor_origin), dtype=np.float64)
+    sequences = _read_split(root, split)
+    iterator = progress(sequences) if progress is not None else sequences
+    lo_r, hi_r = filters.range_m
+    tracks: dict[tuple[str, str], dict] = {}
+    for seq in iterator:
+        pkl = wf.sequence_pkl_path(root, seq, tag)
+        if not pkl.is_file():
+            raise FileNotFoundError(f"{pkl}: sequence pkl of {seq} (listed in {split}.txt) missing")
+        with open(pkl, "rb") as f:
+            infos = pickle.load(f)
+        wf.validate_sequence_infos(infos, pkl)
+        for info in infos:
+            annos = info.get("annos")
+            if annos is None or len(annos["name"]) == 0:
+                continue
+            names = np.asarray(annos["name"]).astype(str)
+            boxes = np.asarray(annos["gt_boxes_lidar"], dtype=np.float64)[:, :7]
+            rng = np.linalg.norm(boxes[:, :3] - origin[None], axis=1)
+            sel = np.flatnonzero(np.isin(names, filters.classes) & (rng >= lo_r) & (rng <= hi_r))
+            if sel.size == 0:
+                continue
+            idx = info["point_cloud"]["sample_idx"]
+            npy = wf.frame_npy_path(root, seq, idx, tag)
+            if not npy.is_file():
+                raise FileNotFoundError(f"{npy}: frame {idx} of {seq} missing")
+            pts = np.load(npy)
+            wf.validate_points(pts, npy)
+            inside = points_in_boxes_mask(pts[:, :3].astype(np.float64), boxes[sel])  # (S, N)
+            for row, b in enumerate(sel):
+                mask = inside[row]
+                count = int(mask.sum())
+                if count < filters.min_points_per_frame:
+                    continue
+                obj = str(np.asarray(annos["obj_ids"])[b])
+                entry = tracks.setdefault(
+                    (seq, obj), {"xyz": [], "feat": [], "size": [], "frames": 0}
+                )
+                p = pts[mask].astype(np.float64)
+                entry["xyz"].append(_canonical(p[:, :3], boxes[b]))
+                src = np.linalg.norm(p[:, :3] - origin[None], axis=1)
+                entry["feat"].append(np.stack([p[:, 3], p[:, 4], src], axis=1))
+                entry["size"].append(boxes[b, 3:6])
+                entry["frames"] += 1
+    xyz_all, feat_all, sizes, seqs, objs, nframes, offsets = [], [], [], [], [], [], [0]
+    for (seq, obj), entry in sorted(tracks.items()):
+        xyz = np.concatenate(entry["xyz"])
+        feat = np.concatenate(entry["feat"])
+        if xyz.shape[0] < filters.min_points or entry["frames"] < filters.min_frames:
+            continue
+        if xyz.shape[0] > filters.max_points_per_trace:
+            gen = numpy_generator(filters.seed, "trace_library", seq, obj, "subsample")
+            keep = np.sort(gen.permutation(xyz.shape[0])[: filters.max_points_per_trace])
+            xyz, feat = xyz[keep], feat[keep]
+        xyz_all.append(xyz)
+        feat_all.append(feat)
+        sizes.append(np.median(np.stack(entry["size"]), axis=0))
+        seqs.append(seq)
+        objs.append(obj)
+        nframes.append(entry["frames"])
+        offsets.append(offsets[-1] + xyz.shape[0])
+    if not sizes:
+        raise ValueError(
+            f"no {list(filters.classes)} track of split {split!r} under {root} passes the trace "
+            f"filters {filters.to_dict()}"
+        )
+    feat = np.concatenate(feat_all)
+    library = TraceLibrary(
+        points=np.concatenate(xyz_all),
+        intensity=feat[:, 0],
+        elongation=feat[:, 1],
+        src_range=feat[:, 2],
+        offsets=np.asarray(offsets),
+        box_size=np.stack(sizes),
+        sequence=seqs,
+        obj_id=objs,
+        num_frames=np.asarray(nframes),
+        build_info={
+            "split": split,
+            "data_root": str(root),
+            "filters": filters.to_dict(),
+            "sensor_origin": origin.tolist(),
+        },
+    )
+    if logger is not None:
+        logger.info(
+            f"trace library: {len(library)} traces, {library.points.shape[0]} points from "
+            f"{len(sequences)} sequences of {split}"
+        )
+    return library

@@ -1,0 +1,194 @@
+import math
+
+import numpy as np
+import pytest
+from atlas_helpers import GROUND_Z, write_tiny_waymo
+
+from pcdet_atlas.attacks.base import SequenceData
+from pcdet_atlas.attacks.ground import GroundEstimator
+from pcdet_atlas.attacks.injection import InjectionAttack, sample_phantom
+from pcdet_atlas.attacks.intensity import RangeIntensityModel
+from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, build_trace_library
+from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
+from pcdet_atlas.datasets.waymo_format import (
+    load_frame_points,
+    load_sequence_infos,
+    sequence_pkl_path,
+)
+from pcdet_atlas.utils.box_utils import transform_boxes
+
+SEQ = "segment-tinyval_with_camera_labels"
+BUDGETS = {"easy": (100, 200), "medium": (300, 500), "hard": (500, 1000)}
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    root = write_tiny_waymo(tmp_path_factory.mktemp("tiny_inj"), frames={"train": 6, "val": 70})
+    lib = build_trace_library(root, TraceFilter(min_points=100), split="train")
+    seq = SequenceData(SEQ, load_sequence_infos(sequence_pkl_path(root, SEQ)))
+    return root, lib, seq
+
+
+def toy_library(sizes=(50, 3000)):
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([rng.uniform(-1, 1, (n, 3)) for n in sizes]).astype(np.float32)
+    total = pts.shape[0]
+    return TraceLibrary(
+        points=pts,
+        intensity=np.full(total, 0.2),
+        elongation=np.full(total, 0.1),
+        src_range=np.full(total, 20.0),
+        offsets=np.concatenate([[0], np.cumsum(sizes)]),
+        box_size=np.tile([4.5, 2.0, 1.6], (len(sizes), 1)),
+        sequence=["s"] * len(sizes),
+        obj_id=[f"o{i}" for i in range(len(sizes))],
+        num_frames=np.ones(len(sizes)),
+    )
+
+
+def test_sampling_ranges_budgets_and_common_random_numbers():
+    lib = toy_library()
+    sizes = lib.trace_sizes()
+    for start in range(0, 40 * 64, 64):
+        keys = (0, "injection", "relative", "seq", start)
+        draws = {b: sample_phantom(lib, keys, rng_) for b, rng_ in BUDGETS.items()}
+        trace, _, _, place = draws["easy"]
+        assert 15 <= place[0] <= 20 and -3 <= place[1] <= 3 and -0.2 <= place[2] <= 0.2
+        for name, (t, requested, sel, p) in draws.items():
+            lo, hi = BUDGETS[name]
+            assert t == trace and np.array_equal(p, place)  # budget-independent placement
+            assert lo <= requested <= hi
+            assert len(sel) == min(requested, sizes[t]) and len(set(sel.tolist())) == len(sel)
+        easy, hard = draws["easy"][2], draws["hard"][2]
+        assert np.array_equal(easy, hard[: len(easy)])  # easy is a prefix of hard
+    # the small trace (50 points) caps every budget, and the cap is recorded as requested > n
+    small = [
+        sample_phantom(lib, (0, "injection", "global", "s", k), BUDGETS["easy"]) for k in range(40)
+    ]
+    capped = [(req, len(sel)) for t, req, sel, _ in small if t == 0]
+    assert capped and all(n == 50 < req for req, n in capped)
+
+
+def test_ground_estimator_percentile_and_fallbacks():
+    rng = np.random.default_rng(1)
+    ground = np.c_[rng.uniform(10, 20, (500, 2)), rng.normal(0.3, 0.02, 500)]
+    car = np.c_[rng.uniform(14, 16, (300, 2)), rng.uniform(0.5, 1.8, 300)]
+    est = GroundEstimator(radius=3.0)(np.concatenate([ground, car]), (15.0, 15.0))
+    assert est.source == "disc" and abs(est.z - 0.3) < 0.05
+    est = GroundEstimator(radius=1.0, min_points=10)(ground[::40], (15.0, 15.0))
+    assert est.source == "wide_disc" and abs(est.z - 0.3) < 0.05
+    est = GroundEstimator(fallback_z=-0.1)(ground, (60.0, 0.0))
+    assert est.source == "fallback" and est.z == -0.1
+
+
+def test_intensity_model_follows_range():
+    model = RangeIntensityModel(intensity_exponent=2.0, elongation_exponent=1.0)
+    inten, elong = model(np.array([0.4, 0.4]), np.array([0.1, 0.1]), np.array([10.0, 10.0]),
+                         np.array([20.0, 5.0]))  # fmt: skip
+    np.testing.assert_allclose(inten, [0.1, 1.6], rtol=1e-6)
+    np.testing.assert_allclose(elong, [0.2, 0.05], rtol=1e-6)
+    same = RangeIntensityModel(intensity_exponent=0.0, elongation_exponent=0.0)
+    np.testing.assert_allclose(same(np.array([0.4]), np.array([0.1]), [10.0], [30.0])[0], [0.4])
+
+
+def make_attack(lib, mode, budget="hard", p_dual=0.0):
+    return InjectionAttack("inj_test", lib, mode, BUDGETS[budget], p_dual=p_dual)
+
+
+def run_frames(attack, seq, root, frames):
+    out = {}
+    for k in frames:
+        pts = load_frame_points(root / "waymo_processed_data_v0_5_0" / SEQ / f"{k:04d}.npy")
+        out[k] = (pts, attack.simulate(pts[:, :3], seq, k))
+    return out
+
+
+def test_global_phantom_fixed_in_world_and_on_the_ground(tiny):
+    root, lib, seq = tiny
+    attack = make_attack(lib, "global")
+    res = run_frames(attack, seq, root, range(32, 64, 3))
+    world = []
+    for k, (_, r) in res.items():
+        box = r.meta["target_box"].astype(np.float64)
+        assert abs(box[2] - box[5] / 2 - GROUND_Z) <= 0.15  # bottom on the ground
+        world.append(transform_boxes(box[None], seq.pose(k))[0])
+        added = r.added
+        assert added.shape[0] == r.meta["num_visible"] > 0
+        assert added[:, 2].min() >= GROUND_Z - 0.15 - 1.6  # phantom points near/above ground
+    world = np.array(world)
+    assert np.abs(world[:, :2] - world[0, :2]).max() <= 0.01  # fixed in the world (x, y)
+    assert np.abs(world[:, 6] - world[0, 6]).max() <= 1e-4
+    # the anchor is the run's last frame: there it sits at the sampled ego offset
+    last = run_frames(attack, seq, root, [63])[63][1].meta["target_box"]
+    assert 15 <= last[0] <= 20 and -3 <= last[1] <= 3
+
+
+def test_relative_phantom_fixed_in_ego(tiny):
+    root, lib, seq = tiny
+    attack = make_attack(lib, "relative", "medium")
+    res = run_frames(attack, seq, root, [32, 45, 63])
+    boxes = np.array([r.meta["target_box"] for _, r in res.values()])
+    assert np.abs(boxes[:, [0, 1, 3, 4, 5, 6]] - boxes[0, [0, 1, 3, 4, 5, 6]]).max() <= 1e-5
+    assert 15 <= boxes[0, 0] <= 20 and -3 <= boxes[0, 1] <= 3 and abs(boxes[0, 6]) <= 0.2
+    assert np.all(np.abs(boxes[:, 2] - boxes[:, 5] / 2 - GROUND_Z) <= 0.15)
+    for _, r in res.values():
+        assert r.meta["num_spoof_points"] <= 500
+        assert 0 < r.meta["num_visible"] <= r.meta["num_spoof_points"]
+
+
+def test_budgets_share_placement_and_differ_only_in_points(tiny):
+    root, lib, seq = tiny
+    metas = {}
+    for b in BUDGETS:
+        attack = make_attack(lib, "global", b)
+        metas[b] = run_frames(attack, seq, root, [40])[40][1].meta
+        lo, hi = BUDGETS[b]
+        assert metas[b]["num_spoof_points"] <= hi
+        assert metas[b]["num_spoof_points"] >= min(lo, int(lib.trace_sizes().min()))
+    for b in ("medium", "hard"):
+        np.testing.assert_array_equal(metas[b]["target_box"], metas["easy"]["target_box"])
+    assert metas["easy"]["num_visible"] <= metas["hard"]["num_visible"]
+
+
+def test_phantom_occludes_and_merges(tiny):
+    root, lib, seq = tiny
+    attack = make_attack(lib, "relative", "hard")
+    pts, r = run_frames(attack, seq, root, [50])[50]
+    out = r.apply(pts[:, :5])
+    n_removed = int((~r.keep).sum())
+    assert n_removed == r.meta["num_removed"] > 0  # ground behind the phantom is occluded
+    assert out.shape == (pts.shape[0] - n_removed + r.meta["num_visible"], 5)
+    # occluded scene points lie behind the phantom, in its azimuth sector
+    gone = pts[~r.keep, :3]
+    assert np.all(np.hypot(gone[:, 0], gone[:, 1]) > r.meta["target_box"][0] - 4)
+
+
+def test_config_errors_and_library_checks(tiny, tmp_path):
+    root, lib, _ = tiny
+    cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs/attacks/inj_rel_easy.yaml")
+    cfg.POSITION_MODE = "sideways"
+    with pytest.raises(ConfigError, match="position_mode"):
+        InjectionAttack.from_config(cfg, data_root=root)
+    cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs/attacks/inj_rel_easy.yaml")
+    cfg.BUDGET = [300, 100]
+    with pytest.raises(ConfigError, match="BUDGET"):
+        InjectionAttack.from_config(cfg, data_root=root)
+    cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs/attacks/inj_rel_easy.yaml")
+    missing = InjectionAttack.from_config(cfg, data_root=tmp_path)
+    with pytest.raises(FileNotFoundError, match="build_trace_library"):
+        _ = missing.library
+    lib.save(tmp_path / "atlas_trace_library.npz")  # built with MIN_POINTS 100, YAML says 200
+    mismatch = InjectionAttack.from_config(cfg, data_root=tmp_path)
+    with pytest.raises(ConfigError, match="rebuild"):
+        _ = mismatch.library
+
+
+def test_dual_returns_deterministic_per_frame(tiny):
+    root, lib, seq = tiny
+    a = run_frames(make_attack(lib, "global", p_dual=0.5), seq, root, [41])[41][1]
+    b = run_frames(make_attack(lib, "global", p_dual=0.5), seq, root, [41])[41][1]
+    np.testing.assert_array_equal(a.keep, b.keep)
+    np.testing.assert_array_equal(a.added, b.added)
+    c = run_frames(make_attack(lib, "global", p_dual=0.0), seq, root, [41])[41][1]
+    assert a.meta["num_removed"] < c.meta["num_removed"]  # second echoes survive
+    assert math.isfinite(float(a.added[:, 3].sum()))

@@ -1,0 +1,66 @@
+"""Build the ATLAS trace library (SPEC §3.4) of a Waymo-format dataset from its train split.
+
+    python tools/build_trace_library.py --cfg cfgs/attacks/inj_rel_easy.yaml \
+        --data_path data/synthetic_waymo [--out <file>] [--set TRACE_LIBRARY.MIN_POINTS 100]
+
+Filters come from the ``TRACE_LIBRARY`` section of the injection YAML; the file is written to
+``TRACE_LIBRARY.PATH`` (relative: under ``--data_path``) unless ``--out`` is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from tqdm import tqdm
+
+from pcdet_atlas.attacks.lidar_model import LidarModel
+from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
+from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_list, cfg_from_yaml_file
+from pcdet_atlas.utils.common import create_logger
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--cfg", "--cfg_file", dest="cfg", required=True, help="injection YAML")
+    parser.add_argument("--data_path", default="data/synthetic_waymo", help="dataset root")
+    parser.add_argument("--out", default=None, help="output .npz (default TRACE_LIBRARY.PATH)")
+    parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None)
+    return parser.parse_args(argv)
+
+
+def main(argv=None) -> Path:
+    args = parse_args(argv)
+    logger = create_logger()
+    cfg = cfg_from_yaml_file(args.cfg)
+    if args.set_cfgs:
+        cfg_from_list(args.set_cfgs, cfg)
+    if "TRACE_LIBRARY" not in cfg:
+        raise ConfigError(f"{args.cfg}: no TRACE_LIBRARY section (not an injection attack?)")
+    filters = TraceFilter.from_config(cfg.TRACE_LIBRARY)
+    root = Path(args.data_path)
+    if not root.is_absolute():
+        root = REPO_ROOT / root
+    out = Path(args.out) if args.out else Path(filters.path)
+    if not out.is_absolute():
+        out = (Path.cwd() / out) if args.out else (root / out)
+    lidar = LidarModel.from_config(cfg.get("LIDAR"))
+    library = build_trace_library(
+        root,
+        filters,
+        split=filters.split,
+        sensor_origin=lidar.origin.tolist(),
+        progress=lambda it: tqdm(list(it), desc="sequences", unit="seq"),
+        logger=logger,
+    )
+    library.save(out)
+    sizes = library.trace_sizes()
+    logger.info(
+        f"wrote {out}: {len(library)} traces, points per trace min/median/max "
+        f"{sizes.min()}/{int(sizes.mean())}/{sizes.max()}"
+    )
+    return out
+
+
+if __name__ == "__main__":
+    main()
