@@ -260,3 +260,82 @@ def validate_sequence_infos(infos: list, pkl_path: str | Path) -> None:
                 f"{pkl_path}: frame index gap: entry {i} has sample_idx {got}, expected {i} "
                 f"(per-sequence pkls must list every frame in order)"
             )
+
+
+# ---------------------------------------------------------------------------- reading
+def load_frame_points(path: str | Path) -> np.ndarray:
+    """Read and check one ``%04d.npy`` frame: float32 ``(N, 6)`` ``[x, y, z, intensity,
+    elongation, NLZ_flag]``, raw intensity/elongation, finite.
+
+    Any read failure (missing, truncated, not an ``.npy``, object array) is re-raised as
+    :class:`WaymoFormatError` naming the file, chained to numpy's error.
+    """
+    path = Path(path)
+    try:
+        points = np.load(path, allow_pickle=False)
+    except FileNotFoundError as err:
+        raise WaymoFormatError(f"{path}: frame file not found") from err
+    except (OSError, ValueError, EOFError) as err:
+        raise WaymoFormatError(
+            f"{path}: cannot read frame points (truncated or not a float32 (N, "
+            f"{NUM_POINT_COLUMNS}) .npy file): {err}"
+        ) from err
+    validate_points(points, path)
+    return points
+
+
+def load_sequence_infos(path: str | Path) -> list[dict]:
+    """Read and check one per-sequence info pkl (see :func:`validate_sequence_infos`)."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            infos = pickle.load(f)
+    except FileNotFoundError as err:
+        raise WaymoFormatError(f"{path}: sequence info file not found") from err
+    except (OSError, EOFError, ValueError, pickle.UnpicklingError, AttributeError) as err:
+        raise WaymoFormatError(f"{path}: cannot unpickle sequence infos: {err}") from err
+    validate_sequence_infos(infos, path)
+    if len(infos) == 0:
+        raise WaymoFormatError(f"{path}: sequence info list is empty (expected >= 1 frame)")
+    sequence = path.stem
+    for i, info in enumerate(infos):
+        got = info["point_cloud"]["lidar_sequence"]
+        if got != sequence:
+            raise WaymoFormatError(
+                f"{path} [frame {i}]: 'point_cloud.lidar_sequence' is {got!r}, expected the "
+                f"folder name {sequence!r}"
+            )
+    return infos
+
+
+def read_image_set(path: str | Path) -> list[str]:
+    """Sequence names listed in ``ImageSets/<split>.txt`` (one ``*.tfrecord`` per line)."""
+    path = Path(path)
+    if not path.is_file():
+        raise WaymoFormatError(
+            f"{path}: split file not found (expected ImageSets/<split>.txt listing one "
+            f"'<sequence>.tfrecord' per line)"
+        )
+    lines = [line.strip() for line in path.read_text().splitlines()]
+    return [sequence_name_from_line(line) for line in lines if line]
+
+
+def find_sequence_pkl(root: str | Path, sequence: str, tag: str = PROCESSED_DATA_TAG) -> Path:
+    """The per-sequence pkl of ``sequence``, accepting the name variants OpenPCDet accepts
+    (``training_``/``validation_``/``testing_`` prefixes, no ``_with_camera_labels``).
+
+    Raises :class:`WaymoFormatError` listing every path tried when none exists.
+    """
+    candidates = [sequence]
+    for prefix in ("training", "validation", "testing"):
+        candidates.append(sequence.replace("segment", f"{prefix}_segment", 1))
+    candidates.append(sequence.replace("_with_camera_labels", ""))
+    tried = []
+    for name in dict.fromkeys(candidates):
+        path = sequence_pkl_path(root, name, tag)
+        if path.is_file():
+            return path
+        tried.append(str(path))
+    raise WaymoFormatError(
+        f"sequence {sequence!r} listed in ImageSets has no info pkl; tried: {', '.join(tried)}"
+    )

@@ -1,0 +1,122 @@
+"""Data processors run in training and testing (OpenPCDet's ``DATA_PROCESSOR``), minus
+voxelization, which is a torch op inside the model here."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.registry import TRANSFORMS
+from pcdet_atlas.utils.box_utils import boxes_to_corners_3d
+
+__all__ = ["MaskPointsAndBoxesOutsideRange", "ShufflePoints", "mask_points_by_range"]
+
+
+def mask_points_by_range(points: np.ndarray, limit_range, filter_z: bool = False) -> np.ndarray:
+    """``(N,)`` bool: points inside ``limit_range`` ``[x0, y0, z0, x1, y1, z1]`` (closed).
+
+    As OpenPCDet, only x and y are tested unless ``filter_z``.
+    """
+    r = np.asarray(limit_range)
+    mask = (
+        (points[:, 0] >= r[0])
+        & (points[:, 0] <= r[3])
+        & (points[:, 1] >= r[1])
+        & (points[:, 1] <= r[4])
+    )
+    if filter_z:
+        mask &= (points[:, 2] >= r[2]) & (points[:, 2] <= r[5])
+    return mask
+
+
+def mask_boxes_outside_range(
+    boxes: np.ndarray, limit_range, min_num_corners: int = 1, use_center_to_filter: bool = True
+) -> np.ndarray:
+    """``(M,)`` bool: boxes to keep. By centre (inside the 3D range), or else by the number of
+    BEV corners inside the xy range (at least ``min_num_corners``), as OpenPCDet."""
+    r = np.asarray(limit_range, dtype=np.float64)
+    boxes = np.asarray(boxes, dtype=np.float64)
+    if use_center_to_filter:
+        centers = boxes[:, 0:3]
+        return ((centers >= r[0:3]) & (centers <= r[3:6])).all(axis=-1)
+    corners = boxes_to_corners_3d(boxes[:, :7])[:, :4, 0:2]  # (M, 4, 2) BEV corners
+    inside = ((corners >= r[0:2]) & (corners <= r[3:5])).all(axis=2)
+    return inside.sum(axis=1) >= min_num_corners
+
+
+@TRANSFORMS.register("mask_points_and_boxes_outside_range")
+class MaskPointsAndBoxesOutsideRange:
+    """Drop points outside ``POINT_CLOUD_RANGE``; in training also drop boxes outside it."""
+
+    CONFIG_KEYS = ("REMOVE_OUTSIDE_BOXES", "FILTER_Z", "min_num_corners", "USE_CENTER_TO_FILTER")
+
+    def __init__(
+        self,
+        point_cloud_range: Sequence[float],
+        training: bool,
+        remove_outside_boxes: bool = True,
+        filter_z: bool = False,
+        min_num_corners: int = 1,
+        use_center_to_filter: bool = True,
+    ):
+        if len(point_cloud_range) != 6:
+            raise ConfigError(f"POINT_CLOUD_RANGE must have 6 values, got {point_cloud_range!r}")
+        self.point_cloud_range = np.asarray(point_cloud_range, dtype=np.float32)
+        self.training = training
+        self.remove_outside_boxes = remove_outside_boxes
+        self.filter_z = filter_z
+        self.min_num_corners = min_num_corners
+        self.use_center_to_filter = use_center_to_filter
+
+    @classmethod
+    def from_config(
+        cls, cfg: Mapping, *, point_cloud_range, training: bool, **context
+    ) -> MaskPointsAndBoxesOutsideRange:
+        return cls(
+            point_cloud_range=point_cloud_range,
+            training=training,
+            remove_outside_boxes=bool(cfg.get("REMOVE_OUTSIDE_BOXES", True)),
+            filter_z=bool(cfg.get("FILTER_Z", False)),
+            min_num_corners=int(cfg.get("min_num_corners", 1)),
+            use_center_to_filter=bool(cfg.get("USE_CENTER_TO_FILTER", True)),
+        )
+
+    def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
+        if data_dict.get("points") is not None:
+            mask = mask_points_by_range(data_dict["points"], self.point_cloud_range, self.filter_z)
+            data_dict["points"] = data_dict["points"][mask]
+        boxes = data_dict.get("gt_boxes")
+        if boxes is not None and self.remove_outside_boxes and self.training:
+            keep = mask_boxes_outside_range(
+                boxes, self.point_cloud_range, self.min_num_corners, self.use_center_to_filter
+            )
+            data_dict["gt_boxes"] = boxes[keep]
+            if "gt_names" in data_dict:
+                data_dict["gt_names"] = data_dict["gt_names"][keep]
+        return data_dict
+
+
+@TRANSFORMS.register("shuffle_points")
+class ShufflePoints:
+    """Randomly permute the points (``SHUFFLE_ENABLED: {train: bool, test: bool}``)."""
+
+    CONFIG_KEYS = ("SHUFFLE_ENABLED",)
+
+    def __init__(self, enabled: bool = True):
+        self.enabled = enabled
+
+    @classmethod
+    def from_config(cls, cfg: Mapping, *, training: bool, **context) -> ShufflePoints:
+        enabled = cfg.get("SHUFFLE_ENABLED", {"train": True, "test": True})
+        mode = "train" if training else "test"
+        if mode not in enabled:
+            raise ConfigError(f"shuffle_points.SHUFFLE_ENABLED needs a {mode!r} entry: {enabled}")
+        return cls(enabled=bool(enabled[mode]))
+
+    def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
+        if self.enabled and data_dict.get("points") is not None:
+            points = data_dict["points"]
+            data_dict["points"] = points[rng.permutation(points.shape[0])]
+        return data_dict

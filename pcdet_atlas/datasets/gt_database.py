@@ -1,0 +1,146 @@
+"""Building the GT-sampling database from the train split (OpenPCDet's
+``create_groundtruth_database`` for Waymo).
+
+For every frame ``k`` of the split's info list (every ``sampled_interval``-th), the points
+inside each labelled box are cut out, moved to the box centre and written as float32
+``<seq>_<sample_idx:04d>_<name>_<i>.bin``; Vehicles are taken only when ``k % 4 == 0`` and
+Pedestrians only when ``k % 2 == 0`` (OpenPCDet's subsampling). Points come from the dataset's
+own loading (``get_lidar``: tanh applied, NLZ per config). With ``SEQUENCE_CONFIG`` enabled the
+database is built from at least 5 frames (``SAMPLE_OFFSET[0] = min(-4, offset)``) and carries the
+time-lag column. Outputs under ``save_path`` (the data root by default)::
+
+    <tag>_gt_database_<split>_sampled_<n>[_multiframe_<st>_to_<ed>]/   one .bin per object
+    <tag>_waymo_dbinfos_<split>_sampled_<n>[...].pkl                    {class: [db_info]}
+    <tag>_gt_database_<split>_sampled_<n>[...]_global.npy               all objects stacked
+
+``db_info`` keys: ``name, path (relative to the data root), sequence_name, sample_idx, gt_idx,
+box3d_lidar (9,), num_points_in_gt, difficulty, global_data_offset [start, end]``.
+"""
+
+from __future__ import annotations
+
+import logging
+import pickle
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from pcdet_atlas.datasets.augmentor.box_ops import box_index_of_points
+from pcdet_atlas.datasets.multiframe import SequenceConfig
+
+__all__ = ["create_groundtruth_database", "gt_database_paths", "write_split_infos"]
+
+
+def gt_database_paths(
+    save_path: str | Path,
+    processed_data_tag: str,
+    split: str,
+    sampled_interval: int,
+    sample_offset: Sequence[int] | None = None,
+) -> dict[str, Path]:
+    """The three output paths (``dir``, ``info``, ``global``), OpenPCDet's names."""
+    save_path = Path(save_path)
+    stem = f"{split}_sampled_{sampled_interval}"
+    if sample_offset is not None:
+        stem += f"_multiframe_{sample_offset[0]}_to_{sample_offset[1]}"
+    return {
+        "dir": save_path / f"{processed_data_tag}_gt_database_{stem}",
+        "info": save_path / f"{processed_data_tag}_waymo_dbinfos_{stem}.pkl",
+        "global": save_path / f"{processed_data_tag}_gt_database_{stem}_global.npy",
+    }
+
+
+def write_split_infos(dataset, save_path: str | Path | None = None) -> Path:
+    """Write ``<tag>_infos_<split>.pkl``, the concatenation of the split's sequence infos."""
+    save_path = Path(save_path) if save_path is not None else dataset.root_path
+    path = save_path / f"{dataset.processed_data_tag}_infos_{dataset.split}.pkl"
+    tmp = path.with_suffix(".tmp.pkl")
+    with open(tmp, "wb") as f:
+        pickle.dump(dataset.all_infos, f)
+    tmp.replace(path)
+    return path
+
+
+def create_groundtruth_database(
+    dataset,
+    save_path: str | Path | None = None,
+    sampled_interval: int = 1,
+    used_classes: Sequence[str] | None = ("Vehicle", "Pedestrian", "Cyclist"),
+    logger: logging.Logger | None = None,
+) -> dict[str, Path]:
+    """Build the database of ``dataset``'s current split (a ``WaymoDataset``, ideally built
+    with ``training=False`` and ``set_split('train')``). Returns :func:`gt_database_paths`."""
+    logger = logger if logger is not None else logging.getLogger(__name__)
+    save_path = Path(save_path) if save_path is not None else dataset.root_path
+    sequence_cfg = None
+    offset = None
+    if dataset.sequence_cfg is not None:
+        offset = (min(-4, dataset.sequence_cfg.sample_offset[0]), 0)
+        sequence_cfg = SequenceConfig(sample_offset=offset, onehot_timestamp=False)
+    paths = gt_database_paths(
+        save_path, dataset.processed_data_tag, dataset.split, sampled_interval, offset
+    )
+    paths["dir"].mkdir(parents=True, exist_ok=True)
+
+    all_db_infos: dict[str, list[dict]] = {}
+    stacked: list[np.ndarray] = []
+    offset_cnt = 0
+    infos = dataset.all_infos
+    for k in range(0, len(infos), sampled_interval):
+        info = infos[k]
+        if "annos" not in info:
+            continue
+        sequence_name = info["point_cloud"]["lidar_sequence"]
+        sample_idx = int(info["point_cloud"]["sample_idx"])
+        points = dataset.get_lidar(sequence_name, sample_idx)
+        if sequence_cfg is not None:
+            points, _, _, _ = dataset.get_sequence_data(
+                info, points, sequence_name, sample_idx, sequence_cfg
+            )
+        annos = info["annos"]
+        names = np.asarray(annos["name"])
+        difficulty = np.asarray(annos["difficulty"])
+        gt_boxes = np.asarray(annos["gt_boxes_lidar"], dtype=np.float64)
+        keep = np.ones(len(names), dtype=bool)
+        if k % 4 != 0:
+            keep &= names != "Vehicle"
+        if k % 2 != 0:
+            keep &= names != "Pedestrian"
+        names, difficulty, gt_boxes = names[keep], difficulty[keep], gt_boxes[keep]
+        if len(names) == 0:
+            continue
+        owner = box_index_of_points(points, gt_boxes[:, :7])  # (N,) first containing box
+        for i in range(len(names)):
+            if used_classes is not None and names[i] not in used_classes:
+                continue
+            gt_points = points[owner == i].astype(np.float32)
+            gt_points[:, :3] -= gt_boxes[i, :3].astype(np.float32)
+            file_path = paths["dir"] / f"{sequence_name}_{sample_idx:04d}_{names[i]}_{i}.bin"
+            gt_points.tofile(file_path)
+            db_info = {
+                "name": str(names[i]),
+                "path": str(file_path.relative_to(dataset.root_path))
+                if file_path.is_relative_to(dataset.root_path)
+                else str(file_path),
+                "sequence_name": sequence_name,
+                "sample_idx": sample_idx,
+                "gt_idx": i,
+                "box3d_lidar": gt_boxes[i],
+                "num_points_in_gt": int(gt_points.shape[0]),
+                "difficulty": difficulty[i],
+                "global_data_offset": [offset_cnt, offset_cnt + gt_points.shape[0]],
+            }
+            offset_cnt += gt_points.shape[0]
+            stacked.append(gt_points)
+            all_db_infos.setdefault(str(names[i]), []).append(db_info)
+    for name, entries in all_db_infos.items():
+        logger.info(f"GT database {name}: {len(entries)} objects")
+    with open(paths["info"], "wb") as f:
+        pickle.dump(all_db_infos, f)
+    num_columns = 5 + (1 if sequence_cfg is not None else 0)
+    global_points = (
+        np.concatenate(stacked, axis=0) if stacked else np.zeros((0, num_columns), np.float32)
+    )
+    np.save(paths["global"], global_points)
+    return paths

@@ -1,0 +1,104 @@
+"""``build_dataloader`` with OpenPCDet's signature and semantics."""
+
+from __future__ import annotations
+
+import logging
+import random
+from collections.abc import Mapping, Sequence
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as torch_dist
+from torch.utils.data import DataLoader, DistributedSampler
+
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.registry import DATASETS
+from pcdet_atlas.utils.seeding import derive_seed, torch_generator
+
+__all__ = ["build_dataloader", "worker_init_fn"]
+
+
+def worker_init_fn(worker_id: int, seed: int | None = None) -> None:
+    """Seed a worker's global RNGs from ``(seed, 'worker', worker_id)`` for third-party code.
+
+    pcdet_atlas itself never draws from global RNGs (its draws are keyed per frame).
+    """
+    if seed is None:
+        return
+    worker_seed = derive_seed(int(seed), "worker", int(worker_id))
+    random.seed(worker_seed)
+    np.random.seed(worker_seed % 2**32)
+    torch.manual_seed(worker_seed)
+
+
+def build_dataloader(
+    dataset_cfg: Mapping,
+    class_names: Sequence[str],
+    batch_size: int,
+    dist: bool,
+    root_path: str | Path | None = None,
+    workers: int = 4,
+    seed: int | None = None,
+    logger: logging.Logger | None = None,
+    training: bool = True,
+    merge_all_iters_to_one_epoch: bool = False,
+    total_epochs: int = 0,
+):
+    """Build ``dataset_cfg.DATASET`` and its loader.
+
+    Args:
+        batch_size: samples per batch (per process when ``dist``).
+        dist: use a ``DistributedSampler`` (shuffled in training, in order for testing).
+        seed: when given, replaces the dataset's ``SEED`` (augmentation draws), seeds the
+            training shuffle order and the workers' global RNGs.
+    Returns:
+        ``(dataset, dataloader, sampler)``; ``sampler`` is ``None`` unless ``dist``. Call
+        ``dataset.set_epoch(e)`` (and ``sampler.set_epoch(e)``) before each training epoch.
+    """
+    if "DATASET" not in dataset_cfg:
+        raise ConfigError("DATA_CONFIG has no DATASET name")
+    dataset_cls = DATASETS.get(dataset_cfg.DATASET)
+    dataset = dataset_cls(
+        dataset_cfg=dataset_cfg,
+        class_names=class_names,
+        root_path=root_path,
+        training=training,
+        logger=logger,
+    )
+    if seed is not None:
+        dataset.seed = int(seed)
+    if merge_all_iters_to_one_epoch:
+        if not hasattr(dataset, "merge_all_iters_to_one_epoch"):
+            raise ConfigError(f"{dataset_cfg.DATASET} cannot merge all iterations to one epoch")
+        dataset.merge_all_iters_to_one_epoch(merge=True, epochs=total_epochs)
+
+    sampler = None
+    if dist:
+        if not torch_dist.is_available() or not torch_dist.is_initialized():
+            raise RuntimeError("build_dataloader(dist=True) needs an initialised process group")
+        sampler = DistributedSampler(
+            dataset,
+            num_replicas=torch_dist.get_world_size(),
+            rank=torch_dist.get_rank(),
+            shuffle=training,
+            seed=0 if seed is None else int(seed) % 2**31,
+        )
+    generator = None
+    if seed is not None and sampler is None and training:
+        generator = torch_generator(int(seed), "dataloader_shuffle")
+    dataloader = DataLoader(
+        dataset,
+        batch_size=batch_size,
+        pin_memory=torch.cuda.is_available(),
+        num_workers=workers,
+        shuffle=(sampler is None) and training,
+        collate_fn=dataset.collate_batch,
+        drop_last=False,
+        sampler=sampler,
+        timeout=0,
+        worker_init_fn=partial(worker_init_fn, seed=seed),
+        generator=generator,
+    )
+    return dataset, dataloader, sampler

@@ -1,0 +1,85 @@
+"""Multi-frame input (OpenPCDet's ``SEQUENCE_CONFIG``): which history frames, and how their
+points are moved into the current vehicle frame.
+
+For frame ``t`` with ``SAMPLE_OFFSET = [-k, 0]`` the history is ``t-1, ..., t-k``, clipped at 0
+(so early frames repeat frame 0, and the lag is still ``0.1 * (t - clipped index)`` s). A
+history point goes vehicle(t-j) -> global -> vehicle(t) through the frames' poses.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from pcdet_atlas.config import ConfigError, check_known_keys
+
+__all__ = [
+    "SequenceConfig",
+    "history_sample_indices",
+    "relative_pose",
+    "remove_ego_points",
+    "transform_points_to_frame",
+]
+
+SECONDS_PER_FRAME = 0.1
+
+
+class SequenceConfig:
+    """``SEQUENCE_CONFIG``: ``ENABLED``, ``SAMPLE_OFFSET [-k, 0]``, ``ONEHOT_TIMESTAMP``."""
+
+    CONFIG_KEYS = ("ENABLED", "SAMPLE_OFFSET", "ONEHOT_TIMESTAMP")
+
+    def __init__(self, sample_offset: Sequence[int] = (-3, 0), onehot_timestamp: bool = False):
+        if len(sample_offset) != 2 or int(sample_offset[0]) > 0 or int(sample_offset[1]) != 0:
+            raise ConfigError(
+                f"SEQUENCE_CONFIG.SAMPLE_OFFSET must be [-k, 0] with k >= 0, got {sample_offset!r}"
+            )
+        self.sample_offset = (int(sample_offset[0]), 0)
+        self.onehot_timestamp = bool(onehot_timestamp)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping | None) -> SequenceConfig | None:
+        """``None`` when the section is absent or ``ENABLED`` is false."""
+        if cfg is None:
+            return None
+        check_known_keys(cfg, cls.CONFIG_KEYS, "DATA_CONFIG.SEQUENCE_CONFIG")
+        if not cfg.get("ENABLED", False):
+            return None
+        return cls(cfg.get("SAMPLE_OFFSET", [-3, 0]), cfg.get("ONEHOT_TIMESTAMP", False))
+
+    @property
+    def num_frames(self) -> int:
+        return 1 - self.sample_offset[0]
+
+    @property
+    def num_extra_columns(self) -> int:
+        """Columns added to the 5 point features: the lag, or one one-hot column per frame."""
+        return self.num_frames if self.onehot_timestamp else 1
+
+
+def history_sample_indices(sample_idx: int, sample_offset: Sequence[int]) -> np.ndarray:
+    """``(k,)`` int64 history indices, nearest first, clipped at 0 (OpenPCDet's order)."""
+    offsets = np.arange(int(sample_offset[0]), int(sample_offset[1]))
+    return np.clip(sample_idx + offsets, 0, 0x7FFFFFFF)[::-1].astype(np.int64)
+
+
+def relative_pose(pose_src: np.ndarray, pose_dst: np.ndarray) -> np.ndarray:
+    """4x4 float64 transform vehicle(src) -> vehicle(dst) from vehicle->global poses."""
+    src = np.asarray(pose_src, dtype=np.float64).reshape(4, 4)
+    dst = np.asarray(pose_dst, dtype=np.float64).reshape(4, 4)
+    return np.linalg.inv(dst) @ src
+
+
+def transform_points_to_frame(
+    xyz: np.ndarray, pose_src: np.ndarray, pose_dst: np.ndarray
+) -> np.ndarray:
+    """``(N, 3)`` points in vehicle(src) -> ``(N, 3)`` float64 in vehicle(dst)."""
+    t = relative_pose(pose_src, pose_dst)
+    return np.asarray(xyz, dtype=np.float64) @ t[:3, :3].T + t[:3, 3]
+
+
+def remove_ego_points(points: np.ndarray, center_radius: float = 1.0) -> np.ndarray:
+    """Drop points with ``|x| < r`` and ``|y| < r`` (m), as OpenPCDet does on history frames."""
+    mask = ~((np.abs(points[:, 0]) < center_radius) & (np.abs(points[:, 1]) < center_radius))
+    return points[mask]

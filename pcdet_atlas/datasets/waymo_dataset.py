@@ -1,0 +1,340 @@
+"""``WaymoDataset``: OpenPCDet's processed Waymo layout, single- and multi-frame.
+
+Reads ``ImageSets/<split>.txt`` and, per listed sequence,
+``<DATA_PATH>/<PROCESSED_DATA_TAG>/<seq>/<seq>.pkl`` (frame infos) and ``%04d.npy`` (points);
+format details in :mod:`pcdet_atlas.datasets.waymo_format` and ``docs/data.md``. Every frame's
+points, current or history, are read through :meth:`WaymoDataset.get_lidar`, the one hook a
+subclass (the attack dataset) overrides.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from pcdet_atlas.config import ConfigError, check_known_keys
+from pcdet_atlas.datasets.dataset import DatasetTemplate
+from pcdet_atlas.datasets.multiframe import (
+    SECONDS_PER_FRAME,
+    SequenceConfig,
+    history_sample_indices,
+    remove_ego_points,
+    transform_points_to_frame,
+)
+from pcdet_atlas.datasets.waymo_format import (
+    PROCESSED_DATA_TAG,
+    WaymoFormatError,
+    find_sequence_pkl,
+    frame_npy_path,
+    load_frame_points,
+    load_sequence_infos,
+    read_image_set,
+)
+from pcdet_atlas.registry import DATASETS
+
+__all__ = ["WaymoDataset"]
+
+NUM_LOADED_FEATURES = 5  # x, y, z, intensity, elongation (the NLZ column is consumed)
+
+
+@DATASETS.register()
+class WaymoDataset(DatasetTemplate):
+    """Waymo frames as OpenPCDet's ``WaymoDataset`` serves them.
+
+    Attributes:
+        infos: frame infos of the split after ``SAMPLED_INTERVAL`` (what ``__getitem__`` walks).
+        all_infos: every frame info of the split (interval 1), in ImageSets order.
+        seq_name_to_infos: sequence name -> its full info list (indexed by ``sample_idx``).
+        sequence_cfg: :class:`SequenceConfig` or ``None`` (single frame).
+    """
+
+    CONFIG_KEYS = DatasetTemplate.CONFIG_KEYS + (
+        "PROCESSED_DATA_TAG",
+        "DATA_SPLIT",
+        "SAMPLED_INTERVAL",
+        "FILTER_EMPTY_BOXES_FOR_TRAIN",
+        "DISABLE_NLZ_FLAG_ON_POINTS",
+        "POINTS_TANH_DIM",
+        "TRAIN_WITH_SPEED",
+        "SEQUENCE_CONFIG",
+        "USE_SHARED_MEMORY",
+        "SHARED_MEMORY_FILE_LIMIT",
+    )
+
+    def __init__(
+        self,
+        dataset_cfg: Mapping,
+        class_names: Sequence[str],
+        training: bool = True,
+        root_path: str | Path | None = None,
+        logger: logging.Logger | None = None,
+    ):
+        check_known_keys(dataset_cfg, self.CONFIG_KEYS, "DATA_CONFIG")
+        if dataset_cfg.get("USE_SHARED_MEMORY", False):
+            raise ConfigError(
+                "DATA_CONFIG.USE_SHARED_MEMORY=True is not supported: frames are read from disk "
+                "(the OS page cache serves repeated reads); set it to False"
+            )
+        self.sequence_cfg = SequenceConfig.from_config(dataset_cfg.get("SEQUENCE_CONFIG"))
+        super().__init__(dataset_cfg, class_names, training, root_path, logger)
+        self.processed_data_tag = dataset_cfg.get("PROCESSED_DATA_TAG", PROCESSED_DATA_TAG)
+        self.data_path = self.root_path / self.processed_data_tag
+        self.disable_nlz_flag = bool(dataset_cfg.get("DISABLE_NLZ_FLAG_ON_POINTS", False))
+        tanh_dims = dataset_cfg.get("POINTS_TANH_DIM")
+        self.tanh_dims = [3] if tanh_dims is None else [int(d) for d in tanh_dims]
+        if any(not 0 <= d < NUM_LOADED_FEATURES for d in self.tanh_dims):
+            raise ConfigError(
+                f"DATA_CONFIG.POINTS_TANH_DIM must index columns 0-4, got {tanh_dims}"
+            )
+        self.train_with_speed = bool(dataset_cfg.get("TRAIN_WITH_SPEED", False))
+        self.filter_empty_boxes_for_train = bool(
+            dataset_cfg.get("FILTER_EMPTY_BOXES_FOR_TRAIN", False)
+        )
+        for key in ("DATA_SPLIT", "SAMPLED_INTERVAL"):
+            if self.mode not in dataset_cfg.get(key, {}):
+                raise ConfigError(f"DATA_CONFIG.{key} needs a {self.mode!r} entry")
+        self.sampled_interval = int(dataset_cfg.SAMPLED_INTERVAL[self.mode])
+        if self.sampled_interval < 1:
+            raise ConfigError(f"DATA_CONFIG.SAMPLED_INTERVAL.{self.mode} must be >= 1")
+        produced = NUM_LOADED_FEATURES + (
+            self.sequence_cfg.num_extra_columns if self.sequence_cfg is not None else 0
+        )
+        src = self.point_feature_encoder.src_feature_list
+        if len(src) != produced:
+            raise ConfigError(
+                f"DATA_CONFIG.POINT_FEATURE_ENCODING.src_feature_list {src} has {len(src)} "
+                f"entries, but this dataset produces {produced} point columns "
+                f"({'multi' if self.sequence_cfg else 'single'}-frame)"
+            )
+        self.set_split(dataset_cfg.DATA_SPLIT[self.mode])
+
+    # ------------------------------------------------------------------ infos
+    def set_split(self, split: str) -> None:
+        """Load the sequences of ``ImageSets/<split>.txt`` (OpenPCDet's ``set_split``)."""
+        self.split = split
+        self.sample_sequence_list = read_image_set(self.root_path / "ImageSets" / f"{split}.txt")
+        self.all_infos, self.seq_name_to_infos = self.include_waymo_data()
+        self.infos = self.all_infos[:: self.sampled_interval]
+        self.logger.info(
+            f"Waymo {split}: {len(self.seq_name_to_infos)} sequences, {len(self.all_infos)} "
+            f"frames, {len(self.infos)} after SAMPLED_INTERVAL={self.sampled_interval}"
+        )
+
+    def include_waymo_data(self) -> tuple[list[dict], dict[str, list[dict]]]:
+        """Read and check every listed sequence pkl; a missing one is an error."""
+        all_infos: list[dict] = []
+        seq_name_to_infos: dict[str, list[dict]] = {}
+        for sequence in self.sample_sequence_list:
+            pkl = find_sequence_pkl(self.root_path, sequence, self.processed_data_tag)
+            if pkl.stem in seq_name_to_infos:
+                raise WaymoFormatError(f"{pkl}: sequence listed twice in ImageSets/{self.split}")
+            infos = load_sequence_infos(pkl)
+            seq_name_to_infos[pkl.stem] = infos
+            all_infos.extend(infos)
+        return all_infos, seq_name_to_infos
+
+    def get_frame_info(self, sequence_name: str, sample_idx: int) -> dict:
+        """The info dict of frame ``sample_idx`` of ``sequence_name`` (any frame of the split)."""
+        infos = self.seq_name_to_infos.get(sequence_name)
+        if infos is None:
+            raise KeyError(f"sequence {sequence_name!r} is not in split {self.split!r}")
+        if not 0 <= sample_idx < len(infos):
+            raise IndexError(
+                f"sequence {sequence_name!r} has frames 0..{len(infos) - 1}, not {sample_idx}"
+            )
+        return infos[sample_idx]
+
+    # ------------------------------------------------------------------ points
+    def get_lidar(self, sequence_name: str, sample_idx: int) -> np.ndarray:
+        """Points of one frame, float32 ``(N, 5)`` ``[x, y, z, tanh(intensity), elongation]``
+        in its own vehicle frame (NLZ points dropped unless ``DISABLE_NLZ_FLAG_ON_POINTS``;
+        tanh on the ``POINTS_TANH_DIM`` columns, default intensity only)."""
+        path = frame_npy_path(self.root_path, sequence_name, sample_idx, self.processed_data_tag)
+        point_features = load_frame_points(path)
+        points = point_features[:, :NUM_LOADED_FEATURES]
+        if not self.disable_nlz_flag:
+            points = points[point_features[:, 5] == -1]
+        points = np.array(points, dtype=np.float32)  # own copy, contiguous
+        for dim in self.tanh_dims:
+            points[:, dim] = np.tanh(points[:, dim])
+        return points
+
+    def get_sequence_data(
+        self,
+        info: Mapping,
+        points: np.ndarray,
+        sequence_name: str,
+        sample_idx: int,
+        sequence_cfg: SequenceConfig,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Stack frame ``sample_idx`` with its history in the current vehicle frame.
+
+        Args:
+            info: the current frame's info (its ``pose`` is the target frame).
+            points: ``(N, 5)`` current points from :meth:`get_lidar`.
+            sequence_cfg: offsets; history frame ``t-j`` comes from ``get_lidar`` and its
+                ``pose`` from :meth:`get_frame_info`.
+        Returns:
+            points: float32 ``(N', 6)`` ``[x, y, z, intensity, elongation, lag_s]`` (current
+                first, then t-1, t-2, ...; lag ``0.1 * (t - s)``; one-hot columns instead with
+                ``ONEHOT_TIMESTAMP``), history points within 1 m of the ego (|x|, |y| < 1) dropped;
+            num_points_all: int32 ``(k+1,)`` points per frame;
+            sample_idx_pre_list: int64 ``(k,)`` history indices (clipped at 0);
+            poses: float32 ``(4 (k+1), 4)`` current pose then the history poses.
+        """
+        pose_cur = np.asarray(info["pose"], dtype=np.float64).reshape(4, 4)
+        history = history_sample_indices(sample_idx, sequence_cfg.sample_offset)
+        num_frames = sequence_cfg.num_frames
+
+        def time_columns(n: int, position: int, lag_s: float) -> np.ndarray:
+            if sequence_cfg.onehot_timestamp:
+                cols = np.zeros((n, num_frames), dtype=np.float32)
+                cols[:, position] = 1
+                return cols
+            return np.full((n, 1), lag_s, dtype=np.float32)
+
+        parts = [np.hstack([points, time_columns(len(points), 0, 0.0)])]
+        poses = [pose_cur]
+        for position, s_pre in enumerate(history, start=1):
+            pre = self.get_lidar(sequence_name, int(s_pre))
+            pose_pre = np.asarray(
+                self.get_frame_info(sequence_name, int(s_pre))["pose"], dtype=np.float64
+            ).reshape(4, 4)
+            xyz = transform_points_to_frame(pre[:, :3], pose_pre, pose_cur)
+            lag = SECONDS_PER_FRAME * (sample_idx - int(s_pre))
+            pre = np.hstack(
+                [xyz.astype(np.float32), pre[:, 3:], time_columns(len(pre), position, lag)]
+            )
+            parts.append(remove_ego_points(pre, 1.0))
+            poses.append(pose_pre)
+        num_points_all = np.array([len(p) for p in parts], dtype=np.int32)
+        stacked = np.concatenate(parts, axis=0).astype(np.float32)
+        return stacked, num_points_all, history, np.concatenate(poses).astype(np.float32)
+
+    # ------------------------------------------------------------------ samples
+    def __len__(self) -> int:
+        if self._merge_all_iters_to_one_epoch:
+            return len(self.infos) * self.total_epochs
+        return len(self.infos)
+
+    def get_annotations(self, info: Mapping) -> dict:
+        """``gt_names`` ``(M,)`` and ``gt_boxes`` float64 ``(M, 7|9)`` of one labelled frame."""
+        annos = info["annos"]
+        names = np.asarray(annos["name"])
+        keep = names != "unknown"
+        boxes = np.asarray(annos["gt_boxes_lidar"], dtype=np.float64)[keep]
+        names = names[keep]
+        if self.train_with_speed:
+            if boxes.shape[1] != 9:
+                raise WaymoFormatError(
+                    f"{info['frame_id']}: TRAIN_WITH_SPEED needs (M, 9) 'annos.gt_boxes_lidar', "
+                    f"got {boxes.shape}"
+                )
+        else:
+            boxes = boxes[:, :7]
+        if self.training and self.filter_empty_boxes_for_train:
+            nonempty = np.asarray(annos["num_points_in_gt"])[keep] > 0
+            boxes, names = boxes[nonempty], names[nonempty]
+        return {"gt_names": names, "gt_boxes": boxes}
+
+    def __getitem__(self, index: int) -> dict:
+        """One sample: ``points`` float32 ``(N, C)``, ``frame_id``, ``sequence_name``,
+        ``sample_idx``, ``pose`` (4, 4), ``poses`` (multi-frame), ``gt_boxes`` float32
+        ``(M, 8|10)`` (class index last), ``gt_names``, ``metadata`` and the pipeline's keys."""
+        epoch = None
+        if self._merge_all_iters_to_one_epoch:
+            epoch = self.epoch + index // len(self.infos)
+            index = index % len(self.infos)
+        info = self.infos[index]
+        sequence_name = info["point_cloud"]["lidar_sequence"]
+        sample_idx = int(info["point_cloud"]["sample_idx"])
+        points = self.get_lidar(sequence_name, sample_idx)
+        input_dict = {
+            "frame_id": info["frame_id"],
+            "sequence_name": sequence_name,
+            "sample_idx": sample_idx,
+            "pose": np.asarray(info["pose"], dtype=np.float32).reshape(4, 4),
+            "metadata": copy.deepcopy(info.get("metadata", info["frame_id"])),
+        }
+        if self.sequence_cfg is not None:
+            points, _, _, poses = self.get_sequence_data(
+                info, points, sequence_name, sample_idx, self.sequence_cfg
+            )
+            input_dict["poses"] = poses
+        input_dict["points"] = points
+        if "annos" in info:
+            input_dict.update(self.get_annotations(info))
+        return self.prepare_data(input_dict, epoch=epoch)
+
+    # ------------------------------------------------------------------ predictions
+    @staticmethod
+    def generate_prediction_dicts(
+        batch_dict: Mapping, pred_dicts: Sequence[Mapping], class_names, output_path=None
+    ) -> list[dict]:
+        """Model outputs -> OpenPCDet anno dicts, one per sample.
+
+        Args:
+            batch_dict: the collated batch (``frame_id``, ``metadata``).
+            pred_dicts: per sample ``pred_boxes`` ``(K, 7|9)``, ``pred_scores`` ``(K,)``,
+                ``pred_labels`` ``(K,)`` (1-based class index); torch or numpy.
+        Returns:
+            dicts with ``name`` ``(K,)`` str, ``score`` ``(K,)``, ``boxes_lidar`` ``(K, 7|9)``,
+            ``pred_labels`` ``(K,)``, ``frame_id``, ``metadata``.
+        """
+
+        def to_numpy(x) -> np.ndarray:
+            return x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
+
+        names_table = np.array(class_names)
+        annos = []
+        for index, box_dict in enumerate(pred_dicts):
+            scores = to_numpy(box_dict["pred_scores"]).astype(np.float32).reshape(-1)
+            boxes = to_numpy(box_dict["pred_boxes"]).astype(np.float32)
+            boxes = boxes.reshape(len(scores), -1) if boxes.size else np.zeros((0, 7), np.float32)
+            labels = to_numpy(box_dict["pred_labels"]).astype(np.int64).reshape(-1)
+            if len(labels) and (labels.min() < 1 or labels.max() > len(class_names)):
+                raise ValueError(
+                    f"pred_labels must be 1..{len(class_names)}, got {labels.min()}..{labels.max()}"
+                )
+            annos.append(
+                {
+                    "name": names_table[labels - 1] if len(labels) else np.array([], dtype="<U10"),
+                    "score": scores,
+                    "boxes_lidar": boxes,
+                    "pred_labels": labels,
+                    "frame_id": batch_dict["frame_id"][index],
+                    "metadata": batch_dict["metadata"][index],
+                }
+            )
+        return annos
+
+    def evaluation(self, det_annos: Sequence[Mapping], class_names, **kwargs):
+        """Waymo L1/L2 AP/APH of ``det_annos`` (one per ``self.infos`` entry, same order).
+
+        Returns ``(result_str, ap_dict)`` as OpenPCDet. Keyword ``eval_metric`` must be
+        ``'waymo'`` if given.
+        """
+        metric = kwargs.get("eval_metric", "waymo")
+        if metric != "waymo":
+            raise ValueError(f"eval_metric {metric!r} is not supported (only 'waymo')")
+        if "annos" not in self.infos[0]:
+            raise WaymoFormatError(f"split {self.split!r} has no ground truth ('annos')")
+        if len(det_annos) != len(self.infos):
+            raise ValueError(
+                f"{len(det_annos)} detection dicts for {len(self.infos)} frames of {self.split!r}"
+            )
+        for det, info in zip(det_annos, self.infos):
+            if det.get("frame_id", info["frame_id"]) != info["frame_id"]:
+                raise ValueError(
+                    f"detections out of order: {det['frame_id']} where {info['frame_id']} expected"
+                )
+        from pcdet_atlas.evaluation.waymo_metric import waymo_evaluate
+
+        gt_annos = [copy.deepcopy(info["annos"]) for info in self.infos]
+        ap_dict = waymo_evaluate(gt_annos, list(det_annos), class_names)
+        result_str = "\n" + "".join(f"{key}: {float(val):.4f}\n" for key, val in ap_dict.items())
+        return result_str, ap_dict

@@ -1,0 +1,393 @@
+"""Augmentations and processors: geometry kept, GT sampling semantics, keyed determinism."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from shapely.geometry import Polygon
+from waymo_tiny_data import CLASS_NAMES, dataset_cfg, write_tiny_waymo
+
+from pcdet_atlas.datasets import WaymoDataset
+from pcdet_atlas.datasets.augmentor import DataAugmentor
+from pcdet_atlas.datasets.augmentor.box_ops import (
+    bev_corners,
+    box_index_of_points,
+    boxes_bev_overlap,
+)
+from pcdet_atlas.datasets.augmentor.gt_sampling import GTSampling
+from pcdet_atlas.datasets.augmentor.processors import ShufflePoints, mask_points_by_range
+from pcdet_atlas.datasets.augmentor.world_transforms import (
+    RandomWorldFlip,
+    RandomWorldRotation,
+    RandomWorldScaling,
+)
+from pcdet_atlas.datasets.waymo_format import WaymoFormatError
+from pcdet_atlas.registry import TRANSFORMS
+from pcdet_atlas.utils.box_utils import points_in_boxes_mask
+
+
+def _scene(seed=0, n_boxes=6, n_points=3000):
+    rng = np.random.default_rng(seed)
+    boxes = np.column_stack(
+        [
+            rng.uniform(-30, 30, (n_boxes, 2)),
+            rng.uniform(-1, 1, n_boxes),
+            rng.uniform(1, 5, (n_boxes, 3)),
+            rng.uniform(-np.pi, np.pi, n_boxes),
+            rng.uniform(-5, 5, (n_boxes, 2)),
+        ]
+    )
+    pts = np.column_stack(
+        [
+            rng.uniform(-35, 35, (n_points, 2)),
+            rng.uniform(-3, 3, n_points),
+            rng.random((n_points, 2)),
+        ]
+    ).astype(np.float32)
+    # make sure every box holds points
+    inner = [b[:3] + (rng.random((30, 3)) - 0.5) * b[3:6] * 0.8 for b in boxes]  # rotated below
+    for b, p in zip(boxes, inner):
+        d = p[:, :2] - b[:2]
+        c, s = np.cos(b[6]), np.sin(b[6])
+        p[:, :2] = b[:2] + d @ np.array([[c, s], [-s, c]])
+    extra = np.column_stack([np.concatenate(inner), rng.random((30 * n_boxes, 2))])
+    pts = np.concatenate([pts, extra.astype(np.float32)])
+    return {
+        "points": pts,
+        "gt_boxes": boxes,
+        "gt_names": np.array(["Vehicle"] * n_boxes),
+        "gt_boxes_mask": np.ones(n_boxes, bool),
+    }
+
+
+# ---------------------------------------------------------------------------- world transforms
+@pytest.mark.parametrize(
+    "transform",
+    [
+        RandomWorldFlip(["x", "y"]),
+        RandomWorldRotation((-np.pi, np.pi)),
+        RandomWorldScaling((0.8, 1.2)),
+    ],
+    ids=["flip", "rotation", "scaling"],
+)
+@pytest.mark.parametrize("draw", range(6))
+def test_world_transforms_keep_points_in_boxes(transform, draw):
+    data = _scene(seed=draw)
+    before = points_in_boxes_mask(data["points"][:, :3].astype(np.float64), data["gt_boxes"])
+    orig_pts, orig_boxes = data["points"].copy(), data["gt_boxes"].copy()
+    out = transform(data, np.random.default_rng(draw))
+    after = points_in_boxes_mask(out["points"][:, :3].astype(np.float64), out["gt_boxes"])
+    # membership is kept except for points within float32 rounding of a face
+    assert before.sum() > 100
+    assert (before != after).sum() <= 2
+    mat = out.get("lidar_aug_matrix", np.eye(4))  # absent if nothing was flipped
+    np.testing.assert_allclose(orig_pts[:, :3] @ mat[:3, :3].T, out["points"][:, :3], atol=1e-4)
+    np.testing.assert_allclose(orig_boxes[:, :3] @ mat[:3, :3].T, out["gt_boxes"][:, :3], atol=1e-9)
+    vel = np.column_stack([orig_boxes[:, 7:9], np.zeros(len(orig_boxes))]) @ mat[:3, :3].T
+    np.testing.assert_allclose(vel[:, :2], out["gt_boxes"][:, 7:9], atol=1e-9)
+    np.testing.assert_array_equal(out["points"][:, 3:], orig_pts[:, 3:])
+    # headings: the box's forward direction maps like a vector
+    fwd = np.column_stack([np.cos(orig_boxes[:, 6]), np.sin(orig_boxes[:, 6])]) @ mat[:2, :2].T
+    fwd /= np.linalg.norm(fwd, axis=1, keepdims=True)
+    got = np.column_stack([np.cos(out["gt_boxes"][:, 6]), np.sin(out["gt_boxes"][:, 6])])
+    np.testing.assert_allclose(got, fwd, atol=1e-9)
+
+
+def test_flip_draws_both_outcomes_and_records_them():
+    seen = set()
+    for i in range(40):
+        out = RandomWorldFlip(["x", "y"])(_scene(n_boxes=1), np.random.default_rng(i))
+        seen.add((out["flip_x"], out["flip_y"]))
+    assert seen == {(False, False), (False, True), (True, False), (True, True)}
+
+
+def test_rotation_and_scaling_ranges():
+    rots = [
+        RandomWorldRotation((-0.5, 0.25))(_scene(n_boxes=1), np.random.default_rng(i))["noise_rot"]
+        for i in range(50)
+    ]
+    assert min(rots) >= -0.5 and max(rots) <= 0.25 and np.ptp(rots) > 0.5
+    scales = [
+        RandomWorldScaling((0.95, 1.05))(_scene(n_boxes=1), np.random.default_rng(i))["noise_scale"]
+        for i in range(50)
+    ]
+    assert min(scales) >= 0.95 and max(scales) <= 1.05
+
+
+def test_augmentor_wraps_heading_and_applies_mask():
+    aug = DataAugmentor([("random_world_rotation", RandomWorldRotation((3.0, 3.1)))])
+    data = _scene(n_boxes=4)
+    data["gt_boxes"][:, 6] = 3.0
+    data["gt_boxes_mask"] = np.array([True, False, True, True])
+    out = aug.forward(data, (0, 0, "seq", 0))
+    assert len(out["gt_boxes"]) == 3 and "gt_boxes_mask" not in out
+    assert (out["gt_boxes"][:, 6] >= -np.pi).all() and (out["gt_boxes"][:, 6] < np.pi).all()
+
+
+# ---------------------------------------------------------------------------- processors
+def test_mask_points_by_range_is_bev_unless_filter_z():
+    pts = np.array([[0, 0, 10, 0, 0], [5, 0, 0, 0, 0], [0, 11, 0, 0, 0]], np.float32)
+    rng = [-10, -10, -2, 10, 10, 4]
+    np.testing.assert_array_equal(mask_points_by_range(pts, rng), [True, True, False])
+    np.testing.assert_array_equal(mask_points_by_range(pts, rng, True), [False, True, False])
+
+
+def test_shuffle_is_a_permutation():
+    data = {"points": np.arange(50, dtype=np.float32).reshape(10, 5)}
+    out = ShufflePoints(True)(dict(data), np.random.default_rng(0))
+    assert not np.array_equal(out["points"], data["points"])
+    np.testing.assert_array_equal(np.sort(out["points"][:, 0]), data["points"][:, 0])
+    same = ShufflePoints(False)(dict(data), np.random.default_rng(0))
+    np.testing.assert_array_equal(same["points"], data["points"])
+
+
+def test_registered_transforms():
+    assert {
+        "gt_sampling",
+        "random_world_flip",
+        "random_world_rotation",
+        "random_world_scaling",
+        "mask_points_and_boxes_outside_range",
+        "shuffle_points",
+    } <= set(TRANSFORMS.list())
+    assert "transform_points_to_voxels" not in TRANSFORMS
+
+
+# ---------------------------------------------------------------------------- box ops
+def _polygon(box):
+    return Polygon(bev_corners(np.asarray(box)[None])[0])
+
+
+_box = st.tuples(
+    st.floats(-20, 20),
+    st.floats(-20, 20),
+    st.floats(0.1, 8),
+    st.floats(0.1, 8),
+    st.floats(-np.pi, np.pi),
+).map(lambda t: [t[0], t[1], 0.0, t[2], t[3], 1.0, t[4]])
+
+
+@settings(max_examples=200, deadline=None)
+@given(a=st.lists(_box, min_size=1, max_size=4), b=st.lists(_box, min_size=1, max_size=4))
+def test_bev_overlap_matches_polygon_clipping(a, b):
+    got = boxes_bev_overlap(np.array(a), np.array(b))
+    for i, ba in enumerate(a):
+        for j, bb in enumerate(b):
+            area = _polygon(ba).intersection(_polygon(bb)).area
+            if area > 1e-6:
+                assert got[i, j]
+            elif area == 0:
+                assert not got[i, j]
+
+
+def test_bev_overlap_edge_cases():
+    box = np.array([[0, 0, 0, 2, 2, 1, 0.0]])
+    touching = np.array([[2, 0, 5, 2, 2, 1, 0.0]])  # shares an edge, z ignored
+    rotated_inside = np.array([[0, 0, 0, 0.5, 0.5, 1, 0.7]])
+    far = np.array([[100, 0, 0, 2, 2, 1, 0.0]])
+    degenerate = np.array([[0, 0, 0, 0, 2, 1, 0.0]])
+    assert not boxes_bev_overlap(box, touching)[0, 0]
+    assert boxes_bev_overlap(box, rotated_inside)[0, 0]
+    assert boxes_bev_overlap(box, box)[0, 0]
+    assert not boxes_bev_overlap(box, far)[0, 0]
+    assert not boxes_bev_overlap(box, degenerate)[0, 0]
+    assert boxes_bev_overlap(np.zeros((0, 7)), box).shape == (0, 1)
+
+
+def test_box_index_of_points_matches_mask():
+    data = _scene(seed=3, n_boxes=8)
+    boxes = data["gt_boxes"].copy()
+    boxes[1] = boxes[0]  # overlapping boxes: the lower index wins
+    idx = box_index_of_points(data["points"], boxes)
+    mask = points_in_boxes_mask(data["points"][:, :3].astype(np.float64), boxes)
+    expected = np.where(mask.any(0), mask.argmax(0), -1)
+    np.testing.assert_array_equal(idx, expected)
+    assert (idx == 0).sum() > 0 and (idx == 1).sum() == 0
+
+
+# ---------------------------------------------------------------------------- GT sampling
+def _write_db(root, entries, num_features=5):
+    """entries: (name, box(9,), points (n, F) box-centred). Writes .bin files, pkl, global."""
+    db_dir = root / "db"
+    db_dir.mkdir(parents=True, exist_ok=True)
+    infos, stacked, offset = {}, [], 0
+    for i, (name, box, pts) in enumerate(entries):
+        path = db_dir / f"obj_{i}.bin"
+        pts.astype(np.float32).tofile(path)
+        infos.setdefault(name, []).append(
+            {
+                "name": name,
+                "path": str(path.relative_to(root)),
+                "sequence_name": "s",
+                "sample_idx": i,
+                "gt_idx": 0,
+                "box3d_lidar": np.asarray(box, np.float64),
+                "num_points_in_gt": len(pts),
+                "difficulty": 1,
+                "global_data_offset": [offset, offset + len(pts)],
+            }
+        )
+        stacked.append(pts.astype(np.float32))
+        offset += len(pts)
+    with open(root / "dbinfos.pkl", "wb") as f:
+        pickle.dump(infos, f)
+    np.save(root / "global.npy", np.concatenate(stacked))
+
+
+def _obj_points(box, n, rng, num_features=5, lags=(0.0,)):
+    local = (rng.random((n, 3)) - 0.5) * np.asarray(box[3:6]) * 0.8
+    c, s = np.cos(box[6]), np.sin(box[6])
+    local[:, :2] = local[:, :2] @ np.array([[c, s], [-s, c]])
+    cols = [local, rng.random((n, 2))]
+    if num_features == 6:
+        cols.append(np.asarray(lags)[np.arange(n) % len(lags)][:, None])
+    return np.concatenate(cols, axis=1)
+
+
+@pytest.mark.parametrize("use_shared_memory", [False, True])
+def test_gt_sampling_pastes_only_non_colliding_and_clears_points(tmp_path, use_shared_memory):
+    rng = np.random.default_rng(0)
+    existing = np.array([[0.0, 0, 0, 4, 2, 1.6, 0.0], [10, 10, 0, 4, 2, 1.6, 0.0]])
+    db_boxes = {
+        "free_a": [20, 0, 0, 4, 2, 1.6, 0.2, 1, 0],
+        "free_b": [-15, -15, 0, 4, 2, 1.6, 1.0, 0, 0],
+        "hits_existing": [1.5, 0.5, 0, 4, 2, 1.6, 0.3, 0, 0],  # overlaps existing[0]
+        "pair_1": [-20, 10, 0, 4, 2, 1.6, 0.0, 0, 0],
+        "pair_2": [-18, 10.5, 0, 4, 2, 1.6, 0.4, 0, 0],  # overlaps pair_1: both rejected
+        "touching": [10, 12, 0, 4, 2, 1.6, 0.0, 0, 0],  # shares an edge with existing[1]: allowed
+    }
+    entries = [("Vehicle", box, _obj_points(box, 20, rng)) for box in db_boxes.values()]
+    entries.append(
+        ("Vehicle", [30, 30, 0, 4, 2, 1.6, 0, 0, 0], _obj_points(db_boxes["free_a"], 3, rng))
+    )
+    _write_db(tmp_path, entries)
+    sampler = GTSampling(
+        root_path=tmp_path,
+        class_names=CLASS_NAMES,
+        db_info_paths=["dbinfos.pkl"],
+        db_data_paths=["global.npy"],
+        use_shared_memory=use_shared_memory,
+        sample_groups={"Vehicle": 100},
+        num_point_features=5,
+        min_points={"Vehicle": 5},  # drops the 3-point entry
+        limit_whole_scene=True,
+    )
+    assert len(sampler.db_infos["Vehicle"]) == 6
+    # scene points: a grid, some of them inside where the free boxes will go
+    gx, gy = np.meshgrid(np.arange(-30, 30, 0.5), np.arange(-30, 30, 0.5))
+    scene = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size), np.ones((gx.size, 2))])
+    data = {
+        "points": scene.astype(np.float32),
+        "gt_boxes": existing,
+        "gt_names": np.array(["Vehicle", "Vehicle"]),
+        "gt_boxes_mask": np.array([True, True]),
+    }
+    out = sampler(data, np.random.default_rng(1))
+    pasted = out["gt_boxes"][2:]
+    got = {
+        name
+        for name, box in db_boxes.items()
+        if any(np.allclose(box[:7], p[:7], atol=1e-5) for p in pasted)
+    }
+    assert got == {"free_a", "free_b", "touching"}
+    assert out["gt_boxes"].shape == (5, 7)  # scene boxes have 7 values: speeds dropped
+    assert list(out["gt_names"]) == ["Vehicle"] * 5
+    # no pasted box overlaps anything else
+    for i in range(len(out["gt_boxes"])):
+        for j in range(i):
+            area = _polygon(out["gt_boxes"][i]).intersection(_polygon(out["gt_boxes"][j])).area
+            assert area < 1e-9
+    # scene points inside pasted boxes are gone; object points are prepended
+    n_obj = 60
+    obj, rest = out["points"][:n_obj], out["points"][n_obj:]
+    assert (points_in_boxes_mask(rest[:, :3].astype(np.float64), pasted).sum(0) == 0).all()
+    assert points_in_boxes_mask(obj[:, :3].astype(np.float64), pasted).any(0).all()
+    inside_before = points_in_boxes_mask(scene[:, :3], pasted).any(0).sum()
+    assert inside_before > 0 and len(rest) == len(scene) - inside_before
+
+
+def test_gt_sampling_limit_whole_scene_and_time_filter(tmp_path):
+    rng = np.random.default_rng(0)
+    boxes = [[x, 0, 0, 4, 2, 1.6, 0, 0, 0] for x in (-30, -20, -10, 10, 20, 30)]
+    lags = (0.0, 0.1, 0.2, 0.3, 0.4)
+    _write_db(tmp_path, [("Vehicle", b, _obj_points(b, 10, rng, 6, lags)) for b in boxes], 6)
+
+    def make(**kw):
+        return GTSampling(
+            root_path=tmp_path,
+            class_names=CLASS_NAMES,
+            db_info_paths=["dbinfos.pkl"],
+            sample_groups={"Vehicle": 4},
+            num_point_features=6,
+            **kw,
+        )
+
+    existing = np.array([[0.0, 20, 0, 4, 2, 1.6, 0], [0.0, -20, 0, 4, 2, 1.6, 0]])
+
+    def scene(columns):
+        return {
+            "points": np.zeros((0, columns), np.float32),
+            "gt_boxes": existing.copy(),
+            "gt_names": np.array(["Vehicle", "Vehicle"]),
+            "gt_boxes_mask": np.array([True, True]),
+        }
+
+    limited = make(limit_whole_scene=True)(scene(6), np.random.default_rng(0))
+    assert len(limited["gt_boxes"]) == 4  # 2 existing + (4 - 2) sampled
+    full = make(limit_whole_scene=False, filter_obj_points_by_timestamp=True, time_range=[0.3, 0.0])
+    out = full(scene(6), np.random.default_rng(0))
+    assert len(out["gt_boxes"]) == 6
+    assert set(np.round(out["points"][:, 5].astype(np.float64), 6)) == {0.0, 0.1, 0.2, 0.3}
+    assert len(out["points"]) == 4 * 8  # lag 0.4 points dropped (2 of 10 per object)
+    # a 5-column (single-frame) scene keeps only lag-0 points and drops the column
+    single = make(limit_whole_scene=False)(scene(5), np.random.default_rng(0))
+    assert single["points"].shape == (4 * 2, 5)
+
+
+def test_gt_sampling_rejects_mismatched_point_file(tmp_path):
+    box = [0, 0, 0, 4, 2, 1.6, 0, 0, 0]
+    _write_db(tmp_path, [("Vehicle", box, _obj_points(box, 10, np.random.default_rng(0)))])
+    with open(tmp_path / "dbinfos.pkl", "rb") as f:
+        infos = pickle.load(f)
+    infos["Vehicle"][0]["num_points_in_gt"] = 11
+    with open(tmp_path / "dbinfos.pkl", "wb") as f:
+        pickle.dump(infos, f)
+    sampler = GTSampling(tmp_path, CLASS_NAMES, ["dbinfos.pkl"], {"Vehicle": 1}, 5)
+    data = {
+        "points": np.zeros((0, 5), np.float32),
+        "gt_boxes": np.zeros((0, 7)),
+        "gt_names": np.array([], dtype=str),
+        "gt_boxes_mask": np.zeros(0, bool),
+    }
+    with pytest.raises(
+        WaymoFormatError, match=r"obj_0\.bin: 10 points, but its db_info says num_points_in_gt=11"
+    ):
+        sampler(data, np.random.default_rng(0))
+
+
+# ---------------------------------------------------------------------------- determinism
+@pytest.fixture(scope="module")
+def tiny_root(tmp_path_factory):
+    return write_tiny_waymo(tmp_path_factory.mktemp("tiny_aug"))
+
+
+def test_augmentation_is_keyed_by_seed_epoch_and_frame(tiny_root):
+    cfg = dataset_cfg(augment=True, shuffle=True)
+    ds = WaymoDataset(cfg, CLASS_NAMES, training=True, root_path=tiny_root)
+    other = WaymoDataset(cfg, CLASS_NAMES, training=True, root_path=tiny_root)
+    a, b = ds[3], other[3]
+    np.testing.assert_array_equal(a["points"], b["points"])
+    np.testing.assert_array_equal(a["gt_boxes"], b["gt_boxes"])
+    _ = other[5]  # loading other frames first changes nothing
+    np.testing.assert_array_equal(other[3]["points"], a["points"])
+    assert ds[4]["noise_rot"] != a["noise_rot"]  # frames differ
+    ds.set_epoch(1)
+    assert ds[3]["noise_rot"] != a["noise_rot"]  # epochs differ
+    ds.set_epoch(0)
+    assert ds[3]["noise_rot"] == a["noise_rot"]
+    ds.seed = 123
+    assert ds[3]["noise_rot"] != a["noise_rot"]  # seeds differ

@@ -1,0 +1,271 @@
+"""Every bad input of issue 2 raises an error naming the file, the frame or key, and what was
+expected; empty frames are valid (tested in test_waymo_dataset.py)."""
+
+from __future__ import annotations
+
+import pickle
+import shutil
+
+import numpy as np
+import pytest
+from waymo_tiny_data import CLASS_NAMES, DATASET_CFG, dataset_cfg, write_tiny_waymo
+
+from pcdet_atlas.config import ConfigError, cfg_from_yaml_file
+from pcdet_atlas.datasets import WaymoDataset
+from pcdet_atlas.datasets import waymo_format as wf
+
+SEQ = "segment-777_with_camera_labels"
+
+
+@pytest.fixture(scope="module")
+def pristine(tmp_path_factory):
+    return write_tiny_waymo(
+        tmp_path_factory.mktemp("pristine"), {"train": [(SEQ, 4)], "val": [(SEQ, 4)]}
+    )
+
+
+@pytest.fixture
+def root(pristine, tmp_path):
+    dst = tmp_path / "root"
+    shutil.copytree(pristine, dst)
+    return dst
+
+
+def _dataset(root, **overrides):
+    return WaymoDataset(dataset_cfg(**overrides), CLASS_NAMES, training=False, root_path=root)
+
+
+def _edit_infos(root, edit):
+    path = wf.sequence_pkl_path(root, SEQ)
+    with open(path, "rb") as f:
+        infos = pickle.load(f)
+    edit(infos)
+    with open(path, "wb") as f:
+        pickle.dump(infos, f)
+    return path
+
+
+# ---------------------------------------------------------------------------- point files
+def test_missing_npy_names_the_file(root):
+    npy = wf.frame_npy_path(root, SEQ, 2)
+    npy.unlink()
+    ds = _dataset(root)
+    with pytest.raises(wf.WaymoFormatError, match="0002.npy: frame file not found") as info:
+        ds[2]
+    assert isinstance(info.value.__cause__, FileNotFoundError)
+    ds[1]  # the others still load
+
+
+def test_missing_history_npy_names_the_file(root):
+    wf.frame_npy_path(root, SEQ, 0).unlink()
+    ds = WaymoDataset(dataset_cfg(multiframe=True), CLASS_NAMES, training=False, root_path=root)
+    with pytest.raises(wf.WaymoFormatError, match=r"0000\.npy"):
+        ds[2]  # frame 2 needs frame 0 as history
+
+
+def test_truncated_npy_names_the_file(root):
+    npy = wf.frame_npy_path(root, SEQ, 1)
+    data = npy.read_bytes()
+    npy.write_bytes(data[: len(data) // 2])
+    with pytest.raises(wf.WaymoFormatError, match=r"0001\.npy: cannot read frame points") as info:
+        _dataset(root)[1]
+    assert info.value.__cause__ is not None
+
+
+def test_not_an_npy_file(root):
+    wf.frame_npy_path(root, SEQ, 1).write_text("hello")
+    with pytest.raises(wf.WaymoFormatError, match=r"0001\.npy"):
+        _dataset(root).get_lidar(SEQ, 1)
+
+
+@pytest.mark.parametrize("columns", [5, 7])
+def test_wrong_column_count(root, columns):
+    np.save(wf.frame_npy_path(root, SEQ, 1), np.zeros((10, columns), np.float32))
+    with pytest.raises(
+        wf.WaymoFormatError, match=rf"0001\.npy: expected a \(N, 6\).*\(10, {columns}\)"
+    ):
+        _dataset(root)[1]
+
+
+def test_wrong_dtype(root):
+    np.save(wf.frame_npy_path(root, SEQ, 1), np.zeros((10, 6), np.float64))
+    with pytest.raises(wf.WaymoFormatError, match=r"0001\.npy: expected float32"):
+        _dataset(root)[1]
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_nan_inf_points(root, bad):
+    npy = wf.frame_npy_path(root, SEQ, 3)
+    pts = np.load(npy)
+    pts[5, 1] = bad
+    np.save(npy, pts)
+    with pytest.raises(wf.WaymoFormatError, match=r"0003\.npy: 1 point\(s\) with NaN/inf .*row 5"):
+        _dataset(root)[3]
+
+
+# ---------------------------------------------------------------------------- info pkls
+def test_pkl_entry_missing_key(root):
+    path = _edit_infos(root, lambda infos: infos[2].pop("pose"))
+    with pytest.raises(wf.WaymoFormatError, match=r"\[frame 2\]: missing key 'pose'") as info:
+        _dataset(root)
+    assert str(path) in str(info.value)
+
+
+def test_pkl_annos_missing_key(root):
+    _edit_infos(root, lambda infos: infos[1]["annos"].pop("num_points_in_gt"))
+    with pytest.raises(
+        wf.WaymoFormatError, match=r"\[frame 1\]: missing key 'annos.num_points_in_gt'"
+    ):
+        _dataset(root)
+
+
+def test_pkl_point_cloud_missing_key(root):
+    _edit_infos(root, lambda infos: infos[0]["point_cloud"].pop("sample_idx"))
+    with pytest.raises(
+        wf.WaymoFormatError, match=r"\[frame 0\]: missing key 'point_cloud.sample_idx'"
+    ):
+        _dataset(root)
+
+
+def test_frame_index_gap(root):
+    path = _edit_infos(root, lambda infos: infos.pop(1))
+    with pytest.raises(
+        wf.WaymoFormatError, match="frame index gap: entry 1 has sample_idx 2"
+    ) as info:
+        _dataset(root)
+    assert str(path) in str(info.value)
+
+
+def test_unknown_class_name(root):
+    def edit(infos):
+        infos[3]["annos"]["name"] = np.array(["Car"] + list(infos[3]["annos"]["name"][1:]))
+
+    _edit_infos(root, edit)
+    with pytest.raises(
+        wf.WaymoFormatError, match=r"\[frame 3\]: unknown class name\(s\) \['Car'\]"
+    ):
+        _dataset(root)
+
+
+def test_wrong_sequence_name_inside_pkl(root):
+    def edit(infos):
+        infos[0]["point_cloud"]["lidar_sequence"] = "segment-other"
+
+    _edit_infos(root, edit)
+    with pytest.raises(wf.WaymoFormatError, match=r"\[frame 0\]: 'point_cloud.lidar_sequence'"):
+        _dataset(root)
+
+
+def test_corrupt_pkl(root):
+    wf.sequence_pkl_path(root, SEQ).write_bytes(b"\x80\x04garbage")
+    with pytest.raises(wf.WaymoFormatError, match=rf"{SEQ}\.pkl: cannot unpickle"):
+        _dataset(root)
+
+
+def test_missing_sequence_pkl_is_not_skipped(root):
+    (root / "ImageSets" / "val.txt").write_text(f"{SEQ}.tfrecord\nsegment-404.tfrecord\n")
+    with pytest.raises(
+        wf.WaymoFormatError, match="'segment-404' listed in ImageSets has no info pkl"
+    ):
+        _dataset(root)
+
+
+def test_missing_image_set(root):
+    (root / "ImageSets" / "val.txt").unlink()
+    with pytest.raises(wf.WaymoFormatError, match=r"ImageSets/val\.txt: split file not found"):
+        _dataset(root)
+
+
+def test_train_with_speed_needs_9_values(root):
+    def edit(infos):
+        infos[0]["annos"]["gt_boxes_lidar"] = infos[0]["annos"]["gt_boxes_lidar"][:, :7]
+
+    _edit_infos(root, edit)
+    ds = _dataset(root, TRAIN_WITH_SPEED=True)
+    with pytest.raises(wf.WaymoFormatError, match=r"_000: TRAIN_WITH_SPEED needs \(M, 9\)"):
+        ds[0]
+
+
+# ---------------------------------------------------------------------------- configs
+def test_unknown_data_config_key(root):
+    cfg = dataset_cfg()
+    cfg.SAMPLED_INTERVALS = {"train": 1, "test": 1}
+    with pytest.raises(ConfigError, match="unknown key 'SAMPLED_INTERVALS' in DATA_CONFIG"):
+        WaymoDataset(cfg, CLASS_NAMES, training=False, root_path=root)
+
+
+def test_unknown_key_in_yaml_names_the_file(root, tmp_path):
+    yaml_path = tmp_path / "bad.yaml"
+    yaml_path.write_text(
+        "_BASE_CONFIG_: cfgs/dataset_configs/waymo_dataset.yaml\nFILTER_EMPTY_BOX: True\n"
+    )
+    cfg = cfg_from_yaml_file(yaml_path)
+    with pytest.raises(ConfigError, match=r"unknown key 'FILTER_EMPTY_BOX'.*bad\.yaml"):
+        WaymoDataset(cfg, CLASS_NAMES, training=False, root_path=root)
+
+
+def test_missing_base_file(tmp_path):
+    yaml_path = tmp_path / "child.yaml"
+    yaml_path.write_text("_BASE_CONFIG_: no_such_base.yaml\nDATA_PATH: x\n")
+    with pytest.raises(
+        ConfigError, match=r"child\.yaml: _BASE_CONFIG_ 'no_such_base\.yaml' not found"
+    ):
+        cfg_from_yaml_file(yaml_path)
+
+
+@pytest.mark.parametrize("training", [True, False])
+def test_unknown_key_in_augmentor_item(root, training):
+    cfg = dataset_cfg(augment=True)
+    cfg.DATA_AUGMENTOR.AUG_CONFIG_LIST[0].WORLD_ROT_ANGEL = [0, 1]
+    with pytest.raises(ConfigError, match=r"unknown key 'WORLD_ROT_ANGEL'.*random_world_flip"):
+        WaymoDataset(cfg, CLASS_NAMES, training=training, root_path=root)
+
+
+def test_unknown_augmentation_name(root):
+    cfg = dataset_cfg(augment=True)
+    cfg.DATA_AUGMENTOR.AUG_CONFIG_LIST[0].NAME = "random_world_flop"
+    with pytest.raises(ConfigError, match=r"random_world_flop.*Did you mean 'random_world_flip'"):
+        WaymoDataset(cfg, CLASS_NAMES, training=True, root_path=root)
+
+
+def test_unknown_key_in_processor_item(root):
+    cfg = dataset_cfg()
+    cfg.DATA_PROCESSOR[0].REMOVE_OUTSIDE_BOX = True
+    with pytest.raises(ConfigError, match=r"unknown key 'REMOVE_OUTSIDE_BOX'.*DATA_PROCESSOR\[0\]"):
+        WaymoDataset(cfg, CLASS_NAMES, training=False, root_path=root)
+
+
+def test_voxelization_in_data_processor_is_refused(root):
+    cfg = dataset_cfg()
+    cfg.DATA_PROCESSOR.append(
+        {"NAME": "transform_points_to_voxels", "VOXEL_SIZE": [0.1, 0.1, 0.15]}
+    )
+    with pytest.raises(ConfigError, match="voxelization is part of the model"):
+        WaymoDataset(cfg, CLASS_NAMES, training=False, root_path=root)
+
+
+def test_unknown_key_in_sequence_config(root):
+    cfg = dataset_cfg(multiframe=True)
+    cfg.SEQUENCE_CONFIG.SAMPLE_OFFSETS = [-3, 0]
+    with pytest.raises(
+        ConfigError, match="unknown key 'SAMPLE_OFFSETS' in DATA_CONFIG.SEQUENCE_CONFIG"
+    ):
+        WaymoDataset(cfg, CLASS_NAMES, training=False, root_path=root)
+
+
+def test_feature_list_must_fit_the_columns(root):
+    cfg = dataset_cfg(multiframe=True)
+    cfg.POINT_FEATURE_ENCODING.src_feature_list = ["x", "y", "z", "intensity", "elongation"]
+    cfg.POINT_FEATURE_ENCODING.used_feature_list = ["x", "y", "z", "intensity"]
+    with pytest.raises(ConfigError, match="produces 6 point columns"):
+        WaymoDataset(cfg, CLASS_NAMES, training=False, root_path=root)
+
+
+def test_missing_gt_database_names_the_file(root):
+    cfg = dataset_cfg()  # keeps gt_sampling out; put it back
+    shipped = cfg_from_yaml_file(DATASET_CFG).DATA_AUGMENTOR.AUG_CONFIG_LIST
+    cfg.DATA_AUGMENTOR.AUG_CONFIG_LIST = shipped[:1]
+    with pytest.raises(
+        wf.WaymoFormatError, match=r"dbinfos_train_sampled_1\.pkl: GT database info file not found"
+    ):
+        WaymoDataset(cfg, CLASS_NAMES, training=True, root_path=root)

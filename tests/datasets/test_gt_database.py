@@ -1,0 +1,159 @@
+"""The GT database (tools/create_gt_database.py) and every shipped dataset YAML building on it."""
+
+from __future__ import annotations
+
+import pickle
+import runpy
+
+import numpy as np
+import pytest
+from waymo_tiny_data import CLASS_NAMES, write_tiny_waymo
+
+from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+from pcdet_atlas.datasets import WaymoDataset
+from pcdet_atlas.datasets import waymo_format as wf
+from pcdet_atlas.datasets.gt_database import gt_database_paths
+from pcdet_atlas.utils.box_utils import points_in_boxes_mask
+
+CFG_DIR = REPO_ROOT / "cfgs" / "dataset_configs"
+TAG = wf.PROCESSED_DATA_TAG
+
+
+@pytest.fixture(scope="module")
+def db_root(tmp_path_factory):
+    root = write_tiny_waymo(tmp_path_factory.mktemp("tiny_db"))
+    tool = runpy.run_path(str(REPO_ROOT / "tools" / "create_gt_database.py"), run_name="tool")
+    tool["main"](
+        [
+            "--cfg_file",
+            str(CFG_DIR / "waymo_dataset.yaml"),
+            str(CFG_DIR / "waymo_dataset_multiframe.yaml"),
+            "--data_path",
+            str(root),
+        ]
+    )
+    return root
+
+
+def _load(path):
+    with open(path, "rb") as f:
+        return pickle.load(f)
+
+
+def test_single_frame_database(db_root):
+    paths = gt_database_paths(db_root, TAG, "train", 1)
+    assert paths["info"].name == f"{TAG}_waymo_dbinfos_train_sampled_1.pkl"
+    assert paths["global"].name == f"{TAG}_gt_database_train_sampled_1_global.npy"
+    db = _load(paths["info"])
+    assert set(db) == {"Vehicle", "Pedestrian", "Cyclist"}  # Sign is not a used class
+    infos = _load(db_root / f"{TAG}_infos_train.pkl")
+    assert len(infos) == 11  # the concatenated split infos are written too
+    # Vehicles from every 4th frame of the concatenated infos, Pedestrians every 2nd
+    frames = lambda name: sorted({infos.index(_info(infos, d)) for d in db[name]})  # noqa: E731
+    assert frames("Vehicle") == [0, 4, 8]
+    assert frames("Pedestrian") == [0, 2, 4, 6, 8, 10]
+    assert frames("Cyclist") == list(range(11))
+    global_points = np.load(paths["global"])
+    assert global_points.dtype == np.float32 and global_points.shape[1] == 5
+    for entry in db["Vehicle"] + db["Pedestrian"]:
+        assert set(entry) == {
+            "name",
+            "path",
+            "sequence_name",
+            "sample_idx",
+            "gt_idx",
+            "box3d_lidar",
+            "num_points_in_gt",
+            "difficulty",
+            "global_data_offset",
+        }
+        assert entry["path"] == (
+            f"{TAG}_gt_database_train_sampled_1/{entry['sequence_name']}_"
+            f"{entry['sample_idx']:04d}_{entry['name']}_{entry['gt_idx']}.bin"
+        )
+        pts = np.fromfile(db_root / entry["path"], dtype=np.float32).reshape(-1, 5)
+        start, end = entry["global_data_offset"]
+        np.testing.assert_array_equal(pts, global_points[start:end])
+        assert len(pts) == entry["num_points_in_gt"]
+        assert entry["box3d_lidar"].shape == (9,)
+        # points are box-centred and lie in the box
+        centred_box = np.concatenate([[0, 0, 0], entry["box3d_lidar"][3:7]])[None]
+        centred_box[:, 3:6] += 1e-4  # points on a face, up to float32 rounding of the shift
+        assert points_in_boxes_mask(pts[:, :3].astype(np.float64), centred_box).all()
+        # and they are the frame's points in that box (tanh'd intensity, NLZ kept per config)
+        info = _info(infos, entry)
+        raw = np.load(wf.frame_npy_path(db_root, entry["sequence_name"], entry["sample_idx"]))
+        # gt_idx counts the frame's boxes after the Vehicle/Pedestrian subsampling (OpenPCDet)
+        k = int(np.nonzero((info["annos"]["gt_boxes_lidar"] == entry["box3d_lidar"]).all(1))[0][0])
+        inside = points_in_boxes_mask(
+            raw[:, :3].astype(np.float64), info["annos"]["gt_boxes_lidar"][k][None]
+        )[0]
+        assert inside.sum() == len(pts) == info["annos"]["num_points_in_gt"][k]
+        np.testing.assert_allclose(np.sort(pts[:, 3]), np.sort(np.tanh(raw[inside, 3])), rtol=1e-6)
+
+
+def _info(infos, entry):
+    return next(
+        i
+        for i in infos
+        if i["point_cloud"]["lidar_sequence"] == entry["sequence_name"]
+        and i["point_cloud"]["sample_idx"] == entry["sample_idx"]
+    )
+
+
+def test_multi_frame_database(db_root):
+    paths = gt_database_paths(db_root, TAG, "train", 1, (-4, 0))
+    assert paths["info"].name == f"{TAG}_waymo_dbinfos_train_sampled_1_multiframe_-4_to_0.pkl"
+    db = _load(paths["info"])
+    global_points = np.load(paths["global"])
+    assert global_points.shape[1] == 6
+    lags = set(np.round(global_points[:, 5].astype(np.float64), 6))
+    assert lags == {0.0, 0.1, 0.2, 0.3, 0.4}  # 5 frames, whatever SAMPLE_OFFSET says
+    single = _load(gt_database_paths(db_root, TAG, "train", 1)["info"])
+    for a, b in zip(db["Vehicle"], single["Vehicle"]):
+        assert a["path"].startswith(f"{TAG}_gt_database_train_sampled_1_multiframe_-4_to_0/")
+        assert a["num_points_in_gt"] >= b["num_points_in_gt"]
+        assert (a["sequence_name"], a["sample_idx"]) == (b["sequence_name"], b["sample_idx"])
+        start, end = a["global_data_offset"]
+        current = (global_points[start:end, 5] == 0).sum()
+        # frame 0's history is frame 0 again (clipped), with lag 0 as well
+        copies = 5 if a["sample_idx"] == 0 else 1
+        assert current == copies * b["num_points_in_gt"]
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in CFG_DIR.glob("*.yaml")))
+@pytest.mark.parametrize("training", [True, False])
+def test_every_dataset_yaml_builds_and_loads(db_root, name, training):
+    cfg = cfg_from_yaml_file(CFG_DIR / name)
+    ds = WaymoDataset(cfg, CLASS_NAMES, training=training, root_path=db_root)
+    sample = ds[len(ds) - 1]
+    multiframe = ds.sequence_cfg is not None
+    assert sample["points"].shape[1] == ds.num_point_features == (6 if multiframe else 5)
+    assert sample["points"].dtype == np.float32 and np.isfinite(sample["points"]).all()
+    assert sample["gt_boxes"].shape[1] == (10 if multiframe else 8)
+    if training:
+        names = [a.NAME for a in cfg.DATA_AUGMENTOR.AUG_CONFIG_LIST]
+        assert ds.data_augmentor.names == names
+    batch = ds.collate_batch([sample, ds[0]])
+    assert batch["batch_size"] == 2
+
+
+@pytest.mark.parametrize("multiframe", [False, True])
+def test_training_with_gt_sampling_adds_objects(db_root, multiframe):
+    cfg = cfg_from_yaml_file(
+        CFG_DIR / ("waymo_dataset_multiframe.yaml" if multiframe else "waymo_dataset.yaml")
+    )
+    cfg.SAMPLED_INTERVAL = {"train": 1, "test": 1}
+    cfg.DATA_AUGMENTOR.AUG_CONFIG_LIST = cfg.DATA_AUGMENTOR.AUG_CONFIG_LIST[:1]  # gt_sampling
+    cfg.DATA_PROCESSOR = []
+    ds = WaymoDataset(cfg, CLASS_NAMES, training=True, root_path=db_root)
+    plain = WaymoDataset(
+        cfg_from_yaml_file(CFG_DIR / "waymo_dataset.yaml"), CLASS_NAMES, False, db_root
+    )
+    added = 0
+    for i in range(len(ds)):
+        sample = ds[i]
+        n_plain = len(ds.get_annotations(ds.infos[i])["gt_names"])
+        added += len(sample["gt_boxes"]) - n_plain
+        assert len(plain.infos) > 0
+    assert added > 0
