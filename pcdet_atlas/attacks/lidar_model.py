@@ -81,6 +81,20 @@ class LidarModel:
         self._midpoints = (incl[1:] + incl[:-1]) / 2  # (B-1,)
         self.fov_min = float(incl[0] - (incl[1] - incl[0]) / 2)
         self.fov_max = float(incl[-1] + (incl[-1] - incl[-2]) / 2)
+        # per-device copies of (origin, midpoints), so CUDA calls do no host-to-device copy
+        self._device_cache: dict[torch.device, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def _constants(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(origin (3,), beam midpoints (B-1,))`` float64 on ``device`` (cached)."""
+        device = torch.device(device)
+        if device not in self._device_cache:
+            self._device_cache[device] = (self.origin.to(device), self._midpoints.to(device))
+        return self._device_cache[device]
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_device_cache"] = {}  # never pickle device tensors (DataLoader workers)
+        return state
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -169,7 +183,7 @@ class LidarModel:
         Computed in float64 so that bin assignment is identical on CPU and GPU.
         Returns three ``(N,)`` float64 tensors (radians, radians, metres).
         """
-        rel = xyz[:, :3].to(torch.float64) - self.origin.to(xyz.device)
+        rel = xyz[:, :3].to(torch.float64) - self._constants(xyz.device)[0]
         horiz = torch.sqrt(rel[:, 0] ** 2 + rel[:, 1] ** 2)
         azimuth = torch.atan2(rel[:, 1], rel[:, 0])
         azimuth = torch.where(azimuth == -math.pi, torch.full_like(azimuth, math.pi), azimuth)
@@ -186,7 +200,7 @@ class LidarModel:
 
     def beam_index(self, elevation: torch.Tensor) -> torch.Tensor:
         """Index of the nearest inclination (a tie at a midpoint goes to the lower beam)."""
-        return torch.bucketize(elevation, self._midpoints.to(elevation.device))
+        return torch.bucketize(elevation, self._constants(elevation.device)[1])
 
     def in_fov(self, elevation: torch.Tensor) -> torch.Tensor:
         """Whether an elevation lies in the fan (within half a spacing of the outermost beams)."""

@@ -116,20 +116,36 @@ def azimuth_sector_candidates(
         step = (a1 - a0) / pieces
         wedges.extend((a0 + p * step, a0 + (p + 1) * step) for p in range(pieces))
     covered = sum(b - a for a, b in wedges)
-    dtype = scene_xyz.dtype if scene_xyz.dtype in (torch.float32, torch.float64) else torch.float32
-    dx = scene_xyz[:, 0].to(dtype) - float(lidar.origin[0])  # (N,)
-    dy = scene_xyz[:, 1].to(dtype) - float(lidar.origin[1])  # (N,)
     if covered >= _FULL_SCAN_FRACTION * 2 * math.pi:
-        ok = torch.isfinite(dx) & torch.isfinite(dy) & torch.isfinite(scene_xyz[:, 2])
+        ok = torch.isfinite(scene_xyz).all(dim=1)
         return torch.nonzero(ok).squeeze(1)
+    dtype = scene_xyz.dtype if scene_xyz.dtype in (torch.float32, torch.float64) else torch.float32
+    x = scene_xyz[:, 0].to(dtype)  # (N,)
+    y = scene_xyz[:, 1].to(dtype)  # (N,)
+    ox, oy = float(lidar.origin[0]), float(lidar.origin[1])
     mask = None
     for a0, a1 in wedges:
-        # inside iff cross(u0, p) >= 0 and cross(p, u1) >= 0 (wedge narrower than pi)
-        c0 = dy * math.cos(a0) - dx * math.sin(a0)
-        c1 = dx * math.sin(a1) - dy * math.cos(a1)
-        inside = torch.minimum(c0, c1) >= -_WEDGE_SLACK_M  # NaN compares False
+        # inside iff cross(u0, p - o) >= 0 and cross(p - o, u1) >= 0 (wedge narrower than pi)
+        inside = _half_plane(x, y, -math.sin(a0), math.cos(a0), ox, oy)
+        inside &= _half_plane(x, y, math.sin(a1), -math.cos(a1), ox, oy)
         mask = inside if mask is None else mask | inside
     return torch.nonzero(mask).squeeze(1)
+
+
+def _half_plane(
+    x: torch.Tensor, y: torch.Tensor, a: float, b: float, ox: float, oy: float
+) -> torch.Tensor:
+    """``a (x - ox) + b (y - oy) >= -slack`` in two passes over the points (``(N,)`` bool).
+
+    Divides by the larger of ``|a|``, ``|b|`` so that one fused ``add(.., alpha=..)`` and one
+    comparison suffice; NaN compares False.
+    """
+    thresh = a * ox + b * oy - _WEDGE_SLACK_M
+    if abs(b) >= abs(a):
+        w = torch.add(y, x, alpha=a / b)  # (N,)
+        return w >= thresh / b if b > 0 else w <= thresh / b
+    w = torch.add(x, y, alpha=b / a)  # (N,)
+    return w >= thresh / a if a > 0 else w <= thresh / a
 
 
 def raycast_merge(

@@ -67,3 +67,41 @@ def test_from_config_and_errors():
         LidarModel.from_config({"BEAMS": 64})
     with pytest.raises(ValueError, match="ascending"):
         LidarModel([0.1, 0.0])
+
+
+DEVICES = [
+    "cpu",
+    pytest.param(
+        "cuda",
+        marks=[
+            pytest.mark.cuda,
+            pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device"),
+        ],
+    ),
+]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_bin_index_device_and_dtype_agree(device):
+    lidar = LidarModel.waymo_top()
+    gen = torch.Generator().manual_seed(0)
+    xyz = (torch.rand(20000, 3, generator=gen) - 0.5) * torch.tensor([150.0, 150.0, 20.0])
+    ref = lidar.bin_index(xyz.double())
+    for pts in (xyz, xyz.double()):
+        bins, fov, rng = lidar.bin_index(pts.to(device))
+        assert bins.dtype == torch.long and fov.dtype == torch.bool and rng.dtype == torch.float64
+        assert torch.equal(bins.cpu(), ref[0]) and torch.equal(fov.cpu(), ref[1])
+        assert torch.equal(rng.cpu(), ref[2])
+    assert (ref[0] >= 0).all() and (ref[0] < lidar.num_bins).all()
+
+
+def test_pickle_roundtrip_drops_device_cache():
+    import pickle
+
+    lidar = LidarModel.waymo_top(max_range=80.0)
+    lidar.bin_index(torch.zeros(1, 3))  # fills the per-device cache
+    again = pickle.loads(pickle.dumps(lidar))
+    assert again._device_cache == {} and again.to_config() == lidar.to_config()
+    xyz = torch.tensor([[10.0, 5.0, 1.0], [-20.0, -0.0, 2.0]])
+    for a, b in zip(again.bin_index(xyz), lidar.bin_index(xyz)):
+        assert torch.equal(a, b)
