@@ -1,0 +1,792 @@
+"""Attack metrics (SPEC §4): success rate, confidence analysis, lifecycle, robustness ranks.
+
+Inputs are the two per-frame lists every evaluation run produces, aligned by index:
+
+* ``det_annos``: OpenPCDet detection annos, one dict per frame with ``name`` (K,) str,
+  ``boxes_lidar`` (K, 7|9) ``[x, y, z, dx, dy, dz, heading(, vx, vy)]`` in metres / radians (vehicle
+  frame, z = box centre) and ``score`` (K,) in [0, 1]; ``frame_id`` is used when present.
+* ``attack_infos``: the attack metadata dict of each frame (key ``attack`` of an
+  ``AtlasWaymoDataset`` sample; schema in ``docs/evaluation.md``): ``variant``, ``family``,
+  ``spoofed``, ``target_box`` (7,) or None, ``target_is_shadow``, ``lifecycle_k``, ``run_id`` ...
+  When ``attack_infos`` is None, each det anno must carry its metadata under ``anno['attack']``.
+
+Everything is computed from one pass, :func:`match_targets`, that finds for every recorded target
+box the best 3D IoU of the predictions (of the target's class, above an optional score threshold)
+and the best score among the matching ones; ASR, the lenient ASR, the confidence statistics and
+the lifecycle curve are all read off that record, so they always agree with each other.
+
+Definitions (paper §"Evaluation Metric"; SPEC §4):
+
+* **Target**: a frame whose ``target_box`` is not None. Attacked targets have ``spoofed`` True;
+  *shadow* targets (``target_is_shadow`` True: the frame before a run and the frames after it) are
+  only used by the lifecycle analysis and never enter the ASR.
+* **Detected**: some prediction of the target's class (default ``'Vehicle'``; the paper's box
+  ``g = [x, y, z, l, w, h, θ, c]`` includes the class) has 3D IoU >= 0.7 with the target box.
+* **Injection** succeeds when the phantom is detected; **removal** succeeds when the target is not.
+* **Lenient** (MVP, Zhang et al. USENIX Sec'24): "detected" means IoU > 0 instead, so a lenient
+  injection success is any overlapping prediction and a lenient removal success needs *no*
+  overlapping prediction at all. (Lenient injection ASR >= ASR; lenient removal ASR <= ASR.)
+* ``ASR = num_success / num_targets``; None when there is no target (e.g. the clean variant).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+import torch
+
+from pcdet_atlas.evaluation.iou3d import boxes_aligned_iou3d
+
+ASR_IOU_THRESHOLD = 0.7
+HIGH_SCORE_THRESHOLD = 0.7
+NUM_SCORE_BINS = 20  # fixed bins of width 0.05 over [0, 1]
+DEFAULT_TARGET_CLASS = "Vehicle"
+#: The schedule window the attack engine records ``lifecycle_k`` for by default (SPEC §3.2,
+#: ``pcdet_atlas.attacks.schedule.DEFAULT_WINDOW``; a schedule config with another ``WINDOW``
+#: must pass ``recorded_window=`` explicitly).
+SCHEDULE_WINDOW = 32
+
+#: Per attack family: does the attack succeed when the target IS detected? A new family that
+#: records targets adds its entry here (or passes ``success_if_detected=`` to the functions).
+SUCCESS_IF_DETECTED: dict[str, bool] = {"injection": True, "removal": False}
+
+IouFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+class AttackMetricError(ValueError):
+    """Predictions or attack metadata that cannot be evaluated; the message names frame and key."""
+
+
+# ---------------------------------------------------------------------------- matching
+@dataclass
+class TargetMatches:
+    """One row per recorded target box (attacked and shadow), in frame order.
+
+    Arrays of length T: ``frame_index`` (int, index into the input lists), ``frame_id`` (str, ''
+    if unknown), ``run_id``, ``lifecycle_k`` (int), ``is_shadow`` (bool), ``target_box`` (T, 7)
+    float64, ``max_iou`` (float64, best 3D IoU of an eligible prediction, 0 if none),
+    ``matched_score`` (float64, best score among eligible predictions with IoU >= ``iou_threshold``,
+    NaN if none) and ``overlap_score`` (same for IoU > 0).
+    """
+
+    variant: str
+    family: str
+    success_if_detected: bool
+    iou_threshold: float
+    score_threshold: float | None
+    target_class: str | None
+    num_frames: int
+    frame_index: np.ndarray
+    frame_id: np.ndarray
+    run_id: np.ndarray
+    lifecycle_k: np.ndarray
+    is_shadow: np.ndarray
+    target_box: np.ndarray
+    max_iou: np.ndarray
+    matched_score: np.ndarray
+    overlap_score: np.ndarray
+    _ROW_FIELDS: ClassVar[tuple[str, ...]] = (
+        "frame_index",
+        "frame_id",
+        "run_id",
+        "lifecycle_k",
+        "is_shadow",
+        "target_box",
+        "max_iou",
+        "matched_score",
+        "overlap_score",
+    )
+
+    def __len__(self) -> int:
+        return int(self.frame_index.shape[0])
+
+    @property
+    def detected(self) -> np.ndarray:
+        """(T,) bool: some prediction has IoU >= ``iou_threshold``."""
+        return self.max_iou >= self.iou_threshold
+
+    @property
+    def detected_lenient(self) -> np.ndarray:
+        """(T,) bool: some prediction overlaps the target at all (IoU > 0)."""
+        return self.max_iou > 0.0
+
+    @property
+    def success(self) -> np.ndarray:
+        """(T,) bool attack success per target (injection: detected; removal: not detected)."""
+        return self.detected if self.success_if_detected else ~self.detected
+
+    @property
+    def success_lenient(self) -> np.ndarray:
+        return self.detected_lenient if self.success_if_detected else ~self.detected_lenient
+
+    def select(self, mask: np.ndarray) -> TargetMatches:
+        """The rows where ``mask`` (T,) bool is True."""
+        rows = {name: getattr(self, name)[mask] for name in self._ROW_FIELDS}
+        return TargetMatches(
+            variant=self.variant,
+            family=self.family,
+            success_if_detected=self.success_if_detected,
+            iou_threshold=self.iou_threshold,
+            score_threshold=self.score_threshold,
+            target_class=self.target_class,
+            num_frames=self.num_frames,
+            **rows,
+        )
+
+    def attacked(self) -> TargetMatches:
+        """Only the attacked (non-shadow) targets: the ones the ASR counts."""
+        return self.select(~self.is_shadow)
+
+
+def _frame_where(index: int, anno: Mapping, info: Mapping) -> str:
+    fid = anno.get("frame_id", info.get("frame_id"))
+    return f"frame {index}" + (f" ({fid})" if fid is not None else "")
+
+
+def _check_predictions(anno: Mapping, where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """-> names (K,) str, boxes (K, 7) float64, scores (K,) float64, checked."""
+    for key in ("name", "boxes_lidar", "score"):
+        if key not in anno:
+            raise AttackMetricError(f"{where}: det anno lacks key '{key}'")
+    names = np.asarray(anno["name"]).reshape(-1).astype(str)
+    boxes = np.asarray(anno["boxes_lidar"], dtype=np.float64)
+    scores = np.asarray(anno["score"], dtype=np.float64).reshape(-1)
+    if boxes.size == 0:
+        boxes = boxes.reshape(0, 7)
+    if boxes.ndim != 2 or boxes.shape[1] not in (7, 9):
+        raise AttackMetricError(
+            f"{where}: det anno 'boxes_lidar' must be (K, 7) or (K, 9), got {boxes.shape}"
+        )
+    if not (len(names) == len(boxes) == len(scores)):
+        raise AttackMetricError(
+            f"{where}: det anno lengths differ: name {len(names)}, boxes_lidar {len(boxes)}, "
+            f"score {len(scores)}"
+        )
+    if not np.all(np.isfinite(boxes[:, :7])) or not np.all(np.isfinite(scores)):
+        raise AttackMetricError(f"{where}: det anno has non-finite 'boxes_lidar' or 'score'")
+    return names, boxes[:, :7], scores
+
+
+def _check_attack_info(info: Mapping, where: str) -> np.ndarray | None:
+    """Validate one frame's attack metadata; -> its target box (7,) float64 or None."""
+    for key in ("variant", "family", "spoofed", "target_box", "target_is_shadow", "lifecycle_k"):
+        if key not in info:
+            raise AttackMetricError(f"{where}: attack metadata lacks key '{key}'")
+    box = info["target_box"]
+    spoofed, shadow = bool(info["spoofed"]), bool(info["target_is_shadow"])
+    if spoofed and shadow:
+        raise AttackMetricError(f"{where}: 'spoofed' and 'target_is_shadow' are both True")
+    if box is None:
+        if shadow:
+            raise AttackMetricError(f"{where}: 'target_is_shadow' is True but 'target_box' is None")
+        return None
+    box = np.asarray(box, dtype=np.float64).reshape(-1)
+    if box.shape[0] not in (7, 9) or not np.all(np.isfinite(box)):
+        raise AttackMetricError(
+            f"{where}: 'target_box' must be 7 (or 9) finite values, got {info['target_box']!r}"
+        )
+    if not spoofed and not shadow:
+        raise AttackMetricError(
+            f"{where}: 'target_box' is set on a frame that is neither spoofed nor a shadow frame"
+        )
+    if np.any(box[3:6] <= 0):
+        raise AttackMetricError(f"{where}: 'target_box' has non-positive size {box[3:6]}")
+    return box[:7]
+
+
+class _PairBatch:
+    """Candidate (target, prediction) pairs gathered over many frames, scored in one IoU call."""
+
+    def __init__(self) -> None:
+        self.targets: list[np.ndarray] = []  # (7,) each
+        self.pair_target: list[np.ndarray] = []  # (P_i,) target index per pair
+        self.pair_boxes: list[np.ndarray] = []  # (P_i, 7)
+        self.pair_scores: list[np.ndarray] = []  # (P_i,)
+
+    def add(self, target: np.ndarray, boxes: np.ndarray, scores: np.ndarray) -> None:
+        """Register ``target`` (7,) against the eligible predictions ``boxes`` (K, 7) / ``scores``.
+
+        Keeps only the pairs that can overlap: boxes whose BEV circumcircles are apart have
+        (BEV and 3D) IoU exactly 0, so dropping them changes no result.
+        """
+        idx = len(self.targets)
+        self.targets.append(target)
+        if len(boxes) == 0:
+            return
+        radius_t = 0.5 * math.hypot(target[3], target[4])
+        radius = 0.5 * np.hypot(boxes[:, 3], boxes[:, 4])
+        dist = np.hypot(boxes[:, 0] - target[0], boxes[:, 1] - target[1])
+        near = dist <= radius + radius_t + 1e-6
+        if np.any(near):
+            self.pair_target.append(np.full(int(near.sum()), idx, dtype=np.int64))
+            self.pair_boxes.append(boxes[near])
+            self.pair_scores.append(scores[near])
+
+    def evaluate(
+        self, iou_threshold: float, iou_fn: IouFn
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """-> per target (T,): best IoU (0 if no overlap), best score at IoU >= ``iou_threshold``
+        and best score at IoU > 0 (NaN where there is none)."""
+        num = len(self.targets)
+        max_iou = np.zeros(num)
+        matched = np.full(num, -np.inf)
+        overlap = np.full(num, -np.inf)
+        if self.pair_target:
+            seg = np.concatenate(self.pair_target)
+            boxes_b = np.concatenate(self.pair_boxes)
+            scores = np.concatenate(self.pair_scores)
+            boxes_a = np.stack(self.targets)[seg]
+            iou = iou_fn(
+                torch.as_tensor(boxes_a, dtype=torch.float64),
+                torch.as_tensor(boxes_b, dtype=torch.float64),
+            )
+            iou = np.asarray(torch.as_tensor(iou).detach().cpu(), dtype=np.float64).reshape(-1)
+            np.maximum.at(max_iou, seg, iou)
+            hit, over = iou >= iou_threshold, iou > 0.0
+            np.maximum.at(matched, seg[hit], scores[hit])
+            np.maximum.at(overlap, seg[over], scores[over])
+        matched[np.isneginf(matched)] = np.nan
+        overlap[np.isneginf(overlap)] = np.nan
+        return max_iou, matched, overlap
+
+
+def _eligible(
+    names: np.ndarray,
+    scores: np.ndarray,
+    target_class: str | None,
+    score_threshold: float | None,
+) -> np.ndarray:
+    """(K,) bool: the predictions that may match a target (class and score rules)."""
+    keep = np.ones(len(names), dtype=bool)
+    if target_class is not None:
+        keep &= names == target_class
+    if score_threshold is not None:
+        keep &= scores >= score_threshold
+    return keep
+
+
+def match_targets(
+    det_annos: Sequence[Mapping],
+    attack_infos: Sequence[Mapping] | None = None,
+    *,
+    iou_threshold: float = ASR_IOU_THRESHOLD,
+    score_threshold: float | None = None,
+    target_class: str | None = DEFAULT_TARGET_CLASS,
+    success_if_detected: Mapping[str, bool] | None = None,
+    iou_fn: IouFn | None = None,
+) -> TargetMatches:
+    """Match every recorded target box of one variant against that frame's predictions.
+
+    Args:
+        det_annos: per-frame OpenPCDet detection annos (see module doc).
+        attack_infos: per-frame attack metadata aligned with ``det_annos``; None: use
+            ``anno['attack']``.
+        iou_threshold: 3D IoU at which a prediction counts as a detection of the target (0.7).
+        score_threshold: if set, only predictions with ``score >= score_threshold`` count (models
+            deployed with a score cut-off); None (default) = every prediction, as in the paper.
+        target_class: only predictions with this ``name`` count (the targets are Vehicles and the
+            paper's target box carries the class); None = class-agnostic.
+        success_if_detected: family -> bool table, default :data:`SUCCESS_IF_DETECTED`.
+        iou_fn: row-aligned torch IoU ``(P, 7), (P, 7) -> (P,)``; default the exact
+            :func:`pcdet_atlas.evaluation.iou3d.boxes_aligned_iou3d`, called once for all the
+            (target, prediction) pairs that can overlap.
+
+    Raises:
+        AttackMetricError: misaligned inputs, missing keys, bad boxes, several variants or
+            families mixed in one call, or a target in a family without a success rule.
+    """
+    if attack_infos is None:
+        attack_infos = []
+        for i, anno in enumerate(det_annos):
+            if "attack" not in anno:
+                raise AttackMetricError(
+                    f"frame {i}: attack_infos not given and det anno has no 'attack' key"
+                )
+            attack_infos.append(anno["attack"])
+    if len(det_annos) != len(attack_infos):
+        raise AttackMetricError(
+            f"det_annos ({len(det_annos)} frames) and attack_infos ({len(attack_infos)}) differ"
+        )
+    if not det_annos:
+        raise AttackMetricError("no frames to evaluate (det_annos is empty)")
+    rules = dict(SUCCESS_IF_DETECTED if success_if_detected is None else success_if_detected)
+    iou_fn = boxes_aligned_iou3d if iou_fn is None else iou_fn
+
+    variants = {str(info.get("variant")) for info in attack_infos}
+    families = {str(info.get("family")) for info in attack_infos}
+    if len(variants) != 1 or len(families) != 1:
+        raise AttackMetricError(
+            f"one call evaluates one variant; got variants {sorted(variants)}, "
+            f"families {sorted(families)}"
+        )
+    variant, family = variants.pop(), families.pop()
+
+    rows: dict[str, list] = {
+        k: [] for k in ("frame_index", "frame_id", "run_id", "lifecycle_k", "is_shadow", "box")
+    }
+    batch = _PairBatch()
+    for i, (anno, info) in enumerate(zip(det_annos, attack_infos)):
+        where = _frame_where(i, anno, info)
+        if "frame_id" in anno and "frame_id" in info and anno["frame_id"] != info["frame_id"]:
+            raise AttackMetricError(
+                f"{where}: det anno frame_id {anno['frame_id']!r} != attack metadata "
+                f"frame_id {info['frame_id']!r} (inputs not aligned)"
+            )
+        names, boxes, scores = _check_predictions(anno, where)
+        target = _check_attack_info(info, where)
+        if target is None:
+            continue
+        if family not in rules:
+            raise AttackMetricError(
+                f"{where}: family {family!r} records a target but has no success rule; "
+                f"known: {sorted(rules)} (pass success_if_detected=)"
+            )
+        keep = _eligible(names, scores, target_class, score_threshold)
+        batch.add(target, boxes[keep], scores[keep])
+        fid = anno.get("frame_id", info.get("frame_id"))
+        rows["frame_index"].append(i)
+        rows["frame_id"].append("" if fid is None else str(fid))
+        rows["run_id"].append(int(info.get("run_id", -1)))
+        rows["lifecycle_k"].append(int(info["lifecycle_k"]))
+        rows["is_shadow"].append(bool(info["target_is_shadow"]))
+        rows["box"].append(target)
+
+    max_iou, matched_score, overlap_score = batch.evaluate(iou_threshold, iou_fn)
+    return TargetMatches(
+        variant=variant,
+        family=family,
+        success_if_detected=rules.get(family, True),
+        iou_threshold=float(iou_threshold),
+        score_threshold=None if score_threshold is None else float(score_threshold),
+        target_class=target_class,
+        num_frames=len(det_annos),
+        frame_index=np.asarray(rows["frame_index"], dtype=np.int64),
+        frame_id=np.asarray(rows["frame_id"], dtype=str),
+        run_id=np.asarray(rows["run_id"], dtype=np.int64),
+        lifecycle_k=np.asarray(rows["lifecycle_k"], dtype=np.int64),
+        is_shadow=np.asarray(rows["is_shadow"], dtype=bool),
+        target_box=np.asarray(rows["box"], dtype=np.float64).reshape(-1, 7),
+        max_iou=max_iou,
+        matched_score=matched_score,
+        overlap_score=overlap_score,
+    )
+
+
+# ---------------------------------------------------------------------------- ASR
+def _rate(num: int, den: int) -> float | None:
+    return None if den == 0 else num / den
+
+
+def asr_from_matches(matches: TargetMatches) -> dict:
+    """ASR of the attacked (non-shadow) targets.
+
+    Returns ``{'asr', 'num_targets', 'num_success', 'asr_lenient', 'num_success_lenient',
+    'iou_threshold', 'score_threshold', 'target_class'}``; the rates are None without targets.
+    """
+    attacked = matches.attacked()
+    n = len(attacked)
+    n_ok, n_len = int(attacked.success.sum()), int(attacked.success_lenient.sum())
+    return {
+        "asr": _rate(n_ok, n),
+        "num_targets": n,
+        "num_success": n_ok,
+        "asr_lenient": _rate(n_len, n),
+        "num_success_lenient": n_len,
+        "iou_threshold": matches.iou_threshold,
+        "score_threshold": matches.score_threshold,
+        "target_class": matches.target_class,
+    }
+
+
+def attack_success_rate(
+    det_annos: Sequence[Mapping], attack_infos: Sequence[Mapping] | None = None, **kwargs
+) -> dict:
+    """ASR and lenient ASR of one variant; ``kwargs`` as :func:`match_targets`."""
+    return asr_from_matches(match_targets(det_annos, attack_infos, **kwargs))
+
+
+# ---------------------------------------------------------------------------- confidence
+def _score_values(scores: np.ndarray) -> np.ndarray:
+    """(S,) scores as float64 rounded to 1e-6, so that a float32 score printed as 0.9 counts as 0.9
+    (float32(0.9) = 0.89999998) in bins and thresholds."""
+    scores = np.asarray(scores, dtype=np.float64).reshape(-1)
+    if np.any(~np.isfinite(scores)) or np.any((scores < 0) | (scores > 1)):
+        raise AttackMetricError(f"scores must be finite and in [0, 1]; got {scores}")
+    return np.round(scores, 6)
+
+
+def score_histogram(scores: np.ndarray, num_bins: int = NUM_SCORE_BINS) -> dict:
+    """Counts of ``scores`` (S,) in ``num_bins`` equal bins ``[i / n, (i + 1) / n)`` over [0, 1]
+    (the last bin also holds 1.0); scores are rounded to 1e-6 first (see ``_score_values``).
+
+    Returns ``{'bin_edges': [num_bins + 1 floats], 'counts': [num_bins ints]}``.
+    """
+    scores = _score_values(scores)
+    index = np.clip(np.floor(scores * num_bins + 1e-9).astype(np.int64), 0, num_bins - 1)
+    counts = np.bincount(index, minlength=num_bins)
+    edges = [round(i / num_bins, 12) for i in range(num_bins + 1)]
+    return {"bin_edges": edges, "counts": counts.tolist()}
+
+
+def histogram_peak(scores: np.ndarray, num_bins: int = NUM_SCORE_BINS) -> float | None:
+    """Peak (mode) of a score distribution: the centre of the fullest of ``num_bins`` fixed bins.
+
+    Ties between equally full bins go to the bin whose [1, 2, 1]-smoothed count is largest, then
+    to the lowest. A fixed-bin mode is used rather than a KDE because it is defined for any
+    sample size (one score included) and matches the paper's "centre" of a histogram peak.
+    None for an empty sample.
+    """
+    scores = np.asarray(scores, dtype=np.float64).reshape(-1)
+    if scores.size == 0:
+        return None
+    counts = np.asarray(score_histogram(scores, num_bins)["counts"], dtype=np.float64)
+    smooth = np.convolve(np.pad(counts, 1), [1.0, 2.0, 1.0], mode="valid")
+    tied = np.flatnonzero(counts == counts.max())
+    best = tied[np.argmax(smooth[tied])]  # argmax takes the first (lowest) among equal
+    return (best + 0.5) / num_bins
+
+
+def injection_confidence(
+    matches: TargetMatches,
+    *,
+    high_score: float = HIGH_SCORE_THRESHOLD,
+    num_bins: int = NUM_SCORE_BINS,
+) -> dict:
+    """Confidence of the detected phantoms (attacked injection targets with IoU >= threshold).
+
+    The score of a phantom is the highest score among its matching predictions. Returns
+    ``{'kind': 'injection', 'high_score_threshold', 'num_targets', 'num_detected', 'num_above',
+    'fraction_above' (of detected phantoms, score > high_score; None if none detected),
+    'mean_score', 'median_score', 'histogram'}``.
+    """
+    attacked = matches.attacked()
+    scores = _score_values(attacked.matched_score[attacked.detected])
+    n_above = int(np.sum(scores > high_score))
+    return {
+        "kind": "injection",
+        "high_score_threshold": float(high_score),
+        "num_targets": len(attacked),
+        "num_detected": int(scores.size),
+        "num_above": n_above,
+        "fraction_above": _rate(n_above, int(scores.size)),
+        "mean_score": float(scores.mean()) if scores.size else None,
+        "median_score": float(np.median(scores)) if scores.size else None,
+        "histogram": score_histogram(scores, num_bins),
+    }
+
+
+def _align_by_frame_id(clean_det_annos: Sequence[Mapping], frame_ids: np.ndarray) -> list[Mapping]:
+    by_id: dict[str, Mapping] = {}
+    for i, anno in enumerate(clean_det_annos):
+        if "frame_id" not in anno:
+            raise AttackMetricError(f"clean det anno {i} has no 'frame_id' to align by")
+        fid = str(anno["frame_id"])
+        if fid in by_id:
+            raise AttackMetricError(f"clean det annos contain frame_id {fid!r} twice")
+        by_id[fid] = anno
+    aligned = []
+    for fid in frame_ids:
+        if fid == "":
+            raise AttackMetricError(
+                "attacked det annos need 'frame_id' to align with the clean run"
+            )
+        if fid not in by_id:
+            raise AttackMetricError(f"frame_id {fid!r} of the attacked run is not in the clean run")
+        aligned.append(by_id[fid])
+    return aligned
+
+
+def removal_confidence(
+    matches: TargetMatches,
+    clean_det_annos: Sequence[Mapping],
+    *,
+    high_score: float = HIGH_SCORE_THRESHOLD,
+    num_bins: int = NUM_SCORE_BINS,
+    iou_fn: IouFn | None = None,
+) -> dict:
+    """Scores of the removal targets that survived (were still detected), against the clean run.
+
+    For each surviving attacked target, the attacked score is the best score among the
+    predictions matching its box (IoU >= threshold), and its clean score is the same quantity
+    in the clean run's predictions for the same ``frame_id`` and the same target box (same class
+    and score rules as ``matches``). Targets the clean model misses too are counted in
+    ``num_clean_missed`` and left out of the paired statistics.
+
+    Returns ``{'kind': 'removal', 'high_score_threshold', 'num_targets', 'num_surviving',
+    'num_above', 'fraction_above' (surviving scores > high_score), 'num_paired',
+    'num_clean_missed', 'mean_score_drop' (clean - attacked, paired), 'median_score_drop',
+    'clean_peak', 'attacked_peak', 'peak_gap' (clean_peak - attacked_peak, see
+    :func:`histogram_peak`; over the paired targets), 'histogram' (all surviving scores),
+    'paired_attacked_histogram', 'paired_clean_histogram'}``.
+    """
+    attacked = matches.attacked()
+    surviving = attacked.select(attacked.detected)
+    iou_fn = boxes_aligned_iou3d if iou_fn is None else iou_fn
+    clean_annos = _align_by_frame_id(clean_det_annos, surviving.frame_id)
+    batch = _PairBatch()
+    for j, anno in enumerate(clean_annos):
+        names, boxes, scores = _check_predictions(anno, f"clean frame {surviving.frame_id[j]}")
+        keep = _eligible(names, scores, matches.target_class, matches.score_threshold)
+        batch.add(surviving.target_box[j], boxes[keep], scores[keep])
+    _, clean_scores, _ = batch.evaluate(matches.iou_threshold, iou_fn)
+    attacked_scores = _score_values(surviving.matched_score)
+    paired = np.isfinite(clean_scores)
+    att_p, clean_p = attacked_scores[paired], _score_values(clean_scores[paired])
+    drop = clean_p - att_p
+    n_above = int(np.sum(attacked_scores > high_score))
+    clean_peak, att_peak = histogram_peak(clean_p, num_bins), histogram_peak(att_p, num_bins)
+    return {
+        "kind": "removal",
+        "high_score_threshold": float(high_score),
+        "num_targets": len(attacked),
+        "num_surviving": len(surviving),
+        "num_above": n_above,
+        "fraction_above": _rate(n_above, len(surviving)),
+        "num_paired": int(paired.sum()),
+        "num_clean_missed": int((~paired).sum()),
+        "mean_score_drop": float(drop.mean()) if drop.size else None,
+        "median_score_drop": float(np.median(drop)) if drop.size else None,
+        "clean_peak": clean_peak,
+        "attacked_peak": att_peak,
+        "peak_gap": None if clean_peak is None else clean_peak - att_peak,
+        "histogram": score_histogram(attacked_scores, num_bins),
+        "paired_attacked_histogram": score_histogram(att_p, num_bins),
+        "paired_clean_histogram": score_histogram(clean_p, num_bins),
+    }
+
+
+# ---------------------------------------------------------------------------- lifecycle
+def lifecycle_position(
+    lifecycle_k: np.ndarray, is_shadow: np.ndarray, window: int, recorded_window: int
+) -> np.ndarray:
+    """Map recorded ``lifecycle_k`` to a detector's lifecycle position k in 0..2W, -1 = outside.
+
+    The attack engine records k for its own window ``recorded_window`` (We): 0 = last clean
+    frame before onset, 1..We = the first spoofed frames, We+1..2We = clean shadow frames after the
+    run. For a detector with a window ``window`` (W <= We) the positions are 0, the first W
+    spoofed frames (k = 1..W) and the first W frames after the run (k = W+1..2W).
+
+    Raises AttackMetricError where the record contradicts itself (a shadow target at 1..We or a
+    spoofed one outside it), which is what a wrong ``recorded_window`` produces.
+    """
+    if window < 1 or recorded_window < window:
+        raise AttackMetricError(
+            f"lifecycle needs 1 <= window <= recorded_window, got {window}, {recorded_window}"
+        )
+    k = np.asarray(lifecycle_k, dtype=np.int64)
+    shadow = np.asarray(is_shadow, dtype=bool)
+    out = np.full(k.shape, -1, dtype=np.int64)
+    bad_shadow = shadow & (k >= 1) & (k <= recorded_window)
+    bad_spoofed = ~shadow & ((k == 0) | (k > recorded_window))
+    bad_range = (k > 2 * recorded_window) | (shadow & (k < 0))
+    if np.any(bad_shadow | bad_spoofed | bad_range):
+        bad = np.flatnonzero(bad_shadow | bad_spoofed | bad_range)[:5]
+        raise AttackMetricError(
+            f"lifecycle_k {k[bad].tolist()} (shadow {shadow[bad].tolist()}) is inconsistent "
+            f"with recorded_window={recorded_window}: expected shadow at 0 and "
+            f"{recorded_window + 1}..{2 * recorded_window}, spoofed at 1..{recorded_window}"
+        )
+    out[shadow & (k == 0)] = 0
+    onset = ~shadow & (k >= 1) & (k <= window)
+    out[onset] = k[onset]
+    after = k - recorded_window
+    decay = shadow & (after >= 1) & (after <= window)
+    out[decay] = window + after[decay]
+    return out
+
+
+def lifecycle_asr(
+    matches: TargetMatches,
+    window: int,
+    *,
+    recorded_window: int | None = None,
+    num_bins: int = NUM_SCORE_BINS,
+) -> dict:
+    """ASR by lifecycle position k = 0..2W for a detector with a ``window``-frame input.
+
+    Shadow targets (k = 0 and k = W+1..2W) are scored exactly like attacked ones (success = the
+    phantom is detected / the target is missed) although the current frame is clean there.
+    ``recorded_window`` is the schedule window the attack engine recorded ``lifecycle_k`` for
+    (default :data:`SCHEDULE_WINDOW` = 32); see :func:`lifecycle_position` for the mapping. The
+    engine records the frame between two runs as k = 0 of the next run, so with W equal to the
+    schedule window position 2W only holds frames after a sequence's last run.
+
+    Returns column lists over k: ``{'window', 'recorded_window', 'k', 'attacked' (bool: k in
+    1..W), 'num_targets', 'num_success', 'asr', 'num_success_lenient', 'asr_lenient',
+    'score_bin_edges', 'score_counts' (per k: histogram of the matched scores)}``.
+    """
+    recorded_window = SCHEDULE_WINDOW if recorded_window is None else recorded_window
+    pos = lifecycle_position(matches.lifecycle_k, matches.is_shadow, window, recorded_window)
+    ks = list(range(2 * window + 1))
+    success, lenient = matches.success, matches.success_lenient
+    out: dict = {
+        "window": int(window),
+        "recorded_window": int(recorded_window),
+        "k": ks,
+        "attacked": [1 <= k <= window for k in ks],
+        "num_targets": [],
+        "num_success": [],
+        "asr": [],
+        "num_success_lenient": [],
+        "asr_lenient": [],
+        "score_bin_edges": score_histogram(np.zeros(0), num_bins)["bin_edges"],
+        "score_counts": [],
+    }
+    for k in ks:
+        at = pos == k
+        n, n_ok, n_len = int(at.sum()), int(success[at].sum()), int(lenient[at].sum())
+        out["num_targets"].append(n)
+        out["num_success"].append(n_ok)
+        out["asr"].append(_rate(n_ok, n))
+        out["num_success_lenient"].append(n_len)
+        out["asr_lenient"].append(_rate(n_len, n))
+        scores = matches.matched_score[at & matches.detected]
+        out["score_counts"].append(score_histogram(scores, num_bins)["counts"])
+    return out
+
+
+# ---------------------------------------------------------------------------- one variant
+def evaluate_attack(
+    det_annos: Sequence[Mapping],
+    attack_infos: Sequence[Mapping] | None = None,
+    *,
+    clean_det_annos: Sequence[Mapping] | None = None,
+    window: int | None = None,
+    recorded_window: int | None = None,
+    iou_threshold: float = ASR_IOU_THRESHOLD,
+    score_threshold: float | None = None,
+    target_class: str | None = DEFAULT_TARGET_CLASS,
+    high_score: float = HIGH_SCORE_THRESHOLD,
+    num_bins: int = NUM_SCORE_BINS,
+    success_if_detected: Mapping[str, bool] | None = None,
+    iou_fn: IouFn | None = None,
+) -> dict:
+    """All attack metrics of one variant, in the layout of a ``results.json`` variant entry.
+
+    Returns ``{'variant', 'family', 'num_frames', **asr_from_matches(...), 'confidence',
+    'lifecycle'}``. ``confidence`` is :func:`injection_confidence` for a success-if-detected family,
+    :func:`removal_confidence` otherwise (None if ``clean_det_annos`` is not given) and None
+    without targets; ``lifecycle`` is :func:`lifecycle_asr` when ``window`` is given, else None.
+    """
+    iou_fn = boxes_aligned_iou3d if iou_fn is None else iou_fn
+    matches = match_targets(
+        det_annos,
+        attack_infos,
+        iou_threshold=iou_threshold,
+        score_threshold=score_threshold,
+        target_class=target_class,
+        success_if_detected=success_if_detected,
+        iou_fn=iou_fn,
+    )
+    out = {"variant": matches.variant, "family": matches.family, "num_frames": matches.num_frames}
+    out.update(asr_from_matches(matches))
+    confidence = None
+    if len(matches.attacked()) > 0:
+        if matches.success_if_detected:
+            confidence = injection_confidence(matches, high_score=high_score, num_bins=num_bins)
+        elif clean_det_annos is not None:
+            confidence = removal_confidence(
+                matches, clean_det_annos, high_score=high_score, num_bins=num_bins, iou_fn=iou_fn
+            )
+    out["confidence"] = confidence
+    out["lifecycle"] = (
+        None
+        if window is None or len(matches) == 0
+        else lifecycle_asr(matches, window, recorded_window=recorded_window, num_bins=num_bins)
+    )
+    return out
+
+
+# ---------------------------------------------------------------------------- ranks
+def linear_fit(x: np.ndarray, y: np.ndarray) -> dict:
+    """Ordinary least squares ``y = slope * x + intercept`` of (P,) points.
+
+    Returns ``{'slope', 'intercept', 'r2', 'pearson_r', 'p_value', 'num_models'}`` (``p_value``:
+    two-sided test of zero slope, ``scipy.stats.linregress``).
+    """
+    from scipy.stats import linregress
+
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    if x.shape != y.shape or x.ndim != 1 or x.size < 2 or np.ptp(x) == 0:
+        raise AttackMetricError(f"linear fit needs >= 2 points with varying x, got {x} and {y}")
+    reg = linregress(x, y)
+    return {
+        "slope": float(reg.slope),
+        "intercept": float(reg.intercept),
+        "r2": float(reg.rvalue**2),
+        "pearson_r": float(reg.rvalue),
+        "p_value": float(reg.pvalue),
+        "num_models": int(x.size),
+    }
+
+
+def robustness_ranks(
+    asr_by_model: Mapping[str, Mapping[str, float]],
+    variant_families: Mapping[str, str],
+    *,
+    tie_method: str = "average",
+    min_models_for_fit: int = 3,
+) -> dict:
+    """Per-setting ASR ranks of several models, averaged per attack family, and their linear fit.
+
+    In each setting (variant) the models are ranked by ASR, rank 1 = lowest ASR = most robust;
+    ties get the mean of the ranks they span (``tie_method`` as ``scipy.stats.rankdata``:
+    'average', 'min', 'max', 'dense', 'ordinal'). A model's injection (removal) rank is the mean of
+    its ranks over all injection (removal) variants. The fit is ordinary least squares of the
+    removal rank on the injection rank (the paper's Fig. "Robustness Correlation").
+
+    Args:
+        asr_by_model: model -> variant -> ASR in [0, 1]. Every model needs every ranked variant.
+        variant_families: variant -> family; variants of family 'injection' / 'removal' are ranked
+            (variants of other families, e.g. 'clean', are ignored).
+        min_models_for_fit: below this many models the fit is None (two points fit exactly).
+
+    Returns:
+        ``{'models': [...], 'per_setting': {variant: {model: rank}}, 'injection_rank': {model: r},
+        'removal_rank': {model: r}, 'fit': {'slope', 'intercept', 'r2', 'pearson_r', 'p_value',
+        'num_models'} or None}``.
+    """
+    from scipy.stats import rankdata
+
+    models = sorted(asr_by_model)
+    if len(models) < 2:
+        raise AttackMetricError(f"ranking needs at least 2 models, got {models}")
+    ranked = {
+        fam: sorted(v for v, f in variant_families.items() if f == fam)
+        for fam in ("injection", "removal")
+    }
+    per_setting: dict[str, dict[str, float]] = {}
+    for variant in ranked["injection"] + ranked["removal"]:
+        values = []
+        for m in models:
+            asr = asr_by_model[m].get(variant)
+            if asr is None or not math.isfinite(asr):
+                raise AttackMetricError(f"model {m!r} has no ASR for variant {variant!r}")
+            values.append(float(asr))
+        ranks = rankdata(values, method=tie_method)
+        per_setting[variant] = {m: float(r) for m, r in zip(models, ranks)}
+    mean_rank = {}
+    for fam, variants in ranked.items():
+        mean_rank[fam] = (
+            {m: float(np.mean([per_setting[v][m] for v in variants])) for m in models}
+            if variants
+            else None
+        )
+    fit = None
+    inj, rem = mean_rank["injection"], mean_rank["removal"]
+    if inj is not None and rem is not None and len(models) >= min_models_for_fit:
+        x = np.array([inj[m] for m in models])
+        if np.ptp(x) > 0:
+            fit = linear_fit(x, np.array([rem[m] for m in models]))
+    return {
+        "models": models,
+        "tie_method": tie_method,
+        "per_setting": per_setting,
+        "injection_rank": inj,
+        "removal_rank": rem,
+        "fit": fit,
+    }

@@ -1,0 +1,436 @@
+"""ASR, lenient ASR, confidence, lifecycle and robustness ranks on hand-built predictions."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pcdet_atlas.evaluation.attack_metrics import (
+    AttackMetricError,
+    attack_success_rate,
+    evaluate_attack,
+    histogram_peak,
+    injection_confidence,
+    lifecycle_asr,
+    lifecycle_position,
+    linear_fit,
+    match_targets,
+    removal_confidence,
+    robustness_ranks,
+    score_histogram,
+)
+from pcdet_atlas.evaluation.iou3d import boxes_iou3d
+
+TARGET = np.array([20.0, 2.0, 1.0, 4.0, 2.0, 2.0, 0.3], dtype=np.float32)
+
+
+def scaled(box, dx):
+    """Same centre, heading, width and height; length ``dx``: 3D IoU = min/max of the lengths."""
+    out = np.array(box, dtype=np.float32).copy()
+    out[3] = dx
+    return out
+
+
+IOU_075 = scaled(TARGET, 3.0)  # IoU 3/4
+IOU_065 = scaled(TARGET, 2.6)  # IoU 2.6/4
+FAR = np.array([-30.0, 5.0, 1.0, 4.0, 2.0, 2.0, 0.0], dtype=np.float32)
+
+
+def anno(frame_id, boxes=(), scores=None, names=None, with_velocity=False):
+    boxes = np.asarray(boxes, dtype=np.float32).reshape(-1, 7)
+    if with_velocity:
+        boxes = np.concatenate([boxes, np.zeros((len(boxes), 2), np.float32)], axis=1)
+    n = len(boxes)
+    return {
+        "frame_id": frame_id,
+        "name": np.array(["Vehicle"] * n if names is None else names),
+        "boxes_lidar": boxes,
+        "score": np.full(n, 0.9, np.float32) if scores is None else np.asarray(scores, np.float32),
+    }
+
+
+def info(
+    target=None,
+    spoofed=None,
+    shadow=False,
+    k=-1,
+    family="injection",
+    variant=None,
+    run_id=0,
+):
+    spoofed = (target is not None and not shadow) if spoofed is None else spoofed
+    return {
+        "variant": variant or ("inj_rel_easy" if family == "injection" else "rem_40"),
+        "family": family,
+        "spoofed": spoofed,
+        "run_id": run_id if (spoofed or shadow) else -1,
+        "run_position": -1,
+        "lifecycle_k": k,
+        "target_box": None if target is None else np.asarray(target, np.float32),
+        "target_is_shadow": shadow,
+        "target_obj_id": None,
+        "num_spoof_points": 0,
+        "num_visible": 0,
+        "num_removed": 0,
+        "tracked": False,
+        "fired": False,
+    }
+
+
+def four_frames(family):
+    """f0: IoU 0.75 match; f1: IoU 0.65 only; f2: nothing; f3: no target (predictions anyway)."""
+    dets = [
+        anno("s_000", [IOU_075, FAR]),
+        anno("s_001", [IOU_065]),
+        anno("s_002", []),
+        anno("s_003", [TARGET]),
+    ]
+    infos = [info(TARGET, family=family)] * 3 + [info(None, family=family)]
+    return dets, infos
+
+
+def test_scaled_boxes_have_the_intended_iou():
+    t = torch.as_tensor(TARGET[None], dtype=torch.float64)
+    iou = boxes_iou3d(t, torch.as_tensor(np.stack([IOU_075, IOU_065]), dtype=torch.float64))
+    np.testing.assert_allclose(iou.numpy(), [[0.75, 0.65]], atol=1e-9)
+
+
+def test_injection_asr_counts_exactly():
+    dets, infos = four_frames("injection")
+    out = attack_success_rate(dets, infos)
+    assert out["num_targets"] == 3  # the frame without target is ignored
+    assert out["num_success"] == 1  # only the 0.75 match
+    assert out["asr"] == pytest.approx(1 / 3)
+    assert out["num_success_lenient"] == 2  # 0.65 overlaps
+    assert out["asr_lenient"] == pytest.approx(2 / 3)
+    assert out["iou_threshold"] == 0.7 and out["target_class"] == "Vehicle"
+
+
+def test_removal_asr_is_the_inverse():
+    dets, infos = four_frames("removal")
+    out = attack_success_rate(dets, infos)
+    assert out["num_targets"] == 3
+    assert out["num_success"] == 2  # 0.65 and nothing: the target is missed at IoU 0.7
+    assert out["num_success_lenient"] == 1  # MVP: only a frame without any overlap
+    assert out["asr"] == pytest.approx(2 / 3) and out["asr_lenient"] == pytest.approx(1 / 3)
+
+
+def test_match_records_iou_and_scores():
+    dets = [anno("a", [IOU_065, IOU_075, FAR], scores=[0.95, 0.4, 0.99])]
+    m = match_targets(dets, [info(TARGET)])
+    assert len(m) == 1
+    np.testing.assert_allclose(m.max_iou, [0.75], atol=1e-6)
+    # matched: the best score at IoU >= 0.7 (0.4), not the higher one at 0.65 or far away
+    np.testing.assert_allclose(m.matched_score, [0.4], atol=1e-6)
+    np.testing.assert_allclose(m.overlap_score, [0.95], atol=1e-6)
+    assert m.frame_id.tolist() == ["a"] and m.success.tolist() == [True]
+
+
+def test_class_handling():
+    dets = [anno("a", [TARGET], names=["Pedestrian"]), anno("b", [TARGET], names=["Vehicle"])]
+    infos = [info(TARGET), info(TARGET)]
+    assert attack_success_rate(dets, infos)["num_success"] == 1
+    assert attack_success_rate(dets, infos, target_class=None)["num_success"] == 2
+    assert attack_success_rate(dets, infos, target_class="Pedestrian")["num_success"] == 1
+
+
+def test_score_threshold():
+    dets = [anno("a", [TARGET], scores=[0.3]), anno("b", [TARGET], scores=[0.6])]
+    infos = [info(TARGET), info(TARGET)]
+    assert attack_success_rate(dets, infos)["num_success"] == 2
+    out = attack_success_rate(dets, infos, score_threshold=0.5)
+    assert out["num_success"] == 1 and out["score_threshold"] == 0.5
+
+
+def test_empty_predictions_and_no_targets():
+    empty = {"name": np.zeros(0, dtype="<U7"), "boxes_lidar": np.zeros((0, 9)), "score": []}
+    out = attack_success_rate([empty, anno("b")], [info(TARGET), info(TARGET)])
+    assert out["num_targets"] == 2 and out["num_success"] == 0 and out["asr"] == 0.0
+    removal = attack_success_rate([empty], [info(TARGET, family="removal")])
+    assert removal["asr"] == 1.0 and removal["asr_lenient"] == 1.0
+    clean = [info(None, family="clean", variant="clean")] * 2
+    out = attack_success_rate([anno("a", [TARGET]), empty], clean)
+    assert out["num_targets"] == 0 and out["asr"] is None and out["asr_lenient"] is None
+
+
+def test_nine_column_boxes_and_attack_key():
+    dets = [anno("a", [TARGET], with_velocity=True)]
+    dets[0]["attack"] = info(TARGET)
+    assert attack_success_rate(dets)["num_success"] == 1
+
+
+def test_rotated_boxes_use_exact_iou():
+    flipped = TARGET.copy()
+    flipped[6] += math.pi  # the same box
+    turned = TARGET.copy()
+    turned[6] += math.pi / 2  # 4x2 crossing 4x2: IoU = 4 / (16 - 4)
+    m = match_targets([anno("a", [flipped]), anno("b", [turned])], [info(TARGET)] * 2)
+    np.testing.assert_allclose(m.max_iou, [1.0, 1 / 3], atol=1e-6)
+    assert m.success.tolist() == [True, False]
+
+
+def test_prefilter_agrees_with_brute_force():
+    rng = np.random.default_rng(0)
+    n = 200
+    boxes = np.column_stack(
+        [
+            rng.uniform(15, 25, n),
+            rng.uniform(-3, 7, n),
+            rng.uniform(-1, 3, n),
+            rng.uniform(0.5, 12, n),
+            rng.uniform(0.5, 6, n),
+            rng.uniform(0.5, 4, n),
+            rng.uniform(-np.pi, np.pi, n),
+        ]
+    ).astype(np.float32)
+    m = match_targets([anno("a", boxes)], [info(TARGET)])
+    brute = boxes_iou3d(
+        torch.as_tensor(TARGET[None], dtype=torch.float64),
+        torch.as_tensor(boxes, dtype=torch.float64),
+    ).max()
+    assert brute > 0
+    assert m.max_iou[0] == pytest.approx(float(brute), abs=1e-12)
+
+
+def test_shadow_targets_are_not_counted_by_asr():
+    dets = [anno("a", [TARGET]), anno("b", [TARGET]), anno("c", [])]
+    infos = [info(TARGET, shadow=True, k=0), info(TARGET, k=1), info(TARGET, k=2)]
+    m = match_targets(dets, infos)
+    assert len(m) == 3 and m.is_shadow.tolist() == [True, False, False]
+    out = attack_success_rate(dets, infos)
+    assert out["num_targets"] == 2 and out["num_success"] == 1
+
+
+@pytest.mark.parametrize(
+    "mutate, match",
+    [
+        (lambda d, i: d.pop(), "differ"),
+        (lambda d, i: d[0].update(frame_id="zzz") or i[0].update(frame_id="s_000"), "aligned"),
+        (lambda d, i: i.__setitem__(0, {**i[0], "target_is_shadow": True}), "both True"),
+        (lambda d, i: i.__setitem__(1, {**i[1], "variant": "inj_rel_hard"}), "one variant"),
+        (lambda d, i: d[0].update(boxes_lidar=np.zeros((2, 6))), "boxes_lidar"),
+        (lambda d, i: d[0].update(score=np.zeros(5)), "lengths differ"),
+        (lambda d, i: d[1].pop("score"), "'score'"),
+        (lambda d, i: i.__setitem__(0, {**i[0], "target_box": np.zeros(5)}), "target_box"),
+        (lambda d, i: i.__setitem__(3, {**i[3], "target_box": TARGET}), "neither spoofed"),
+        (
+            lambda d, i: i.__setitem__(2, {k: v for k, v in i[2].items() if k != "lifecycle_k"}),
+            "lifecycle_k",
+        ),
+    ],
+)
+def test_bad_input_raises_naming_the_problem(mutate, match):
+    dets, infos = four_frames("injection")
+    infos = list(infos)
+    mutate(dets, infos)
+    with pytest.raises(AttackMetricError, match=match):
+        match_targets(dets, infos)
+
+
+def test_unknown_family_needs_a_success_rule():
+    infos = [info(TARGET, family="laser_blind", variant="blind_1")]
+    with pytest.raises(AttackMetricError, match="no success rule"):
+        match_targets([anno("a")], infos)
+    out = attack_success_rate([anno("a")], infos, success_if_detected={"laser_blind": False})
+    assert out["num_targets"] == 1 and out["num_success"] == 1
+
+
+# ---------------------------------------------------------------------------- confidence
+def test_score_histogram_and_peak():
+    h = score_histogram(np.array([0.0, 0.05, 0.7, 1.0]))
+    assert len(h["bin_edges"]) == 21 and h["bin_edges"][1] == 0.05
+    assert h["counts"][0] == 1 and h["counts"][1] == 1 and h["counts"][14] == 1
+    assert h["counts"][19] == 1 and sum(h["counts"]) == 4  # 1.0 in the last (closed) bin
+    with pytest.raises(AttackMetricError, match="in \\[0, 1\\]"):
+        score_histogram(np.array([1.2]))
+    assert histogram_peak(np.array([0.12, 0.13, 0.14, 0.9])) == pytest.approx(0.125)
+    # tie of single counts at bins 2, 18, 19: the smoothed count favours 18/19, then the lowest
+    assert histogram_peak(np.array([0.12, 0.91, 0.96])) == pytest.approx(0.925)
+    assert histogram_peak(np.zeros(0)) is None
+
+
+def test_injection_confidence():
+    dets = [
+        anno("a", [TARGET], scores=[0.9]),
+        anno("b", [IOU_075], scores=[0.8]),
+        anno("c", [TARGET], scores=[0.7]),  # exactly 0.7 is not "> 0.7"
+        anno("d", [IOU_065], scores=[0.99]),  # not detected: no score
+    ]
+    c = injection_confidence(match_targets(dets, [info(TARGET)] * 4))
+    assert c["num_targets"] == 4 and c["num_detected"] == 3 and c["num_above"] == 2
+    assert c["fraction_above"] == pytest.approx(2 / 3)
+    assert c["mean_score"] == pytest.approx(0.8, abs=1e-6)
+    counts = c["histogram"]["counts"]
+    assert counts[18] == 1 and counts[16] == 1 and counts[14] == 1 and sum(counts) == 3
+
+
+def test_removal_confidence_against_clean_run():
+    attacked = [
+        anno("f0", [TARGET], scores=[0.30]),
+        anno("f1", [IOU_075], scores=[0.35]),
+        anno("f2", []),  # hidden: removal success, no score
+        anno("f3", [TARGET], scores=[0.40]),
+    ]
+    clean = [  # any order: aligned by frame_id
+        anno("f3", [FAR], scores=[0.9]),  # the clean model misses f3's target too
+        anno("f2", [TARGET], scores=[0.95]),
+        anno("f1", [TARGET], scores=[0.92]),
+        anno("f0", [TARGET, IOU_075], scores=[0.90, 0.5]),
+    ]
+    m = match_targets(attacked, [info(TARGET, family="removal")] * 4)
+    c = removal_confidence(m, clean)
+    assert c["num_targets"] == 4 and c["num_surviving"] == 3
+    assert c["num_paired"] == 2 and c["num_clean_missed"] == 1
+    assert c["num_above"] == 0 and c["fraction_above"] == 0.0
+    assert c["mean_score_drop"] == pytest.approx((0.60 + 0.57) / 2, abs=1e-6)
+    assert c["clean_peak"] == pytest.approx(0.925)  # 0.90 and 0.92 share a bin
+    assert c["attacked_peak"] == pytest.approx(0.325)  # tie 0.30 | 0.35: lowest bin
+    assert c["peak_gap"] == pytest.approx(0.6)
+    assert sum(c["histogram"]["counts"]) == 3
+    assert sum(c["paired_clean_histogram"]["counts"]) == 2
+    with pytest.raises(AttackMetricError, match="'f1'"):
+        removal_confidence(m, [a for a in clean if a["frame_id"] != "f1"])
+
+
+# ---------------------------------------------------------------------------- lifecycle
+def lifecycle_run(success_by_k, window, family="injection", run_id=0):
+    """One run's lifecycle frames: k = 0..2W, the target detected where ``success_by_k`` says so
+    (for injection success = detected; for removal success = missed)."""
+    dets, infos = [], []
+    for k, ok in enumerate(success_by_k):
+        detected = ok if family == "injection" else not ok
+        dets.append(anno(f"r{run_id}_{k:03d}", [TARGET] if detected else []))
+        shadow = not (1 <= k <= window)
+        infos.append(info(TARGET, shadow=shadow, k=k, family=family, run_id=run_id))
+    return dets, infos
+
+
+@pytest.mark.parametrize("family", ["injection", "removal"])
+def test_lifecycle_counts_and_asr(family):
+    w = 4
+    d0, i0 = lifecycle_run([0, 1, 1, 1, 1, 0, 0, 0, 0], w, family, run_id=0)
+    d1, i1 = lifecycle_run([0, 0, 1, 1, 1, 1, 0, 0, 0], w, family, run_id=1)
+    # a spoofed frame beyond the lifecycle (k = -1) and a frame without a target are ignored
+    d2, i2 = [anno("x", [TARGET]), anno("y", [TARGET])], [info(TARGET, k=-1, family=family)]
+    i2.append(info(None, family=family))
+    m = match_targets(d0 + d1 + d2, i0 + i1 + i2)
+    lc = lifecycle_asr(m, w, recorded_window=w)
+    assert lc["k"] == list(range(9))
+    assert lc["attacked"] == [False, True, True, True, True, False, False, False, False]
+    assert lc["num_targets"] == [2] * 9
+    assert lc["num_success"] == [0, 1, 2, 2, 2, 1, 0, 0, 0]
+    assert lc["asr"] == [0.0, 0.5, 1.0, 1.0, 1.0, 0.5, 0.0, 0.0, 0.0]
+    assert len(lc["score_counts"]) == 9 and len(lc["score_counts"][0]) == 20
+    detected = (
+        np.array(lc["num_success"]) if family == "injection" else 2 - np.array(lc["num_success"])
+    )
+    assert [sum(c) for c in lc["score_counts"]] == detected.tolist()
+
+
+def test_lifecycle_default_is_the_schedule_window():
+    # the engine's default: W = 32 spoofed frames, 32 shadow frames after; a 4-frame detector
+    ks = list(range(0, 65))
+    dets, infos = lifecycle_run([k % 2 for k in ks], 32)
+    lc = lifecycle_asr(match_targets(dets, infos), 4)
+    assert lc["recorded_window"] == 32 and lc["num_targets"] == [1] * 9
+    # positions 1..4 = k 1..4, positions 5..8 = k 33..36
+    assert lc["num_success"] == [0, 1, 0, 1, 0, 1, 0, 1, 0]
+
+
+def test_lifecycle_shorter_detector_window():
+    # engine recorded We = 4; a 2-frame detector sees k = 0, spoofed 1..2, after-run 1..2
+    k = np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, -1])
+    shadow = np.array([1, 0, 0, 0, 0, 1, 1, 1, 1, 0], dtype=bool)
+    pos = lifecycle_position(k, shadow, window=2, recorded_window=4)
+    assert pos.tolist() == [0, 1, 2, -1, -1, 3, 4, -1, -1, -1]
+    assert lifecycle_position(k, shadow, 4, 4).tolist() == [0, 1, 2, 3, 4, 5, 6, 7, 8, -1]
+    with pytest.raises(AttackMetricError, match="recorded_window=2"):
+        lifecycle_position(k, shadow, window=2, recorded_window=2)  # spoofed k = 3 contradicts
+    with pytest.raises(AttackMetricError, match="window"):
+        lifecycle_position(k, shadow, window=5, recorded_window=4)
+
+
+def test_evaluate_attack_bundles_everything():
+    dets, infos = lifecycle_run([0, 1, 1, 1, 1, 0, 0, 0, 0], 4)
+    out = evaluate_attack(dets, infos, window=4, recorded_window=4)
+    assert out["variant"] == "inj_rel_easy" and out["num_frames"] == 9
+    assert out["num_targets"] == 4 and out["asr"] == 1.0
+    assert out["confidence"]["kind"] == "injection" and out["confidence"]["num_detected"] == 4
+    assert out["lifecycle"]["asr"][5] == 0.0
+    rem_d, rem_i = lifecycle_run([0, 1, 0, 1, 1, 0, 0, 0, 0], 4, family="removal")
+    out = evaluate_attack(
+        rem_d, rem_i, clean_det_annos=[anno(a["frame_id"], [TARGET]) for a in rem_d]
+    )
+    assert out["asr"] == 0.75 and out["confidence"]["num_surviving"] == 1
+    assert out["lifecycle"] is None
+    assert evaluate_attack(rem_d, rem_i)["confidence"] is None  # no clean run given
+
+
+# ---------------------------------------------------------------------------- ranks
+def test_robustness_ranks_known_answer():
+    asr = {
+        "A": {"i1": 0.1, "i2": 0.1, "r1": 0.9, "r2": 0.8, "clean": None},
+        "B": {"i1": 0.2, "i2": 0.1, "r1": 0.5, "r2": 0.8, "clean": None},
+        "C": {"i1": 0.3, "i2": 0.5, "r1": 0.1, "r2": 0.2, "clean": None},
+    }
+    fam = {"i1": "injection", "i2": "injection", "r1": "removal", "r2": "removal", "clean": "clean"}
+    out = robustness_ranks(asr, fam)
+    assert out["per_setting"]["i2"] == {"A": 1.5, "B": 1.5, "C": 3.0}  # ties share the mean
+    assert out["injection_rank"] == {"A": 1.25, "B": 1.75, "C": 3.0}
+    assert out["removal_rank"] == {"A": 2.75, "B": 2.25, "C": 1.0}
+    # removal = 4 - injection exactly
+    assert out["fit"]["slope"] == pytest.approx(-1.0)
+    assert out["fit"]["intercept"] == pytest.approx(4.0)
+    assert out["fit"]["r2"] == pytest.approx(1.0)
+    low = robustness_ranks(asr, fam, tie_method="min")
+    assert low["per_setting"]["i2"] == {"A": 1.0, "B": 1.0, "C": 3.0}
+    two = robustness_ranks({m: asr[m] for m in "AB"}, fam)
+    assert two["fit"] is None  # two points always fit exactly
+    with pytest.raises(AttackMetricError, match="'C'.*'r2'"):
+        robustness_ranks({**asr, "C": {"i1": 0.3, "i2": 0.5, "r1": 0.1}}, fam)
+
+
+def test_linear_fit_reproduces_the_paper_figure():
+    # coordinates of the paper's Fig. "Robustness Correlation" (injection rank, removal rank)
+    inj = [1.667, 3.500, 4.667, 2.333, 3.500, 5.500, 7.167, 9.000, 7.667]
+    rem = [8.667, 7.333, 6.000, 7.500, 5.333, 3.500, 3.167, 2.333, 1.167]
+    fit = linear_fit(np.array(inj), np.array(rem))
+    assert fit["slope"] == pytest.approx(-0.9596, abs=1e-4)
+    assert fit["intercept"] == pytest.approx(9.7980, abs=1e-4)
+    assert fit["r2"] == pytest.approx(0.87, abs=5e-3)  # the paper's R^2 = 0.87
+    with pytest.raises(AttackMetricError, match="varying x"):
+        linear_fit(np.ones(3), np.arange(3.0))
+
+
+def test_iou_fn_can_be_swapped_for_bev():
+    from pcdet_atlas.evaluation.iou3d import boxes_aligned_iou_bev
+
+    lifted = TARGET.copy()
+    lifted[2] += 1.0  # same footprint, half the height overlapping: 3D IoU 1/3, BEV IoU 1
+    dets, infos = [anno("a", [lifted])], [info(TARGET)]
+    np.testing.assert_allclose(match_targets(dets, infos).max_iou, [1 / 3], atol=1e-6)
+    bev = match_targets(dets, infos, iou_fn=boxes_aligned_iou_bev)
+    assert bev.max_iou[0] == pytest.approx(1.0) and bev.success.tolist() == [True]
+
+
+def test_accepts_the_attack_engine_metadata_records():
+    from pcdet_atlas.attacks.metadata import make_meta, validate_meta
+
+    infos = [
+        make_meta("rem_40", "removal", lifecycle_k=0, run_id=0, target_box=TARGET,
+                  target_is_shadow=True, tracked=True),
+        make_meta("rem_40", "removal", spoofed=True, run_id=0, run_position=0, lifecycle_k=1,
+                  target_box=TARGET, tracked=True, fired=True),
+        make_meta("rem_40", "removal", spoofed=True, run_id=0, run_position=1, lifecycle_k=2),
+        make_meta("rem_40", "removal"),
+    ]  # fmt: skip
+    for meta in infos:
+        validate_meta(meta)
+    dets = [anno("a", [TARGET]), anno("b", [IOU_065]), anno("c", []), anno("d", [])]
+    m = match_targets(dets, infos)
+    assert m.lifecycle_k.tolist() == [0, 1] and m.is_shadow.tolist() == [True, False]
+    out = attack_success_rate(dets, infos)
+    assert out["num_targets"] == 1 and out["num_success"] == 1  # lost-target frame not counted

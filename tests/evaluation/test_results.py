@@ -1,0 +1,331 @@
+"""results.json: building, validation errors, save/load, ranks and the paper-table printers."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+
+import numpy as np
+import pytest
+
+from pcdet_atlas.evaluation.attack_metrics import evaluate_attack
+from pcdet_atlas.evaluation.results import (
+    PAPER_VARIANTS,
+    ResultsError,
+    build_results,
+    build_variant_result,
+    format_comparison_table,
+    format_ranks,
+    format_table,
+    load_results,
+    load_results_dir,
+    ordered_variants,
+    ranks_from_results,
+    save_results,
+    validate_results,
+)
+
+CLASSES = ["Vehicle", "Pedestrian", "Cyclist"]
+TARGET = np.array([20.0, 2.0, 1.0, 4.0, 2.0, 2.0, 0.3], dtype=np.float32)
+
+
+def metrics(l2_map: float) -> dict:
+    """A waymo_evaluate-shaped dict (plus a key that must not be stored)."""
+    out = {"L1/mAP": l2_map + 0.05, "L1/mAPH": l2_map + 0.04, "L2/mAP": l2_map}
+    out["L2/mAPH"] = l2_map - 0.02
+    for cls in CLASSES:
+        for key in ("L1/AP", "L1/APH", "L2/AP", "L2/APH"):
+            out[f"{cls}/{key}"] = out[key.replace("AP", "mAP")]
+    out["Vehicle/L2/pr_curve"] = [0.1, 0.2]
+    return out
+
+
+def attack(variant: str, family: str, asr: float, num_targets: int = 100) -> dict:
+    n_ok = round(asr * num_targets)
+    return {
+        "variant": variant,
+        "family": family,
+        "num_frames": 200,
+        "asr": n_ok / num_targets,
+        "num_targets": num_targets,
+        "num_success": n_ok,
+        "asr_lenient": n_ok / num_targets,
+        "num_success_lenient": n_ok,
+        "iou_threshold": 0.7,
+        "score_threshold": None,
+        "target_class": "Vehicle",
+        "confidence": None,
+        "lifecycle": None,
+    }
+
+
+def family_of(variant: str) -> str:
+    return "clean" if variant == "clean" else "injection" if variant[:3] == "inj" else "removal"
+
+
+def model_results(model: str, l2_maps: dict, asrs: dict) -> dict:
+    variants = {}
+    for name, l2 in l2_maps.items():
+        fam = family_of(name)
+        variants[name] = build_variant_result(
+            name,
+            family=fam,
+            num_frames=200,
+            metrics=metrics(l2),
+            class_names=CLASSES,
+            attack=None if fam == "clean" else attack(name, fam, asrs[name]),
+        )
+    return build_results(
+        model=model,
+        config=f"cfgs/waymo_models/{model}.yaml",
+        checkpoint=f"output/{model}/ckpt/checkpoint_epoch_30.pth",
+        class_names=CLASSES,
+        variants=variants,
+        created="2026-11-21T08:00:00+00:00",
+    )
+
+
+# values from the paper's Tables 1-3 (CenterPoint, PTT), a subset of the variants
+CP = model_results(
+    "CenterPoint",
+    {"clean": 0.657, "inj_rel_easy": 0.655, "inj_global_hard": 0.652, "rem_10": 0.643,
+     "rem_60": 0.607},
+    {"inj_rel_easy": 0.11, "inj_global_hard": 0.32, "rem_10": 0.90, "rem_60": 0.77},
+)  # fmt: skip
+PTT = model_results(
+    "PTT",
+    {"clean": 0.749, "inj_rel_easy": 0.750, "inj_global_hard": 0.749, "rem_10": 0.738,
+     "rem_60": 0.723},
+    {"inj_rel_easy": 0.14, "inj_global_hard": 0.50, "rem_10": 0.68, "rem_60": 0.50},
+)  # fmt: skip
+MSF = model_results(
+    "MSF-4f",
+    {"clean": 0.747, "inj_rel_easy": 0.746, "inj_global_hard": 0.745, "rem_10": 0.734,
+     "rem_60": 0.717},
+    {"inj_rel_easy": 0.13, "inj_global_hard": 0.46, "rem_10": 0.73, "rem_60": 0.53},
+)  # fmt: skip
+
+
+def test_build_variant_result_from_real_attack_metrics():
+    dets, infos = [], []
+    for k in range(9):
+        dets.append(
+            {
+                "frame_id": f"s_{k:03d}",
+                "name": np.array(["Vehicle"] if 1 <= k <= 3 else []),
+                "boxes_lidar": np.array([TARGET] if 1 <= k <= 3 else np.zeros((0, 7))),
+                "score": np.array([0.8] if 1 <= k <= 3 else []),
+            }
+        )
+        infos.append(
+            {
+                "variant": "inj_rel_hard",
+                "family": "injection",
+                "spoofed": 1 <= k <= 4,
+                "run_id": 0,
+                "run_position": k - 1 if 1 <= k <= 4 else -1,
+                "lifecycle_k": k,
+                "target_box": TARGET,
+                "target_is_shadow": not 1 <= k <= 4,
+            }
+        )
+    atk = evaluate_attack(dets, infos, window=4, recorded_window=4)
+    entry = build_variant_result(
+        "inj_rel_hard",
+        family="injection",
+        num_frames=9,
+        metrics=metrics(0.6),
+        class_names=CLASSES,
+        attack=atk,
+    )
+    assert entry["asr"] == 0.75 and entry["num_targets"] == 4 and entry["num_success"] == 3
+    assert entry["per_class"]["Cyclist"]["L2/APH"] == pytest.approx(0.58)
+    assert "pr_curve" not in json.dumps(entry)
+    assert entry["lifecycle"]["num_success"] == [0, 1, 1, 1, 0, 0, 0, 0, 0]
+    assert entry["confidence"]["num_detected"] == 3
+    json.dumps(entry, allow_nan=False)  # plain JSON types only
+    with pytest.raises(ResultsError, match="variant"):
+        build_variant_result(
+            "inj_rel_easy",
+            family="injection",
+            num_frames=9,
+            metrics=metrics(0.6),
+            class_names=CLASSES,
+            attack=atk,
+        )
+
+
+def test_save_and_load_round_trip(tmp_path):
+    path = save_results(CP, tmp_path / "cp" / "results.json")
+    assert load_results(path) == CP
+    save_results(PTT, tmp_path / "ptt" / "results.json")
+    assert [r["model"] for r in load_results_dir(tmp_path)] == ["CenterPoint", "PTT"]
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(ResultsError, match="bad.json"):
+        load_results(tmp_path / "bad.json")
+    with pytest.raises(ResultsError, match="no file"):
+        load_results_dir(tmp_path / "empty")
+
+
+def _broken(mutate):
+    r = copy.deepcopy(CP)
+    mutate(r)
+    return r
+
+
+@pytest.mark.parametrize(
+    "mutate, match",
+    [
+        (lambda r: r.pop("checkpoint"), "missing key 'checkpoint'"),
+        (lambda r: r.update(seed=3), "unknown key 'seed'"),
+        (lambda r: r.update(schema_version=2), "schema_version"),
+        (lambda r: r.update(created="yesterday"), "created"),
+        (lambda r: r.update(class_names=["Vehicle", "Vehicle"]), "duplicate"),
+        (lambda r: r["variants"]["rem_10"].update(asr=0.5), r"\['rem_10'\]\['asr'\]"),
+        (lambda r: r["variants"]["rem_10"].update(asr=math.nan), r"\['asr'\]"),
+        (lambda r: r["variants"]["rem_10"].update(num_success=101), "num_success"),
+        (lambda r: r["variants"]["rem_10"].pop("asr_lenient"), "asr_lenient"),
+        (lambda r: r["variants"]["rem_10"].update(num_frames=True), "num_frames"),
+        (lambda r: r["variants"]["clean"].update(asr=0.0), r"\['clean'\]\['asr'\]"),
+        (lambda r: r["variants"]["inj_rel_easy"].update({"L2/mAP": 65.5}), "L2/mAP"),
+        (lambda r: r["variants"]["clean"]["per_class"].pop("Cyclist"), "Cyclist"),
+        (lambda r: r["variants"]["clean"]["per_class"]["Vehicle"].update({"L2/AP": -1}), "L2/AP"),
+        (
+            lambda r: r["variants"]["clean"].update(num_targets=3, num_success=0),
+            "clean variant has no targets",
+        ),
+        (
+            lambda r: r["variants"]["rem_10"].update(confidence={"kind": "removal"}),
+            "missing key",
+        ),
+    ],
+)
+def test_validate_names_the_bad_key(mutate, match):
+    with pytest.raises(ResultsError, match=match):
+        validate_results(_broken(mutate))
+
+
+def test_validate_checks_nested_confidence_and_lifecycle():
+    dets = [
+        {"frame_id": f"f{k}", "name": np.array(["Vehicle"]), "boxes_lidar": TARGET[None],
+         "score": np.array([0.9])}
+        for k in range(3)
+    ]  # fmt: skip
+    infos = [
+        {"variant": "inj_rel_easy", "family": "injection", "spoofed": k > 0, "lifecycle_k": k,
+         "target_box": TARGET, "target_is_shadow": k == 0, "run_id": 0}
+        for k in range(3)
+    ]  # fmt: skip
+    atk = evaluate_attack(dets, infos, window=1, recorded_window=2)
+    r = copy.deepcopy(CP)
+    r["variants"]["inj_rel_easy"] = build_variant_result(
+        "inj_rel_easy",
+        family="injection",
+        num_frames=3,
+        metrics=metrics(0.6),
+        class_names=CLASSES,
+        attack=atk,
+    )
+    validate_results(r)
+    bad = copy.deepcopy(r)
+    bad["variants"]["inj_rel_easy"]["confidence"]["histogram"]["counts"][3] += 1
+    with pytest.raises(ResultsError, match=r"\['confidence'\]\['histogram'\]\['counts'\]"):
+        validate_results(bad)
+    bad = copy.deepcopy(r)
+    bad["variants"]["inj_rel_easy"]["lifecycle"]["k"] = [0, 1, 3]
+    with pytest.raises(ResultsError, match=r"\['lifecycle'\]\['k'\]"):
+        validate_results(bad)
+    bad = copy.deepcopy(r)
+    bad["variants"]["inj_rel_easy"]["lifecycle"]["asr"][1] = 0.5
+    with pytest.raises(ResultsError, match=r"k=1.*\['asr'\]"):
+        validate_results(bad)
+
+
+def test_save_refuses_invalid(tmp_path):
+    with pytest.raises(ResultsError, match="results.json"):
+        save_results(_broken(lambda r: r.pop("model")), tmp_path / "results.json")
+    assert not (tmp_path / "results.json").exists()
+
+
+# ---------------------------------------------------------------------------- printers
+def test_ordered_variants_follow_the_paper():
+    assert ordered_variants(["rem_10", "zz_new", "clean", "inj_global_hard", "inj_rel_easy"]) == [
+        "clean",
+        "inj_rel_easy",
+        "inj_global_hard",
+        "rem_10",
+        "zz_new",
+    ]
+    assert PAPER_VARIANTS[0] == "clean" and PAPER_VARIANTS[-1] == "rem_60"
+    assert len(PAPER_VARIANTS) == 13
+
+
+def test_format_table_text():
+    text = format_table(CP)
+    lines = text.splitlines()
+    assert lines[0].startswith("CenterPoint (cfgs/waymo_models/CenterPoint.yaml)")
+    assert lines[1].split() == ["Variant", "L2", "mAP", "L2", "mAPH", "ASR", "ASR", "(IoU>0)",
+                                "Targets"]  # fmt: skip
+    assert set(lines[2]) == {"-", " "}
+    rows = [line.split() for line in lines[3:]]
+    assert [r[0] for r in rows] == ["clean", "inj_rel_easy", "inj_global_hard", "rem_10", "rem_60"]
+    assert rows[0] == ["clean", "65.7", "63.7", "-", "-", "0"]
+    assert rows[2] == ["inj_global_hard", "65.2", "63.2", "0.32", "0.32", "100"]
+    assert rows[3] == ["rem_10", "64.3", "62.3", "0.90", "0.90", "100"]
+    assert len({len(line) for line in lines[1:3]}) == 1  # header and rule aligned
+
+
+def test_format_table_markdown():
+    md = format_table(CP, "markdown", lenient=False)
+    lines = md.splitlines()
+    assert lines[0] == "**CenterPoint (cfgs/waymo_models/CenterPoint.yaml)**"
+    assert lines[2] == "| Variant | L2 mAP | L2 mAPH | ASR | Targets |"
+    assert lines[3] == "|:---|---:|---:|---:|---:|"
+    assert lines[4] == "| clean | 65.7 | 63.7 | - | 0 |"
+    assert lines[-1] == "| rem_60 | 60.7 | 58.7 | 0.77 | 100 |"
+    with pytest.raises(ValueError, match="fmt"):
+        format_table(CP, "latex")
+
+
+def test_comparison_table_models_as_rows():
+    text = format_comparison_table([CP, MSF, PTT], family="removal")
+    lines = text.splitlines()
+    assert "Removal 10" in lines[0] and "Removal 60" in lines[0] and "Global" not in lines[0]
+    assert lines[1].split() == ["Detector", "L2", "mAP", "ASR", "L2", "mAP", "ASR"]
+    assert lines[3].split() == ["CenterPoint", "64.3", "0.90", "60.7", "0.77"]
+    assert lines[5].split() == ["PTT", "73.8", "0.68", "72.3", "0.50"]
+    md = format_comparison_table([CP, MSF, PTT], "markdown", family="injection")
+    rows = md.splitlines()
+    assert rows[0] == (
+        "| Detector | Rel-Fixed Easy L2 mAP | Rel-Fixed Easy ASR | Global Hard L2 mAP | "
+        "Global Hard ASR |"
+    )
+    # best bold, second italic: mAP higher is better, ASR lower is better
+    assert rows[2] == "| CenterPoint | 65.5 | **0.11** | 65.2 | **0.32** |"
+    assert rows[3] == "| MSF-4f | _74.6_ | _0.13_ | _74.5_ | _0.46_ |"
+    assert rows[4] == "| PTT | **75.0** | 0.14 | **74.9** | 0.50 |"
+
+
+def test_comparison_table_models_as_columns():
+    text = format_comparison_table([CP, PTT], models_as="columns")
+    lines = text.splitlines()
+    assert "CenterPoint" in lines[0] and "PTT" in lines[0]
+    assert lines[1].split() == ["Variant", "L2", "mAP", "ASR", "L2", "mAP", "ASR"]
+    assert lines[3].split() == ["Clean", "65.7", "-", "74.9", "-"]
+    assert lines[4].split() == ["Rel-Fixed", "Easy", "65.5", "0.11", "75.0", "0.14"]
+    assert len(lines) == 3 + 5
+    with pytest.raises(ResultsError, match="no variant 'rem_20'"):
+        format_comparison_table([CP, PTT], variants=["rem_20"])
+
+
+def test_ranks_from_results_and_printer():
+    ranks = ranks_from_results([CP, MSF, PTT])
+    assert ranks["injection_rank"] == {"CenterPoint": 1.0, "MSF-4f": 2.0, "PTT": 3.0}
+    assert ranks["removal_rank"] == {"CenterPoint": 3.0, "MSF-4f": 2.0, "PTT": 1.0}
+    assert ranks["fit"]["slope"] == pytest.approx(-1.0) and ranks["fit"]["r2"] == pytest.approx(1)
+    text = format_ranks(ranks)
+    assert "CenterPoint" in text and "R^2 = 1.000" in text
+    assert "removal rank = -1.0000 * injection rank + 4.0000" in text
+    with pytest.raises(ResultsError, match="unique"):
+        ranks_from_results([CP, CP])
