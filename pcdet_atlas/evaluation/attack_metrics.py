@@ -316,8 +316,12 @@ def match_targets(
     rules = dict(SUCCESS_IF_DETECTED if success_if_detected is None else success_if_detected)
     iou_fn = boxes_aligned_iou3d if iou_fn is None else iou_fn
 
-    variants = {str(info.get("variant")) for info in attack_infos}
-    families = {str(info.get("family")) for info in attack_infos}
+    for i, info in enumerate(attack_infos):
+        for key in ("variant", "family"):
+            if key not in info:
+                raise AttackMetricError(f"frame {i}: attack metadata lacks key '{key}'")
+    variants = {str(info["variant"]) for info in attack_infos}
+    families = {str(info["family"]) for info in attack_infos}
     if len(variants) != 1 or len(families) != 1:
         raise AttackMetricError(
             f"one call evaluates one variant; got variants {sorted(variants)}, "

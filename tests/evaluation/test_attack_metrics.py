@@ -220,6 +220,10 @@ def test_shadow_targets_are_not_counted_by_asr():
             lambda d, i: i.__setitem__(2, {k: v for k, v in i[2].items() if k != "lifecycle_k"}),
             "lifecycle_k",
         ),
+        (
+            lambda d, i: i.__setitem__(1, {k: v for k, v in i[1].items() if k != "family"}),
+            "frame 1: attack metadata lacks key 'family'",
+        ),
     ],
 )
 def test_bad_input_raises_naming_the_problem(mutate, match):
