@@ -1,1 +1,61 @@
-"""Pure-torch detectors and their stages (no spconv, no compiled ops)."""
+"""Pure-torch detectors and their stages (no spconv, no compiled ops).
+
+Importing this package registers every stage in ``MODEL_STAGES`` and every detector in
+``DETECTORS``. Build a model from a full config with :func:`build_network_from_config`, or from
+its parts with :func:`build_network`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+from pcdet_atlas.config import require_keys
+from pcdet_atlas.models import backbones_2d, dense_heads, detectors, map_to_bev, vfe  # noqa: F401
+from pcdet_atlas.models.batch import load_data_to_device
+from pcdet_atlas.models.detectors import Detector3DTemplate
+from pcdet_atlas.registry import DETECTORS
+
+__all__ = [
+    "build_network",
+    "build_network_from_config",
+    "num_point_features_of",
+    "load_data_to_device",
+]
+
+
+def build_network(
+    model_cfg: Mapping,
+    *,
+    class_names: Sequence[str],
+    point_cloud_range: Sequence[float],
+    num_point_features: int,
+) -> Detector3DTemplate:
+    """The detector ``DETECTORS[model_cfg.NAME]`` built from a ``MODEL`` section."""
+    require_keys(model_cfg, ["NAME"], "MODEL")
+    return DETECTORS.get(model_cfg["NAME"]).from_config(
+        model_cfg,
+        class_names=class_names,
+        point_cloud_range=point_cloud_range,
+        num_point_features=num_point_features,
+    )
+
+
+def num_point_features_of(data_cfg: Mapping) -> int:
+    """Point columns the dataset delivers after the batch index (its ``POINT_FEATURE_ENCODING``:
+    5 for ``x, y, z, intensity, elongation``, 6 with the multi-frame ``timestamp``)."""
+    from pcdet_atlas.datasets.point_features import PointFeatureEncoder
+
+    require_keys(data_cfg, ["POINT_FEATURE_ENCODING"], "DATA_CONFIG")
+    return PointFeatureEncoder.from_config(data_cfg["POINT_FEATURE_ENCODING"]).num_point_features
+
+
+def build_network_from_config(cfg: Mapping) -> Detector3DTemplate:
+    """Build the model of a full config (``CLASS_NAMES``, ``DATA_CONFIG``, ``MODEL``)."""
+    require_keys(cfg, ["CLASS_NAMES", "DATA_CONFIG", "MODEL"], "config")
+    require_keys(cfg["DATA_CONFIG"], ["POINT_CLOUD_RANGE"], "DATA_CONFIG")
+    return build_network(
+        cfg["MODEL"],
+        class_names=cfg["CLASS_NAMES"],
+        point_cloud_range=cfg["DATA_CONFIG"]["POINT_CLOUD_RANGE"],
+        num_point_features=num_point_features_of(cfg["DATA_CONFIG"]),
+    )

@@ -1,0 +1,366 @@
+"""CenterHead: CenterPoint's BEV heatmap + box regression head, with optional velocity.
+
+One head for all classes (OpenPCDet's Waymo setting): a shared 3x3 conv, then one small conv
+branch per output (``center`` 2, ``center_z`` 1, ``dim`` 3, ``rot`` 2, optionally ``vel`` 2, and
+``hm`` one channel per class). Training targets, losses and decoding are in
+:mod:`pcdet_atlas.models.model_utils.centernet_utils`; boxes are de-duplicated by rotated BEV NMS
+from :mod:`pcdet_atlas.evaluation.iou3d`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import torch
+from torch import nn
+
+from pcdet_atlas.config import check_known_keys
+from pcdet_atlas.evaluation.iou3d import nms_bev
+from pcdet_atlas.models.model_utils import centernet_utils as cu
+from pcdet_atlas.registry import MODEL_STAGES
+
+REG_HEADS = {"center": 2, "center_z": 1, "dim": 3, "rot": 2, "vel": 2}
+
+
+class SeparateHead(nn.Module):
+    """One conv branch per output map: ``num_conv - 1`` x (conv3x3-BN-ReLU), then conv3x3."""
+
+    def __init__(
+        self,
+        in_channels: int,
+        heads: Mapping[str, tuple[int, int]],
+        init_bias: float,
+        use_bias: bool,
+    ):
+        """heads: ``name -> (out_channels, num_conv)``; the ``hm`` bias starts at ``init_bias``."""
+        super().__init__()
+        self.branches = nn.ModuleDict()
+        for name, (out_ch, num_conv) in heads.items():
+            layers: list[nn.Module] = []
+            for _ in range(num_conv - 1):
+                layers += [
+                    nn.Conv2d(in_channels, in_channels, 3, padding=1, bias=use_bias),
+                    nn.BatchNorm2d(in_channels),
+                    nn.ReLU(),
+                ]
+            layers.append(nn.Conv2d(in_channels, out_ch, 3, padding=1, bias=True))
+            branch = nn.Sequential(*layers)
+            if name == "hm":  # default init, final bias = init_bias (prior ~0.1)
+                nn.init.constant_(branch[-1].bias, init_bias)
+            else:
+                for m in branch.modules():
+                    if isinstance(m, nn.Conv2d):
+                        nn.init.kaiming_normal_(m.weight)
+                        if m.bias is not None:
+                            nn.init.zeros_(m.bias)
+            self.branches[name] = branch
+
+    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        return {name: branch(x) for name, branch in self.branches.items()}
+
+
+@MODEL_STAGES.register()
+class CenterHead(nn.Module):
+    """Reads ``spatial_features_2d`` (B, C, H, W); writes ``head_outputs``: a dict of maps
+    ``hm`` (B, num_class, H, W) logits, ``center`` (B, 2, H, W), ``center_z`` (B, 1, H, W),
+    ``dim`` (B, 3, H, W) log-sizes, ``rot`` (B, 2, H, W) ``[cos, sin]``, optionally ``vel``
+    (B, 2, H, W) m/s."""
+
+    def __init__(
+        self,
+        *,
+        input_channels: int,
+        num_class: int,
+        point_cloud_range: Sequence[float],
+        voxel_size: Sequence[float],
+        grid_size: Sequence[int],
+        feature_map_stride: int = 1,
+        with_velocity: bool = False,
+        shared_conv_channel: int = 64,
+        use_bias_before_norm: bool = True,
+        num_hm_conv: int = 2,
+        reg_num_conv: int | Mapping[str, int] = 2,
+        init_bias: float = -2.19,
+        num_max_objs: int = 500,
+        gaussian_overlap: float = 0.1,
+        min_radius: int = 2,
+        cls_weight: float = 1.0,
+        loc_weight: float = 2.0,
+        code_weights: Sequence[float] | None = None,
+        score_thresh: float = 0.1,
+        post_center_limit_range: Sequence[float] | None = None,
+        max_obj_per_sample: int = 500,
+        nms_thresh: float = 0.7,
+        nms_pre_maxsize: int = 4096,
+        nms_post_maxsize: int = 500,
+    ):
+        """
+        Args:
+            input_channels: width of ``spatial_features_2d``.
+            num_class: heatmap channels (classes are 1-based in ``gt_boxes`` and predictions).
+            point_cloud_range, voxel_size, grid_size: the VFE's grid (metres / cells).
+            feature_map_stride: voxels per head cell along x and y.
+            with_velocity: regress ``[vx, vy]`` (multi-frame input; GT must have 10 columns).
+            reg_num_conv: convs per regression branch (an int, or per head name).
+            code_weights: L1 weight per regression channel (8, or 10 with velocity).
+            nms_thresh / nms_pre_maxsize / nms_post_maxsize: class-agnostic rotated BEV NMS.
+        """
+        super().__init__()
+        self.num_class = num_class
+        self.point_cloud_range = tuple(float(v) for v in point_cloud_range)
+        self.voxel_size = tuple(float(v) for v in voxel_size)
+        self.feature_map_stride = int(feature_map_stride)
+        if grid_size[0] % self.feature_map_stride or grid_size[1] % self.feature_map_stride:
+            raise ValueError(
+                f"CenterHead: grid {tuple(grid_size[:2])} not divisible by FEATURE_MAP_STRIDE "
+                f"{feature_map_stride}"
+            )
+        self.feature_map_size = (
+            int(grid_size[1]) // self.feature_map_stride,
+            int(grid_size[0]) // self.feature_map_stride,
+        )  # (H, W)
+        self.with_velocity = with_velocity
+        self.code_size = 10 if with_velocity else 8
+        if code_weights is None:
+            code_weights = [1.0] * 8 + ([0.2, 0.2] if with_velocity else [])
+        if len(code_weights) != self.code_size:
+            raise ValueError(
+                f"CenterHead: code_weights needs {self.code_size} values "
+                f"(center 2, center_z 1, dim 3, rot 2{', vel 2' if with_velocity else ''}), "
+                f"got {len(code_weights)}"
+            )
+        self.register_buffer("code_weights", torch.tensor(code_weights, dtype=torch.float32))
+        self.num_max_objs = num_max_objs
+        self.gaussian_overlap = gaussian_overlap
+        self.min_radius = min_radius
+        self.cls_weight = cls_weight
+        self.loc_weight = loc_weight
+        self.score_thresh = score_thresh
+        self.post_center_limit_range = (
+            None if post_center_limit_range is None else tuple(map(float, post_center_limit_range))
+        )
+        self.max_obj_per_sample = max_obj_per_sample
+        self.nms_thresh = nms_thresh
+        self.nms_pre_maxsize = nms_pre_maxsize
+        self.nms_post_maxsize = nms_post_maxsize
+
+        self.shared_conv = nn.Sequential(
+            nn.Conv2d(input_channels, shared_conv_channel, 3, padding=1, bias=use_bias_before_norm),
+            nn.BatchNorm2d(shared_conv_channel),
+            nn.ReLU(),
+        )
+        names = ["center", "center_z", "dim", "rot"] + (["vel"] if with_velocity else [])
+        if isinstance(reg_num_conv, Mapping):
+            unknown = set(reg_num_conv) - set(names)
+            if unknown:
+                raise ValueError(f"CenterHead: num_conv given for unknown heads {sorted(unknown)}")
+        heads = {
+            n: (
+                REG_HEADS[n],
+                reg_num_conv.get(n, 2) if isinstance(reg_num_conv, Mapping) else reg_num_conv,
+            )
+            for n in names
+        }
+        heads["hm"] = (num_class, num_hm_conv)
+        self.head = SeparateHead(shared_conv_channel, heads, init_bias, use_bias_before_norm)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping, model_info: Mapping) -> CenterHead:
+        check_known_keys(
+            cfg,
+            [
+                "NAME",
+                "CLASS_AGNOSTIC",
+                "CLASS_NAMES_EACH_HEAD",
+                "SHARED_CONV_CHANNEL",
+                "USE_BIAS_BEFORE_NORM",
+                "NUM_HM_CONV",
+                "SEPARATE_HEAD_CFG",
+                "TARGET_ASSIGNER_CONFIG",
+                "LOSS_CONFIG",
+                "POST_PROCESSING",
+            ],
+            "MODEL.DENSE_HEAD",
+        )
+        class_names = list(model_info["class_names"])
+        groups = cfg.get("CLASS_NAMES_EACH_HEAD", [class_names])
+        if [list(g) for g in groups] != [class_names]:
+            raise ValueError(
+                f"MODEL.DENSE_HEAD.CLASS_NAMES_EACH_HEAD: only one head over all CLASS_NAMES "
+                f"{class_names} is supported, got {groups}"
+            )
+        if cfg.get("CLASS_AGNOSTIC", False):
+            raise ValueError("MODEL.DENSE_HEAD.CLASS_AGNOSTIC: True is not supported")
+
+        sep = cfg.get("SEPARATE_HEAD_CFG", {})
+        check_known_keys(sep, ["HEAD_ORDER", "HEAD_DICT"], "MODEL.DENSE_HEAD.SEPARATE_HEAD_CFG")
+        order = list(sep.get("HEAD_ORDER", ["center", "center_z", "dim", "rot"]))
+        head_dict = sep.get("HEAD_DICT", {})
+        if order not in (
+            ["center", "center_z", "dim", "rot"],
+            ["center", "center_z", "dim", "rot", "vel"],
+        ):
+            raise ValueError(
+                "MODEL.DENSE_HEAD.SEPARATE_HEAD_CFG.HEAD_ORDER must be "
+                f"[center, center_z, dim, rot] with optional vel, got {order}"
+            )
+        if set(head_dict) - set(order):
+            raise ValueError(
+                f"MODEL.DENSE_HEAD.SEPARATE_HEAD_CFG.HEAD_DICT has heads not in HEAD_ORDER: "
+                f"{sorted(set(head_dict) - set(order))}"
+            )
+        reg_num_conv = {}
+        for name in order:
+            entry = head_dict.get(name, {})
+            check_known_keys(entry, ["out_channels", "num_conv"], f"HEAD_DICT.{name}")
+            if entry.get("out_channels", REG_HEADS[name]) != REG_HEADS[name]:
+                raise ValueError(f"HEAD_DICT.{name}.out_channels must be {REG_HEADS[name]}")
+            reg_num_conv[name] = int(entry.get("num_conv", 2))
+
+        tac = cfg.get("TARGET_ASSIGNER_CONFIG", {})
+        check_known_keys(
+            tac,
+            ["FEATURE_MAP_STRIDE", "NUM_MAX_OBJS", "GAUSSIAN_OVERLAP", "MIN_RADIUS"],
+            "MODEL.DENSE_HEAD.TARGET_ASSIGNER_CONFIG",
+        )
+        stride = int(tac.get("FEATURE_MAP_STRIDE", 1))
+        if (
+            model_info.get("backbone_stride") is not None
+            and stride != model_info["backbone_stride"]
+        ):
+            raise ValueError(
+                f"MODEL.DENSE_HEAD.TARGET_ASSIGNER_CONFIG.FEATURE_MAP_STRIDE ({stride}) differs "
+                f"from the BEV backbone's output stride ({model_info['backbone_stride']})"
+            )
+        loss_cfg = cfg.get("LOSS_CONFIG", {})
+        check_known_keys(loss_cfg, ["LOSS_WEIGHTS"], "MODEL.DENSE_HEAD.LOSS_CONFIG")
+        weights = loss_cfg.get("LOSS_WEIGHTS", {})
+        check_known_keys(
+            weights, ["cls_weight", "loc_weight", "code_weights"], "LOSS_CONFIG.LOSS_WEIGHTS"
+        )
+        post = cfg.get("POST_PROCESSING", {})
+        check_known_keys(
+            post,
+            ["SCORE_THRESH", "POST_CENTER_LIMIT_RANGE", "MAX_OBJ_PER_SAMPLE", "NMS_CONFIG"],
+            "MODEL.DENSE_HEAD.POST_PROCESSING",
+        )
+        nms = post.get("NMS_CONFIG", {})
+        check_known_keys(
+            nms,
+            ["NMS_TYPE", "NMS_THRESH", "NMS_PRE_MAXSIZE", "NMS_POST_MAXSIZE"],
+            "MODEL.DENSE_HEAD.POST_PROCESSING.NMS_CONFIG",
+        )
+        if nms.get("NMS_TYPE", "nms_gpu") not in ("nms_gpu", "nms_bev"):
+            raise ValueError(
+                f"NMS_CONFIG.NMS_TYPE: only rotated BEV NMS ('nms_gpu' / 'nms_bev') is "
+                f"implemented, got {nms['NMS_TYPE']!r}"
+            )
+        return cls(
+            input_channels=model_info["num_bev_features"],
+            num_class=len(class_names),
+            point_cloud_range=model_info["point_cloud_range"],
+            voxel_size=model_info["voxel_size"],
+            grid_size=model_info["grid_size"],
+            feature_map_stride=stride,
+            with_velocity="vel" in order,
+            shared_conv_channel=cfg.get("SHARED_CONV_CHANNEL", 64),
+            use_bias_before_norm=cfg.get("USE_BIAS_BEFORE_NORM", True),
+            num_hm_conv=cfg.get("NUM_HM_CONV", 2),
+            reg_num_conv=reg_num_conv,
+            num_max_objs=tac.get("NUM_MAX_OBJS", 500),
+            gaussian_overlap=tac.get("GAUSSIAN_OVERLAP", 0.1),
+            min_radius=tac.get("MIN_RADIUS", 2),
+            cls_weight=weights.get("cls_weight", 1.0),
+            loc_weight=weights.get("loc_weight", 2.0),
+            code_weights=weights.get("code_weights"),
+            score_thresh=post.get("SCORE_THRESH", 0.1),
+            post_center_limit_range=post.get("POST_CENTER_LIMIT_RANGE"),
+            max_obj_per_sample=post.get("MAX_OBJ_PER_SAMPLE", 500),
+            nms_thresh=nms.get("NMS_THRESH", 0.7),
+            nms_pre_maxsize=nms.get("NMS_PRE_MAXSIZE", 4096),
+            nms_post_maxsize=nms.get("NMS_POST_MAXSIZE", 500),
+        )
+
+    def forward(self, batch_dict: dict) -> dict:
+        x = self.shared_conv(batch_dict["spatial_features_2d"])  # (B, C_shared, H, W)
+        if tuple(x.shape[-2:]) != self.feature_map_size:
+            raise ValueError(
+                f"CenterHead: feature map is {tuple(x.shape[-2:])}, expected "
+                f"{self.feature_map_size} (grid / FEATURE_MAP_STRIDE)"
+            )
+        batch_dict["head_outputs"] = self.head(x)
+        return batch_dict
+
+    def assign_targets(self, gt_boxes: torch.Tensor) -> cu.CenterTargets:
+        """(B, M, 8|10) padded GT boxes -> heatmap and regression targets on this head's grid."""
+        return cu.encode_center_targets(
+            gt_boxes,
+            num_class=self.num_class,
+            feature_map_size=self.feature_map_size,
+            point_cloud_range=self.point_cloud_range,
+            voxel_size=self.voxel_size,
+            feature_map_stride=self.feature_map_stride,
+            with_velocity=self.with_velocity,
+            num_max_objs=self.num_max_objs,
+            gaussian_overlap=self.gaussian_overlap,
+            min_radius=self.min_radius,
+        )
+
+    def loss(self, head_outputs: Mapping[str, torch.Tensor], gt_boxes: torch.Tensor) -> dict:
+        """Focal heatmap loss + weighted L1 box loss.
+
+        Returns:
+            ``{'loss', 'hm_loss', 'loc_loss'}`` scalars (``loss`` is the weighted total).
+        """
+        if gt_boxes.shape[-1] == 10 and not self.with_velocity:
+            gt_boxes = torch.cat([gt_boxes[..., :7], gt_boxes[..., -1:]], dim=-1)
+        targets = self.assign_targets(gt_boxes)
+        hm_loss = cu.focal_loss_centernet(head_outputs["hm"], targets.heatmap)
+        reg_maps = [head_outputs[n] for n in ("center", "center_z", "dim", "rot")]
+        if self.with_velocity:
+            reg_maps.append(head_outputs["vel"])
+        pred = cu.gather_feature_at(torch.cat(reg_maps, dim=1).float(), targets.inds)
+        reg_loss = cu.reg_l1_loss_centernet(pred, targets.box_targets, targets.mask)  # (code,)
+        loc_loss = (reg_loss * self.code_weights).sum() * self.loc_weight
+        hm_loss = hm_loss * self.cls_weight
+        return {"loss": hm_loss + loc_loss, "hm_loss": hm_loss, "loc_loss": loc_loss}
+
+    @torch.no_grad()
+    def predict(self, head_outputs: Mapping[str, torch.Tensor]) -> list[dict]:
+        """Decode, filter and NMS the maps.
+
+        Returns:
+            per sample ``{'pred_boxes': (K, 7|9), 'pred_scores': (K,), 'pred_labels': (K,)
+            int64 1-based}``, sorted by decreasing score.
+        """
+        decoded = cu.decode_center_maps(
+            head_outputs["hm"],
+            head_outputs["center"],
+            head_outputs["center_z"],
+            head_outputs["dim"],
+            head_outputs["rot"],
+            head_outputs.get("vel"),
+            point_cloud_range=self.point_cloud_range,
+            voxel_size=self.voxel_size,
+            feature_map_stride=self.feature_map_stride,
+            max_obj_per_sample=self.max_obj_per_sample,
+            score_thresh=self.score_thresh,
+            post_center_limit_range=self.post_center_limit_range,
+        )
+        out = []
+        for d in decoded:
+            keep = nms_bev(
+                d["boxes"][:, :7],
+                d["scores"],
+                self.nms_thresh,
+                self.nms_pre_maxsize,
+                self.nms_post_maxsize,
+            )
+            out.append(
+                {
+                    "pred_boxes": d["boxes"][keep],
+                    "pred_scores": d["scores"][keep],
+                    "pred_labels": d["labels"][keep] + 1,
+                }
+            )
+        return out

@@ -1,0 +1,6 @@
+"""Detectors: stage containers with ``loss(batch)`` and ``predict(batch)``."""
+
+from pcdet_atlas.models.detectors.centerpoint import CenterPoint
+from pcdet_atlas.models.detectors.detector3d_template import Detector3DTemplate
+
+__all__ = ["CenterPoint", "Detector3DTemplate"]

@@ -1,0 +1,190 @@
+"""Detector3DTemplate: OpenPCDet's stage container, with explicit ``loss`` and ``predict``.
+
+A detector is a sequence of stages in :attr:`Detector3DTemplate.module_topology` order; each stage
+reads and writes keys of a per-call copy of the batch dict, so nothing is cached on ``self``
+between ``forward`` and ``loss``. Each stage is registered in ``MODEL_STAGES`` and built from its
+config section by ``Stage.from_config(section_cfg, model_info)``, where ``model_info`` carries
+what earlier stages determined (feature widths, grid, strides).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from pcdet_atlas.config import check_known_keys, require_keys
+from pcdet_atlas.registry import MODEL_STAGES
+
+# stage attribute -> its section in MODEL (OpenPCDet's names)
+STAGE_CFG_KEYS = {
+    "vfe": "VFE",
+    "backbone_3d": "BACKBONE_3D",
+    "map_to_bev_module": "MAP_TO_BEV",
+    "pfe": "PFE",
+    "backbone_2d": "BACKBONE_2D",
+    "dense_head": "DENSE_HEAD",
+    "point_head": "POINT_HEAD",
+    "roi_head": "ROI_HEAD",
+}
+
+
+class CheckpointMismatchError(RuntimeError):
+    """A checkpoint whose parameters do not fit the model built from the config."""
+
+
+def stage_model_info(stage: nn.Module, name: str, info: dict) -> None:
+    """Update ``info`` in place with what ``stage`` (built as ``name``) tells later stages."""
+    if name == "vfe":
+        info["num_point_features"] = stage.get_output_feature_dim()
+        info["voxel_size"] = stage.grid.voxel_size
+        info["grid_size"] = stage.grid.grid_size
+    if hasattr(stage, "num_bev_features"):
+        info["num_bev_features"] = stage.num_bev_features
+    if hasattr(stage, "output_stride"):
+        info["backbone_stride"] = stage.output_stride
+
+
+class Detector3DTemplate(nn.Module):
+    """Base class: holds the stages and runs them in topology order.
+
+    Subclasses implement :meth:`loss` and :meth:`predict` and list the stages they need in
+    ``required_stages``.
+    """
+
+    module_topology = list(STAGE_CFG_KEYS)
+    required_stages: tuple[str, ...] = ()
+
+    def __init__(self, *, class_names: Sequence[str], **stages: nn.Module | None):
+        """
+        Args:
+            class_names: names of the classes, index ``i`` is label ``i + 1``.
+            stages: modules keyed by the names in :attr:`module_topology` (missing ones are None).
+        """
+        super().__init__()
+        unknown = set(stages) - set(self.module_topology)
+        if unknown:
+            raise ValueError(f"{type(self).__name__}: unknown stages {sorted(unknown)}")
+        for name in self.required_stages:
+            if stages.get(name) is None:
+                raise ValueError(f"{type(self).__name__} needs a {name!r} stage")
+        self.class_names = list(class_names)
+        self.num_class = len(self.class_names)
+        for name in self.module_topology:
+            setattr(self, name, stages.get(name))
+
+    @property
+    def module_list(self) -> list[nn.Module]:
+        """The built stages, in execution order."""
+        return [m for m in (getattr(self, n) for n in self.module_topology) if m is not None]
+
+    @classmethod
+    def from_config(
+        cls,
+        model_cfg: Mapping,
+        *,
+        class_names: Sequence[str],
+        point_cloud_range: Sequence[float],
+        num_point_features: int,
+    ) -> Detector3DTemplate:
+        """Build the detector from a ``MODEL`` config section.
+
+        Args:
+            model_cfg: the ``MODEL`` section (``NAME``, one section per stage, ``POST_PROCESSING``).
+            class_names: ``CLASS_NAMES``.
+            point_cloud_range: ``DATA_CONFIG.POINT_CLOUD_RANGE`` (6 values, metres).
+            num_point_features: point columns after the batch index (5, or 6 with time lag).
+        """
+        stage_keys = {STAGE_CFG_KEYS[n] for n in cls.module_topology}
+        check_known_keys(model_cfg, ["NAME", "POST_PROCESSING", *sorted(stage_keys)], "MODEL")
+        post = model_cfg.get("POST_PROCESSING", {})
+        check_known_keys(
+            post, ["RECALL_THRESH_LIST", "EVAL_METRIC", "SCORE_THRESH", "OUTPUT_RAW_SCORE"],
+            "MODEL.POST_PROCESSING",
+        )  # fmt: skip
+        for name in cls.required_stages:
+            require_keys(model_cfg, [STAGE_CFG_KEYS[name]], "MODEL")
+        info: dict = {
+            "class_names": list(class_names),
+            "num_rawpoint_features": int(num_point_features),
+            "num_point_features": int(num_point_features),
+            "point_cloud_range": tuple(float(v) for v in point_cloud_range),
+        }
+        stages: dict[str, nn.Module] = {}
+        for name in cls.module_topology:
+            section = model_cfg.get(STAGE_CFG_KEYS[name])
+            if section is None:
+                continue
+            require_keys(section, ["NAME"], f"MODEL.{STAGE_CFG_KEYS[name]}")
+            stage_cls = MODEL_STAGES.get(section["NAME"])
+            stages[name] = stage_cls.from_config(section, info)
+            stage_model_info(stages[name], name, info)
+        return cls(class_names=class_names, **stages)
+
+    # --------------------------------------------------------------------- running
+    def run_stages(self, batch_dict: Mapping) -> dict:
+        """Run every stage on a shallow copy of ``batch_dict`` and return the copy."""
+        batch = dict(batch_dict)
+        for stage in self.module_list:
+            batch = stage(batch)
+        return batch
+
+    def loss(self, batch_dict: Mapping) -> dict[str, torch.Tensor]:
+        raise NotImplementedError
+
+    def predict(self, batch_dict: Mapping) -> list[dict[str, torch.Tensor]]:
+        raise NotImplementedError
+
+    def forward(self, batch_dict: Mapping):
+        """OpenPCDet's contract: training -> ``(ret_dict{'loss'}, tb_dict, disp_dict)``;
+        eval -> ``(pred_dicts, recall_dict)`` (the recall dict is empty here)."""
+        if self.training:
+            losses = self.loss(batch_dict)
+            tb_dict = {k: float(v.detach()) for k, v in losses.items()}
+            return {"loss": losses["loss"]}, tb_dict, {}
+        return self.predict(batch_dict), {}
+
+    # ----------------------------------------------------------------- checkpoints
+    def load_params_from_file(
+        self, filename: str | Path, *, strict: bool = True, map_location: str = "cpu"
+    ) -> dict:
+        """Load ``model_state`` from an OpenPCDet-style checkpoint; returns the checkpoint dict.
+
+        Raises:
+            CheckpointMismatchError: naming missing, unexpected and wrongly shaped parameters
+                (with ``strict=False`` only the shape mismatches raise).
+        """
+        ckpt = torch.load(filename, map_location=map_location, weights_only=False)
+        state = ckpt["model_state"] if "model_state" in ckpt else ckpt
+        load_state_dict_checked(self, state, strict=strict, source=str(filename))
+        return ckpt
+
+
+def load_state_dict_checked(
+    model: nn.Module, state: Mapping[str, torch.Tensor], *, strict: bool, source: str
+) -> None:
+    """``model.load_state_dict`` with one readable error listing every mismatch."""
+    own = model.state_dict()
+    missing = sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    bad_shape = [
+        f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(own[k].shape)}"
+        for k in sorted(set(own) & set(state))
+        if tuple(state[k].shape) != tuple(own[k].shape)
+    ]
+    problems = (
+        bad_shape
+        + ([] if not strict else [f"missing {k}" for k in missing])
+        + ([] if not strict else [f"unexpected {k}" for k in unexpected])
+    )
+    if problems:
+        head = "; ".join(problems[:10]) + (
+            f"; ... ({len(problems)} in all)" if len(problems) > 10 else ""
+        )
+        raise CheckpointMismatchError(
+            f"checkpoint {source} does not match {type(model).__name__} built from the "
+            f"config: {head}"
+        )
+    model.load_state_dict({k: v for k, v in state.items() if k in own}, strict=strict)

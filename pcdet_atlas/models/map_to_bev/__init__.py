@@ -1,0 +1,5 @@
+"""Scatter of pillar features onto the BEV canvas (stage ``map_to_bev_module``)."""
+
+from pcdet_atlas.models.map_to_bev.pointpillar_scatter import PointPillarScatter
+
+__all__ = ["PointPillarScatter"]

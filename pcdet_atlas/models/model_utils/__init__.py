@@ -1,0 +1,1 @@
+"""Pure-torch building blocks shared by the model stages (scatter, voxelization, CenterNet)."""

@@ -1,0 +1,102 @@
+"""Dynamic voxelization / pillarization as a torch op inside the model.
+
+Points are grouped by the integer cell they fall in; there is no per-voxel point cap and no voxel
+cap (OpenPCDet's dynamic VFEs), so no point is dropped inside the range. The grouping is one
+``torch.unique`` over a linear cell key, which is deterministic on CPU and GPU.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+__all__ = ["VoxelGrid", "Voxelization", "voxelize"]
+
+
+@dataclass(frozen=True)
+class VoxelGrid:
+    """A regular grid over ``point_cloud_range``.
+
+    Attributes:
+        point_cloud_range: ``(x_min, y_min, z_min, x_max, y_max, z_max)`` in metres.
+        voxel_size: ``(vx, vy, vz)`` in metres (a pillar grid has ``vz = z_max - z_min``).
+    """
+
+    point_cloud_range: tuple[float, float, float, float, float, float]
+    voxel_size: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        pcr, vs = self.point_cloud_range, self.voxel_size
+        if len(pcr) != 6 or len(vs) != 3:
+            raise ValueError(
+                f"VoxelGrid: point_cloud_range needs 6 values and voxel_size 3, got {pcr}, {vs}"
+            )
+        for i in range(3):
+            if not pcr[i + 3] > pcr[i]:
+                raise ValueError(f"VoxelGrid: empty point_cloud_range {pcr}")
+            if not vs[i] > 0:
+                raise ValueError(f"VoxelGrid: voxel_size must be positive, got {vs}")
+        size = self.grid_size
+        for i in range(3):
+            if abs(size[i] * vs[i] - (pcr[i + 3] - pcr[i])) > 1e-3 * vs[i]:
+                raise ValueError(
+                    f"VoxelGrid: the range {pcr[i]}..{pcr[i + 3]} along axis {'xyz'[i]} is not a "
+                    f"whole number of voxels of {vs[i]} m"
+                )
+
+    @property
+    def grid_size(self) -> tuple[int, int, int]:
+        """``(nx, ny, nz)`` number of cells per axis."""
+        pcr, vs = self.point_cloud_range, self.voxel_size
+        return tuple(int(round((pcr[i + 3] - pcr[i]) / vs[i])) for i in range(3))
+
+
+@dataclass
+class Voxelization:
+    """The result of :func:`voxelize` for a batch.
+
+    Attributes:
+        point_mask: (N,) bool, points inside the range (the others belong to no voxel).
+        point_voxel_idx: (N_in,) int64, voxel of each kept point (index into ``voxel_coords``).
+        voxel_coords: (V, 4) int64 ``[batch_idx, z, y, x]`` cell indices (OpenPCDet's order).
+        voxel_num_points: (V,) int64 number of points per voxel.
+    """
+
+    point_mask: torch.Tensor
+    point_voxel_idx: torch.Tensor
+    voxel_coords: torch.Tensor
+    voxel_num_points: torch.Tensor
+
+
+def voxelize(points: torch.Tensor, grid: VoxelGrid) -> Voxelization:
+    """Group batched points into the cells of ``grid``.
+
+    Args:
+        points: (N, 1 + C) float, ``[batch_idx, x, y, z, ...]`` (the collate layout).
+        grid: the voxel grid.
+
+    Returns:
+        A :class:`Voxelization`. Voxels are sorted by ``(batch, z, y, x)``. A point on the upper
+        boundary of the range is outside (half-open cells).
+    """
+    if points.dim() != 2 or points.shape[1] < 4:
+        raise ValueError(f"voxelize: points must be (N, 1 + C>=3), got {tuple(points.shape)}")
+    nx, ny, nz = grid.grid_size
+    pc_min = points.new_tensor(grid.point_cloud_range[:3], dtype=torch.float64)
+    vsize = points.new_tensor(grid.voxel_size, dtype=torch.float64)
+    cell = torch.floor((points[:, 1:4].double() - pc_min) / vsize).long()  # (N, 3) x, y, z
+    upper = torch.tensor([nx, ny, nz], device=points.device)
+    mask = ((cell >= 0) & (cell < upper)).all(dim=1)
+    cell = cell[mask]
+    batch = points[mask, 0].long()
+    key = ((batch * nz + cell[:, 2]) * ny + cell[:, 1]) * nx + cell[:, 0]
+    unq, inverse, counts = torch.unique(key, return_inverse=True, return_counts=True)
+    x = unq % nx
+    y = (unq // nx) % ny
+    z = (unq // (nx * ny)) % nz
+    b = unq // (nx * ny * nz)
+    coords = torch.stack([b, z, y, x], dim=1)
+    return Voxelization(
+        point_mask=mask, point_voxel_idx=inverse, voxel_coords=coords, voxel_num_points=counts
+    )

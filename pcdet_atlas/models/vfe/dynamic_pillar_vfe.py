@@ -1,0 +1,144 @@
+"""Dynamic pillar feature encoder (OpenPCDet's ``DynamicPillarVFE``) in plain torch.
+
+The model pillarizes the raw points itself (:func:`voxelize`), decorates every point with its
+offset from the pillar's mean and from the pillar's geometric centre, and runs PointNet layers
+whose per-pillar max is taken with ``scatter_reduce``. No points are dropped inside the range.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import torch
+from torch import nn
+
+from pcdet_atlas.config import check_known_keys, require_keys
+from pcdet_atlas.models.model_utils.scatter import scatter_max, scatter_mean
+from pcdet_atlas.models.model_utils.voxelize import VoxelGrid, voxelize
+from pcdet_atlas.registry import MODEL_STAGES
+
+
+class PFNLayer(nn.Module):
+    """Linear -> BN -> ReLU per point, then max per pillar (concatenated back unless last)."""
+
+    def __init__(self, in_channels: int, out_channels: int, use_norm: bool, last_layer: bool):
+        super().__init__()
+        self.last_layer = last_layer
+        width = out_channels if last_layer else out_channels // 2
+        self.linear = nn.Linear(in_channels, width, bias=not use_norm)
+        self.norm = nn.BatchNorm1d(width, eps=1e-3, momentum=0.01) if use_norm else nn.Identity()
+
+    def forward(self, x: torch.Tensor, pillar_idx: torch.Tensor, num_pillars: int) -> torch.Tensor:
+        """x: (N, in) point features; pillar_idx: (N,) -> (N, out) or, if last, (P, out)."""
+        x = torch.relu(self.norm(self.linear(x)))  # (N, width)
+        x_max = scatter_max(x, pillar_idx, num_pillars)  # (P, width)
+        if self.last_layer:
+            return x_max
+        return torch.cat([x, x_max[pillar_idx]], dim=1)
+
+
+@MODEL_STAGES.register()
+class DynamicPillarVFE(nn.Module):
+    """Points -> one feature vector per non-empty pillar.
+
+    Reads ``batch_dict['points']`` (N, 1 + C) and writes ``pillar_features`` (P, F) and
+    ``voxel_coords`` (P, 4) ``[batch, 0, y, x]``.
+    """
+
+    def __init__(
+        self,
+        *,
+        num_point_features: int,
+        point_cloud_range: Sequence[float],
+        voxel_size: Sequence[float],
+        num_filters: Sequence[int] = (64, 64),
+        use_norm: bool = True,
+        with_distance: bool = False,
+        use_absolute_xyz: bool = True,
+    ):
+        """
+        Args:
+            num_point_features: C, point columns after the batch index (x, y, z first).
+            point_cloud_range: (6,) metres. voxel_size: (3,) metres; the z size must span the
+                whole z range (pillars).
+            num_filters: output widths of the PFN layers.
+            with_distance: add the point's xyz norm as a feature.
+            use_absolute_xyz: keep x, y, z themselves as features (else only the offsets).
+        """
+        super().__init__()
+        self.grid = VoxelGrid(tuple(map(float, point_cloud_range)), tuple(map(float, voxel_size)))
+        if self.grid.grid_size[2] != 1:
+            raise ValueError(
+                f"DynamicPillarVFE: VOXEL_SIZE z ({voxel_size[2]}) must equal the z extent of "
+                f"POINT_CLOUD_RANGE ({point_cloud_range[5] - point_cloud_range[2]}) for pillars"
+            )
+        if num_point_features < 3:
+            raise ValueError(f"num_point_features must be >= 3, got {num_point_features}")
+        if not num_filters:
+            raise ValueError("DynamicPillarVFE: NUM_FILTERS must not be empty")
+        self.num_point_features = num_point_features
+        self.with_distance = with_distance
+        self.use_absolute_xyz = use_absolute_xyz
+        in_ch = num_point_features + 6 - (0 if use_absolute_xyz else 3) + int(with_distance)
+        widths = [in_ch, *num_filters]
+        self.pfn_layers = nn.ModuleList(
+            PFNLayer(widths[i], widths[i + 1], use_norm, last_layer=i == len(widths) - 2)
+            for i in range(len(widths) - 1)
+        )
+        self.num_output_features = widths[-1]
+
+    @classmethod
+    def from_config(cls, cfg: Mapping, model_info: Mapping) -> DynamicPillarVFE:
+        check_known_keys(
+            cfg,
+            ["NAME", "VOXEL_SIZE", "NUM_FILTERS", "USE_NORM", "WITH_DISTANCE", "USE_ABSLOTE_XYZ"],
+            "MODEL.VFE",
+        )
+        require_keys(cfg, ["VOXEL_SIZE"], "MODEL.VFE")
+        return cls(
+            num_point_features=model_info["num_point_features"],
+            point_cloud_range=model_info["point_cloud_range"],
+            voxel_size=cfg["VOXEL_SIZE"],
+            num_filters=cfg.get("NUM_FILTERS", (64, 64)),
+            use_norm=cfg.get("USE_NORM", True),
+            with_distance=cfg.get("WITH_DISTANCE", False),
+            use_absolute_xyz=cfg.get("USE_ABSLOTE_XYZ", True),
+        )
+
+    def get_output_feature_dim(self) -> int:
+        return self.num_output_features
+
+    def forward(self, batch_dict: dict) -> dict:
+        points = batch_dict["points"]  # (N, 1 + C)
+        if points.dim() != 2 or points.shape[1] != 1 + self.num_point_features:
+            raise ValueError(
+                f"DynamicPillarVFE: points must be (N, 1 + {self.num_point_features}) "
+                f"[batch_idx, x, y, z, ...], got {tuple(points.shape)}"
+            )
+        vox = voxelize(points, self.grid)
+        pts = points[vox.point_mask, 1:].float()  # (N_in, C)
+        idx = vox.point_voxel_idx
+        num_pillars = vox.voxel_coords.shape[0]
+        xyz = pts[:, :3]
+        pillar_mean = scatter_mean(xyz, idx, num_pillars, vox.voxel_num_points)  # (P, 3)
+        f_cluster = xyz - pillar_mean[idx]
+        vs, pcr = self.grid.voxel_size, self.grid.point_cloud_range
+        coords = vox.voxel_coords[idx]  # (N_in, 4) b, z, y, x
+        centre = torch.stack(
+            [
+                coords[:, 3].to(xyz.dtype) * vs[0] + (vs[0] / 2 + pcr[0]),
+                coords[:, 2].to(xyz.dtype) * vs[1] + (vs[1] / 2 + pcr[1]),
+                coords[:, 1].to(xyz.dtype) * vs[2] + (vs[2] / 2 + pcr[2]),
+            ],
+            dim=1,
+        )
+        f_center = xyz - centre
+        feats = [pts if self.use_absolute_xyz else pts[:, 3:], f_cluster, f_center]
+        if self.with_distance:
+            feats.append(torch.linalg.norm(xyz, dim=1, keepdim=True))
+        x = torch.cat(feats, dim=1)  # (N_in, in_ch)
+        for layer in self.pfn_layers:
+            x = layer(x, idx, num_pillars)
+        batch_dict["pillar_features"] = x  # (P, F)
+        batch_dict["voxel_coords"] = vox.voxel_coords  # (P, 4)
+        return batch_dict
