@@ -72,23 +72,51 @@ def difficulty_from_points(num_points: np.ndarray) -> np.ndarray:
     return np.where(np.asarray(num_points) <= 5, 2, 1).astype(np.int64)
 
 
-def count_points_in_boxes(points_xyz: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    """``(M,)`` int64 number of ``(N, 3)`` points inside each ``(M, 7)`` box.
+def count_points_in_boxes(
+    points_xyz: np.ndarray, boxes: np.ndarray, lidar: LidarModel | None = None
+) -> np.ndarray:
+    """``(M,)`` int64 number of ``(N, 3)`` points inside each ``(M, 7)`` box (closed faces).
 
-    Uses :func:`points_in_boxes_mask` on the points of each box's bounding square only.
+    Uses :func:`points_in_boxes_mask` on each box's candidate points only: those whose azimuth
+    from the sensor lies in the box's azimuth interval (points bucketed by azimuth bin). Boxes
+    containing the sensor are tested against all points.
     """
     counts = np.zeros(len(boxes), dtype=np.int64)
     if len(boxes) == 0 or len(points_xyz) == 0:
         return counts
-    order = np.argsort(points_xyz[:, 0], kind="stable")
-    xs = points_xyz[order, 0]
+    lidar = lidar or LidarModel.waymo_top()
+    m = lidar.azimuth_bins
+    ox, oy = float(lidar.origin[0]), float(lidar.origin[1])
+    col = np.floor(
+        (np.arctan2(points_xyz[:, 1] - oy, points_xyz[:, 0] - ox) + math.pi) / (2 * math.pi / m)
+    ).astype(np.int64)
+    col = np.clip(col, 0, m - 1)
+    order = np.argsort(col, kind="stable")
+    start = np.searchsorted(col[order], np.arange(m + 1))
     for i, box in enumerate(boxes):
-        reach = 0.5 * math.hypot(box[3], box[4]) + 1e-3
-        lo, hi = np.searchsorted(xs, [box[0] - reach, box[0] + reach])
-        cand = points_xyz[order[lo:hi]]
-        cand = cand[np.abs(cand[:, 1] - box[1]) <= reach]
-        if len(cand):
-            counts[i] = int(points_in_boxes_mask(cand[:, :3], box[None, :7]).sum())
+        cx, cy, hx, hy, yaw = box[0] - ox, box[1] - oy, box[3] / 2, box[4] / 2, box[6]
+        c, s = math.cos(yaw), math.sin(yaw)
+        corners = [(cx + c * a - s * b, cy + s * a + c * b) for a in (hx, -hx) for b in (hy, -hy)]
+        local_x = -(cx * c + cy * s)
+        local_y = -(-cx * s + cy * c)
+        if abs(local_x) <= hx + 1e-6 and abs(local_y) <= hy + 1e-6:
+            idx = np.arange(len(points_xyz))
+        else:
+            centre = math.atan2(cy, cx)
+            rel = [
+                (math.atan2(y, x) - centre + math.pi) % (2 * math.pi) - math.pi for x, y in corners
+            ]
+            lo = math.floor((centre + min(rel) + math.pi) / (2 * math.pi / m)) - 1
+            hi = math.floor((centre + max(rel) + math.pi) / (2 * math.pi / m)) + 1
+            if hi - lo + 1 >= m:
+                idx = np.arange(len(points_xyz))
+            else:
+                cols = np.arange(lo, hi + 1) % m
+                breaks = np.nonzero(np.diff(cols) != 1)[0]
+                runs = np.split(cols, breaks + 1)
+                idx = np.concatenate([order[start[r[0]] : start[r[-1] + 1]] for r in runs])
+        if len(idx):
+            counts[i] = int(points_in_boxes_mask(points_xyz[idx, :3], box[None, :7]).sum())
     return counts
 
 
@@ -162,7 +190,7 @@ def generate_frame(
     )
     points = points.cpu().numpy().astype(np.float32)
     labels = scene.labels(f, sensor_xy=tuple(lidar.origin[:2].tolist()), max_range=lidar.max_range)
-    labels["num_points_in_gt"] = count_points_in_boxes(points[:, :3], labels["boxes"])
+    labels["num_points_in_gt"] = count_points_in_boxes(points[:, :3], labels["boxes"], lidar)
     return points, labels
 
 

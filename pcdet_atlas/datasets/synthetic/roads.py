@@ -66,6 +66,41 @@ class Path:
         x, y, h = _advance(self._x0[i], self._y0[i], self._yaw0[i], ds, k)
         return x, y, h
 
+    def project(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Nearest point of the path (within ``[0, length]``) to ``(N, 2)`` global points.
+
+        Returns ``(N,)`` distance, signed lateral offset (+ = left) and arc length ``s`` there.
+        Exact per piece: a segment projection, or the radial distance to an arc's circle.
+        """
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        best_d = np.full(len(xy), np.inf)
+        best_lat = np.zeros(len(xy))
+        best_s = np.zeros(len(xy))
+        for i, (length, k) in enumerate(self.pieces):
+            x0, y0, h0 = self._x0[i], self._y0[i], self._yaw0[i]
+            c, s = math.cos(h0), math.sin(h0)
+            if abs(k) < 1e-12:
+                rx, ry = xy[:, 0] - x0, xy[:, 1] - y0
+                along = rx * c + ry * s
+                lat = -rx * s + ry * c
+            else:
+                radius = 1.0 / abs(k)
+                cx, cy = x0 - s / k, y0 + c / k  # centre of the circle
+                rx, ry = xy[:, 0] - cx, xy[:, 1] - cy
+                rho = np.sqrt(rx * rx + ry * ry)
+                lat = np.sign(k) * (radius - rho)
+                start = math.atan2(y0 - cy, x0 - cx)
+                turn = (np.arctan2(ry, rx) - start) * np.sign(k)
+                turn = np.mod(turn + math.pi, 2 * math.pi) - math.pi
+                along = turn * radius
+            over = along - np.clip(along, 0.0, length)
+            d = np.sqrt(over * over + lat * lat)
+            better = d < best_d
+            best_d = np.where(better, d, best_d)
+            best_lat = np.where(better, lat, best_lat)
+            best_s = np.where(better, self._s0[i] + np.clip(along, 0.0, length), best_s)
+        return best_d, best_lat, best_s
+
     def offset_pose(self, s, offset) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Pose of the parallel curve ``offset`` m to the left (heading unchanged)."""
         x, y, h = self.pose(s)
@@ -158,6 +193,12 @@ class RoadMap:
         self.sample_heading = np.concatenate(heading)
         self.sample_s = np.concatenate(s)
         self._tree = cKDTree(self.sample_xy)
+        self._bounds = []
+        for road in self.roads:
+            ss = np.linspace(road.s_start, road.s_end, 64)
+            x, y, _ = road.path.pose(ss)
+            pts = np.stack([x, y], 1)
+            self._bounds.append((pts.min(axis=0), pts.max(axis=0)))
 
     def distance(self, xy: np.ndarray) -> np.ndarray:
         """``(N,)`` distance of ``(N, 2)`` global points to the nearest road centerline, m."""
@@ -167,22 +208,31 @@ class RoadMap:
         return d
 
     def lateral(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Signed lateral offset from the nearest centerline and the arc length there."""
+        """Signed lateral offset from the nearest centerline and the arc length there (exact)."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        _, idx = self._tree.query(xy)
-        rel = xy - self.sample_xy[idx]
-        h = self.sample_heading[idx]
-        lat = -rel[:, 0] * np.sin(h) + rel[:, 1] * np.cos(h)
-        along = rel[:, 0] * np.cos(h) + rel[:, 1] * np.sin(h)
-        return lat, self.sample_s[idx] + along
+        best_d = np.full(len(xy), np.inf)
+        best_lat, best_s = np.zeros(len(xy)), np.zeros(len(xy))
+        if len(xy) == 0:
+            return best_lat, best_s
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        for road, (blo, bhi) in zip(self.roads, self._bounds):
+            if (blo > hi + 50.0).any() or (bhi < lo - 50.0).any():
+                continue  # the road is far from every point; another road is nearer
+            d, lat, s = road.path.project(xy)
+            better = d < best_d
+            best_d = np.where(better, d, best_d)
+            best_lat = np.where(better, lat, best_lat)
+            best_s = np.where(better, s, best_s)
+        return best_lat, best_s
 
     def near_junction(self, xy: np.ndarray, margin: float) -> np.ndarray:
         """Whether points lie within ``half_width + margin`` of a junction centre."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         if len(self.junctions) == 0:
             return np.zeros(len(xy), dtype=bool)
-        d = np.linalg.norm(xy[:, None, :] - self.junctions[None, :, :], axis=2).min(axis=1)
-        return d < self.cross.half_width + margin
+        diff = xy[:, None, :] - self.junctions[None, :, :]
+        d2 = (diff**2).sum(axis=2).min(axis=1)
+        return d2 < (self.cross.half_width + margin) ** 2
 
     def ground_albedo(self, xy: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Diffuse albedo and retro-reflective flag of the ground at ``(N, 2)`` global points.
@@ -191,6 +241,7 @@ class RoadMap:
         and parking lines; none inside junctions), and a darker or lighter verge beyond the
         sidewalks. ``noise`` is ``(N,)`` standard normal, for texture.
         """
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         lat, s = self.lateral(xy)
         a = np.abs(lat)
         c = self.cross
@@ -202,7 +253,8 @@ class RoadMap:
             marks |= (np.abs(a - lane * c.lane_width) < line_w) & dashed
         marks |= np.abs(a - c.carriageway) < line_w
         marks |= np.abs(a - c.carriageway - c.bike_lane_width) < line_w
-        marks &= ~self.near_junction(xy, 1.0)
+        idx = np.nonzero(marks)[0]
+        marks[idx[self.near_junction(xy[idx], 1.0)]] = False
         albedo = np.where(marks, 0.55 * (1 + 0.05 * noise), albedo)
         return np.clip(albedo, 0.01, 1.0), marks
 

@@ -82,8 +82,11 @@ class SensorModel:
         num = range_m.shape[0]
 
         def draw(kind):
-            arr = rng.random(num) if kind == "u" else rng.standard_normal(num)
-            return torch.as_tensor(arr, dtype=dtype).to(device)
+            if kind == "u":
+                arr = rng.random(num, dtype=np.float32)
+            else:
+                arr = rng.standard_normal(num, dtype=np.float32)
+            return torch.from_numpy(arr).to(device, dtype)
 
         u_drop, n_range, n_int, n_elong = draw("u"), draw("n"), draw("n"), draw("n")
         hit = torch.isfinite(range_m)
