@@ -36,7 +36,7 @@ def main(argv: list[str] | None = None) -> None:
         )
         dataset.set_split(args.split)
         infos_path = write_split_infos(dataset)
-        logger.info(f"wrote {infos_path}")
+        logger.info(f"split infos: {infos_path}")
         paths = create_groundtruth_database(
             dataset,
             sampled_interval=args.sampled_interval,

@@ -52,9 +52,12 @@ def gt_database_paths(
 
 
 def write_split_infos(dataset, save_path: str | Path | None = None) -> Path:
-    """Write ``<tag>_infos_<split>.pkl``, the concatenation of the split's sequence infos."""
+    """Write ``<tag>_infos_<split>.pkl`` (the concatenation of the split's sequence infos, as
+    OpenPCDet's info creation does) unless it exists; returns its path."""
     save_path = Path(save_path) if save_path is not None else dataset.root_path
     path = save_path / f"{dataset.processed_data_tag}_infos_{dataset.split}.pkl"
+    if path.exists():
+        return path
     tmp = path.with_suffix(".tmp.pkl")
     with open(tmp, "wb") as f:
         pickle.dump(dataset.all_infos, f)

@@ -76,7 +76,9 @@ def transform_points_to_frame(
 ) -> np.ndarray:
     """``(N, 3)`` points in vehicle(src) -> ``(N, 3)`` float64 in vehicle(dst)."""
     t = relative_pose(pose_src, pose_dst)
-    return np.asarray(xyz, dtype=np.float64) @ t[:3, :3].T + t[:3, 3]
+    x, y, z = (np.asarray(xyz[:, i], dtype=np.float64) for i in range(3))
+    # column-wise: several times faster than an (N, 3) @ (3, 3) matmul, same float64 result
+    return np.stack([t[r, 0] * x + t[r, 1] * y + t[r, 2] * z + t[r, 3] for r in range(3)], axis=1)
 
 
 def remove_ego_points(points: np.ndarray, center_radius: float = 1.0) -> np.ndarray:

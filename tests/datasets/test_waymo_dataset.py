@@ -11,12 +11,15 @@ import pytest
 import torch
 from waymo_tiny_data import (
     CLASS_NAMES,
+    DATASET_CFG,
+    MULTIFRAME_CFG,
     dataset_cfg,
     ego_pose,
     world_points,
     write_tiny_waymo,
 )
 
+from pcdet_atlas.config import cfg_from_yaml_file
 from pcdet_atlas.datasets import WaymoDataset, build_dataloader
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.datasets.multiframe import history_sample_indices
@@ -377,3 +380,42 @@ def test_num_points_in_gt_of_tiny_data_matches_points(tiny_root):
         annos = pickle.load(f)[2]["annos"]
     counts = points_in_boxes_mask(raw[:, :3].astype(np.float64), annos["gt_boxes_lidar"]).sum(1)
     np.testing.assert_array_equal(counts, annos["num_points_in_gt"])
+
+
+# ---------------------------------------------------------------------------- synthetic data
+@pytest.mark.parametrize("multiframe", [False, True], ids=["1frame", "4frame"])
+def test_loads_the_synthetic_dataset(synthetic_root, tmp_path, multiframe):
+    """The embedded synthetic dataset reads like real data, in test and in training mode
+    (with a GT database built beside it: the fixture root is shared and read-only)."""
+    from pcdet_atlas.datasets.gt_database import create_groundtruth_database, gt_database_paths
+
+    cfg = dataset_cfg(multiframe=multiframe, shuffle=True)
+    test_ds = WaymoDataset(cfg, CLASS_NAMES, training=False, root_path=synthetic_root)
+    assert len(test_ds) == 70 and test_ds.split == "val"
+    sample = test_ds[40]
+    width = 6 if multiframe else 5
+    assert sample["points"].shape[1] == width and len(sample["points"]) > 1000
+    assert np.isfinite(sample["points"]).all() and sample["points"].dtype == np.float32
+    assert sample["gt_boxes"].shape[1] == (10 if multiframe else 8)
+    if multiframe:
+        assert sample["poses"].shape == (16, 4)
+        assert set(np.round(sample["points"][:, 5].astype(np.float64), 6)) == {0, 0.1, 0.2, 0.3}
+
+    db_builder = WaymoDataset(cfg, CLASS_NAMES, training=False, root_path=synthetic_root)
+    db_builder.set_split("train")
+    db_builder.all_infos = db_builder.all_infos[::5]  # a small database is enough here
+    offset = (-4, 0) if multiframe else None
+    create_groundtruth_database(db_builder, save_path=tmp_path)
+    paths = gt_database_paths(tmp_path, wf.PROCESSED_DATA_TAG, "train", 1, offset)
+    train_cfg = dataset_cfg(multiframe=multiframe, augment=True, shuffle=True)
+    shipped = cfg_from_yaml_file(MULTIFRAME_CFG if multiframe else DATASET_CFG)
+    sampling = shipped.DATA_AUGMENTOR.AUG_CONFIG_LIST[0]
+    assert sampling.NAME == "gt_sampling"
+    sampling.DB_INFO_PATH = [str(paths["info"])]
+    sampling.DB_DATA_PATH = [str(paths["global"])]
+    train_cfg.DATA_AUGMENTOR.AUG_CONFIG_LIST = [sampling, *train_cfg.DATA_AUGMENTOR.AUG_CONFIG_LIST]
+    train_ds = WaymoDataset(train_cfg, CLASS_NAMES, training=True, root_path=synthetic_root)
+    assert len(train_ds) == 20
+    batch = train_ds.collate_batch([train_ds[i] for i in (0, 9, 15)])
+    assert batch["points"].shape[1] == width + 1 and batch["gt_boxes"].shape[0] == 3
+    assert np.isfinite(batch["points"]).all()

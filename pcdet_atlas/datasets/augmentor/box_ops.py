@@ -90,16 +90,23 @@ def box_index_of_points(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     if points.shape[0] == 0 or boxes.shape[0] == 0:
         return out
     xyz = points[:, :3].astype(np.float64)
+    # Candidate points of a box come from an x-sorted view (a binary search per box), so the
+    # cost follows the points near the boxes, not boxes x all points.
+    order = np.argsort(xyz[:, 0])
+    xs = xyz[order, 0]
     # Walk boxes in reverse so that the lowest index wins where boxes overlap.
     for i in range(boxes.shape[0] - 1, -1, -1):
         box = boxes[i]
         # Cheap superset (bounding circle, z slab; a hair wider than the box so that points
         # on a corner survive rounding); the exact closed-face test decides.
         radius_sq = (box[3] ** 2 + box[4] ** 2) / 4 * (1 + 1e-9) + 1e-12
-        near = ((xyz[:, 0] - box[0]) ** 2 + (xyz[:, 1] - box[1]) ** 2 <= radius_sq) & (
-            np.abs(xyz[:, 2] - box[2]) <= box[5] / 2 + 1e-9
+        radius = np.sqrt(radius_sq)
+        lo, hi = np.searchsorted(xs, [box[0] - radius, box[0] + radius], side="left")
+        strip = order[lo : hi + 1] if hi < len(order) else order[lo:]
+        near = ((xyz[strip, 0] - box[0]) ** 2 + (xyz[strip, 1] - box[1]) ** 2 <= radius_sq) & (
+            np.abs(xyz[strip, 2] - box[2]) <= box[5] / 2 + 1e-9
         )
-        cand = np.nonzero(near)[0]
+        cand = strip[near]
         if cand.size == 0:
             continue
         inside = points_in_boxes_mask(xyz[cand], box[None, :7])[0]
