@@ -1,10 +1,10 @@
 """The ATLAS attack engine: LiDAR model, raycaster, schedule, injection, removal, dataset.
 
 Importing this package registers the attack families in ``ATTACKS`` (``CleanAttack``,
-``InjectionAttack``, ``RemovalAttack``) and ``AtlasWaymoDataset`` in ``DATASETS`` once the
-Waymo dataset is importable.
+``InjectionAttack``, ``RemovalAttack``) and ``AtlasWaymoDataset`` in ``DATASETS``.
 """
 
+from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
 from pcdet_atlas.attacks.base import (
     BaseAttack,
     FrameAttack,
@@ -24,6 +24,7 @@ from pcdet_atlas.attacks.schedule import schedule_runs, spoof_schedule
 from pcdet_atlas.attacks.trace_library import TraceLibrary, build_trace_library
 
 __all__ = [
+    "AtlasWaymoDataset",
     "AttackCounters",
     "BaseAttack",
     "COUNTERS",

@@ -110,7 +110,7 @@ class FrameAttack:
             feature_fn: maps the ``(K, 5)`` raw added points into the dataset's feature space.
             fill_value: value of the columns beyond the fifth for added rows.
         """
-        kept = points if self.keep is None else points[self.keep]
+        kept = points if self.keep is None else np.compress(self.keep, points, axis=0)
         if self.added.shape[0] == 0:
             return kept
         added = self.added if feature_fn is None else feature_fn(self.added.copy())

@@ -302,7 +302,7 @@ class InjectionAttack(BaseAttack):
         spoof = (xyz + np.array([0.0, 0.0, dz])).astype(np.float32)  # (n, 3)
         new_range = np.linalg.norm(spoof.astype(np.float64) - self._origin[None], axis=1)
         inten, elong = self.intensity(run.intensity, run.elongation, run.src_range, new_range)
-        scene_t = torch.from_numpy(np.ascontiguousarray(scene_xyz[:, :3])).to(self.device)
+        scene_t = torch.from_numpy(scene_xyz[:, :3]).to(self.device)  # a strided view, no copy
         spoof_t = torch.from_numpy(spoof).to(self.device)
         gen = None
         if self.p_dual > 0:

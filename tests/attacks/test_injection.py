@@ -192,3 +192,24 @@ def test_dual_returns_deterministic_per_frame(tiny):
     c = run_frames(make_attack(lib, "global", p_dual=0.0), seq, root, [41])[41][1]
     assert a.meta["num_removed"] < c.meta["num_removed"]  # second echoes survive
     assert math.isfinite(float(a.added[:, 3].sum()))
+
+
+def test_on_synthetic_data_phantom_sits_on_ground_and_stays_in_world(synthetic_root, tmp_path):
+    from pcdet_atlas.datasets.waymo_format import frame_npy_path, read_image_set
+
+    cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs/attacks/inj_global_medium.yaml")
+    lib = build_trace_library(synthetic_root, TraceFilter.from_config(cfg.TRACE_LIBRARY))
+    cfg.TRACE_LIBRARY.PATH = str(lib.save(tmp_path / "lib.npz"))
+    attack = InjectionAttack.from_config(cfg)
+    name = read_image_set(synthetic_root / "ImageSets" / "val.txt")[0]
+    seq = SequenceData(name, load_sequence_infos(sequence_pkl_path(synthetic_root, name)))
+    world = []
+    for k in (40, 52, 63):  # the synthetic ground is the plane z = 0 of the vehicle frame
+        pts = load_frame_points(frame_npy_path(synthetic_root, name, k))
+        meta = attack.simulate(pts[:, :3], seq, k).meta
+        box = meta["target_box"].astype(np.float64)
+        assert abs(box[2] - box[5] / 2) <= 0.15
+        assert 300 <= meta["num_spoof_points"] <= 500 and meta["num_visible"] > 0
+        world.append(transform_boxes(box[None], seq.pose(k))[0])
+    world = np.array(world)
+    assert np.abs(world[:, :2] - world[0, :2]).max() <= 0.01

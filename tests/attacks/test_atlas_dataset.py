@@ -1,0 +1,172 @@
+import numpy as np
+import pytest
+import torch
+from atlas_helpers import load_tool, write_tiny_waymo
+
+from pcdet_atlas.attacks import COUNTERS
+from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
+from pcdet_atlas.attacks.metadata import validate_meta
+from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
+from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+from pcdet_atlas.datasets import WaymoDataset, collate_batch
+from pcdet_atlas.datasets.multiframe import remove_ego_points, transform_points_to_frame
+from pcdet_atlas.registry import DATASETS
+
+CLASSES = ["Vehicle", "Pedestrian", "Cyclist"]
+ATTACKS = REPO_ROOT / "cfgs" / "attacks"
+
+
+def data_cfg(root, multiframe=False):
+    name = "synthetic_waymo_multiframe.yaml" if multiframe else "synthetic_waymo.yaml"
+    cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "dataset_configs" / name)
+    cfg.DATA_PATH = str(root)
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def library_path(synthetic_root, tmp_path_factory):
+    cfg = cfg_from_yaml_file(ATTACKS / "inj_global_hard.yaml")
+    lib = build_trace_library(synthetic_root, TraceFilter.from_config(cfg.TRACE_LIBRARY))
+    return lib.save(tmp_path_factory.mktemp("atlas_lib") / "lib.npz")
+
+
+def attack_cfg(name, library_path=None):
+    cfg = cfg_from_yaml_file(ATTACKS / f"{name}.yaml")
+    if library_path is not None and "TRACE_LIBRARY" in cfg:
+        cfg.TRACE_LIBRARY.PATH = str(library_path)
+    return cfg
+
+
+def make(root, name, library_path=None, multiframe=False):
+    return AtlasWaymoDataset(
+        data_cfg(root, multiframe), CLASSES, attack_cfg(name, library_path), root_path=root
+    )
+
+
+def test_registered_and_clean_frames_do_no_work(synthetic_root, library_path):
+    assert DATASETS.get("AtlasWaymoDataset") is AtlasWaymoDataset
+    clean = WaymoDataset(data_cfg(synthetic_root), CLASSES, training=False)
+    ds = make(synthetic_root, "inj_global_hard", library_path)
+    for index in (5, 31, 64):  # clean frames, 31 and 64 carry shadow targets
+        with COUNTERS.measure() as work:
+            sample = ds[index]
+        assert all(v == 0 for v in work.values()), work
+        np.testing.assert_array_equal(sample["points"], clean[index]["points"])
+        validate_meta(sample["attack"])
+        assert not sample["attack"]["spoofed"]
+        assert sample["attack"]["target_is_shadow"] == (index != 5)
+    with COUNTERS.measure() as work:
+        sample = ds[40]
+    assert work["frames_simulated"] == 1 and work["raycast_calls"] == 1
+    assert work["history_frames_resimulated"] == 0
+    assert sample["attack"]["spoofed"] and sample["attack"]["num_visible"] > 0
+    assert len(sample["points"]) != len(clean[40]["points"])
+
+
+@pytest.mark.parametrize("index,simulated,history", [(31, 0, 0), (33, 2, 1), (34, 3, 2), (40, 4, 3),
+                                                     (65, 2, 2), (67, 0, 0)])  # fmt: skip
+def test_multiframe_resimulates_only_spoofed_history(synthetic_root, index, simulated, history):
+    ds = make(synthetic_root, "rem_30", multiframe=True)
+    with COUNTERS.measure() as work:
+        sample = ds[index]
+    assert work["frames_simulated"] == simulated
+    assert work["history_frames_resimulated"] == history
+    assert sample["points"].shape[1] == 6 and sample["attack"]["spoofed"] == (32 <= index <= 63)
+
+
+def test_frame_identical_as_current_or_history_and_in_any_order(synthetic_root, library_path):
+    seq = make(synthetic_root, "inj_rel_medium", library_path).infos[0]["point_cloud"][
+        "lidar_sequence"
+    ]
+    direct = make(synthetic_root, "inj_rel_medium", library_path)
+    first = {k: direct.get_lidar(seq, k) for k in (40, 41, 63)}
+    hist = make(synthetic_root, "inj_rel_medium", library_path, multiframe=True)
+    hist[44]  # frames 41..43 are first simulated as history (run state built from there)
+    hist[64]  # 63 as history, from a clean current frame
+    for k in (63, 41, 40):  # reverse order
+        np.testing.assert_array_equal(hist.get_lidar(seq, k), first[k])
+    # the stacked history block of frame 41 is frame 40's attacked points, moved by the poses
+    pose = {k: hist.get_frame_info(seq, k)["pose"] for k in (40, 41)}
+    stacked, counts, _, _ = hist.get_sequence_data(
+        hist.infos[41], hist.get_lidar(seq, 41), seq, 41, hist.sequence_cfg
+    )
+    block = stacked[counts[0] : counts[0] + counts[1]]
+    xyz = transform_points_to_frame(first[40][:, :3], pose[40], pose[41]).astype(np.float32)
+    expected = remove_ego_points(np.hstack([xyz, first[40][:, 3:]]), 1.0)
+    np.testing.assert_array_equal(block[:, :5], expected)
+
+
+def _batches(dataset, workers):
+    subset = torch.utils.data.Subset(dataset, [30, 31, 32, 45, 63, 64])
+    loader = torch.utils.data.DataLoader(
+        subset, batch_size=2, num_workers=workers, collate_fn=collate_batch, shuffle=False
+    )
+    return list(loader)
+
+
+@pytest.mark.slow
+def test_same_output_with_zero_or_two_workers(synthetic_root, library_path):
+    out = {}
+    for workers in (0, 2):
+        out[workers] = _batches(make(synthetic_root, "inj_global_easy", library_path), workers)
+    for a, b in zip(out[0], out[2]):
+        np.testing.assert_array_equal(a["points"], b["points"])
+        for ma, mb in zip(a["attack"], b["attack"]):
+            assert ma.keys() == mb.keys()
+            for key in ma:
+                if isinstance(ma[key], np.ndarray):
+                    np.testing.assert_array_equal(ma[key], mb[key])
+                else:
+                    assert ma[key] == mb[key]
+
+
+def test_lifecycle_metadata_over_a_run(synthetic_root):
+    ds = make(synthetic_root, "rem_50")
+    metas = [ds.frame_attack_meta(ds.infos[0]["point_cloud"]["lidar_sequence"], k)
+             for k in range(len(ds.infos))]  # fmt: skip
+    for k, m in enumerate(metas):
+        validate_meta(m)
+        assert m["spoofed"] == (32 <= k <= 63)
+        assert m["lifecycle_k"] == (k - 31 if 31 <= k <= 69 else -1)
+        assert m["target_is_shadow"] == (k == 31 or k >= 64)
+        if m["spoofed"]:
+            assert (m["target_box"] is not None) == (m["tracked"] and m["fired"])
+            assert m["run_position"] == k - 32 and m["run_id"] == 0
+    fired = [m for m in metas if m["fired"]]
+    assert fired and all(m["num_removed"] > 0 for m in fired)
+    ids = [m["target_obj_id"] for m in metas if m["tracked"]]
+    assert sum(i == ids[0] for i in ids) >= 0.95 * len(ids)  # one object tracked throughout
+
+
+def test_generate_atlas_roundtrip_and_resume(tmp_path):
+    root = write_tiny_waymo(tmp_path / "tiny", frames={"train": 6, "val": 66})
+    load_tool("build_trace_library").main(
+        ["--cfg", str(ATTACKS / "inj_rel_hard.yaml"), "--data_path", str(root),
+         "--set", "TRACE_LIBRARY.MIN_POINTS", "100"]
+    )  # fmt: skip
+    cfg_path = tmp_path / "data.yaml"
+    cfg_path.write_text(
+        f"_BASE_CONFIG_: {REPO_ROOT / 'cfgs/dataset_configs/synthetic_waymo.yaml'}\n"
+        f"DATA_PATH: {root}\n"
+    )
+    out = tmp_path / "out"
+    args = ["--data_cfg", str(cfg_path), "--attack", str(ATTACKS / "inj_rel_hard.yaml"),
+            "--out_dir", str(out), "--set", "TRACE_LIBRARY.MIN_POINTS", "100"]  # fmt: skip
+    gen = load_tool("generate_atlas")
+    gen.main(args)
+    cfg = cfg_from_yaml_file(ATTACKS / "inj_rel_hard.yaml")
+    cfg.TRACE_LIBRARY.MIN_POINTS = 100
+    live = AtlasWaymoDataset(data_cfg(root), CLASSES, cfg, root_path=root)
+    written = WaymoDataset(data_cfg(out), CLASSES, training=False, root_path=out)
+    seq = live.infos[0]["point_cloud"]["lidar_sequence"]
+    for k in (10, 31, 32, 50, 63, 65):
+        np.testing.assert_array_equal(written.get_lidar(seq, k), live.get_lidar(seq, k))
+    meta = __import__("pickle").load(open(out / "atlas_attack_metadata.pkl", "rb"))
+    assert meta["variant"] == "inj_rel_hard" and len(meta["frames"]) == 66
+    frame_40 = written.infos[40]["frame_id"]
+    assert meta["frames"][frame_40]["spoofed"] and meta["frames"][frame_40]["num_visible"] > 0
+    # resumable: a finished sequence is not rewritten
+    npy = next((out / "waymo_processed_data_v0_5_0" / seq).glob("0040.npy"))
+    stamp = npy.stat().st_mtime_ns
+    gen.main(args)
+    assert npy.stat().st_mtime_ns == stamp

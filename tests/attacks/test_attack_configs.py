@@ -1,0 +1,138 @@
+"""Every attack YAML under cfgs/attacks builds and runs on a synthetic frame; configs are strict."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, SequenceData, build_attack
+from pcdet_atlas.attacks.metadata import validate_meta
+from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
+from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
+from pcdet_atlas.datasets.waymo_format import (
+    frame_npy_path,
+    load_frame_points,
+    load_sequence_infos,
+    read_image_set,
+    sequence_pkl_path,
+)
+from pcdet_atlas.registry import ATTACKS
+
+ATTACK_DIR = REPO_ROOT / "cfgs" / "attacks"
+VARIANTS = sorted(p.stem for p in ATTACK_DIR.glob("*.yaml"))
+EXPECTED = {"clean"} | {
+    f"inj_{m}_{b}" for m in ("rel", "global") for b in ("easy", "medium", "hard")
+}
+EXPECTED |= {f"rem_{w}" for w in (10, 20, 30, 40, 50, 60)}
+
+
+def test_the_twelve_variants_and_clean_are_shipped():
+    assert set(VARIANTS) == EXPECTED
+
+
+@pytest.fixture(scope="module")
+def frame(synthetic_root, tmp_path_factory):
+    cfg = cfg_from_yaml_file(ATTACK_DIR / "inj_rel_easy.yaml")
+    lib = build_trace_library(synthetic_root, TraceFilter.from_config(cfg.TRACE_LIBRARY))
+    lib_path = lib.save(tmp_path_factory.mktemp("cfg_lib") / "lib.npz")
+    name = read_image_set(synthetic_root / "ImageSets" / "val.txt")[0]
+    seq = SequenceData(name, load_sequence_infos(sequence_pkl_path(synthetic_root, name)))
+    points = load_frame_points(frame_npy_path(synthetic_root, name, 40))[:, :5]
+    return lib_path, seq, points
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_every_yaml_builds_and_runs(variant, frame):
+    lib_path, seq, points = frame
+    cfg = cfg_from_yaml_file(ATTACK_DIR / f"{variant}.yaml")
+    if "TRACE_LIBRARY" in cfg:
+        cfg.TRACE_LIBRARY.PATH = str(lib_path)
+    attack = build_attack(cfg)
+    assert attack.variant == variant and type(attack).__name__ == cfg.NAME
+    result = attack.simulate(points[:, :3], seq, 40)
+    validate_meta(result.meta)
+    out = result.apply(points)
+    assert out.dtype == np.float32 and out.shape[1] == 5 and np.isfinite(out).all()
+    meta = result.meta
+    if variant == "clean":
+        assert not meta["spoofed"] and result.keep is None and len(out) == len(points)
+    elif variant.startswith("inj"):
+        assert meta["family"] == "injection" and meta["num_visible"] > 0
+        assert len(out) == len(points) - meta["num_removed"] + meta["num_visible"]
+    else:
+        assert meta["family"] == "removal" and meta["tracked"]
+        assert len(out) == len(points) - meta["num_removed"]
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def test_unknown_keys_fail_naming_key_and_file(tmp_path):
+    bad = _write(
+        tmp_path / "rem_typo.yaml",
+        f"_BASE_CONFIG_: {ATTACK_DIR / 'rem_10.yaml'}\nVARIANT: rem_typo\nP_REMOVAL: 0.5\n",
+    )
+    with pytest.raises(ConfigError, match=r"P_REMOVAL.*rem_typo\.yaml"):
+        build_attack(cfg_from_yaml_file(bad))
+    nested = _write(
+        tmp_path / "inj_typo.yaml",
+        f"_BASE_CONFIG_: {ATTACK_DIR / 'inj_rel_easy.yaml'}\nGROUND:\n  RADIUS_M: 2.0\n",
+    )
+    with pytest.raises(ConfigError, match=r"RADIUS_M.*inj_typo\.yaml"):
+        build_attack(cfg_from_yaml_file(nested))
+    with pytest.raises(KeyError, match="InjectionAttack"):
+        build_attack(cfg_from_yaml_file(_write(tmp_path / "n.yaml", "NAME: InjectonAttack\n")))
+
+
+def test_new_variant_is_yaml_only(tmp_path, frame):
+    _, seq, points = frame
+    path = _write(
+        tmp_path / "rem_15.yaml",
+        f"_BASE_CONFIG_: {ATTACK_DIR / '_base_/removal.yaml'}\n"
+        "VARIANT: rem_15\nAZIMUTH_WIDTH_DEG: 15.0\nP_REMOVE: 0.5\n",
+    )
+    attack = build_attack(cfg_from_yaml_file(path))
+    assert attack.variant == "rem_15" and attack.p_remove == 0.5
+    attack.simulate(points[:, :3], seq, 40)
+
+
+class _DropEveryOther(BaseAttack):
+    """A toy family: drops every other point on spoofed frames."""
+
+    family = "drop_every_other"
+
+    @classmethod
+    def from_config(cls, cfg, data_root=None):
+        return cls(**cls._common_kwargs(cfg))
+
+    def prepare_run(self, seq, run_id):
+        return run_id
+
+    def attack_frame(self, scene_xyz, seq, frame_idx, run, state):
+        keep = np.arange(len(scene_xyz)) % 2 == 0
+        meta = self.meta(state, num_removed=int((~keep).sum()), fired=True)
+        return FrameAttack(keep, np.zeros((0, 5), np.float32), meta)
+
+    def shadow_meta(self, seq, frame_idx, run, state):
+        return self.meta(state, target_is_shadow=True)
+
+
+def test_new_family_is_one_registered_class_plus_yaml(tmp_path, frame):
+    _, seq, points = frame
+    if "TestDropEveryOther" not in ATTACKS:
+        ATTACKS.register("TestDropEveryOther")(_DropEveryOther)
+    path = _write(
+        tmp_path / "drop.yaml",
+        f"_BASE_CONFIG_: {ATTACK_DIR / '_base_/common.yaml'}\n"
+        "NAME: TestDropEveryOther\nVARIANT: drop\n",
+    )
+    attack = build_attack(cfg_from_yaml_file(path))
+    res = attack.simulate(points[:, :3], seq, 40)
+    assert (
+        res.meta["family"] == "drop_every_other"
+        and len(res.apply(points)) == (len(points) + 1) // 2
+    )
+    assert attack.simulate(None, seq, 10).keep is None  # clean frames untouched
+    validate_meta(attack.frame_meta(seq, 64))

@@ -1,0 +1,73 @@
+import numpy as np
+import pytest
+from atlas_helpers import VEHICLES, load_tool, write_tiny_waymo
+
+from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, build_trace_library
+from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
+
+
+@pytest.fixture(scope="module")
+def tiny_root(tmp_path_factory):
+    return write_tiny_waymo(tmp_path_factory.mktemp("tiny_lib"), frames={"train": 8, "val": 2})
+
+
+def test_library_in_canonical_box_frame(tiny_root):
+    lib = build_trace_library(tiny_root, TraceFilter(min_points=50, range_m=(0.0, 80.0)))
+    sizes = {v[0]: np.array(v[5:8]) for v in VEHICLES}
+    assert sorted(lib.obj_id.tolist()) == sorted(sizes)
+    for k in range(len(lib)):
+        tr = lib.trace(k)
+        expected = sizes[tr.obj_id]
+        np.testing.assert_allclose(tr.box_size, expected, rtol=1e-5)
+        # every point inside the box, centred on it, heading along +x
+        assert np.all(np.abs(tr.xyz) <= expected / 2 + 1e-3)
+        assert np.abs(tr.xyz[:, 0]).max() > 0.45 * expected[0]  # the long axis is x
+        assert (tr.src_range > 0).all() and np.isfinite(tr.intensity).all()
+        assert lib.num_frames[k] == 8  # every train frame contributed
+    assert lib.points.shape[0] == lib.offsets[-1]
+
+
+def test_filters_range_band_min_points_and_cap(tiny_root):
+    full = build_trace_library(tiny_root, TraceFilter(min_points=50, range_m=(0.0, 80.0)))
+    near = build_trace_library(tiny_root, TraceFilter(min_points=50, range_m=(0.0, 15.0)))
+    assert set(near.obj_id) < set(full.obj_id)  # far vehicles excluded by the band
+    capped = build_trace_library(
+        tiny_root, TraceFilter(min_points=50, range_m=(0.0, 80.0), max_points_per_trace=300)
+    )
+    assert capped.trace_sizes().max() == 300
+    again = build_trace_library(
+        tiny_root, TraceFilter(min_points=50, range_m=(0.0, 80.0), max_points_per_trace=300)
+    )
+    np.testing.assert_array_equal(capped.points, again.points)  # deterministic subsample
+    with pytest.raises(ValueError, match="passes the trace filters"):
+        build_trace_library(tiny_root, TraceFilter(min_points=10**6, max_points_per_trace=10**7))
+
+
+def test_save_load_roundtrip_and_bad_file(tiny_root, tmp_path):
+    lib = build_trace_library(tiny_root, TraceFilter(min_points=50))
+    path = lib.save(tmp_path / "lib.npz")
+    back = TraceLibrary.load(path)
+    for name in ("points", "intensity", "elongation", "src_range", "offsets", "box_size"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(lib, name))
+    assert back.build_info["filters"] == TraceFilter(min_points=50).to_dict()
+    np.savez(tmp_path / "bad.npz", points=np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="not a trace library"):
+        TraceLibrary.load(tmp_path / "bad.npz")
+
+
+def test_filter_config_keys():
+    cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs/attacks/inj_global_easy.yaml").TRACE_LIBRARY
+    flt = TraceFilter.from_config(cfg)
+    assert flt.classes == ("Vehicle",) and flt.range_m == (5.0, 50.0)
+    cfg.MIN_PONTS = 3
+    with pytest.raises(ConfigError, match="MIN_PONTS"):
+        TraceFilter.from_config(cfg)
+
+
+def test_build_tool_writes_under_data_root(tiny_root):
+    out = load_tool("build_trace_library").main(
+        ["--cfg", str(REPO_ROOT / "cfgs/attacks/inj_rel_easy.yaml"), "--data_path", str(tiny_root)]
+    )
+    assert out == tiny_root / "atlas_trace_library.npz"
+    lib = TraceLibrary.load(out)
+    assert len(lib) >= 1 and lib.build_info["split"] == "train"

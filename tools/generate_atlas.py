@@ -1,0 +1,167 @@
+"""Write one ATLAS variant of a Waymo-format split to disk, in OpenPCDet's layout (SPEC §3.7).
+
+    python tools/generate_atlas.py --data_cfg cfgs/dataset_configs/synthetic_waymo.yaml \
+        --attack cfgs/attacks/inj_global_hard.yaml --out_dir data/atlas/inj_global_hard
+
+Output under ``--out_dir`` (a dataset root that ``WaymoDataset`` reads unchanged)::
+
+    ImageSets/<split>.txt
+    waymo_processed_data_v0_5_0/<seq>/%04d.npy     # attacked frames, raw (N, 6) as the converter
+    waymo_processed_data_v0_5_0/<seq>/<seq>.pkl    # the source infos (+ 'atlas' per frame)
+    waymo_processed_data_v0_5_0/<seq>/<seq>_atlas.pkl   # per-frame attack metadata
+    atlas_attack_metadata.pkl     # {'variant', 'attack_cfg', 'frames': {frame_id: meta}}
+    atlas_attack.yaml                              # the merged attack config
+
+Rows of an attacked frame: the kept source rows in their order (rows the loader drops, e.g. NLZ
+points, are kept untouched), then the phantom's rows ``[x, y, z, intensity, elongation, -1]`` with
+raw features. Loading the written frame with the same ``DATA_CONFIG`` therefore gives exactly the
+points ``AtlasWaymoDataset`` serves on the fly. ``num_points_of_each_lidar`` counts the real rows
+kept per LiDAR; ``info['atlas']['num_injected_rows']`` the appended phantom rows. Labels are the
+source labels (attack targets are in the metadata, apart from the ground truth).
+
+Resumable: a sequence whose ``<seq>.pkl`` and ``<seq>_atlas.pkl`` exist for the same variant is
+skipped; a sequence interrupted midway is redone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import pickle
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
+from pcdet_atlas.config import REPO_ROOT, cfg_from_list, cfg_from_yaml_file, save_config, to_plain
+from pcdet_atlas.datasets import waymo_format as wf
+from pcdet_atlas.utils.common import create_logger
+
+CLASS_NAMES = ["Vehicle", "Pedestrian", "Cyclist"]
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data_cfg", required=True, help="DATA_CONFIG yaml of the source")
+    parser.add_argument("--attack", required=True, help="attack yaml (cfgs/attacks/*.yaml)")
+    parser.add_argument("--out_dir", required=True, help="root of the written dataset")
+    parser.add_argument("--split", default=None, help="split name (default: DATA_SPLIT.test)")
+    parser.add_argument("--max_sequences", type=int, default=None, help="first N sequences only")
+    parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None,
+                        help="overrides of the attack config")  # fmt: skip
+    return parser.parse_args(argv)
+
+
+def _dump_atomic(obj, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        pickle.dump(obj, f)
+    os.replace(tmp, path)
+
+
+def _lidar_counts(keep_rows: np.ndarray, counts: list[int]) -> list[int]:
+    """Kept real rows per LiDAR, from the source's per-LiDAR row counts."""
+    edges = np.concatenate([[0], np.cumsum(counts)])
+    return [int(keep_rows[a:b].sum()) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def write_sequence(dataset: AtlasWaymoDataset, seq_name: str, out_root: Path, progress) -> dict:
+    """Attack and write every frame of one sequence; returns ``{frame_id: meta}``."""
+    attack = dataset.attack
+    seq = dataset.sequence_data(seq_name)
+    out_seq = wf.data_dir(out_root, dataset.processed_data_tag) / seq_name
+    out_seq.mkdir(parents=True, exist_ok=True)
+    infos, metas = [], {}
+    for idx in range(seq.num_frames):
+        src = wf.frame_npy_path(dataset.root_path, seq_name, idx, dataset.processed_data_tag)
+        raw = wf.load_frame_points(src)
+        info = copy.deepcopy(seq.infos[idx])
+        if attack.needs_simulation(idx, seq.num_frames):
+            loaded = np.ones(len(raw), bool) if dataset.disable_nlz_flag else raw[:, 5] == -1
+            result = attack.simulate(raw[loaded, :3], seq, idx)
+            keep_rows = np.ones(len(raw), dtype=bool)
+            if result.keep is not None:
+                keep_rows[np.flatnonzero(loaded)[~result.keep]] = False
+            added = np.zeros((len(result.added), wf.NUM_POINT_COLUMNS), dtype=np.float32)
+            added[:, :5] = result.added
+            added[:, 5] = -1  # not in a no-label zone
+            out = np.concatenate([raw[keep_rows], added]).astype(np.float32)
+            info["num_points_of_each_lidar"] = _lidar_counts(
+                keep_rows, info["num_points_of_each_lidar"]
+            )
+            info["atlas"] = {"variant": attack.variant, "num_injected_rows": len(added)}
+            meta = result.meta
+        else:
+            out = raw
+            info["atlas"] = {"variant": attack.variant, "num_injected_rows": 0}
+            meta = attack.frame_meta(seq, idx)
+        wf.save_frame_points(out_seq / f"{idx:04d}.npy", out)
+        infos.append(info)
+        metas[info["frame_id"]] = meta
+        progress.update(1)
+    _dump_atomic({"variant": attack.variant, "frames": metas}, out_seq / f"{seq_name}_atlas.pkl")
+    wf.save_sequence_infos(out_seq / f"{seq_name}.pkl", infos)  # written last: the done marker
+    return metas
+
+
+def _done(out_seq: Path, seq_name: str, variant: str) -> dict | None:
+    meta_pkl, info_pkl = out_seq / f"{seq_name}_atlas.pkl", out_seq / f"{seq_name}.pkl"
+    if not (meta_pkl.is_file() and info_pkl.is_file()):
+        return None
+    with open(meta_pkl, "rb") as f:
+        saved = pickle.load(f)
+    if saved.get("variant") != variant:
+        raise ValueError(
+            f"{meta_pkl}: holds variant {saved.get('variant')!r}, not {variant!r}; "
+            "use another --out_dir"
+        )
+    return saved["frames"]
+
+
+def main(argv=None) -> Path:
+    args = parse_args(argv)
+    logger = create_logger()
+    data_cfg = cfg_from_yaml_file(args.data_cfg)
+    attack_cfg = cfg_from_yaml_file(args.attack)
+    if args.set_cfgs:
+        cfg_from_list(args.set_cfgs, attack_cfg)
+    if args.split is not None:
+        data_cfg.DATA_SPLIT["test"] = args.split
+    data_cfg.SAMPLED_INTERVAL["test"] = 1
+    dataset = AtlasWaymoDataset(data_cfg, CLASS_NAMES, attack_cfg, training=False, logger=logger)
+    out_root = Path(args.out_dir)
+    if not out_root.is_absolute():
+        out_root = REPO_ROOT / out_root
+    (out_root / "ImageSets").mkdir(parents=True, exist_ok=True)
+    save_config(attack_cfg, out_root / "atlas_attack.yaml")
+    names = list(dataset.seq_name_to_infos)[: args.max_sequences]
+    listing = "".join(f"{name}.tfrecord\n" for name in names)
+    (out_root / "ImageSets" / f"{dataset.split}.txt").write_text(listing)
+    total = sum(len(dataset.seq_name_to_infos[n]) for n in names)
+    frames: dict[str, dict] = {}
+    with tqdm(total=total, desc=dataset.attack.variant, unit="frame") as progress:
+        for name in names:
+            out_seq = wf.data_dir(out_root, dataset.processed_data_tag) / name
+            done = _done(out_seq, name, dataset.attack.variant)
+            if done is not None:
+                frames.update(done)
+                progress.update(len(dataset.seq_name_to_infos[name]))
+                continue
+            frames.update(write_sequence(dataset, name, out_root, progress))
+    summary = {
+        "variant": dataset.attack.variant,
+        "attack_cfg": to_plain(attack_cfg),
+        "frames": frames,
+    }
+    _dump_atomic(summary, out_root / "atlas_attack_metadata.pkl")
+    spoofed = sum(m["spoofed"] for m in frames.values())
+    logger.info(
+        f"wrote {len(frames)} frames ({spoofed} spoofed) of {len(names)} sequences to {out_root}"
+    )
+    return out_root
+
+
+if __name__ == "__main__":
+    main()
