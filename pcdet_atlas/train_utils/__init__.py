@@ -1,0 +1,25 @@
+"""Training and evaluation loops behind ``tools/train.py`` and ``tools/test.py``."""
+
+from pcdet_atlas.train_utils.checkpoint import (
+    checkpoint_state,
+    find_latest_checkpoint,
+    load_checkpoint,
+    save_checkpoint,
+)
+from pcdet_atlas.train_utils.dist import get_dist_info, init_dist_pytorch
+from pcdet_atlas.train_utils.eval_utils import eval_one_epoch, predict_dataset
+from pcdet_atlas.train_utils.trainer import TrainState, train_model, train_one_epoch
+
+__all__ = [
+    "TrainState",
+    "checkpoint_state",
+    "eval_one_epoch",
+    "find_latest_checkpoint",
+    "get_dist_info",
+    "init_dist_pytorch",
+    "load_checkpoint",
+    "predict_dataset",
+    "save_checkpoint",
+    "train_model",
+    "train_one_epoch",
+]

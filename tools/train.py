@@ -1,0 +1,126 @@
+"""Train a detector (OpenPCDet's tools/train.py, for pcdet_atlas).
+
+    python tools/train.py --cfg cfgs/atlas/synthetic/cp4f.yaml
+    torchrun --nproc_per_node 2 tools/train.py --cfg ... --launcher pytorch
+
+Output: ``output/<group>/<tag>/<extra_tag>/`` with ``ckpt/checkpoint_epoch_N.pth``, ``train_*.log``,
+the merged ``<tag>.yaml`` and ``tensorboard/``. Training resumes from ``--ckpt`` or, if absent,
+from the newest checkpoint in ``ckpt/`` (exactly: optimizer, schedule and RNG state included).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+
+import torch
+from tensorboardX import SummaryWriter
+
+from pcdet_atlas.config import log_config_to_file, save_config
+from pcdet_atlas.datasets import build_dataloader
+from pcdet_atlas.models import build_network_from_config
+from pcdet_atlas.models.optimization import build_optimizer, build_scheduler
+from pcdet_atlas.train_utils import (
+    TrainState,
+    eval_one_epoch,
+    find_latest_checkpoint,
+    load_checkpoint,
+    train_model,
+)
+from pcdet_atlas.train_utils.setup import add_common_args, load_cfg, output_dir_for, setup_runtime
+from pcdet_atlas.utils.common import create_logger
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_common_args(parser)
+    parser.add_argument("--epochs", type=int, default=None)
+    parser.add_argument("--pretrained_model", type=str, default=None, help="weights to start from")
+    parser.add_argument("--sync_bn", action="store_true", default=False)
+    parser.add_argument("--ckpt_save_interval", type=int, default=1)
+    parser.add_argument("--max_ckpt_save_num", type=int, default=30)
+    parser.add_argument("--merge_all_iters_to_one_epoch", action="store_true", default=False)
+    parser.add_argument("--num_epochs_to_eval", type=int, default=0, help=">0: evaluate at the end")
+    parser.add_argument("--logger_iter_interval", type=int, default=50)
+    parser.add_argument("--use_amp", action="store_true", default=False)
+    parser.add_argument("--no_progress", action="store_true", default=False, help="no tqdm bars")
+    return parser.parse_args(argv)
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    cfg = load_cfg(args.cfg_file, args.set_cfgs)
+    dist, rank, world, device = setup_runtime(args)
+    optim_cfg = cfg.OPTIMIZATION
+    batch_size = args.batch_size or optim_cfg.BATCH_SIZE_PER_GPU * world
+    if batch_size % world:
+        raise ValueError(f"--batch_size {batch_size} is not divisible by {world} processes")
+    epochs = args.epochs or optim_cfg.NUM_EPOCHS
+
+    out_dir = output_dir_for(cfg, args.output_root, args.extra_tag)
+    ckpt_dir = out_dir / "ckpt"
+    stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+    logger = create_logger(out_dir / f"train_{stamp}.log", rank=rank)
+    logger.info(f"output: {out_dir}  processes: {world}  device: {device}  batch: {batch_size}")
+    if rank == 0:
+        save_config(cfg, out_dir / f"{cfg.TAG}.yaml")
+        log_config_to_file(cfg, logger)
+    tb_log = SummaryWriter(log_dir=str(out_dir / "tensorboard")) if rank == 0 else None
+
+    dataset, loader, sampler = build_dataloader(
+        cfg.DATA_CONFIG, cfg.CLASS_NAMES, batch_size // world, dist, workers=args.workers,
+        seed=args.seed, logger=logger, training=True,
+        merge_all_iters_to_one_epoch=args.merge_all_iters_to_one_epoch, total_epochs=epochs,
+    )  # fmt: skip
+    model = build_network_from_config(cfg)
+    if args.sync_bn:
+        model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
+    model.to(device)
+    optimizer = build_optimizer(model, optim_cfg)
+    scheduler = build_scheduler(
+        optimizer, optim_cfg, iters_per_epoch=len(loader), total_epochs=epochs
+    )
+    scaler = torch.amp.GradScaler("cuda") if args.use_amp and device.type == "cuda" else None
+
+    state = TrainState()
+    resume = args.ckpt or find_latest_checkpoint(ckpt_dir)
+    if resume is not None:
+        ckpt = load_checkpoint(resume, model, optimizer, scheduler, scaler)
+        state = TrainState(epoch=ckpt["epoch"], it=ckpt["it"])
+        logger.info(f"resumed from {resume} (epoch {state.epoch}, iteration {state.it})")
+    elif args.pretrained_model is not None:
+        model.load_params_from_file(args.pretrained_model)
+        logger.info(f"initialised from {args.pretrained_model}")
+    if dist:
+        model = torch.nn.parallel.DistributedDataParallel(
+            model, device_ids=[device.index] if device.type == "cuda" else None
+        )
+    logger.info(f"training epochs {state.epoch + 1}..{epochs}, {len(loader)} iterations each")
+    train_model(
+        model, optimizer, scheduler, loader, sampler, state=state, total_epochs=epochs,
+        device=device, seed=args.seed, grad_norm_clip=optim_cfg.GRAD_NORM_CLIP, ckpt_dir=ckpt_dir,
+        ckpt_save_interval=args.ckpt_save_interval, max_ckpt_save_num=args.max_ckpt_save_num,
+        scaler=scaler, use_amp=args.use_amp, tb_log=tb_log, logger=logger,
+        logger_iter_interval=args.logger_iter_interval, show_progress=not args.no_progress,
+    )  # fmt: skip
+    result = {"output_dir": out_dir, "state": state}
+    if args.num_epochs_to_eval > 0:
+        _, test_loader, _ = build_dataloader(
+            cfg.DATA_CONFIG, cfg.CLASS_NAMES, batch_size // world, dist, workers=args.workers,
+            seed=args.seed, logger=logger, training=False,
+        )  # fmt: skip
+        ap_dict, _ = eval_one_epoch(
+            model, test_loader, device=device, logger=logger, show_progress=not args.no_progress
+        )
+        result["ap_dict"] = ap_dict
+        if tb_log is not None:
+            for k, v in ap_dict.items():
+                tb_log.add_scalar(f"eval/{k}", float(v), state.epoch)
+    if tb_log is not None:
+        tb_log.close()
+    logger.info("training done")
+    return result
+
+
+if __name__ == "__main__":
+    main()
