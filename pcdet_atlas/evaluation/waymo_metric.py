@@ -318,8 +318,9 @@ def _match_hungarian(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _match_score_first(weights: np.ndarray, order: np.ndarray, ious: np.ndarray):
-    """Official ``ScoreFirstMatcher``: predictions by descending score take the unmatched GT with
-    the highest IoU (first index on ties) among those they can match."""
+    """Greedy COCO-style matching: predictions by descending score take the unmatched GT with the
+    highest IoU (first index on ties) among those they can match. (The official
+    ``ScoreFirstMatcher`` of 1.6.7 compares IoUs at the wrong indices; see docs/evaluation.md.)"""
     taken = np.zeros(weights.shape[1], dtype=bool)
     rows, cols = [], []
     for r in order:
@@ -343,7 +344,8 @@ def _accumulate(gt: _Objects, det: _Objects, thr: np.ndarray, cutoffs: np.ndarra
     iou = _waymo_iou(det.boxes[pi], gt.boxes[gi])
     ok = iou >= thr[det.cls[pi]]
     pi, gi, iou = pi[ok], gi[ok], iou[ok]
-    weight = np.round(iou * KMAX_IOU).astype(np.int64)  # float32 product, as the official
+    # std::round(float iou * kMaxIoU): float32 product, halves rounded away from zero
+    weight = np.floor(iou * KMAX_IOU + np.float32(0.5)).astype(np.int64)
     ha = waymo_heading_accuracy(det.boxes[pi, 6], gt.boxes[gi, 6])
     if len(pi) == 0:
         return acc
@@ -365,12 +367,18 @@ def _accumulate(gt: _Objects, det: _Objects, thr: np.ndarray, cutoffs: np.ndarra
     order = multi[np.argsort(comp[multi], kind="stable")]
     bounds = np.flatnonzero(np.diff(comp[order])) + 1
     for edges in np.split(order, bounds):
-        _solve_component(acc, det, pi[edges], gi[edges], weight[edges], iou[edges],
-                         ha[edges], is_l1[edges], n_pred, matcher)  # fmt: skip
+        edge_data = (pi[edges], gi[edges], weight[edges], iou[edges], ha[edges], is_l1[edges])
+        _solve_component(acc, det, edge_data, n_pred, matcher)
     return acc
 
 
-def _solve_component(acc, det, pe, ge, we, ioue, hae, l1e, n_pred, matcher):
+def _solve_component(acc: _Accumulator, det: _Objects, edge_data, n_pred, matcher: str) -> None:
+    """Match one connected component at every distinct prediction subset and accumulate.
+
+    ``edge_data``: per edge (prediction index, GT index, integer weight, float32 IoU, heading
+    accuracy, GT-is-level-1); ``n_pred``: per prediction, the number of cutoffs keeping it.
+    """
+    pe, ge, we, ioue, hae, l1e = edge_data
     preds, p_local = np.unique(pe, return_inverse=True)
     gts, g_local = np.unique(ge, return_inverse=True)
     cls = det.cls[preds[0]]

@@ -400,7 +400,7 @@ def _reference_tp(gts, dets, cls: str, thr: float, greedy: bool) -> np.ndarray:
                         taken[int(np.argmax(cand))] = True
                         tp[k] += 1
             else:
-                w = np.where(can, np.round(iou[sub] * np.float32(1e6)), 0)
+                w = np.where(can, np.floor(iou[sub] * np.float32(1e6) + np.float32(0.5)), 0)
                 r, c = linear_sum_assignment(w, maximize=True)
                 tp[k] += int((w[r, c] > 0).sum())
     return tp
