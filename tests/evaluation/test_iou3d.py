@@ -272,3 +272,31 @@ def test_nms_bev_edge_cases():
     assert nms_bev(two, torch.tensor([0.9, 0.8]), 0.3).tolist() == [0]
     with pytest.raises(ValueError, match="scores"):
         nms_bev(two, torch.tensor([0.9]), 0.5)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.tuples(st.floats(0.05, 8.0), st.floats(0.05, 8.0), st.floats(0.05, 3.0)),
+    st.one_of(st.floats(-1.5, 1.5), st.sampled_from([0.0, 0.5, 1.0, -1.0])),
+    st.one_of(st.floats(-1.5, 1.5), st.sampled_from([0.0, 0.25, 1.0])),
+    _angle,
+    st.sampled_from([0.0, 1e3, 1e5, -1e5]),
+    st.booleans(),
+)
+def test_hypothesis_shifted_copies_have_exact_iou(dims, fx, fy, heading, offset, flip):
+    """A copy shifted along its own axes (touching at |f| = 1, collinear edges at f = 0) has BEV
+    IoU ``s / (2 - s)`` with ``s = (1 - |fx|)+ (1 - |fy|)+``, wherever the pair sits."""
+    dx, dy, dz = dims
+    a = torch.tensor([[offset, -offset, 0.5, dx, dy, dz, heading]], dtype=torch.float64)
+    c, s = math.cos(heading), math.sin(heading)
+    b = a.clone()
+    b[0, 0] += c * fx * dx - s * fy * dy
+    b[0, 1] += s * fx * dx + c * fy * dy
+    if flip:
+        b[0, 6] += math.pi
+    share = max(0.0, 1 - abs(fx)) * max(0.0, 1 - abs(fy))
+    expected = share / (2 - share)
+    tol = 1e-9 * (1 + abs(offset) / min(dx, dy))
+    assert boxes_iou_bev(a, b).item() == pytest.approx(expected, abs=tol)
+    assert boxes_iou3d(a, b).item() == pytest.approx(expected, abs=tol)
+    assert boxes_aligned_iou3d(b, a).item() == pytest.approx(expected, abs=tol)
