@@ -329,3 +329,44 @@ def test_ranks_from_results_and_printer():
     assert "removal rank = -1.0000 * injection rank + 4.0000" in text
     with pytest.raises(ResultsError, match="unique"):
         ranks_from_results([CP, CP])
+
+
+def test_end_to_end_with_waymo_evaluate_and_engine_metadata(tmp_path):
+    from pcdet_atlas.attacks.metadata import make_meta
+    from pcdet_atlas.evaluation.waymo_metric import waymo_evaluate
+
+    gt = [
+        {"name": np.array(["Vehicle"]), "gt_boxes_lidar": TARGET[None],
+         "num_points_in_gt": np.array([50]), "difficulty": np.array([0])}
+        for _ in range(2)
+    ]  # fmt: skip
+    phantom = TARGET + np.array([0, 5, 0, 0, 0, 0, 0], np.float32)
+    both = {"name": np.array(["Vehicle"] * 2), "boxes_lidar": np.stack([TARGET, phantom]),
+            "score": np.array([0.9, 0.95])}  # fmt: skip
+    # frame 0: only the real car; frame 1: the real car and the phantom
+    dets = [
+        {"frame_id": f"s_{i:03d}", **{k: v[: i + 1] for k, v in both.items()}} for i in range(2)
+    ]
+    infos = [
+        make_meta("inj_rel_easy", "injection", spoofed=True, run_id=0, run_position=i,
+                  lifecycle_k=i + 1, target_box=phantom)
+        for i in range(2)
+    ]  # fmt: skip
+    entry = build_variant_result(
+        "inj_rel_easy",
+        family="injection",
+        num_frames=2,
+        metrics=waymo_evaluate(gt, dets, CLASSES),
+        class_names=CLASSES,
+        attack=evaluate_attack(dets, infos),
+    )
+    assert entry["num_targets"] == 2 and entry["num_success"] == 1 and entry["asr"] == 0.5
+    assert (
+        entry["per_class"]["Vehicle"]["L2/AP"] < 1.0
+    )  # the phantom, scored above the car, is an FP
+    results = build_results(
+        model="m", config="c.yaml", checkpoint=None, class_names=CLASSES,
+        variants={"inj_rel_easy": entry},
+    )  # fmt: skip
+    assert load_results(save_results(results, tmp_path / "results.json")) == results
+    assert format_table(results).splitlines()[-1].split()[3:] == ["0.50", "0.50", "2"]
