@@ -1,5 +1,18 @@
 """Evaluation: exact 3D IoU, the Waymo L1/L2 AP/APH metric, attack success rate and analyses."""
 
+from pcdet_atlas.evaluation.attack_metrics import (
+    AttackMetricError,
+    TargetMatches,
+    asr_from_matches,
+    attack_success_rate,
+    evaluate_attack,
+    injection_confidence,
+    lifecycle_asr,
+    linear_fit,
+    match_targets,
+    removal_confidence,
+    robustness_ranks,
+)
 from pcdet_atlas.evaluation.iou3d import (
     boxes_aligned_iou3d,
     boxes_aligned_iou_bev,
@@ -7,6 +20,19 @@ from pcdet_atlas.evaluation.iou3d import (
     boxes_iou_bev,
     boxes_overlap_bev,
     nms_bev,
+)
+from pcdet_atlas.evaluation.results import (
+    ResultsError,
+    build_results,
+    build_variant_result,
+    format_comparison_table,
+    format_ranks,
+    format_table,
+    load_results,
+    load_results_dir,
+    ranks_from_results,
+    save_results,
+    validate_results,
 )
 from pcdet_atlas.evaluation.waymo_metric import (
     WAYMO_IOU_THRESHOLDS,
@@ -19,16 +45,38 @@ from pcdet_atlas.evaluation.waymo_metric import (
 )
 
 __all__ = [
+    "AttackMetricError",
+    "ResultsError",
+    "TargetMatches",
     "WAYMO_IOU_THRESHOLDS",
     "WAYMO_SCORE_CUTOFFS",
+    "asr_from_matches",
+    "attack_success_rate",
     "boxes_aligned_iou3d",
     "boxes_aligned_iou_bev",
     "boxes_iou3d",
     "boxes_iou_bev",
     "boxes_overlap_bev",
+    "build_results",
+    "build_variant_result",
     "compute_waymo_curves",
+    "evaluate_attack",
+    "format_comparison_table",
+    "format_ranks",
+    "format_table",
+    "injection_confidence",
+    "lifecycle_asr",
+    "linear_fit",
+    "load_results",
+    "load_results_dir",
+    "match_targets",
     "nms_bev",
+    "ranks_from_results",
+    "removal_confidence",
+    "robustness_ranks",
+    "save_results",
     "summarize_waymo_curves",
+    "validate_results",
     "waymo_average_precision",
     "waymo_evaluate",
     "waymo_heading_accuracy",
