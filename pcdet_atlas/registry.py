@@ -101,7 +101,7 @@ class Registry:
         return f"Registry({self.name!r}, items={self.list()})"
 
 
-DATASETS = Registry("dataset", autoload=("pcdet_atlas.datasets",))
+DATASETS = Registry("dataset", autoload=("pcdet_atlas.datasets", "pcdet_atlas.attacks"))
 TRANSFORMS = Registry("transform", autoload=("pcdet_atlas.datasets",))
 ATTACKS = Registry("attack", autoload=("pcdet_atlas.attacks",))
 DETECTORS = Registry("detector", autoload=("pcdet_atlas.models",))
