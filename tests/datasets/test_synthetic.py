@@ -447,3 +447,22 @@ def test_raycast_matches_per_ray_reference(device):
     normal = hits.normal.cpu()[fin]
     assert torch.allclose(normal.norm(dim=1), torch.ones(int(fin.sum()), dtype=torch.float64))
     assert bool(((normal * dirs[fin]).sum(dim=1) <= 1e-9).all())
+
+
+def test_cli_writes_the_requested_sizes(tmp_path, capsys):
+    import importlib.util
+
+    from pcdet_atlas.config import REPO_ROOT
+
+    spec = importlib.util.spec_from_file_location(
+        "create_synthetic_waymo_cli", REPO_ROOT / "tools" / "create_synthetic_waymo.py"
+    )
+    cli = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cli)
+    argv = ["--root", str(tmp_path), "--train-sequences", "0", "--val-sequences", "1"]
+    summary = cli.main(argv + ["--val-frames", "1", "--seed", "3", "--workers", "1"])
+    assert summary["frames"] == {"train": 0, "val": 1}
+    assert _sequences(tmp_path, "val") == [sequence_name(3, "val", 0)]
+    assert (tmp_path / "ImageSets" / "train.txt").read_text() == ""
+    out = capsys.readouterr().out
+    assert "points/frame" in out and "time:" in out

@@ -12,6 +12,7 @@ from pcdet_atlas.datasets.synthetic.generator import (
     META_FILE,
     SyntheticDatasetError,
     create_synthetic_waymo,
+    format_summary,
     generate_frame,
     sequence_name,
 )
@@ -19,6 +20,7 @@ from pcdet_atlas.datasets.synthetic.scene import SyntheticScene
 
 __all__ = [
     "create_synthetic_waymo",
+    "format_summary",
     "SyntheticScene",
     "SyntheticDatasetError",
     "generate_frame",

@@ -45,6 +45,10 @@ __all__ = [
     "sequence_name",
     "generate_frame",
     "difficulty_from_points",
+    "count_points_in_boxes",
+    "format_summary",
+    "DEFAULT_NUM_SEQUENCES",
+    "DEFAULT_FRAMES_PER_SEQUENCE",
 ]
 
 GENERATOR_VERSION = "1.0"
@@ -224,8 +228,8 @@ def _frame_info(scene: SyntheticScene, sequence: str, f: int, points, labels, t0
 
 # ---------------------------------------------------------------------------------- dataset
 #: The default dataset of ``make demo`` (see docs/synthetic.md for the time budget).
-DEFAULT_NUM_SEQUENCES = {"train": 4, "val": 1}
-DEFAULT_FRAMES_PER_SEQUENCE = {"train": 100, "val": 198}
+DEFAULT_NUM_SEQUENCES = {"train": 12, "val": 1}
+DEFAULT_FRAMES_PER_SEQUENCE = {"train": 60, "val": 198}
 
 
 def _split_ints(value, name: str, minimum: int) -> dict[str, int]:
@@ -312,15 +316,18 @@ def _generate_chunk(task: dict) -> list[dict]:
 def _generate_sequences(root, seed, todo, frames, device, workers, threads, logger):
     """Generate the ``(split, index)`` sequences of ``todo``; return ``{(split, index): infos}``.
 
-    Frames are cut into contiguous chunks (one per worker and sequence); a sequence's pkl is
-    written, atomically and last, once all its frames exist.
+    With several workers, long sequences are cut into contiguous frame chunks (each rebuilds
+    the scene, which is deterministic) for load balance; a sequence's pkl is written,
+    atomically and last, once all its frames exist.
     """
     tasks = []
+    total = sum(frames[split] for split, _ in todo)
+    target = max(16, math.ceil(total / (4 * workers)))  # frames per chunk, for load balance
     for split, index in todo:
         n = frames[split]
         name = sequence_name(seed, split, index)
         wf.sequence_pkl_path(root, name).parent.mkdir(parents=True, exist_ok=True)
-        chunks = max(1, min(workers, n // 8))
+        chunks = 1 if workers <= 1 else max(1, round(n / target))
         bounds = np.linspace(0, n, chunks + 1).round().astype(int)
         for a, b in zip(bounds[:-1], bounds[1:]):
             tasks.append(
@@ -330,6 +337,7 @@ def _generate_sequences(root, seed, todo, frames, device, workers, threads, logg
                     "threads": threads,
                 }
             )  # fmt: skip
+    tasks.sort(key=lambda t: t["start"] - t["stop"])  # longest first
     remaining = {key: sum(1 for t in tasks if (t["split"], t["index"]) == key) for key in todo}
     parts: dict = {key: [] for key in todo}
     results = {}
@@ -484,3 +492,21 @@ def create_synthetic_waymo(
         "elapsed_s": time.perf_counter() - tic,
         "disk_bytes": int(disk),
     }
+
+
+def format_summary(summary: dict) -> str:
+    """Human-readable lines of a :func:`create_synthetic_waymo` summary."""
+    ppf = summary["points_per_frame"]
+    lines = [
+        f"synthetic Waymo-format dataset at {summary['root']}",
+        "  sequences: "
+        + ", ".join(f"{s} {len(v)}" for s, v in summary["sequences"].items())
+        + f" (generated {summary['generated']}, reused {summary['reused']})",
+        "  frames:    " + ", ".join(f"{s} {n}" for s, n in summary["frames"].items()),
+        f"  points/frame (TOP): mean {ppf['mean']:.0f}, min {ppf['min']}, max {ppf['max']}",
+        "  objects (frame labels): "
+        + ", ".join(f"{k} {v}" for k, v in summary["objects_per_class"].items()),
+        f"  disk: {summary['disk_bytes'] / 2**30:.2f} GiB",
+        f"  time: {summary['elapsed_s']:.1f} s",
+    ]
+    return "\n".join(lines)
