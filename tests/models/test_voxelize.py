@@ -4,6 +4,7 @@ import pytest
 import torch
 from model_batches import DEVICES
 
+from pcdet_atlas.models.model_utils import voxelize as voxelize_module
 from pcdet_atlas.models.model_utils.scatter import scatter_max, scatter_mean, scatter_sum
 from pcdet_atlas.models.model_utils.voxelize import VoxelGrid, voxelize
 
@@ -38,7 +39,10 @@ def random_points(n, seed):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_voxelize_matches_dict_of_lists(device):
+@pytest.mark.parametrize("dense", [True, False], ids=["dense_table", "unique"])
+def test_voxelize_matches_dict_of_lists(device, dense, monkeypatch):
+    if not dense:
+        monkeypatch.setattr(voxelize_module, "DENSE_KEY_LIMIT", 0)
     pts = random_points(600, 0)
     ref = reference_voxelize(pts, GRID)
     vox = voxelize(pts.to(device), GRID)

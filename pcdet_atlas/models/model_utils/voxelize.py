@@ -1,8 +1,9 @@
 """Dynamic voxelization / pillarization as a torch op inside the model.
 
 Points are grouped by the integer cell they fall in; there is no per-voxel point cap and no voxel
-cap (OpenPCDet's dynamic VFEs), so no point is dropped inside the range. The grouping is one
-``torch.unique`` over a linear cell key, which is deterministic on CPU and GPU.
+cap (OpenPCDet's dynamic VFEs), so no point is dropped inside the range. Each point gets a linear
+cell key; keys are grouped through a dense per-cell table (pillar grids) or ``torch.unique``
+(large 3D grids). Both are deterministic on CPU and GPU and give the same result.
 """
 
 from __future__ import annotations
@@ -12,6 +13,10 @@ from dataclasses import dataclass
 import torch
 
 __all__ = ["VoxelGrid", "Voxelization", "voxelize"]
+
+# grids with at most this many cells (batch included) group points with a dense per-cell table
+# (bincount, O(N + cells)); larger ones (fine 3D voxels) sort the keys with torch.unique
+DENSE_KEY_LIMIT = 1 << 25
 
 
 @dataclass(frozen=True)
@@ -91,7 +96,16 @@ def voxelize(points: torch.Tensor, grid: VoxelGrid) -> Voxelization:
     cell = cell[mask]
     batch = points[mask, 0].long()
     key = ((batch * nz + cell[:, 2]) * ny + cell[:, 1]) * nx + cell[:, 0]
-    unq, inverse, counts = torch.unique(key, return_inverse=True, return_counts=True)
+    num_cells = (int(batch.max()) + 1) * nx * ny * nz if key.numel() else 0
+    if num_cells <= DENSE_KEY_LIMIT:
+        # dense path (pillar grids): occupancy counts per cell, no sort; same result as unique
+        counts_all = torch.bincount(key, minlength=num_cells)
+        unq = torch.nonzero(counts_all).squeeze(1)
+        slot = torch.full((num_cells,), -1, dtype=torch.long, device=key.device)
+        slot[unq] = torch.arange(unq.numel(), device=key.device)
+        inverse, counts = slot[key], counts_all[unq]
+    else:
+        unq, inverse, counts = torch.unique(key, return_inverse=True, return_counts=True)
     x = unq % nx
     y = (unq // nx) % ny
     z = (unq // (nx * ny)) % nz

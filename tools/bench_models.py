@@ -1,0 +1,175 @@
+"""Per-frame latency and peak memory of each detector, beside its synthetic L2 mAP.
+
+    python tools/bench_models.py                      # every config in cfgs/atlas/, CPU
+    python tools/bench_models.py --cfgs cfgs/atlas/synthetic/cp4f.yaml --frames 10 --device cuda
+
+Frames come from the synthetic dataset (``--data_path``, default ``data/synthetic_waymo``; a tiny
+one is generated in a temporary folder if it is missing) through each config's own
+``WaymoDataset`` pipeline (test mode, 1 or 4 frames), so the models see realistic clouds. Every
+model runs ``predict`` on the same frames, batch size 1, after one warm-up frame; the models take
+turns frame by frame so that machine load hits them alike. Latency covers voxelization to NMS
+(not data loading). Peak memory: CUDA ``max_memory_allocated`` on GPU; on CPU the rise of the
+process's peak resident set (``VmHWM``, reset between models through ``/proc/self/clear_refs``).
+With ``--eval``, a model whose ``ATLAS.CHECKPOINT`` exists is evaluated (Waymo L2 mAP) on the
+val split of ``--data_path``; without a checkpoint the model runs with random weights and the
+column says "not yet trained".
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+from pcdet_atlas.datasets import build_dataloader
+from pcdet_atlas.models import build_network_from_config, load_data_to_device
+from pcdet_atlas.train_utils import eval_one_epoch
+
+
+def _read_hwm_kib() -> int | None:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def _reset_hwm() -> bool:
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False
+
+
+def _rss_kib() -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return 0
+
+
+def parse_args():
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--cfgs", nargs="*", default=None, help="model configs (default: all)")
+    p.add_argument("--data_path", default=str(REPO_ROOT / "data" / "synthetic_waymo"))
+    p.add_argument("--frames", type=int, default=5, help="timed frames per model")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    p.add_argument("--eval", action="store_true", help="L2 mAP of trained models on the val split")
+    return p.parse_args()
+
+
+def main() -> None:
+    args = parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    cfg_files = args.cfgs or sorted(str(p) for p in (REPO_ROOT / "cfgs" / "atlas").rglob("*.yaml"))
+    data_path = Path(args.data_path)
+    tmp = None
+    if not (data_path / "ImageSets" / "val.txt").is_file():
+        from pcdet_atlas.datasets.synthetic import create_synthetic_waymo
+
+        tmp = tempfile.TemporaryDirectory()
+        data_path = Path(tmp.name)
+        print(f"no dataset at {args.data_path}: generating a tiny one in {data_path}")
+        create_synthetic_waymo(
+            data_path, num_sequences={"train": 1, "val": 1},
+            frames_per_sequence={"train": 4, "val": args.frames + 4}, seed=0,
+        )  # fmt: skip
+
+    runs = []
+    for cfg_file in cfg_files:
+        cfg = cfg_from_yaml_file(cfg_file)
+        cfg.DATA_CONFIG.DATA_PATH = str(data_path)
+        _, loader, _ = build_dataloader(
+            cfg.DATA_CONFIG, cfg.CLASS_NAMES, 1, False, workers=0, training=False
+        )
+        batches = []
+        for batch in loader:
+            batches.append(load_data_to_device(batch, device))
+            if len(batches) == args.frames + 1:
+                break
+        torch.manual_seed(0)
+        model = build_network_from_config(cfg).to(device).eval()
+        ckpt = cfg.get("ATLAS", {}).get("CHECKPOINT")
+        trained = bool(ckpt) and (REPO_ROOT / ckpt).is_file()
+        if trained:
+            model.load_params_from_file(REPO_ROOT / ckpt)
+        n_points = statistics.mean(int(b["points"].shape[0]) for b in batches)
+        runs.append(
+            {"cfg": cfg_file, "cfg_obj": cfg, "model": model, "batches": batches,
+             "trained": trained, "times": [], "points": n_points,
+             "params": sum(p.numel() for p in model.parameters())}
+        )  # fmt: skip
+
+    for run in runs:  # warm-up and peak memory, one model at a time
+        if device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(device)
+            base = torch.cuda.memory_allocated(device)
+        else:
+            base, ok = _rss_kib(), _reset_hwm()
+        run["model"].predict(run["batches"][0])
+        if device.type == "cuda":
+            run["peak_mib"] = (torch.cuda.max_memory_allocated(device) - base) / 2**20
+        else:
+            hwm = _read_hwm_kib()
+            run["peak_mib"] = (hwm - base) / 1024 if ok and hwm is not None else float("nan")
+    for i in range(1, args.frames + 1):  # models take turns frame by frame
+        for run in runs:
+            batch = run["batches"][min(i, len(run["batches"]) - 1)]
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            t0 = time.perf_counter()
+            run["model"].predict(batch)
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            run["times"].append(time.perf_counter() - t0)
+
+    if args.eval:
+        for run in runs:
+            if run["trained"]:
+                cfg = run["cfg_obj"]
+                _, loader, _ = build_dataloader(
+                    cfg.DATA_CONFIG, cfg.CLASS_NAMES, 1, False, workers=2, training=False
+                )
+                ap, annos = eval_one_epoch(run["model"], loader, device=device)
+                run["l2_map"], run["eval_frames"] = float(ap["L2/mAP"]), len(annos)
+    print(
+        f"\ndevice {device}, torch {torch.__version__}, {torch.get_num_threads()} threads, "
+        f"{args.frames} frames per model (batch 1, after 1 warm-up)\n"
+    )
+    print(
+        "| config | params (M) | points/frame | latency ms (median) | min-max ms | peak MiB "
+        "| L2 mAP |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    fastest = min(statistics.median(r["times"]) for r in runs)
+    for run in runs:
+        med = statistics.median(run["times"])
+        name = str(Path(run["cfg"]).resolve().relative_to(REPO_ROOT / "cfgs"))
+        if not run["trained"]:
+            mAP = "not yet trained"
+        elif "l2_map" in run:
+            mAP = f"{run['l2_map']:.4f} ({run['eval_frames']} val frames)"
+        else:
+            mAP = "trained (pass --eval)"
+        lo, hi = min(run["times"]) * 1e3, max(run["times"]) * 1e3
+        print(
+            f"| {name} | {run['params'] / 1e6:.2f} | {run['points']:,.0f} | {med * 1e3:,.0f} "
+            f"({med / fastest:.1f}x) | {lo:,.0f}-{hi:,.0f} | {run['peak_mib']:,.0f} | {mAP} |"
+        )
+    if tmp is not None:
+        tmp.cleanup()
+
+
+if __name__ == "__main__":
+    main()
