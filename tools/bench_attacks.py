@@ -9,6 +9,10 @@ Parts:
         with the same LidarModel math, ``np.minimum.at`` into a 64 x M grid, then the same keep
         rules). Both masks must be identical. Then the fidelity knobs: azimuth resolution
         (1325 / 2651 / 5302 columns) and dual returns (p_dual 0 vs 0.01), with what they change.
+    getitem: ``AtlasWaymoDataset[i]`` against ``WaymoDataset[i]`` on the same frames of a
+        Waymo-format split (``--data_path``, a synthetic one is generated if absent), single-frame
+        (target <= 1.25x on spoofed frames) and 4-frame input (<= 1.35x), for an injection and a
+        removal variant; clean frames (ratio ~1) alongside.
 
 Times are the median of ``--repeats`` calls after one warm-up call.
 """
@@ -223,11 +227,89 @@ def bench_raycast(args) -> None:
         )
 
 
-# ------------------------------------------------------------------------------ other parts
-# The attacks helper adds the attacked-vs-clean ``__getitem__`` benchmark here: a function
-# ``bench_getitem(args)`` registered in PARTS below as "getitem".
+# ------------------------------------------------------------------------------ getitem part
+GETITEM_VARIANTS = ("inj_global_hard", "inj_rel_medium", "rem_30")
 
-PARTS = {"raycast": bench_raycast}
+
+def _getitem_data(args):
+    """The dataset root to time (``--data_path``; generated into a temp dir if absent) and an
+    injection trace library for it (the root's own when it matches the YAML, else built)."""
+    import tempfile
+    from pathlib import Path
+
+    from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, build_trace_library
+    from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+
+    root = Path(args.data_path)
+    root = root if root.is_absolute() else REPO_ROOT / root
+    if not (root / "ImageSets" / "val.txt").is_file():
+        from pcdet_atlas.datasets.synthetic import create_synthetic_waymo
+
+        root = Path(tempfile.mkdtemp(prefix="bench_getitem_"))
+        print(f"getitem: no dataset at {args.data_path}; generating a synthetic one in {root}")
+        create_synthetic_waymo(
+            root, num_sequences={"train": 2, "val": 1},
+            frames_per_sequence={"train": 10, "val": 70}, seed=0,
+        )  # fmt: skip
+    inj = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "attacks" / "inj_global_hard.yaml")
+    filters = TraceFilter.from_config(inj.TRACE_LIBRARY)
+    lib_path = root / filters.path
+    if (
+        lib_path.is_file()
+        and TraceLibrary.load(lib_path).build_info.get("filters") == filters.to_dict()
+    ):
+        return root, lib_path
+    lib_path = Path(tempfile.mkdtemp(prefix="bench_lib_")) / "lib.npz"
+    build_trace_library(root, filters).save(lib_path)
+    return root, lib_path
+
+
+def bench_getitem(args) -> None:
+    """Attacked vs clean ``__getitem__`` on the same spoofed frames, 1-frame and 4-frame input."""
+    import itertools
+
+    from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
+    from pcdet_atlas.attacks.schedule import is_spoofed
+    from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+    from pcdet_atlas.datasets import WaymoDataset
+
+    root, lib_path = _getitem_data(args)
+    classes = ["Vehicle", "Pedestrian", "Cyclist"]
+    print(f"getitem: data {root}, torch threads {torch.get_num_threads()}, repeats {args.repeats}")
+    print(f"  {'input':<8}{'variant':<18}{'frames':<9}{'clean ms':>10}{'attacked ms':>13}"
+          f"{'ratio':>8}{'target':>9}")  # fmt: skip
+    for name, target in (("synthetic_waymo.yaml", 1.25), ("synthetic_waymo_multiframe.yaml", 1.35)):
+        data_cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "dataset_configs" / name)
+        data_cfg.DATA_PATH = str(root)
+        clean = WaymoDataset(data_cfg, classes, training=False)
+        mode = "4-frame" if clean.sequence_cfg is not None else "1-frame"
+        frames = {
+            "spoofed": [i for i, info in enumerate(clean.infos)
+                        if is_spoofed(info["point_cloud"]["sample_idx"])],
+            "clean": [i for i, info in enumerate(clean.infos)
+                      if not is_spoofed(info["point_cloud"]["sample_idx"])],
+        }  # fmt: skip
+        for variant in GETITEM_VARIANTS:
+            attack_cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "attacks" / f"{variant}.yaml")
+            if "TRACE_LIBRARY" in attack_cfg:
+                attack_cfg.TRACE_LIBRARY.PATH = str(lib_path)
+            attacked = AtlasWaymoDataset(data_cfg, classes, attack_cfg, root_path=root)
+            for kind in ("spoofed", "clean"):
+                idx_a, idx_c = itertools.cycle(frames[kind]), itertools.cycle(frames[kind])
+                t = time_interleaved(
+                    {
+                        "clean": lambda ds=clean, it=idx_c: ds[next(it)],
+                        "attacked": lambda ds=attacked, it=idx_a: ds[next(it)],
+                    },
+                    args.repeats,
+                )
+                ratio = t["attacked"] / t["clean"]
+                goal = f"<= {target}" if kind == "spoofed" else "~ 1"
+                print(f"  {mode:<8}{variant:<18}{kind:<9}{t['clean']:>10.1f}"
+                      f"{t['attacked']:>13.1f}{ratio:>8.2f}{goal:>9}")  # fmt: skip
+
+
+PARTS = {"raycast": bench_raycast, "getitem": bench_getitem}
 
 
 def main() -> None:
@@ -238,6 +320,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--num_points", type=int, default=180_000)
     parser.add_argument("--spoof_points", type=int, default=1000)
+    parser.add_argument("--data_path", default="data/synthetic_waymo", help="getitem part")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     for name, fn in PARTS.items():

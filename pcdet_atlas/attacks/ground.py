@@ -1,8 +1,9 @@
 """Local ground height under a phantom, from the frame's own scene points (SPEC §3.4).
 
-The estimate is a robust low percentile of the z of the scene points inside a small disc around
-the phantom centre: low, because cars, walls and vegetation in the disc only add points above the
-ground; a percentile rather than the minimum, because of range noise and stray low returns.
+The estimate is a robust low percentile (the 'lower' rule: an actual sample, no interpolation) of
+the z of the scene points inside a small disc around the phantom centre: low, because cars, walls
+and vegetation in the disc only add points above the ground; a percentile rather than the
+minimum, because of range noise and stray low returns.
 
 Fallback, documented and recorded: when the disc holds fewer than ``min_points`` points the disc
 is widened once to ``fallback_radius``; when that also fails the ground is taken as
@@ -89,14 +90,26 @@ class GroundEstimator:
         """Ground height at ``center_xy`` (2,) from ``(N, 3+)`` scene points (vehicle frame)."""
         cx, cy = float(center_xy[0]), float(center_xy[1])
         xyz = np.asarray(scene_xyz)
-        # cheap square pre-filter on the wide disc, then exact distances on the survivors
+        # cheap pre-filter on the wide disc's bounding square (compares on contiguous column
+        # copies), then z and exact distances on the survivors only
         r_wide = self.fallback_radius
-        box = (np.abs(xyz[:, 0] - cx) <= r_wide) & (np.abs(xyz[:, 1] - cy) <= r_wide)
-        cand = xyz[box]
+        x = np.ascontiguousarray(xyz[:, 0])
+        y = np.ascontiguousarray(xyz[:, 1])
+        sel = np.flatnonzero(
+            (x >= cx - r_wide) & (x <= cx + r_wide) & (y >= cy - r_wide) & (y <= cy + r_wide)
+        )
+        cand = xyz[sel, :3].astype(np.float64)
         cand = cand[np.abs(cand[:, 2]) <= self.max_abs_z]
         d2 = (cand[:, 0] - cx) ** 2 + (cand[:, 1] - cy) ** 2
         for radius, source in ((self.radius, "disc"), (self.fallback_radius, "wide_disc")):
             z = cand[d2 <= radius * radius, 2]
             if z.size >= self.min_points:
-                return GroundEstimate(float(np.percentile(z, self.percentile)), source, int(z.size))
+                return GroundEstimate(_lower_percentile(z, self.percentile), source, int(z.size))
         return GroundEstimate(self.fallback_z, "fallback", int(cand.shape[0]))
+
+
+def _lower_percentile(values: np.ndarray, percentile: float) -> float:
+    """The ``percentile``-th percentile by the 'lower' rule (an actual sample, no interpolation):
+    element ``floor(p / 100 * (n - 1))`` of the sorted values, found by partial sort."""
+    k = int(np.floor(percentile / 100.0 * (values.size - 1)))
+    return float(np.partition(values, k)[k])

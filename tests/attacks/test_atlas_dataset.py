@@ -9,7 +9,6 @@ from pcdet_atlas.attacks.metadata import validate_meta
 from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import WaymoDataset, collate_batch
-from pcdet_atlas.datasets.multiframe import remove_ego_points, transform_points_to_frame
 from pcdet_atlas.registry import DATASETS
 
 CLASSES = ["Vehicle", "Pedestrian", "Cyclist"]
@@ -91,9 +90,11 @@ def test_frame_identical_as_current_or_history_and_in_any_order(synthetic_root, 
         hist.infos[41], hist.get_lidar(seq, 41), seq, 41, hist.sequence_cfg
     )
     block = stacked[counts[0] : counts[0] + counts[1]]
-    xyz = transform_points_to_frame(first[40][:, :3], pose[40], pose[41]).astype(np.float32)
-    expected = remove_ego_points(np.hstack([xyz, first[40][:, 3:]]), 1.0)
-    np.testing.assert_array_equal(block[:, :5], expected)
+    rel = np.linalg.inv(np.asarray(pose[41], np.float64)) @ np.asarray(pose[40], np.float64)
+    xyz = first[40][:, :3].astype(np.float64) @ rel[:3, :3].T + rel[:3, 3]
+    outside_ego = ~((np.abs(xyz[:, 0]) < 1.0) & (np.abs(xyz[:, 1]) < 1.0))
+    np.testing.assert_allclose(block[:, :3], xyz[outside_ego], atol=1e-4)
+    np.testing.assert_array_equal(block[:, 3:5], first[40][outside_ego, 3:5])
 
 
 def _batches(dataset, workers):
@@ -170,3 +171,14 @@ def test_generate_atlas_roundtrip_and_resume(tmp_path):
     stamp = npy.stat().st_mtime_ns
     gen.main(args)
     assert npy.stat().st_mtime_ns == stamp
+
+
+def test_visualize_attack_writes_png(synthetic_root, tmp_path):
+    viz = load_tool("visualize_attack")
+    ds = make(synthetic_root, "rem_30")
+    out = viz.render(ds, 40, tmp_path / "rem.png", [-25.0, 55.0, -30.0, 30.0])
+    assert out.stat().st_size > 50_000
+    import matplotlib.image
+
+    img = matplotlib.image.imread(out)
+    assert img.shape[0] > 800 and img.shape[1] > 1200
