@@ -18,7 +18,7 @@ __all__ = [
     "SequenceConfig",
     "history_sample_indices",
     "relative_pose",
-    "remove_ego_points",
+    "outside_ego_mask",
     "transform_points_to_frame",
 ]
 
@@ -81,7 +81,7 @@ def transform_points_to_frame(
     return np.stack([t[r, 0] * x + t[r, 1] * y + t[r, 2] * z + t[r, 3] for r in range(3)], axis=1)
 
 
-def remove_ego_points(points: np.ndarray, center_radius: float = 1.0) -> np.ndarray:
-    """Drop points with ``|x| < r`` and ``|y| < r`` (m), as OpenPCDet does on history frames."""
-    mask = ~((np.abs(points[:, 0]) < center_radius) & (np.abs(points[:, 1]) < center_radius))
-    return points[mask]
+def outside_ego_mask(xyz: np.ndarray, center_radius: float = 1.0) -> np.ndarray:
+    """``(N,)`` bool, False for points with ``|x| < r`` and ``|y| < r`` (m): the ego's own
+    returns, which OpenPCDet's ``remove_ego_points`` drops from history frames."""
+    return ~((np.abs(xyz[:, 0]) < center_radius) & (np.abs(xyz[:, 1]) < center_radius))

@@ -58,6 +58,8 @@ class PointFeatureEncoder:
                 f"points have {points.shape[1]} columns but POINT_FEATURE_ENCODING."
                 f"src_feature_list names {len(self.src_feature_list)}: {self.src_feature_list}"
             )
-        data_dict["points"] = np.ascontiguousarray(points[:, self._columns], dtype=np.float32)
+        if self._columns != list(range(points.shape[1])):
+            points = points[:, self._columns]
+        data_dict["points"] = np.ascontiguousarray(points, dtype=np.float32)
         data_dict["use_lead_xyz"] = True
         return data_dict

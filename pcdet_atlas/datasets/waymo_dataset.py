@@ -22,7 +22,7 @@ from pcdet_atlas.datasets.multiframe import (
     SECONDS_PER_FRAME,
     SequenceConfig,
     history_sample_indices,
-    remove_ego_points,
+    outside_ego_mask,
     transform_points_to_frame,
 )
 from pcdet_atlas.datasets.waymo_format import (
@@ -39,6 +39,7 @@ from pcdet_atlas.registry import DATASETS
 __all__ = ["WaymoDataset"]
 
 NUM_LOADED_FEATURES = 5  # x, y, z, intensity, elongation (the NLZ column is consumed)
+EGO_RADIUS_M = 1.0  # history points with |x| < r and |y| < r are the ego's own (OpenPCDet)
 
 
 @DATASETS.register()
@@ -188,31 +189,33 @@ class WaymoDataset(DatasetTemplate):
         """
         pose_cur = np.asarray(info["pose"], dtype=np.float64).reshape(4, 4)
         history = history_sample_indices(sample_idx, sequence_cfg.sample_offset)
-        num_frames = sequence_cfg.num_frames
 
-        def time_columns(n: int, position: int, lag_s: float) -> np.ndarray:
-            if sequence_cfg.onehot_timestamp:
-                cols = np.zeros((n, num_frames), dtype=np.float32)
-                cols[:, position] = 1
-                return cols
-            return np.full((n, 1), lag_s, dtype=np.float32)
-
-        parts = [np.hstack([points, time_columns(len(points), 0, 0.0)])]
+        num_cols = points.shape[1] + sequence_cfg.num_extra_columns
+        frames = [(points.astype(np.float32, copy=False), None, 0.0)]  # (points, xyz or None, lag)
         poses = [pose_cur]
-        for position, s_pre in enumerate(history, start=1):
+        for s_pre in history:
             pre = self.get_lidar(sequence_name, int(s_pre))
             pose_pre = np.asarray(
                 self.get_frame_info(sequence_name, int(s_pre))["pose"], dtype=np.float64
             ).reshape(4, 4)
             xyz = transform_points_to_frame(pre[:, :3], pose_pre, pose_cur)
+            keep = outside_ego_mask(xyz, EGO_RADIUS_M)
             lag = SECONDS_PER_FRAME * (sample_idx - int(s_pre))
-            pre = np.hstack(
-                [xyz.astype(np.float32), pre[:, 3:], time_columns(len(pre), position, lag)]
-            )
-            parts.append(remove_ego_points(pre, 1.0))
+            frames.append((pre[keep], xyz[keep], lag))
             poses.append(pose_pre)
-        num_points_all = np.array([len(p) for p in parts], dtype=np.int32)
-        stacked = np.concatenate(parts, axis=0).astype(np.float32)
+        num_points_all = np.array([len(f[0]) for f in frames], dtype=np.int32)
+        stacked = np.zeros((int(num_points_all.sum()), num_cols), dtype=np.float32)
+        start = 0
+        for position, (pts, xyz, lag) in enumerate(frames):
+            rows = slice(start, start + len(pts))
+            stacked[rows, : pts.shape[1]] = pts
+            if xyz is not None:
+                stacked[rows, :3] = xyz
+            if sequence_cfg.onehot_timestamp:
+                stacked[rows, pts.shape[1] + position] = 1.0
+            else:
+                stacked[rows, pts.shape[1]] = lag
+            start += len(pts)
         return stacked, num_points_all, history, np.concatenate(poses).astype(np.float32)
 
     # ------------------------------------------------------------------ samples

@@ -419,3 +419,26 @@ def test_loads_the_synthetic_dataset(synthetic_root, tmp_path, multiframe):
     batch = train_ds.collate_batch([train_ds[i] for i in (0, 9, 15)])
     assert batch["points"].shape[1] == width + 1 and batch["gt_boxes"].shape[0] == 3
     assert np.isfinite(batch["points"]).all()
+
+
+def test_evaluation_end_to_end_with_the_waymo_metric(tiny_root):
+    """Detections equal to the (non-empty) ground truth score AP 1 through the real metric."""
+    ds = WaymoDataset(dataset_cfg(), CLASS_NAMES, training=False, root_path=tiny_root)
+    det_annos = []
+    for info in ds.infos:
+        annos = info["annos"]
+        keep = np.isin(annos["name"], CLASS_NAMES) & (annos["num_points_in_gt"] > 0)
+        det_annos.append(
+            {
+                "name": annos["name"][keep],
+                "score": np.ones(int(keep.sum()), np.float32),
+                "boxes_lidar": annos["gt_boxes_lidar"][keep, :7].astype(np.float32),
+                "frame_id": info["frame_id"],
+            }
+        )
+    text, result = ds.evaluation(det_annos, CLASS_NAMES, eval_metric="waymo")
+    assert result["L2/mAP"] == pytest.approx(1.0) and "Vehicle/L1/AP: 1.0000" in text
+    for det in det_annos:  # relabel every Vehicle detection as Cyclist: Vehicle AP falls to 0
+        det["name"] = np.where(det["name"] == "Vehicle", "Cyclist", det["name"])
+    _, worse = ds.evaluation(det_annos, CLASS_NAMES)
+    assert worse["Vehicle/L1/AP"] == 0.0 and worse["L1/mAP"] < 1.0

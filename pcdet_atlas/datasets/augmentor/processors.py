@@ -118,5 +118,5 @@ class ShufflePoints:
     def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
         if self.enabled and data_dict.get("points") is not None:
             points = data_dict["points"]
-            data_dict["points"] = points[rng.permutation(points.shape[0])]
+            data_dict["points"] = np.take(points, rng.permutation(points.shape[0]), axis=0)
         return data_dict

@@ -95,7 +95,9 @@ class RandomWorldRotation:
         cos, sin = np.cos(angle), np.sin(angle)
         rot = np.array([[cos, -sin], [sin, cos]])  # column-vector convention, CCW
         points, boxes = data_dict["points"], data_dict["gt_boxes"]
-        points[:, 0:2] = (points[:, 0:2].astype(np.float64) @ rot.T).astype(points.dtype)
+        x, y = points[:, 0].astype(np.float64), points[:, 1].astype(np.float64)
+        points[:, 0] = cos * x - sin * y  # column-wise: much faster than an (N, 2) matmul
+        points[:, 1] = sin * x + cos * y
         boxes[:, 0:2] = boxes[:, 0:2] @ rot.T
         boxes[:, 6] += angle
         if boxes.shape[1] > 7:
