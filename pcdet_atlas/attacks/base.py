@@ -110,13 +110,39 @@ class FrameAttack:
             feature_fn: maps the ``(K, 5)`` raw added points into the dataset's feature space.
             fill_value: value of the columns beyond the fifth for added rows.
         """
-        kept = points if self.keep is None else np.compress(self.keep, points, axis=0)
-        if self.added.shape[0] == 0:
-            return kept
+        num_added = self.added.shape[0]
+        if self.keep is None and num_added == 0:
+            return points
         added = self.added if feature_fn is None else feature_fn(self.added.copy())
-        rows = np.full((added.shape[0], points.shape[1]), fill_value, dtype=points.dtype)
-        rows[:, :5] = added[:, :5]
-        return np.concatenate([kept, rows], axis=0)
+        removed = _EMPTY_INDEX if self.keep is None else np.flatnonzero(~self.keep)
+        num_kept = points.shape[0] - removed.size
+        out = np.empty((num_kept + num_added, points.shape[1]), dtype=points.dtype)  # one copy
+        _copy_kept_rows(points, removed, out[:num_kept])
+        if num_added:
+            out[num_kept:] = fill_value
+            out[num_kept:, :5] = added[:, :5]
+        return out
+
+
+_EMPTY_INDEX = np.zeros(0, dtype=np.int64)
+#: Above this many removed rows, a masked copy beats copying the runs between them.
+_MAX_RUN_COPIES = 1024
+
+
+def _copy_kept_rows(points: np.ndarray, removed: np.ndarray, out: np.ndarray) -> None:
+    """``out[:] = points`` without the ascending row indices ``removed``: for a few removed rows
+    the runs between them are block copies (a phantom occludes a few hundred points)."""
+    if removed.size > _MAX_RUN_COPIES:
+        keep = np.ones(points.shape[0], dtype=bool)
+        keep[removed] = False
+        np.compress(keep, points, axis=0, out=out)
+        return
+    o = prev = 0
+    for j in removed.tolist():
+        n = j - prev
+        out[o : o + n] = points[prev:j]
+        o, prev = o + n, j + 1
+    out[o:] = points[prev:]
 
 
 class BaseAttack(ABC):

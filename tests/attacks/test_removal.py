@@ -210,3 +210,22 @@ def test_removal_config_errors(tmp_path):
     cfg.P_DIST.PROB = [0.5]
     with pytest.raises(ConfigError, match="one value per bin"):
         RemovalAttack.from_config(cfg)
+
+
+@pytest.mark.parametrize("num_removed", [0, 1, 300, 5000])
+def test_frame_attack_apply_matches_masked_reference(num_removed):
+    from pcdet_atlas.attacks.base import FrameAttack
+
+    rng = np.random.default_rng(num_removed)
+    points = rng.random((20000, 6)).astype(np.float32)
+    keep = np.ones(len(points), bool)
+    keep[rng.choice(len(points), num_removed, replace=False)] = False
+    if num_removed:
+        keep[[0, -1]] = False  # removed rows at both ends
+    for mask in (keep, None):
+        for added in (np.zeros((0, 5), np.float32), rng.random((7, 5)).astype(np.float32)):
+            out = FrameAttack(mask, added, {}).apply(points, lambda a: 2 * a, fill_value=-1.0)
+            expected = points if mask is None else points[mask]
+            rows = np.full((len(added), 6), -1.0, np.float32)
+            rows[:, :5] = 2 * added
+            np.testing.assert_array_equal(out, np.concatenate([expected, rows]))
