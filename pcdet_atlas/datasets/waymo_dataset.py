@@ -15,6 +15,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
+from easydict import EasyDict
 
 from pcdet_atlas.config import ConfigError, check_known_keys
 from pcdet_atlas.datasets.dataset import DatasetTemplate
@@ -74,6 +75,8 @@ class WaymoDataset(DatasetTemplate):
         root_path: str | Path | None = None,
         logger: logging.Logger | None = None,
     ):
+        if not isinstance(dataset_cfg, EasyDict):  # plain dicts work too (notebooks, tests)
+            dataset_cfg = EasyDict(dataset_cfg)
         check_known_keys(dataset_cfg, self.CONFIG_KEYS, "DATA_CONFIG")
         if dataset_cfg.get("USE_SHARED_MEMORY", False):
             raise ConfigError(

@@ -13,6 +13,7 @@ from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import WaymoDataset
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.datasets.gt_database import gt_database_paths
+from pcdet_atlas.registry import DATASETS
 from pcdet_atlas.utils.box_utils import points_in_boxes_mask
 
 CFG_DIR = REPO_ROOT / "cfgs" / "dataset_configs"
@@ -125,7 +126,9 @@ def test_multi_frame_database(db_root):
 @pytest.mark.parametrize("training", [True, False])
 def test_every_dataset_yaml_builds_and_loads(db_root, name, training):
     cfg = cfg_from_yaml_file(CFG_DIR / name)
-    ds = WaymoDataset(cfg, CLASS_NAMES, training=training, root_path=db_root)
+    expected_root = "data/synthetic_waymo" if name.startswith("synthetic") else "data/waymo"
+    assert cfg.DATA_PATH == expected_root  # relative: resolved against the repository root
+    ds = DATASETS.get(cfg.DATASET)(cfg, CLASS_NAMES, training=training, root_path=db_root)
     sample = ds[len(ds) - 1]
     multiframe = ds.sequence_cfg is not None
     assert sample["points"].shape[1] == ds.num_point_features == (6 if multiframe else 5)

@@ -19,9 +19,10 @@ from waymo_tiny_data import (
     write_tiny_waymo,
 )
 
-from pcdet_atlas.config import cfg_from_yaml_file
+from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import WaymoDataset, build_dataloader
 from pcdet_atlas.datasets import waymo_format as wf
+from pcdet_atlas.datasets.dataset import resolve_data_path
 from pcdet_atlas.datasets.multiframe import history_sample_indices
 from pcdet_atlas.registry import DATASETS
 from pcdet_atlas.utils.box_utils import points_in_boxes_mask, transform_points
@@ -73,6 +74,16 @@ def test_format_round_trip_keys_dtypes_shapes(tiny_root):
     np.testing.assert_array_equal(sample["gt_boxes"][:, 7], [1, 1, 1, 1, 2, 3])
     assert sample["metadata"]["timestamp_micros"] == 1_500_000_000_300_000
     assert ds.get_frame_info(SEQ_V, 3) is ds.infos[3]
+
+
+def test_data_path_resolves_against_the_repository_root(tiny_root, monkeypatch, tmp_path):
+    monkeypatch.chdir(tmp_path)  # the working directory plays no part
+    ds = WaymoDataset(dataset_cfg(DATA_PATH=str(tiny_root)), CLASS_NAMES, training=False)
+    assert ds.root_path == tiny_root and len(ds) == 6
+    assert resolve_data_path("data/waymo") == REPO_ROOT / "data" / "waymo"
+    # a plain dict works as well as an EasyDict
+    plain = WaymoDataset(dict(dataset_cfg()), CLASS_NAMES, training=False, root_path=tiny_root)
+    assert len(plain) == 6
 
 
 def test_get_lidar_nlz_and_tanh(tiny_root):
