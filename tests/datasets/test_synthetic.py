@@ -94,7 +94,7 @@ def test_fixture_layout_and_format(synthetic_root, fixture_args):
                 points = _points(root, seq, idx)
                 wf.validate_points(points, seq)
                 assert info["num_points_of_each_lidar"] == [len(points), 0, 0, 0, 0]
-                assert np.all(points[:, 5] == -1.0)
+                assert set(np.unique(points[:, 5]).tolist()) <= {-1.0, 1.0}
                 assert info["frame_id"] == f"{seq}_{idx:03d}"
                 assert info["point_cloud"] == {
                     "num_features": 5,
@@ -295,6 +295,54 @@ def test_num_points_in_gt_counts_points_in_boxes(synthetic_root, val_seq):
         assert (annos["num_points_in_gt"] > 100).sum() >= 5
 
 
+def test_no_label_zone_flags(synthetic_root, fixture_args):
+    seed, frames = fixture_args
+    flagged = 0
+    for split in ("train", "val"):
+        for index, seq in enumerate(_sequences(synthetic_root, split)):
+            scene = SyntheticScene(seed, split, index, frames[split])
+            infos = _infos(synthetic_root, seq)
+            for f in (0, frames[split] - 1):
+                points = _points(synthetic_root, seq, f)
+                pose = infos[f]["pose"].astype(np.float64)
+                xy = points[:, :2].astype(np.float64) @ pose[:2, :2].T + pose[:2, 3]
+                expected = np.where(scene.in_no_label_zone(xy), 1.0, -1.0)
+                assert np.array_equal(points[:, 5], expected)
+                flagged += int((expected == 1).sum())
+                # nothing is labelled inside a no-label zone
+                boxes = infos[f]["annos"]["gt_boxes_lidar"]
+                centres = boxes[:, :2] @ pose[:2, :2].T + pose[:2, 3]
+                assert not scene.in_no_label_zone(centres).any()
+    assert flagged > 0
+
+
+def test_every_label_was_seen_at_some_frame(synthetic_root, fixture_args):
+    seed, frames = fixture_args
+    for split in ("train", "val"):
+        for seq in _sequences(synthetic_root, split):
+            best: dict[str, int] = {}
+            zero = 0
+            for info in _infos(synthetic_root, seq):
+                annos = info["annos"]
+                for oid, n in zip(annos["obj_ids"].tolist(), annos["num_points_in_gt"].tolist()):
+                    best[oid] = max(best.get(oid, 0), n)
+                    zero += n == 0
+            assert best and min(best.values()) > 0, seq
+    assert zero > 0  # occluded frames of a seen object keep their label with 0 points
+
+
+def test_ego_drives_turns_and_stops():
+    """Over a few 198-frame scenes the ego stops at a junction and turns, and always drives."""
+    stops = turns = 0
+    for seed in range(3):
+        scene = SyntheticScene(seed, "val", 0, 198)
+        speed = np.linalg.norm(np.diff(scene.ego_xy, axis=0), axis=1) / 0.1
+        assert speed.sum() * 0.1 > 30.0 and speed.max() < 14.0
+        stops += (speed < 0.05).sum() >= 10
+        turns += abs(np.unwrap(scene.ego_yaw)[-1] - scene.ego_yaw[0]) > math.radians(60)
+    assert stops >= 1 and turns >= 1
+
+
 def test_ego_motion_and_rigid_poses(synthetic_root, val_seq):
     infos = _infos(synthetic_root, val_seq)
     poses = np.stack([i["pose"] for i in infos]).astype(np.float64)
@@ -324,7 +372,7 @@ def test_tracks_are_stable_and_move_with_their_speed(synthetic_root, val_seq):
             assert np.allclose(a["dimensions"][i], b["dimensions"][j])  # rigid label box
             moved = (gb[j, :2] - ga[i, :2]) / 0.1
             mean_speed = (a["speed_global"][i] + b["speed_global"][j]) / 2
-            assert np.allclose(moved, mean_speed, atol=0.15), (oid, moved, mean_speed)
+            assert np.allclose(moved, mean_speed, atol=0.3), (oid, moved, mean_speed)
             if np.linalg.norm(mean_speed) > 1.0:
                 checked_moving += 1
             elif np.linalg.norm(mean_speed) == 0.0:

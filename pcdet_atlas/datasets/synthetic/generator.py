@@ -51,7 +51,7 @@ __all__ = [
     "DEFAULT_FRAMES_PER_SEQUENCE",
 ]
 
-GENERATOR_VERSION = "1.0"
+GENERATOR_VERSION = "1.1"
 META_FILE = "synthetic_meta.json"
 SPLITS = ("train", "val")
 
@@ -142,10 +142,10 @@ def generate_frame(
     recomputed when not given).
 
     Returns:
-        ``points`` float32 ``(N, 6)`` ``[x, y, z, intensity, elongation, NLZ=-1]`` in the
-        vehicle frame, ordered like a Waymo range image (highest beam first, azimuth
-        decreasing from +pi), and the frame's labels (see :meth:`SyntheticScene.labels`) with
-        ``num_points_in_gt`` added.
+        ``points`` float32 ``(N, 6)`` ``[x, y, z, intensity, elongation, NLZ]`` in the vehicle
+        frame (NLZ 1 inside a no-label zone, else -1), ordered like a Waymo range image
+        (highest beam first, azimuth decreasing from +pi), and the frame's labels (see
+        :meth:`SyntheticScene.labels`) with ``num_points_in_gt`` added.
     """
     dtype = torch.float32
     origin = lidar.origin.to(device, dtype)
@@ -193,6 +193,10 @@ def generate_frame(
         dim=1,
     )
     points = points.cpu().numpy().astype(np.float32)
+    if len(scene.no_label_zones):
+        pose = scene.pose(f)
+        xy = points[:, :2].astype(np.float64) @ pose[:2, :2].T + pose[:2, 3]
+        points[scene.in_no_label_zone(xy), 5] = 1.0
     labels = scene.labels(f, sensor_xy=tuple(lidar.origin[:2].tolist()), max_range=lidar.max_range)
     labels["num_points_in_gt"] = count_points_in_boxes(points[:, :3], labels["boxes"], lidar)
     return points, labels
@@ -272,6 +276,28 @@ def _check_meta(meta_path: Path, meta: dict) -> None:
         )
 
 
+def _drop_never_seen(infos: list[dict]) -> None:
+    """Remove, in place, the labels of objects that have no point in any frame of the
+    sequence (as on Waymo, where annotators label what the LiDAR saw at some time; objects
+    occluded in some frames keep their labels there, with ``num_points_in_gt`` 0)."""
+    seen: set[str] = set()
+    for info in infos:
+        annos = info["annos"]
+        seen.update(annos["obj_ids"][annos["num_points_in_gt"] > 0].tolist())
+    for info in infos:
+        annos = info["annos"]
+        keep = np.array([oid in seen for oid in annos["obj_ids"].tolist()], dtype=bool)
+        if keep.all():
+            continue
+        if not keep.any():
+            info["annos"] = wf.make_annos([], [], [], [], [], [], [], [], info["pose"])
+            continue
+        info["annos"] = {
+            k: v[keep] if k != "name" and k != "obj_ids" else np.array(v[keep].tolist())
+            for k, v in annos.items()
+        }
+
+
 @contextmanager
 def _torch_threads(num: int | None):
     """Temporarily set torch's intra-op threads (restored on exit); ``None`` leaves them."""
@@ -348,6 +374,7 @@ def _generate_sequences(root, seed, todo, frames, device, workers, threads, logg
         remaining[key] -= 1
         if remaining[key] == 0:
             seq_infos = [i for _, chunk in sorted(parts[key], key=lambda p: p[0]) for i in chunk]
+            _drop_never_seen(seq_infos)
             name = sequence_name(seed, *key)
             pkl_path = wf.sequence_pkl_path(root, name)
             wf.validate_sequence_infos(seq_infos, pkl_path)

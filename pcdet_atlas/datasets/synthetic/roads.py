@@ -9,6 +9,7 @@ longitudinal driver model (acceleration, comfortable braking, curve speed limit,
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field
 
@@ -275,7 +276,8 @@ def simulate_motion(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Centerline arc length over time of a vehicle following lane ``offset`` of ``path``.
 
-    A longitudinal driver: accelerates at ``accel`` toward ``v_cruise``, keeps the curve speed
+    A longitudinal driver starting at ``v0`` (default: the cruise speed, or less where a curve
+    demands it) accelerates at ``accel`` toward ``v_cruise``, keeps the curve speed
     ``sqrt(lateral_accel / |kappa|)`` (looking 40 m ahead), brakes at ``decel`` to stop at each
     ``(s_stop, wait_s)`` line (in the travel direction) and waits there ``wait_s`` seconds.
 
@@ -286,7 +288,24 @@ def simulate_motion(
     n = int(np.ceil(duration / dt)) + 1
     t = np.arange(n) * dt
     s_out = np.empty(n)
-    # tables over centerline arc length: allowed speed (curves ahead) and lane-length scale
+    # Lane arc length u is piecewise linear in the centerline arc length s (constant curvature
+    # per piece), so the vehicle integrates u exactly and s follows from the breakpoints.
+    far = 1e6
+    s_break = [-far, *path._s0.tolist(), path.length + far]
+    scales = [1.0] + [max(1.0 - offset * k, 0.2) for _, k in path.pieces] + [1.0]
+    u_break = [0.0]
+    for i, scale in enumerate(scales):
+        u_break.append(u_break[-1] + (s_break[i + 1] - s_break[i]) * scale)
+
+    def s_of_u(u: float) -> float:
+        i = min(max(bisect.bisect_right(u_break, u) - 1, 0), len(scales) - 1)
+        return s_break[i] + (u - u_break[i]) / scales[i]
+
+    def u_of_s(s: float) -> float:
+        i = min(max(bisect.bisect_right(s_break, s) - 1, 0), len(scales) - 1)
+        return u_break[i] + (s - s_break[i]) * scales[i]
+
+    # allowed speed over centerline arc length (curves ahead, braking at ``decel``)
     reach = (v_cruise + 1.0) * duration + 60.0
     step = 0.5
     grid = np.arange(s0 - reach - 1.0, s0 + reach + 1.0, step)
@@ -295,14 +314,19 @@ def simulate_motion(
     lane_scale = np.maximum(1.0 - offset * kap, 0.2)  # lane length per centerline metre
     v_curve = np.sqrt(lateral_accel / np.maximum(np.abs(kap) / lane_scale, 1e-6))
     v_allow_tab = np.min(np.sqrt(v_curve**2 + 2 * decel * look[None, :]), axis=1).tolist()
-    scale_tab = lane_scale[:, 0].tolist()
     g0, last = float(grid[0]), len(grid) - 1
-    s, v = float(s0), float(v_cruise if v0 is None else v0)
+
+    def allowed(s: float) -> float:
+        return v_allow_tab[min(max(int(round((s - g0) / step)), 0), last)]
+
+    s = float(s0)
+    u = u_of_s(s)
+    # default start speed: the cruise speed, unless a curve here or just ahead forbids it
+    v = float(min(v_cruise, allowed(s)) if v0 is None else v0)
     stop_i, wait_left = 0, 0.0
     for i in range(n):
         s_out[i] = s
-        gi = min(max(int(round((s - g0) / step)), 0), last)
-        v_allow = v_allow_tab[gi]
+        v_allow = allowed(s)
         if stop_i < len(stops):
             s_stop, wait = stops[stop_i]
             dist = direction * (s_stop - s)
@@ -319,5 +343,6 @@ def simulate_motion(
             v_allow = min(v_allow, math.sqrt(2 * decel * max(dist, 0.0)))
         target = min(v_cruise, v_allow)
         v = max(min(max(target, v - 1.5 * decel * dt), v + accel * dt), 0.0)
-        s += direction * v / scale_tab[gi] * dt
+        u += direction * v * dt
+        s = s_of_u(u)
     return t, s_out

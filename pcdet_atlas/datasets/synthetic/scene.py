@@ -188,13 +188,14 @@ class SyntheticScene:
         duration = self.num_frames * FRAME_DT
         self.ego_cruise = float(rng.uniform(7.0, 12.5))
         needed = _BACK + self.ego_cruise * duration + 120.0
-        pieces = [(_BACK + rng.uniform(25.0, 60.0), 0.0)]
+        pieces = [(_BACK + rng.uniform(15.0, 45.0), 0.0)]  # a junction soon after the start
         length, heading_quarter, curve_acc = pieces[0][0], 0, 0.0
         junctions = []  # (s_enter, s_exit, turn)
         while length < needed:
             if rng.uniform() < 0.65 or len(junctions) == 0:
                 options = [t for t in (-1, 0, 1) if abs(heading_quarter + t) <= 1]
-                turn = int(rng.choice(options))
+                weights = np.array([0.4 if t else (0.2 if not junctions else 0.3) for t in options])
+                turn = int(rng.choice(options, p=weights / weights.sum()))
                 if turn == 0:
                     pieces.append((2 * turn_r, 0.0))
                 else:
@@ -305,6 +306,41 @@ class SyntheticScene:
                 self._place_buildings(rng, road, side, box_list, footprints)
                 self._place_furniture(rng, road, side, box_list, cyl_list)
         self.static = PartSet.build(boxes=box_list, cylinders=cyl_list)
+        self._build_no_label_zones()
+
+    def _build_no_label_zones(self):
+        """0-2 off-road rectangles (e.g. a parking lot behind the sidewalk) flagged as Waymo
+        no-label zones: their points get NLZ = 1 and nothing inside them is labelled."""
+        rng = self._rng("nlz")
+        cross = self.cross
+        zones = []
+        roads = [r for r in self.roads if r.kind != "fill"]
+        wanted = int(rng.choice([0, 1, 2], p=[0.4, 0.4, 0.2]))
+        for _ in range(8 * wanted):  # a few tries per zone
+            if len(zones) == wanted:
+                break
+            road = roads[int(rng.integers(len(roads)))]
+            side = float(rng.choice([-1.0, 1.0]))
+            length, depth = rng.uniform(20.0, 60.0), rng.uniform(15.0, 35.0)
+            s_mid = rng.uniform(road.s_start + length / 2, max(road.s_end - length / 2, 1.0))
+            off = side * (cross.sidewalk_outer + 1.0 + depth / 2)
+            x, y, h = (float(v) for v in road.path.offset_pose(s_mid, off))
+            pts = _sample_rect(x, y, h, length / 2, depth / 2)
+            if self._near_ego(np.array([[x, y]]))[0] and self._clear_of_roads(
+                pts, cross.sidewalk_outer + 0.5
+            ):
+                zones.append([x, y, h, length / 2, depth / 2])
+        self.no_label_zones = np.asarray(zones, dtype=np.float64).reshape(-1, 5)
+
+    def in_no_label_zone(self, xy: np.ndarray) -> np.ndarray:
+        """``(N,)`` bool: ``(N, 2)`` global points inside a no-label zone."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        inside = np.zeros(len(xy), dtype=bool)
+        for cx, cy, yaw, hx, hy in self.no_label_zones:
+            rx, ry = xy[:, 0] - cx, xy[:, 1] - cy
+            c, s = math.cos(yaw), math.sin(yaw)
+            inside |= (np.abs(rx * c + ry * s) <= hx) & (np.abs(-rx * s + ry * c) <= hy)
+        return inside
 
     def _place_buildings(self, rng, road, side, box_list, footprints):
         cross = self.cross
@@ -564,8 +600,10 @@ class SyntheticScene:
             s0 = rng.uniform(road.s_start, road.s_end)
             parts, dims = cyclist_shape(rng)
             v = rng.uniform(3.0, 7.0)
-            t = np.array([0.0, self.num_frames * FRAME_DT + 1.0])
-            s = np.array([s0, s0 + direction * v * t[1]])
+            duration = self.num_frames * FRAME_DT + 1.0
+            t, s = simulate_motion(
+                road.path, offset, s0, duration, v, direction=direction, accel=1.0, decel=2.0
+            )
             xy, yaw, speed, accel = _track(road.path, offset, t, s, self.times, direction)
             if self._near_ego(xy[:: max(1, len(xy) // 20)]).any():
                 out.append(
@@ -600,8 +638,8 @@ class SyntheticScene:
                         continue
                     direction = int(rng.choice([-1, 1]))
                     v = 0.0 if rng.uniform() < 0.25 else rng.uniform(0.8, 1.7)
-                    t = np.linspace(0.0, duration + 1.0, 64)
-                    s = np.clip(s0 + direction * v * t, *walkable)
+                    end = walkable[1] if direction > 0 else walkable[0]
+                    t, s = self._walk(road.path, lateral, s0, v, direction, [(end, 1e9)])
                     out.append(
                         self._pedestrian(rng, ("ped", k), road.path, lateral, t, s, direction)
                     )
@@ -615,12 +653,26 @@ class SyntheticScene:
             cross_path = Path(start, across, [(2 * (hw + 1.5), 0.0)])
             for i in range(int(rng.integers(1, 4))):
                 v = rng.uniform(1.0, 1.6)
-                t0 = rng.uniform(-0.5, 0.7) * duration
-                t = np.linspace(0.0, duration + 1.0, 64)
-                s = np.clip(v * (t - t0), 0.0, cross_path.length)
+                t0 = rng.uniform(-0.5, 0.7) * duration  # when it steps off the curb
+                stops = [(cross_path.length, 1e9)]
+                if t0 > 0:  # waits at the curb first
+                    s0, v0, stops = 0.0, 0.0, [(0.0, t0), *stops]
+                else:
+                    s0, v0 = min(-t0 * v, cross_path.length), v
+                t, s = self._walk(cross_path, 0.0, s0, v, 1, stops, v0=v0)
                 lat = rng.uniform(-1.2, 1.2)
                 out.append(self._pedestrian(rng, ("crossing", j, i), cross_path, lat, t, s, 1))
         return out
+
+    def _walk(self, path, lateral, s0, v, direction, stops, v0=None):
+        """Walking motion (accelerate 0.8 m/s^2, stop at 1.2 m/s^2) along a lane of ``path``."""
+        duration = self.num_frames * FRAME_DT + 1.0
+        if v <= 0:
+            return np.array([0.0, duration]), np.array([s0, s0])
+        return simulate_motion(
+            path, lateral, s0, duration, v, v0=v0, direction=direction, stops=stops,
+            accel=0.8, decel=1.2, lateral_accel=50.0,
+        )  # fmt: skip
 
     def _walkable_stretch(self, road, lateral, s0):
         ss = np.arange(road.s_start, road.s_end, 1.0)
@@ -729,8 +781,8 @@ class SyntheticScene:
 
     def labels(self, f: int, sensor_xy=(1.43, 0.0), max_range: float = 75.0) -> dict:
         """Objects of frame ``f`` whose box centre lies within ``max_range`` (horizontally) of
-        the sensor: ``name``, ``obj_ids``, ``boxes`` ``(N, 7)`` in the vehicle frame (float64),
-        ``speed_global`` and ``accel_global`` ``(N, 2)``."""
+        the sensor and outside the no-label zones: ``name``, ``obj_ids``, ``boxes`` ``(N, 7)``
+        in the vehicle frame (float64), ``speed_global`` and ``accel_global`` ``(N, 2)``."""
         names, ids, boxes, speed, accel = [], [], [], [], []
         c, s = math.cos(-self.ego_yaw[f]), math.sin(-self.ego_yaw[f])
         ex, ey = self.ego_xy[f]
@@ -741,6 +793,8 @@ class SyntheticScene:
             gy = a.xy[f, 1] + sa * ox + ca * oy - ey
             x, y = c * gx - s * gy, s * gx + c * gy
             if math.hypot(x - sensor_xy[0], y - sensor_xy[1]) > max_range:
+                continue
+            if self.in_no_label_zone(np.array([[gx + ex, gy + ey]]))[0]:
                 continue
             heading = float(limit_period(a.yaw[f] - self.ego_yaw[f]))
             names.append(a.name)
