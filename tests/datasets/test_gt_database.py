@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import pickle
 import runpy
 
@@ -160,3 +161,27 @@ def test_training_with_gt_sampling_adds_objects(db_root, multiframe):
         added += len(sample["gt_boxes"]) - n_plain
         assert len(plain.infos) > 0
     assert added > 0
+
+
+def test_backup_db_info_and_disable_aug_list(db_root, caplog):
+    """A missing single-frame database falls back (with a warning) to BACKUP_DB_INFO, as
+    OpenPCDet; DISABLE_AUG_LIST removes augmentations by name."""
+    cfg = cfg_from_yaml_file(CFG_DIR / "waymo_dataset.yaml")
+    sampling = cfg.DATA_AUGMENTOR.AUG_CONFIG_LIST[0]
+    sampling.DB_INFO_PATH = ["no_such_dbinfos.pkl"]
+    sampling.BACKUP_DB_INFO = {
+        "DB_INFO_PATH": f"{TAG}_waymo_dbinfos_train_sampled_1_multiframe_-4_to_0.pkl",
+        "DB_DATA_PATH": f"{TAG}_gt_database_train_sampled_1_multiframe_-4_to_0_global.npy",
+        "NUM_POINT_FEATURES": 6,
+    }
+    cfg.DATA_AUGMENTOR.DISABLE_AUG_LIST = ["random_world_flip", "random_world_scaling"]
+    logger = logging.getLogger("test_backup_db_info")
+    with caplog.at_level("WARNING", logger=logger.name):
+        ds = WaymoDataset(cfg, CLASS_NAMES, training=True, root_path=db_root, logger=logger)
+    assert "using BACKUP_DB_INFO" in caplog.text
+    assert ds.data_augmentor.names == ["gt_sampling", "random_world_rotation"]
+    sampler = ds.data_augmentor.transforms[0][1]
+    assert sampler.num_point_features == 6
+    sample = ds[0]
+    assert sample["points"].shape[1] == 5  # multi-frame objects reduced to their lag-0 points
+    assert "flip_x" not in sample and "noise_scale" not in sample and "noise_rot" in sample
