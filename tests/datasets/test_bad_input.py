@@ -269,3 +269,12 @@ def test_missing_gt_database_names_the_file(root):
         wf.WaymoFormatError, match=r"dbinfos_train_sampled_1\.pkl: GT database info file not found"
     ):
         WaymoDataset(cfg, CLASS_NAMES, training=True, root_path=root)
+
+
+def test_missing_required_augmentation_key(root):
+    cfg = dataset_cfg(augment=True)
+    augs = cfg.DATA_AUGMENTOR.AUG_CONFIG_LIST
+    rotation = next(a for a in augs if a.NAME == "random_world_rotation")
+    del rotation["WORLD_ROT_ANGLE"]
+    with pytest.raises(ConfigError, match="missing required key 'WORLD_ROT_ANGLE'"):
+        WaymoDataset(cfg, CLASS_NAMES, training=True, root_path=root)

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pcdet_atlas.config import ConfigError, check_known_keys
+from pcdet_atlas.config import ConfigError, check_known_keys, require_keys
 from pcdet_atlas.datasets.augmentor.box_ops import (
     box_index_of_points,
     boxes_bev_overlap,
@@ -162,6 +162,7 @@ class GTSampling:
             )
         if cfg.get("DATABASE_WITH_FAKELIDAR", False):
             raise ConfigError("gt_sampling: DATABASE_WITH_FAKELIDAR is not supported")
+        require_keys(cfg, ("DB_INFO_PATH", "SAMPLE_GROUPS", "NUM_POINT_FEATURES"), "gt_sampling")
         prepare = cfg.get("PREPARE", {}) or {}
         check_known_keys(prepare, cls.PREPARE_KEYS, "gt_sampling.PREPARE")
         info_paths = list(cfg["DB_INFO_PATH"])
@@ -169,10 +170,11 @@ class GTSampling:
         num_features = cfg["NUM_POINT_FEATURES"]
         backup = cfg.get("BACKUP_DB_INFO")
         root = Path(root_path)
+        backup_keys = ("DB_INFO_PATH", "DB_DATA_PATH", "NUM_POINT_FEATURES")
+        if backup is not None:
+            check_known_keys(backup, backup_keys, "gt_sampling.BACKUP_DB_INFO")
+            require_keys(backup, backup_keys, "gt_sampling.BACKUP_DB_INFO")
         if backup is not None and not (root / info_paths[0]).exists():
-            check_known_keys(
-                backup, ("DB_INFO_PATH", "DB_DATA_PATH", "NUM_POINT_FEATURES"), "BACKUP_DB_INFO"
-            )
             if len(info_paths) != 1:
                 raise ConfigError("gt_sampling: BACKUP_DB_INFO needs exactly one DB_INFO_PATH")
             (logger or logging.getLogger(__name__)).warning(

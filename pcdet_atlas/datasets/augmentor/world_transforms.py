@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config import ConfigError, require_keys
 from pcdet_atlas.registry import TRANSFORMS
 
 __all__ = ["RandomWorldFlip", "RandomWorldRotation", "RandomWorldScaling"]
@@ -88,6 +88,7 @@ class RandomWorldRotation:
 
     @classmethod
     def from_config(cls, cfg: Mapping, **context) -> RandomWorldRotation:
+        require_keys(cfg, ("WORLD_ROT_ANGLE",), "random_world_rotation")
         return cls(rot_range=_range_pair(cfg["WORLD_ROT_ANGLE"], "WORLD_ROT_ANGLE"))
 
     def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
@@ -123,6 +124,7 @@ class RandomWorldScaling:
 
     @classmethod
     def from_config(cls, cfg: Mapping, **context) -> RandomWorldScaling:
+        require_keys(cfg, ("WORLD_SCALE_RANGE",), "random_world_scaling")
         return cls(scale_range=tuple(cfg["WORLD_SCALE_RANGE"]))
 
     def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
