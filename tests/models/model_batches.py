@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import importlib.util
+
 import pytest
 import torch
+
+from pcdet_atlas.config import REPO_ROOT
 
 DEVICES = [
     "cpu",
@@ -70,3 +74,12 @@ def make_batch(
         "gt_boxes": gt.to(device),
         "batch_size": 2,
     }
+
+
+def load_tool(name: str):
+    """Import ``tools/<name>.py`` as a module (tools are scripts, not a package)."""
+    path = REPO_ROOT / "tools" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"tool_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

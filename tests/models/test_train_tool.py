@@ -1,23 +1,14 @@
 """tools/train.py end to end on the tiny synthetic dataset: the loss falls, resume is exact."""
 
-import importlib.util
 import shutil
 
 import pytest
 import torch
+from model_batches import load_tool
 
 from pcdet_atlas.config import REPO_ROOT
 
 CFG = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml"
-
-
-def load_tool(name):
-    spec = importlib.util.spec_from_file_location(
-        f"tool_{name}", REPO_ROOT / "tools" / f"{name}.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def train_args(root, out, epochs, extra_tag):

@@ -1,0 +1,163 @@
+"""Evaluating one detector on ATLAS variants: Waymo L1/L2 AP/APH and attack metrics per variant.
+
+Each variant is served by an ``AtlasWaymoDataset`` (the clean variant included, so every frame
+carries its attack record); predictions of all processes are gathered in dataset order, so a
+``torchrun`` evaluation gives the same numbers as one process. Rank 0 computes the metrics.
+"""
+
+from __future__ import annotations
+
+import logging
+import pickle
+import time
+from collections.abc import Mapping, Sequence
+from functools import partial
+from pathlib import Path
+
+import torch
+import torch.distributed as torch_dist
+from torch.utils.data import DataLoader, DistributedSampler
+
+from pcdet_atlas.config import REPO_ROOT, ConfigError, check_known_keys, key_source
+from pcdet_atlas.datasets.loader import worker_init_fn
+from pcdet_atlas.evaluation import build_variant_result, evaluate_attack
+from pcdet_atlas.registry import DATASETS
+from pcdet_atlas.train_utils.dist import get_dist_info
+from pcdet_atlas.train_utils.eval_utils import predict_dataset
+
+__all__ = ["ATLAS_KEYS", "resolve_variants", "build_attack_loader", "evaluate_variant"]
+
+ATLAS_KEYS = ("MODEL_NAME", "ATTACKS", "CHECKPOINT", "TEMPORAL_WINDOW")
+ATTACK_DIR = REPO_ROOT / "cfgs" / "attacks"
+
+
+def resolve_variants(spec: str, atlas_cfg: Mapping) -> list[tuple[str, Path]]:
+    """``--attacks`` -> ``[(variant, yaml path)]``, clean first.
+
+    ``spec`` is ``all`` (the config's ``ATLAS.ATTACKS``) or a comma list of variant names (files
+    ``cfgs/attacks/<name>.yaml``) and/or YAML paths.
+    """
+    check_known_keys(atlas_cfg, ATLAS_KEYS, "ATLAS")
+    if spec == "all":
+        if "ATTACKS" not in atlas_cfg:
+            raise ConfigError("--attacks all needs ATLAS.ATTACKS in the model config")
+        names = list(atlas_cfg["ATTACKS"])
+    else:
+        names = [s.strip() for s in spec.split(",") if s.strip()]
+    if not names:
+        raise ConfigError(f"--attacks {spec!r} names no variant")
+    out = []
+    for name in names:
+        path = Path(name) if name.endswith((".yaml", ".yml")) else ATTACK_DIR / f"{name}.yaml"
+        if not path.is_file():
+            known = sorted(p.stem for p in ATTACK_DIR.glob("*.yaml"))
+            where = key_source(atlas_cfg, "ATTACKS") if spec == "all" else "--attacks"
+            raise ConfigError(
+                f"attack variant {name!r} (from {where}): no file {path}; known variants: "
+                f"{', '.join(known)}"
+            )
+        out.append((path.stem, path.resolve()))
+    if len({v for v, _ in out}) != len(out):
+        raise ConfigError(f"--attacks {spec!r} names a variant twice")
+    return sorted(out, key=lambda item: item[0] != "clean")
+
+
+def build_attack_loader(
+    data_cfg: Mapping,
+    class_names: Sequence[str],
+    attack_yaml: Path,
+    *,
+    batch_size: int,
+    dist: bool,
+    workers: int,
+    seed: int,
+    logger: logging.Logger | None = None,
+):
+    """``(dataset, loader)`` of the test split under one attack variant (in order, no shuffle)."""
+    dataset = DATASETS.get("AtlasWaymoDataset")(
+        dataset_cfg=data_cfg, class_names=class_names, attack_cfg=attack_yaml, training=False,
+        logger=logger,
+    )  # fmt: skip
+    sampler = None
+    if dist:
+        sampler = DistributedSampler(
+            dataset, num_replicas=torch_dist.get_world_size(), rank=torch_dist.get_rank(),
+            shuffle=False,
+        )  # fmt: skip
+    loader = DataLoader(
+        dataset, batch_size=batch_size, shuffle=False, sampler=sampler, num_workers=workers,
+        collate_fn=dataset.collate_batch, pin_memory=torch.cuda.is_available(),
+        worker_init_fn=partial(worker_init_fn, seed=seed), drop_last=False,
+    )  # fmt: skip
+    return dataset, loader
+
+
+def evaluate_variant(
+    model: torch.nn.Module,
+    variant: str,
+    attack_yaml: Path,
+    *,
+    data_cfg: Mapping,
+    class_names: Sequence[str],
+    device: torch.device,
+    batch_size: int,
+    dist: bool,
+    workers: int,
+    seed: int,
+    temporal_window: int | None,
+    clean_det_annos: Sequence[Mapping] | None,
+    out_dir: Path | None,
+    logger: logging.Logger | None = None,
+    show_progress: bool = True,
+) -> tuple[dict | None, list[dict]]:
+    """Predict one variant and score it.
+
+    Returns:
+        ``(entry, det_annos)``: the ``results.json`` variant entry (None on ranks > 0) and the
+        detections (every rank). ``out_dir/result.pkl`` holds the detections with each frame's
+        ``attack`` record (rank 0).
+    """
+    rank, _ = get_dist_info()
+    dataset, loader = build_attack_loader(
+        data_cfg, class_names, attack_yaml, batch_size=batch_size, dist=dist, workers=workers,
+        seed=seed, logger=logger,
+    )  # fmt: skip
+    timings: dict = {}
+    t0 = time.perf_counter()
+    det_annos, extras = predict_dataset(
+        model, loader, device=device, desc=variant, show_progress=show_progress, timings=timings
+    )
+    timings["predict_wall"] = time.perf_counter() - t0
+    if rank != 0:
+        return None, det_annos
+    attack_infos = [e["attack"] for e in extras]
+    for anno, info in zip(det_annos, attack_infos):
+        anno["attack"] = info
+    family = attack_infos[0]["family"] if attack_infos else dataset.attack.family
+    t1 = time.perf_counter()
+    _, ap_dict = dataset.evaluation(det_annos, class_names, eval_metric="waymo")
+    attack_metrics = None
+    if family != "clean":
+        attack_metrics = evaluate_attack(
+            det_annos, attack_infos, clean_det_annos=clean_det_annos, window=temporal_window,
+            recorded_window=getattr(dataset.attack, "window", None),
+        )  # fmt: skip
+    timings["metric"] = time.perf_counter() - t1
+    entry = build_variant_result(
+        variant, family=family, num_frames=len(det_annos), metrics=ap_dict,
+        class_names=class_names, attack=attack_metrics,
+        extra={"timing_s": {k: round(v, 3) for k, v in timings.items()}},
+    )  # fmt: skip
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        with open(out_dir / "result.pkl", "wb") as f:
+            pickle.dump(det_annos, f)
+    if logger is not None:
+        asr = entry["asr"]
+        logger.info(
+            f"{variant}: L2 mAP {entry['L2/mAP']:.4f} mAPH {entry['L2/mAPH']:.4f}"
+            + ("" if asr is None else f" ASR {asr:.4f} ({entry['num_targets']} targets)")
+            + f"  [data {timings.get('data', 0):.1f}s model {timings.get('model', 0):.1f}s "
+            f"metric {timings['metric']:.1f}s]"
+        )
+    return entry, det_annos
