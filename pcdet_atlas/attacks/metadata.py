@@ -11,7 +11,8 @@ One plain dict per frame, consumed by the evaluation (ASR, confidence, lifecycle
                                  #   W+1..2W clean frames after the run, -1 otherwise
      'target_box': np.float32 (7,) or None,  # phantom box (injection) / tracked + fired target
                                  #   (removal); on shadow frames the continued phantom / target
-     'target_is_shadow': bool,   # True on lifecycle frames that are not attacked
+     'target_is_shadow': bool,   # True on clean lifecycle frames that carry a shadow target
+                                 #   (the target_box is then set)
      'target_obj_id': str or None,
      'num_spoof_points': int,    # phantom points fed to the raycaster (injection)
      'num_visible': int,         # phantom points that survived the raycast (injection)
@@ -101,6 +102,10 @@ def validate_meta(meta: dict, where: str = "attack metadata") -> None:
         raise ValueError(f"{where}: target_box must be None or float32 (7,), got {box!r}")
     if meta["target_is_shadow"] and meta["spoofed"]:
         raise ValueError(f"{where}: a spoofed frame cannot carry a shadow target")
+    if meta["target_is_shadow"] and box is None:
+        raise ValueError(f"{where}: target_is_shadow is True but target_box is None")
+    if box is not None and not (meta["spoofed"] or meta["target_is_shadow"]):
+        raise ValueError(f"{where}: target_box on a frame neither spoofed nor shadow")
     if meta["spoofed"] != (meta["run_position"] >= 0):
         raise ValueError(
             f"{where}: spoofed={meta['spoofed']} but run_position={meta['run_position']}"

@@ -294,7 +294,7 @@ class RemovalAttack(BaseAttack):
     ) -> dict:
         tracked = run.track.get(frame_idx)
         if tracked is None or not tracked.tracked:
-            return self.meta(state, target_is_shadow=True, target_obj_id=run.target_obj_id)
+            return self.meta(state, target_obj_id=run.target_obj_id)  # lost: no shadow target
         return self.meta(
             state,
             target_box=tracked.box,

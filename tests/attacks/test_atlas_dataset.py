@@ -129,7 +129,7 @@ def test_lifecycle_metadata_over_a_run(synthetic_root):
         validate_meta(m)
         assert m["spoofed"] == (32 <= k <= 63)
         assert m["lifecycle_k"] == (k - 31 if 31 <= k <= 69 else -1)
-        assert m["target_is_shadow"] == (k == 31 or k >= 64)
+        assert m["target_is_shadow"] == ((k == 31 or k >= 64) and m["tracked"])
         if m["spoofed"]:
             assert (m["target_box"] is not None) == (m["tracked"] and m["fired"])
             assert m["run_position"] == k - 32 and m["run_id"] == 0
@@ -182,3 +182,26 @@ def test_visualize_attack_writes_png(synthetic_root, tmp_path):
 
     img = matplotlib.image.imread(out)
     assert img.shape[0] > 800 and img.shape[1] > 1200
+
+
+@pytest.mark.parametrize("variant", ["inj_rel_easy", "rem_40"])
+def test_metadata_feeds_the_attack_metrics(synthetic_root, library_path, variant):
+    """The evaluation consumes the metadata as produced: an oracle detector that outputs every
+    recorded target box gets ASR 1 for injection and 0 for removal."""
+    from pcdet_atlas.evaluation.attack_metrics import evaluate_attack
+
+    ds = make(synthetic_root, variant, library_path)
+    seq = ds.infos[0]["point_cloud"]["lidar_sequence"]
+    metas = [ds.frame_attack_meta(seq, k) for k in range(len(ds.infos))]
+    dets = []
+    for info, meta in zip(ds.infos, metas):
+        box = meta["target_box"]
+        boxes = np.zeros((0, 7), np.float32) if box is None else box[None]
+        names = np.array(["Vehicle"] * len(boxes))
+        scores = np.full(len(boxes), 0.9, np.float32)
+        dets.append(
+            {"frame_id": info["frame_id"], "name": names, "boxes_lidar": boxes, "score": scores}
+        )
+    out = evaluate_attack(dets, metas, window=32)
+    expected = 1.0 if variant.startswith("inj") else 0.0
+    assert out["family"] == metas[40]["family"] and out["asr"] == expected

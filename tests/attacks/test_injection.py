@@ -2,6 +2,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 from atlas_helpers import GROUND_Z, write_tiny_waymo
 
 from pcdet_atlas.attacks.base import SequenceData
@@ -213,3 +214,25 @@ def test_on_synthetic_data_phantom_sits_on_ground_and_stays_in_world(synthetic_r
         world.append(transform_boxes(box[None], seq.pose(k))[0])
     world = np.array(world)
     assert np.abs(world[:, :2] - world[0, :2]).max() <= 0.01
+
+
+@pytest.mark.parametrize(
+    "device",
+    [
+        "cpu",
+        pytest.param(
+            "cuda",
+            marks=[
+                pytest.mark.cuda,
+                pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device"),
+            ],
+        ),
+    ],
+)
+def test_raycast_device_gives_identical_frames(tiny, device):
+    root, lib, seq = tiny
+    ref = run_frames(make_attack(lib, "global", p_dual=0.3), seq, root, [47])[47][1]
+    attack = InjectionAttack("inj_test", lib, "global", BUDGETS["hard"], p_dual=0.3, device=device)
+    out = run_frames(attack, seq, root, [47])[47][1]
+    np.testing.assert_array_equal(out.keep, ref.keep)
+    np.testing.assert_array_equal(out.added, ref.added)
