@@ -138,3 +138,20 @@ def load_tool(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+_LIBRARIES: dict[str, Path] = {}
+
+
+def synthetic_library(root: Path, out_dir: Path) -> Path:
+    """The trace library of ``root`` built with the shipped injection filters, saved once per
+    session under ``out_dir`` (never inside the read-only fixture dataset)."""
+    from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
+    from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+
+    key = str(root)
+    if key not in _LIBRARIES or not _LIBRARIES[key].is_file():
+        cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "attacks" / "inj_rel_easy.yaml")
+        library = build_trace_library(root, TraceFilter.from_config(cfg.TRACE_LIBRARY))
+        _LIBRARIES[key] = library.save(Path(out_dir) / "synthetic_trace_library.npz")
+    return _LIBRARIES[key]

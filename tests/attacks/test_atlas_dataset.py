@@ -1,12 +1,11 @@
 import numpy as np
 import pytest
 import torch
-from atlas_helpers import load_tool, write_tiny_waymo
+from atlas_helpers import load_tool, synthetic_library, write_tiny_waymo
 
 from pcdet_atlas.attacks import COUNTERS
 from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
 from pcdet_atlas.attacks.metadata import validate_meta
-from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import WaymoDataset, collate_batch
 from pcdet_atlas.registry import DATASETS
@@ -24,9 +23,7 @@ def data_cfg(root, multiframe=False):
 
 @pytest.fixture(scope="module")
 def library_path(synthetic_root, tmp_path_factory):
-    cfg = cfg_from_yaml_file(ATTACKS / "inj_global_hard.yaml")
-    lib = build_trace_library(synthetic_root, TraceFilter.from_config(cfg.TRACE_LIBRARY))
-    return lib.save(tmp_path_factory.mktemp("atlas_lib") / "lib.npz")
+    return synthetic_library(synthetic_root, tmp_path_factory.mktemp("atlas_lib"))
 
 
 def attack_cfg(name, library_path=None):

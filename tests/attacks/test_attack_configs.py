@@ -4,10 +4,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from atlas_helpers import synthetic_library
 
 from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, SequenceData, build_attack
 from pcdet_atlas.attacks.metadata import validate_meta
-from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
 from pcdet_atlas.datasets.waymo_format import (
     frame_npy_path,
@@ -32,9 +32,7 @@ def test_the_twelve_variants_and_clean_are_shipped():
 
 @pytest.fixture(scope="module")
 def frame(synthetic_root, tmp_path_factory):
-    cfg = cfg_from_yaml_file(ATTACK_DIR / "inj_rel_easy.yaml")
-    lib = build_trace_library(synthetic_root, TraceFilter.from_config(cfg.TRACE_LIBRARY))
-    lib_path = lib.save(tmp_path_factory.mktemp("cfg_lib") / "lib.npz")
+    lib_path = synthetic_library(synthetic_root, tmp_path_factory.mktemp("cfg_lib"))
     name = read_image_set(synthetic_root / "ImageSets" / "val.txt")[0]
     seq = SequenceData(name, load_sequence_infos(sequence_pkl_path(synthetic_root, name)))
     points = load_frame_points(frame_npy_path(synthetic_root, name, 40))[:, :5]
@@ -116,7 +114,7 @@ class _DropEveryOther(BaseAttack):
         return FrameAttack(keep, np.zeros((0, 5), np.float32), meta)
 
     def shadow_meta(self, seq, frame_idx, run, state):
-        return self.meta(state, target_is_shadow=True)
+        return self.meta(state)  # no target, so no shadow target
 
 
 def test_new_family_is_one_registered_class_plus_yaml(tmp_path, frame):

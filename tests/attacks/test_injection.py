@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from atlas_helpers import GROUND_Z, write_tiny_waymo
+from atlas_helpers import GROUND_Z, synthetic_library, write_tiny_waymo
 
 from pcdet_atlas.attacks.base import SequenceData
 from pcdet_atlas.attacks.ground import GroundEstimator
@@ -199,8 +199,7 @@ def test_on_synthetic_data_phantom_sits_on_ground_and_stays_in_world(synthetic_r
     from pcdet_atlas.datasets.waymo_format import frame_npy_path, read_image_set
 
     cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs/attacks/inj_global_medium.yaml")
-    lib = build_trace_library(synthetic_root, TraceFilter.from_config(cfg.TRACE_LIBRARY))
-    cfg.TRACE_LIBRARY.PATH = str(lib.save(tmp_path / "lib.npz"))
+    cfg.TRACE_LIBRARY.PATH = str(synthetic_library(synthetic_root, tmp_path))
     attack = InjectionAttack.from_config(cfg)
     name = read_image_set(synthetic_root / "ImageSets" / "val.txt")[0]
     seq = SequenceData(name, load_sequence_infos(sequence_pkl_path(synthetic_root, name)))

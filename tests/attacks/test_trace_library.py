@@ -1,9 +1,10 @@
 import numpy as np
 import pytest
-from atlas_helpers import VEHICLES, load_tool, write_tiny_waymo
+from atlas_helpers import VEHICLES, load_tool, synthetic_library, write_tiny_waymo
 
 from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
+from pcdet_atlas.datasets.waymo_format import read_image_set
 
 
 @pytest.fixture(scope="module")
@@ -71,3 +72,14 @@ def test_build_tool_writes_under_data_root(tiny_root):
     assert out == tiny_root / "atlas_trace_library.npz"
     lib = TraceLibrary.load(out)
     assert len(lib) >= 1 and lib.build_info["split"] == "train"
+
+
+def test_library_of_the_synthetic_dataset(synthetic_root, tmp_path):
+    lib = TraceLibrary.load(synthetic_library(synthetic_root, tmp_path))
+    assert len(lib) >= 5 and set(lib.sequence) <= set(
+        read_image_set(synthetic_root / "ImageSets" / "train.txt")
+    )
+    for k in range(len(lib)):
+        tr = lib.trace(k)
+        assert len(tr) >= 200 and np.all(np.abs(tr.xyz) <= tr.box_size / 2 + 1e-3)
+        assert (tr.src_range > 1.0).all() and (tr.src_range <= 60.0).all()  # band [5, 50] + box
