@@ -58,34 +58,82 @@ def _rss_kib() -> int:
 
 def parse_args():
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--cfgs", nargs="*", default=None, help="model configs (default: all)")
+    p.add_argument(
+        "--cfgs", nargs="*", default=None, help="model configs (default: all; none: skip)"
+    )
     p.add_argument("--data_path", default=str(REPO_ROOT / "data" / "synthetic_waymo"))
     p.add_argument("--frames", type=int, default=5, help="timed frames per model")
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.add_argument("--eval", action="store_true", help="L2 mAP of trained models on the val split")
+    p.add_argument(
+        "--share_cfg", default=None,
+        help="also time a tools/test.py step of this model config on clean / injection / removal",
+    )  # fmt: skip
+    p.add_argument("--share_frames", type=int, default=8, help="frames from 32 on (a spoofed run)")
     return p.parse_args()
 
 
-def main() -> None:
-    args = parse_args()
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    device = torch.device(args.device)
-    cfg_files = args.cfgs or sorted(str(p) for p in (REPO_ROOT / "cfgs" / "atlas").rglob("*.yaml"))
-    data_path = Path(args.data_path)
-    tmp = None
-    if not (data_path / "ImageSets" / "val.txt").is_file():
-        from pcdet_atlas.datasets.synthetic import create_synthetic_waymo
+def test_step_shares(cfg_file: str, data_path: Path, frames: int, device: torch.device) -> None:
+    """Share of a test step spent in data loading, attack simulation, model and metric.
 
-        tmp = tempfile.TemporaryDirectory()
-        data_path = Path(tmp.name)
-        print(f"no dataset at {args.data_path}: generating a tiny one in {data_path}")
-        create_synthetic_waymo(
-            data_path, num_sequences={"train": 1, "val": 1},
-            frames_per_sequence={"train": 4, "val": args.frames + 4}, seed=0,
-        )  # fmt: skip
+    Frames ``32 .. 32 + frames`` of the val split (inside the first spoofed run) are served by
+    ``AtlasWaymoDataset`` for ``clean``, ``inj_global_hard`` and ``rem_40``; data loading of the
+    clean variant is plain loading, the rest of an attacked variant's data time is the attack.
+    """
+    from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
+    from pcdet_atlas.evaluation import evaluate_attack
+    from pcdet_atlas.train_utils.atlas_eval import build_attack_loader
+    from pcdet_atlas.train_utils.eval_utils import predict_dataset
 
+    cfg = cfg_from_yaml_file(cfg_file)
+    cfg.DATA_CONFIG.DATA_PATH = str(data_path)
+    cfg.DATA_CONFIG.SAMPLED_INTERVAL = {"train": 1, "test": 1}
+    torch.manual_seed(0)
+    model = build_network_from_config(cfg).to(device).eval()
+    attacks = REPO_ROOT / "cfgs" / "attacks"
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        inj = cfg_from_yaml_file(attacks / "inj_global_hard.yaml")
+        inj.TRACE_LIBRARY.MIN_POINTS = 100
+        lib = build_trace_library(data_path, TraceFilter.from_config(inj.TRACE_LIBRARY))
+        inj.TRACE_LIBRARY.PATH = str(lib.save(Path(tmp) / "lib.npz"))
+        variants = [("clean", attacks / "clean.yaml"), ("inj_global_hard", inj)]
+        variants.append(("rem_40", attacks / "rem_40.yaml"))
+        for name, attack_cfg in variants:
+            dataset, loader = build_attack_loader(
+                cfg.DATA_CONFIG, cfg.CLASS_NAMES, attack_cfg, batch_size=1, dist=False,
+                workers=0, seed=0,
+            )  # fmt: skip
+            if len(dataset.infos) < 32 + frames:
+                raise SystemExit(f"--share needs >= {32 + frames} val frames in {data_path}")
+            dataset.infos = dataset.infos[32 : 32 + frames]
+            timings: dict = {}
+            annos, extras = predict_dataset(
+                model, loader, device=device, show_progress=False, timings=timings
+            )
+            t0 = time.perf_counter()
+            dataset.evaluation(annos, cfg.CLASS_NAMES, eval_metric="waymo")
+            if name != "clean":
+                evaluate_attack(annos, [e["attack"] for e in extras], window=1)
+            timings["metric"] = time.perf_counter() - t0
+            rows.append((name, timings))
+    clean_data = rows[0][1]["data"]
+    print(f"\ntest step of {cfg_file}, {frames} frames (32..{31 + frames}), batch 1, {device}")
+    print("| variant | data loading | attack simulation | model | metric | s / frame |")
+    print("|---|---|---|---|---|---|")
+    for name, t in rows:
+        attack = max(0.0, t["data"] - clean_data) if name != "clean" else 0.0
+        load = t["data"] - attack
+        total = t["data"] + t["model"] + t["metric"]
+        shares = [100 * x / total for x in (load, attack, t["model"], t["metric"])]
+        print(
+            f"| {name} | " + " | ".join(f"{s:.0f}%" for s in shares) + f" | {total / frames:.2f} |"
+        )
+
+
+def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.device) -> None:
+    """Print latency / peak memory / L2 mAP of each config, models taking turns per frame."""
     runs = []
     for cfg_file in cfg_files:
         cfg = cfg_from_yaml_file(cfg_file)
@@ -167,6 +215,33 @@ def main() -> None:
             f"| {name} | {run['params'] / 1e6:.2f} | {run['points']:,.0f} | {med * 1e3:,.0f} "
             f"({med / fastest:.1f}x) | {lo:,.0f}-{hi:,.0f} | {run['peak_mib']:,.0f} | {mAP} |"
         )
+
+
+def main() -> None:
+    args = parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    all_cfgs = sorted(str(p) for p in (REPO_ROOT / "cfgs" / "atlas").rglob("*.yaml"))
+    cfg_files = all_cfgs if args.cfgs is None else args.cfgs
+    data_path = Path(args.data_path)
+    tmp = None
+    if not (data_path / "ImageSets" / "val.txt").is_file():
+        from pcdet_atlas.datasets.synthetic import create_synthetic_waymo
+
+        tmp = tempfile.TemporaryDirectory()
+        data_path = Path(tmp.name)
+        print(f"no dataset at {args.data_path}: generating a tiny one in {data_path}")
+        create_synthetic_waymo(
+            data_path, num_sequences={"train": 1, "val": 1},
+            frames_per_sequence={"train": 10, "val": max(args.frames + 2, 34 + args.share_frames)},
+            seed=0,
+        )  # fmt: skip
+
+    if cfg_files:
+        latency_table(cfg_files, data_path, args, device)
+    if args.share_cfg is not None:
+        test_step_shares(args.share_cfg, data_path, args.share_frames, device)
     if tmp is not None:
         tmp.cleanup()
 

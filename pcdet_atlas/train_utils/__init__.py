@@ -2,6 +2,7 @@
 
 from pcdet_atlas.train_utils.checkpoint import (
     checkpoint_state,
+    export_model_checkpoint,
     find_latest_checkpoint,
     load_checkpoint,
     save_checkpoint,
@@ -14,6 +15,7 @@ __all__ = [
     "TrainState",
     "checkpoint_state",
     "eval_one_epoch",
+    "export_model_checkpoint",
     "find_latest_checkpoint",
     "get_dist_info",
     "init_dist_pytorch",

@@ -17,7 +17,13 @@ from torch import nn
 from pcdet_atlas.models.detectors.detector3d_template import load_state_dict_checked
 from pcdet_atlas.version import __version__
 
-__all__ = ["checkpoint_state", "save_checkpoint", "load_checkpoint", "find_latest_checkpoint"]
+__all__ = [
+    "checkpoint_state",
+    "save_checkpoint",
+    "load_checkpoint",
+    "find_latest_checkpoint",
+    "export_model_checkpoint",
+]
 
 
 def _unwrap(model: nn.Module) -> nn.Module:
@@ -95,3 +101,13 @@ def find_latest_checkpoint(ckpt_dir: str | Path) -> Path | None:
         if m:
             found.append((int(m.group(1)), p))
     return max(found)[1] if found else None
+
+
+def export_model_checkpoint(src: str | Path, dst: str | Path) -> Path:
+    """Keep only ``epoch``, ``it``, ``model_state`` and ``version`` of a training checkpoint (the
+    small file a model zoo ships; ``tools/test.py`` and ``--pretrained_model`` read it)."""
+    ckpt = torch.load(src, map_location="cpu", weights_only=False)
+    if "model_state" not in ckpt:
+        raise KeyError(f"{src} is not a pcdet_atlas checkpoint (no 'model_state')")
+    keep = {k: ckpt[k] for k in ("epoch", "it", "model_state", "version") if k in ckpt}
+    return save_checkpoint(keep, dst)

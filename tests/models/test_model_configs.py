@@ -10,6 +10,7 @@ from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
 from pcdet_atlas.models import build_network, build_network_from_config, num_point_features_of
 from pcdet_atlas.models.detectors.detector3d_template import CheckpointMismatchError
 from pcdet_atlas.registry import DETECTORS
+from pcdet_atlas.train_utils import export_model_checkpoint
 
 CONFIGS = sorted((REPO_ROOT / "cfgs" / "atlas").rglob("*.yaml"))
 CELLS = 64  # smoke runs use a cropped grid of CELLS x CELLS pillars, same model widths
@@ -106,3 +107,7 @@ def test_checkpoint_mismatch_is_a_clear_error(tmp_path):
         cp4f.load_params_from_file(path)
     ckpt = cp.load_params_from_file(path)  # and a matching one loads strictly
     assert ckpt["epoch"] == 1
+    torch.save({"model_state": cp.state_dict(), "optimizer_state": {"x": torch.zeros(9)}}, path)
+    small = export_model_checkpoint(path, tmp_path / "small.pth")  # what a model zoo ships
+    assert "optimizer_state" not in torch.load(small, weights_only=False)
+    cp.load_params_from_file(small)
