@@ -60,6 +60,11 @@ def test_every_yaml_builds_and_runs(variant, frame):
     else:
         assert meta["family"] == "removal" and meta["tracked"]
         assert len(out) == len(points) - meta["num_removed"]
+    # an empty frame is legal input: it flows through (a phantom then stands on the fallback
+    # ground, alone in its rays)
+    empty = attack.simulate(np.zeros((0, 3), np.float32), seq, 40)
+    validate_meta(empty.meta)
+    assert empty.apply(np.zeros((0, 5), np.float32)).shape[1] == 5
 
 
 def _write(path: Path, text: str) -> Path:
