@@ -35,7 +35,7 @@ from pcdet_atlas.datasets.synthetic.raycast import (
 from pcdet_atlas.datasets.synthetic.scene import FRAME_DT, SyntheticScene
 from pcdet_atlas.datasets.synthetic.sensor import SensorModel
 from pcdet_atlas.utils.box_utils import points_in_boxes_mask
-from pcdet_atlas.utils.seeding import derive_seed, numpy_generator
+from pcdet_atlas.utils.seeding import derive_seed
 
 __all__ = [
     "GENERATOR_VERSION",
@@ -51,7 +51,7 @@ __all__ = [
     "DEFAULT_FRAMES_PER_SEQUENCE",
 ]
 
-GENERATOR_VERSION = "1.1"
+GENERATOR_VERSION = "1.2"
 META_FILE = "synthetic_meta.json"
 SPLITS = ("train", "val")
 
@@ -168,7 +168,7 @@ def generate_frame(
     surface[is_box] = prims.box_surface[hits.prim_id[is_box]]
     albedo[is_cyl] = prims.cyl_albedo[hits.prim_id[is_cyl] - nb]
     surface[is_cyl] = prims.cyl_surface[hits.prim_id[is_cyl] - nb]
-    rng = numpy_generator(*scene._keys, "frame", f, "sensor")
+    rng = scene.random_generator("frame", f, "sensor")
     ground = torch.nonzero(hits.prim_id == GROUND_ID).flatten()
     if ground.numel():
         local = origin[None] + hits.range_m[ground, None] * dirs[ground]

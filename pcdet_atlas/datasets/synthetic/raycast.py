@@ -226,8 +226,9 @@ def _windows(az_center, az_half, el_lo, el_hi, inclinations, num_columns):
     full = az_half >= math.pi - 1e-9
     lo = az_center - az_half
     hi = az_center + az_half
-    c_lo = torch.ceil((lo + math.pi) / width - 0.5 - 1e-6).long()
-    c_hi = torch.floor((hi + math.pi) / width - 0.5 + 1e-6).long()
+    # one extra column each side: float32 bounds of grazing rays must never cull a hit
+    c_lo = torch.ceil((lo + math.pi) / width - 0.5).long() - 1
+    c_hi = torch.floor((hi + math.pi) / width - 0.5).long() + 1
     n_col = c_hi - c_lo + 1
     full = full | (n_col >= num_columns)
     c_lo = torch.where(full, torch.zeros_like(c_lo), c_lo)
@@ -244,7 +245,7 @@ def _elevation_bounds(z_lo, z_hi, d_min, d_max, oz):
     bot = z_lo - oz
     el_hi = torch.where(top > 0, torch.atan2(top, d_min), torch.atan2(top, d_max))
     el_lo = torch.where(bot < 0, torch.atan2(bot, d_min), torch.atan2(bot, d_max))
-    margin = 1e-6
+    margin = 1e-4  # rad, far above float32 rounding of the bounds
     return el_lo - margin, el_hi + margin
 
 

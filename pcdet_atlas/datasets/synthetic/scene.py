@@ -169,7 +169,7 @@ class SyntheticScene:
         )
         self.times = np.arange(num_frames) * FRAME_DT
         self._keys = (self.seed, "synthetic_waymo", split, self.index)
-        rng = self._rng("layout")
+        rng = self.random_generator("layout")
         self.cross = CrossSection(lanes_per_direction=int(rng.choice([1, 2], p=[0.4, 0.6])))
         self._build_route(rng)
         self._build_ego()
@@ -177,7 +177,8 @@ class SyntheticScene:
         self._build_static()
         self._build_actors()
 
-    def _rng(self, *purpose) -> np.random.Generator:
+    def random_generator(self, *purpose) -> np.random.Generator:
+        """The numpy generator of this sequence for ``purpose`` (keys: seed, split, index, ...)."""
         return numpy_generator(*self._keys, *purpose)
 
     # ------------------------------------------------------------------ route and roads
@@ -238,7 +239,7 @@ class SyntheticScene:
         self.junction_centres = np.array(centres).reshape(-1, 2)
 
     def _build_ego(self):
-        rng = self._rng("ego")
+        rng = self.random_generator("ego")
         duration = self.num_frames * FRAME_DT
         stops = []
         for j, junc in enumerate(self.junctions):
@@ -273,7 +274,7 @@ class SyntheticScene:
 
     # ------------------------------------------------------------------ static world
     def _build_static(self):
-        rng = self._rng("static")
+        rng = self.random_generator("static")
         cross = self.cross
         hw = cross.half_width
         box_list, cyl_list = [], []  # (params, albedo, surface)
@@ -311,7 +312,7 @@ class SyntheticScene:
     def _build_no_label_zones(self):
         """0-2 off-road rectangles (e.g. a parking lot behind the sidewalk) flagged as Waymo
         no-label zones: their points get NLZ = 1 and nothing inside them is labelled."""
-        rng = self._rng("nlz")
+        rng = self.random_generator("nlz")
         cross = self.cross
         zones = []
         roads = [r for r in self.roads if r.kind != "fill"]
@@ -474,7 +475,7 @@ class SyntheticScene:
         return kind, parts, dims
 
     def _parked(self):
-        rng = self._rng("parked")
+        rng = self.random_generator("parked")
         cross = self.cross
         out = []
         for r_i, road in enumerate(self.roads):
@@ -523,7 +524,7 @@ class SyntheticScene:
         )
 
     def _route_traffic(self):
-        rng = self._rng("route_traffic")
+        rng = self.random_generator("route_traffic")
         cross = self.cross
         out = []
         for direction in (1, -1):
@@ -549,7 +550,7 @@ class SyntheticScene:
         return out
 
     def _cross_traffic(self):
-        rng = self._rng("cross_traffic")
+        rng = self.random_generator("cross_traffic")
         cross = self.cross
         hw = cross.half_width
         out = []
@@ -586,7 +587,7 @@ class SyntheticScene:
         return out
 
     def _cyclists(self):
-        rng = self._rng("cyclists")
+        rng = self.random_generator("cyclists")
         cross = self.cross
         out = []
         for k in range(int(rng.integers(1, 6))):
@@ -615,7 +616,7 @@ class SyntheticScene:
         return out
 
     def _pedestrians(self):
-        rng = self._rng("pedestrians")
+        rng = self.random_generator("pedestrians")
         cross = self.cross
         hw = cross.half_width
         out = []
