@@ -43,6 +43,15 @@ DEVICES = [
 ]
 
 
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Small tensors: one intra-op thread is fastest (and does not fight parallel jobs)."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
 def _sequences(root, split):
     lines = (root / "ImageSets" / f"{split}.txt").read_text().splitlines()
     return [wf.sequence_name_from_line(line) for line in lines]
