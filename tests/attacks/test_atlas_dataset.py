@@ -189,9 +189,10 @@ def test_metadata_feeds_the_attack_metrics(synthetic_root, library_path, variant
 
     ds = make(synthetic_root, variant, library_path)
     seq = ds.infos[0]["point_cloud"]["lidar_sequence"]
-    metas = [ds.frame_attack_meta(seq, k) for k in range(len(ds.infos))]
+    frames = [30, 31, 32, 33, 45, 62, 63, 64, 65, 69]  # clean, k = 0, spoofed, shadows
+    metas = [ds.frame_attack_meta(seq, k) for k in frames]
     dets = []
-    for info, meta in zip(ds.infos, metas):
+    for info, meta in zip([ds.infos[k] for k in frames], metas):
         box = meta["target_box"]
         boxes = np.zeros((0, 7), np.float32) if box is None else box[None]
         names = np.array(["Vehicle"] * len(boxes))
@@ -201,4 +202,4 @@ def test_metadata_feeds_the_attack_metrics(synthetic_root, library_path, variant
         )
     out = evaluate_attack(dets, metas, window=32)
     expected = 1.0 if variant.startswith("inj") else 0.0
-    assert out["family"] == metas[40]["family"] and out["asr"] == expected
+    assert out["family"] == metas[2]["family"] and out["asr"] == expected
