@@ -159,8 +159,13 @@ class BaseAttack(ABC):
     #: Family-specific YAML keys (beyond :data:`COMMON_KEYS`).
     config_keys: ClassVar[set[str]] = set()
 
-    def __init__(self, variant: str, seed: int = 0, window: int = sched.DEFAULT_WINDOW,
-                 run_cache_size: int = 64):  # fmt: skip
+    def __init__(
+        self,
+        variant: str,
+        seed: int = 0,
+        window: int = sched.DEFAULT_WINDOW,
+        run_cache_size: int = 64,
+    ):
         self.variant = str(variant)
         self.seed = int(seed)
         self.window = int(window)
