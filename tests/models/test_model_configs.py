@@ -87,6 +87,14 @@ def test_unknown_model_key_names_key_and_file(tmp_path):
         build_network_from_config(cfg)
 
 
+def test_bad_stage_value_names_section_and_file(tmp_path):
+    path = tmp_path / "bad.yaml"
+    src = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml"
+    path.write_text(f"_BASE_CONFIG_: {src}\nMODEL:\n  VFE:\n    VOXEL_SIZE: [0.7, 0.7, 6.0]\n")
+    with pytest.raises(ConfigError, match=r"MODEL\.VFE \(.*bad\.yaml.*whole number of voxels"):
+        build_network_from_config(cfg_from_yaml_file(path))
+
+
 def test_wrong_point_columns_raise():
     cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml")
     model = cropped_model(cfg)

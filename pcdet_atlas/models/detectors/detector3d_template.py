@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from pcdet_atlas.config import check_known_keys, require_keys
+from pcdet_atlas.config import ConfigError, check_known_keys, key_source, require_keys
 from pcdet_atlas.registry import MODEL_STAGES
 
 # stage attribute -> its section in MODEL (OpenPCDet's names)
@@ -119,7 +119,15 @@ class Detector3DTemplate(nn.Module):
                 continue
             require_keys(section, ["NAME"], f"MODEL.{STAGE_CFG_KEYS[name]}")
             stage_cls = MODEL_STAGES.get(section["NAME"])
-            stages[name] = stage_cls.from_config(section, info)
+            try:
+                stages[name] = stage_cls.from_config(section, info)
+            except ConfigError:
+                raise
+            except ValueError as err:  # a value the stage rejects: say which section and file
+                files = sorted({key_source(section, k) for k in section} - {"<unknown>"})
+                raise ConfigError(
+                    f"MODEL.{STAGE_CFG_KEYS[name]} ({', '.join(files) or 'built in code'}): {err}"
+                ) from err
             stage_model_info(stages[name], name, info)
         return cls(class_names=class_names, **stages)
 
