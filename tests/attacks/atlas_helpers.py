@@ -64,8 +64,11 @@ def _box_surface_points(box: np.ndarray, n: int, rng: np.random.Generator) -> np
     return np.stack([x, y, u[:, 2] + box[2]], axis=1)
 
 
-def write_tiny_waymo(root: Path, frames: dict[str, int] | None = None, seed: int = 0) -> Path:
-    """Write train/val sequences (``{'train': F, 'val': G}`` frames) under ``root``."""
+def write_tiny_waymo(
+    root: Path, frames: dict[str, int] | None = None, seed: int = 0, nlz_every: int = 0
+) -> Path:
+    """Write train/val sequences (``{'train': F, 'val': G}`` frames) under ``root``; with
+    ``nlz_every = n`` every n-th point is flagged as inside a no-label zone (NLZ = 1)."""
     frames = frames or {"train": 12, "val": 70}
     root = Path(root)
     (root / "ImageSets").mkdir(parents=True, exist_ok=True)
@@ -102,6 +105,8 @@ def write_tiny_waymo(root: Path, frames: dict[str, int] | None = None, seed: int
             feats[:, 3] = rng.uniform(0.05, 0.6, xyz.shape[0])
             feats[:, 4] = rng.uniform(0.0, 0.2, xyz.shape[0])
             feats[:, 5] = -1
+            if nlz_every:
+                feats[::nlz_every, 5] = 1
             wf.save_frame_points(wf.frame_npy_path(root, seq, k), feats)
             annos = wf.make_annos(
                 names, [1] * len(names), np.array(locs), np.array(dims), heads, ids, npts,

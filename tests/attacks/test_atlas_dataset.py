@@ -136,8 +136,9 @@ def test_lifecycle_metadata_over_a_run(synthetic_root):
     assert sum(i == ids[0] for i in ids) >= 0.95 * len(ids)  # one object tracked throughout
 
 
-def test_generate_atlas_roundtrip_and_resume(tmp_path):
-    root = write_tiny_waymo(tmp_path / "tiny", frames={"train": 6, "val": 66})
+@pytest.mark.parametrize("keep_nlz", [True, False])
+def test_generate_atlas_roundtrip_and_resume(tmp_path, keep_nlz):
+    root = write_tiny_waymo(tmp_path / "tiny", frames={"train": 6, "val": 66}, nlz_every=7)
     load_tool("build_trace_library").main(
         ["--cfg", str(ATTACKS / "inj_rel_hard.yaml"), "--data_path", str(root),
          "--set", "TRACE_LIBRARY.MIN_POINTS", "100"]
@@ -145,7 +146,7 @@ def test_generate_atlas_roundtrip_and_resume(tmp_path):
     cfg_path = tmp_path / "data.yaml"
     cfg_path.write_text(
         f"_BASE_CONFIG_: {REPO_ROOT / 'cfgs/dataset_configs/synthetic_waymo.yaml'}\n"
-        f"DATA_PATH: {root}\n"
+        f"DATA_PATH: {root}\nDISABLE_NLZ_FLAG_ON_POINTS: {keep_nlz}\n"
     )
     out = tmp_path / "out"
     args = ["--data_cfg", str(cfg_path), "--attack", str(ATTACKS / "inj_rel_hard.yaml"),
@@ -154,11 +155,17 @@ def test_generate_atlas_roundtrip_and_resume(tmp_path):
     gen.main(args)
     cfg = cfg_from_yaml_file(ATTACKS / "inj_rel_hard.yaml")
     cfg.TRACE_LIBRARY.MIN_POINTS = 100
-    live = AtlasWaymoDataset(data_cfg(root), CLASSES, cfg, root_path=root)
-    written = WaymoDataset(data_cfg(out), CLASSES, training=False, root_path=out)
+    live_cfg, out_cfg = cfg_from_yaml_file(cfg_path), cfg_from_yaml_file(cfg_path)
+    out_cfg.DATA_PATH = str(out)
+    live = AtlasWaymoDataset(live_cfg, CLASSES, cfg, root_path=root)
+    written = WaymoDataset(out_cfg, CLASSES, training=False, root_path=out)
     seq = live.infos[0]["point_cloud"]["lidar_sequence"]
     for k in (10, 31, 32, 50, 63, 65):
         np.testing.assert_array_equal(written.get_lidar(seq, k), live.get_lidar(seq, k))
+    src_rows = np.load(root / "waymo_processed_data_v0_5_0" / seq / "0050.npy")
+    out_rows = np.load(out / "waymo_processed_data_v0_5_0" / seq / "0050.npy")
+    if not keep_nlz:  # rows the loader drops are written back untouched
+        np.testing.assert_array_equal(src_rows[src_rows[:, 5] == 1], out_rows[out_rows[:, 5] == 1])
     meta = __import__("pickle").load(open(out / "atlas_attack_metadata.pkl", "rb"))
     assert meta["variant"] == "inj_rel_hard" and len(meta["frames"]) == 66
     frame_40 = written.infos[40]["frame_id"]
