@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from model_batches import make_batch
+from model_batches import DEVICES, make_batch
 
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
 from pcdet_atlas.models import build_network, build_network_from_config, num_point_features_of
@@ -119,3 +119,21 @@ def test_checkpoint_mismatch_is_a_clear_error(tmp_path):
     small = export_model_checkpoint(path, tmp_path / "small.pth")  # what a model zoo ships
     assert "optimizer_state" not in torch.load(small, weights_only=False)
     cp.load_params_from_file(small)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_device_generic_and_autocast(device):
+    cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "cp4f.yaml")
+    torch.manual_seed(0)
+    model = cropped_model(cfg).to(device).train()
+    batch = make_batch(num_point_features=6, with_velocity=True, device=device)
+    amp_dtype = torch.bfloat16 if device == "cpu" else torch.float16
+    for amp in (False, True):
+        with torch.autocast(device_type=device, dtype=amp_dtype, enabled=amp):
+            losses = model.loss(batch)
+        assert losses["loss"].dtype == torch.float32 and torch.isfinite(losses["loss"])
+        losses["loss"].backward()
+    model.eval()
+    preds = model.predict(batch)
+    assert preds[0]["pred_boxes"].device.type == device
+    assert preds[0]["pred_boxes"].dtype == torch.float32
