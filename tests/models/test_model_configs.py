@@ -137,3 +137,14 @@ def test_device_generic_and_autocast(device):
     preds = model.predict(batch)
     assert preds[0]["pred_boxes"].device.type == device
     assert preds[0]["pred_boxes"].dtype == torch.float32
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: str(p.relative_to(REPO_ROOT / "cfgs")))
+def test_shipped_checkpoint_loads_strictly(path: Path):
+    cfg = cfg_from_yaml_file(path)
+    ckpt = cfg.get("ATLAS", {}).get("CHECKPOINT")
+    if ckpt is None:
+        pytest.skip("this config ships no checkpoint (ATLAS.CHECKPOINT: null)")
+    if not (REPO_ROOT / ckpt).is_file():
+        pytest.skip(f"{ckpt} is not trained yet (docs/model_zoo.md)")
+    build_network_from_config(cfg).load_params_from_file(REPO_ROOT / ckpt, strict=True)
