@@ -590,7 +590,7 @@ class SyntheticScene:
         rng = self.random_generator("cyclists")
         cross = self.cross
         out = []
-        for k in range(int(rng.integers(1, 6))):
+        for k in range(int(rng.integers(3, 10))):
             road = (
                 self.roads[0] if rng.uniform() < 0.7 else self.roads[rng.integers(len(self.roads))]
             )
