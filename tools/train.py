@@ -85,7 +85,14 @@ def main(argv=None) -> dict:
     state = TrainState()
     resume = args.ckpt or find_latest_checkpoint(ckpt_dir)
     if resume is not None:
+        total_steps = getattr(scheduler, "total_steps", None)
         ckpt = load_checkpoint(resume, model, optimizer, scheduler, scaler)
+        if total_steps is not None and scheduler.total_steps != total_steps:
+            raise ValueError(
+                f"{resume} was trained on a {scheduler.total_steps}-step schedule; this run has "
+                f"{total_steps} steps ({epochs} epochs x {len(loader)} iterations): resume with "
+                "the original --epochs and --batch_size"
+            )
         state = TrainState(epoch=ckpt["epoch"], it=ckpt["it"])
         logger.info(f"resumed from {resume} (epoch {state.epoch}, iteration {state.it})")
     elif args.pretrained_model is not None:

@@ -135,7 +135,9 @@ def evaluate_variant(
         anno["attack"] = info
     family = attack_infos[0]["family"] if attack_infos else dataset.attack.family
     t1 = time.perf_counter()
-    _, ap_dict = dataset.evaluation(det_annos, class_names, eval_metric="waymo")
+    ap_dict = None  # a split without labels (Waymo test) gets attack metrics only
+    if dataset.infos and "annos" in dataset.infos[0]:
+        _, ap_dict = dataset.evaluation(det_annos, class_names, eval_metric="waymo")
     attack_metrics = None
     if family != "clean":
         attack_metrics = evaluate_attack(
@@ -153,9 +155,10 @@ def evaluate_variant(
         with open(out_dir / "result.pkl", "wb") as f:
             pickle.dump(det_annos, f)
     if logger is not None:
-        asr = entry["asr"]
+        asr, l2 = entry["asr"], entry["L2/mAP"]
         logger.info(
-            f"{variant}: L2 mAP {entry['L2/mAP']:.4f} mAPH {entry['L2/mAPH']:.4f}"
+            f"{variant}: "
+            + ("no labels" if l2 is None else f"L2 mAP {l2:.4f} mAPH {entry['L2/mAPH']:.4f}")
             + ("" if asr is None else f" ASR {asr:.4f} ({entry['num_targets']} targets)")
             + f"  [data {timings.get('data', 0):.1f}s model {timings.get('model', 0):.1f}s "
             f"metric {timings['metric']:.1f}s]"
