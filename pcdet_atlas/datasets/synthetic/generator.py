@@ -51,7 +51,7 @@ __all__ = [
     "DEFAULT_FRAMES_PER_SEQUENCE",
 ]
 
-GENERATOR_VERSION = "1.3"
+GENERATOR_VERSION = "1.4"
 META_FILE = "synthetic_meta.json"
 SPLITS = ("train", "val")
 

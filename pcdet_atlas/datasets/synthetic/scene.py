@@ -410,7 +410,7 @@ class SyntheticScene:
                     crown = rng.uniform(1.3, 2.2)
                     top = trunk + rng.uniform(2.5, 4.5)
                     cyl_list.append(
-                        ([x, y, trunk - 0.4, top, crown], rng.uniform(0.1, 0.25), SURFACE_FOLIAGE)
+                        ([x, y, trunk, top, crown], rng.uniform(0.1, 0.25), SURFACE_FOLIAGE)
                     )
                 else:  # sign on a post facing the oncoming traffic of this side
                     plate_w, plate_h = rng.uniform(0.6, 0.9), rng.uniform(0.6, 0.9)

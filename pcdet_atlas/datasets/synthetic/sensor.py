@@ -40,7 +40,7 @@ class SensorModel:
     glass_drop_prob: float = 0.5
     foliage_drop_prob: float = 0.3
     foliage_range_std_m: float = 0.08
-    weak_return_power: float = 2.0e-4  # P0 of the detection model, albedo * cos * (10 m / r)^2
+    weak_return_power: float = 8.0e-5  # P0 of the detection model, albedo * cos * (10 m / r)^2
     retro_intensity: float = 6.0
 
     @classmethod
