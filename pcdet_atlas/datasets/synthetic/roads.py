@@ -173,7 +173,8 @@ class Road:
 
 @dataclass
 class RoadMap:
-    """Nearest-centerline lookup over all roads of a scene (0.5 m samples)."""
+    """Road lookups over all roads of a scene: distance to the nearest centerline (KD-tree of
+    0.5 m samples, for placing objects) and exact lateral offsets (for the ground material)."""
 
     roads: list[Road]
     cross: CrossSection
@@ -182,17 +183,12 @@ class RoadMap:
     _tree: cKDTree = field(init=False, repr=False)
 
     def __post_init__(self):
-        xy, heading, s = [], [], []
+        xy = []
         for road in self.roads:
             n = max(2, int(np.ceil((road.s_end - road.s_start) / self.spacing)) + 1)
-            ss = np.linspace(road.s_start, road.s_end, n)
-            x, y, h = road.path.pose(ss)
+            x, y, _ = road.path.pose(np.linspace(road.s_start, road.s_end, n))
             xy.append(np.stack([x, y], 1))
-            heading.append(h)
-            s.append(ss)
         self.sample_xy = np.concatenate(xy)
-        self.sample_heading = np.concatenate(heading)
-        self.sample_s = np.concatenate(s)
         self._tree = cKDTree(self.sample_xy)
         self._bounds = []
         for road in self.roads:
