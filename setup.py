@@ -27,7 +27,7 @@ setup(
         "scipy>=1.10",
     ],
     extras_require={
-        "test": ["pytest>=7", "hypothesis>=6.80", "shapely>=2.0", "ruff>=0.4"],
+        "test": ["pytest>=7", "hypothesis>=6.80", "shapely>=2.0", "ruff==0.17.5"],
         # The official metric pins TF 2.13 / numpy 1.23; install it in its own venv
         # (tools/official_waymo_metric/ does this); listed here for completeness.
         "waymo": ["waymo-open-dataset-tf-2-12-0==1.6.7"],
