@@ -29,9 +29,10 @@ def predict_dataset(
 
     Returns:
         ``(det_annos, extras)``: one OpenPCDet anno dict per frame of ``dataloader.dataset``
-        (``frame_id`` order of ``dataset.infos``), and per frame the batch keys ``attack`` /
-        ``gt_boxes``-free metadata the caller may need (``{'frame_id', 'attack'}``).
-        ``timings`` (if given) accumulates seconds under ``'data'`` and ``'model'``.
+        (``frame_id`` order of ``dataset.infos``), and per frame ``{'frame_id', 'attack'}``
+        (the attack record of an ``AtlasWaymoDataset`` sample, None for a clean dataset).
+        ``timings`` (if given) accumulates seconds under ``'data'`` (loading, attack
+        simulation included) and ``'model'``.
     """
     dataset = dataloader.dataset
     rank, world = get_dist_info()
