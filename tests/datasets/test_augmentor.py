@@ -19,7 +19,11 @@ from pcdet_atlas.datasets.augmentor.box_ops import (
     boxes_bev_overlap,
 )
 from pcdet_atlas.datasets.augmentor.gt_sampling import GTSampling
-from pcdet_atlas.datasets.augmentor.processors import ShufflePoints, mask_points_by_range
+from pcdet_atlas.datasets.augmentor.processors import (
+    ShufflePoints,
+    mask_boxes_outside_range,
+    mask_points_by_range,
+)
 from pcdet_atlas.datasets.augmentor.world_transforms import (
     RandomWorldFlip,
     RandomWorldRotation,
@@ -134,6 +138,19 @@ def test_mask_points_by_range_is_bev_unless_filter_z():
     rng = [-10, -10, -2, 10, 10, 4]
     np.testing.assert_array_equal(mask_points_by_range(pts, rng), [True, True, False])
     np.testing.assert_array_equal(mask_points_by_range(pts, rng, True), [False, True, False])
+
+
+def test_mask_boxes_by_corners_counts_all_8_corners_as_openpcdet():
+    # OpenPCDet counts the xy of all 8 box corners (each BEV corner twice): a box with one
+    # BEV corner in range has 2 corners in range, so min_num_corners=2 keeps it.
+    rng = [-10, -10, -2, 10, 10, 4]
+    box = np.array([[10.5, 10.5, 0, 2, 2, 2, 0]])  # only its corner (9.5, 9.5) is inside
+    keep = mask_boxes_outside_range(box, rng, min_num_corners=2, use_center_to_filter=False)
+    np.testing.assert_array_equal(keep, [True])
+    keep = mask_boxes_outside_range(box, rng, min_num_corners=3, use_center_to_filter=False)
+    np.testing.assert_array_equal(keep, [False])
+    keep = mask_boxes_outside_range(box, rng, min_num_corners=1, use_center_to_filter=True)
+    np.testing.assert_array_equal(keep, [False])  # centre outside
 
 
 def test_shuffle_is_a_permutation():

@@ -35,13 +35,14 @@ def mask_boxes_outside_range(
     boxes: np.ndarray, limit_range, min_num_corners: int = 1, use_center_to_filter: bool = True
 ) -> np.ndarray:
     """``(M,)`` bool: boxes to keep. By centre (inside the 3D range), or else by the number of
-    BEV corners inside the xy range (at least ``min_num_corners``), as OpenPCDet."""
+    the 8 box corners whose xy lies inside the xy range (at least ``min_num_corners``; each
+    BEV corner counts twice, bottom and top), as OpenPCDet."""
     r = np.asarray(limit_range, dtype=np.float64)
     boxes = np.asarray(boxes, dtype=np.float64)
     if use_center_to_filter:
         centers = boxes[:, 0:3]
         return ((centers >= r[0:3]) & (centers <= r[3:6])).all(axis=-1)
-    corners = boxes_to_corners_3d(boxes[:, :7])[:, :4, 0:2]  # (M, 4, 2) BEV corners
+    corners = boxes_to_corners_3d(boxes[:, :7])[:, :, 0:2]  # (M, 8, 2) xy of all 8 corners
     inside = ((corners >= r[0:2]) & (corners <= r[3:5])).all(axis=2)
     return inside.sum(axis=1) >= min_num_corners
 
