@@ -8,8 +8,9 @@ one is generated in a temporary folder if it is missing) through each config's o
 ``WaymoDataset`` pipeline (test mode, 1 or 4 frames), so the models see realistic clouds. Every
 model runs ``predict`` on the same frames, batch size 1, after one warm-up frame; the models take
 turns frame by frame so that machine load hits them alike. Latency covers voxelization to NMS
-(not data loading). Peak memory: CUDA ``max_memory_allocated`` on GPU; on CPU the rise of the
-process's peak resident set (``VmHWM``, reset between models through ``/proc/self/clear_refs``).
+(not data loading). Peak memory of one ``predict`` is measured in a fresh process per model (so no
+model reuses memory another freed): CUDA ``max_memory_allocated``, or on CPU the rise of the
+process's peak resident set (``VmHWM``, reset through ``/proc/self/clear_refs``).
 With ``--eval``, a model whose ``ATLAS.CHECKPOINT`` exists is evaluated (Waymo L2 mAP) on the
 val split of ``--data_path``; without a checkpoint the model runs with random weights and the
 column says "not yet trained".
@@ -18,6 +19,7 @@ column says "not yet trained".
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import statistics
 import tempfile
 import time
@@ -54,6 +56,35 @@ def _rss_kib() -> int:
         if line.startswith("VmRSS:"):
             return int(line.split()[1])
     return 0
+
+
+def _peak_memory_mib(cfg_file: str, data_path: str, device: str, trained: bool) -> float:
+    """Peak memory of one ``predict`` on the first val frame, in a fresh process (MiB).
+
+    CUDA: ``max_memory_allocated`` above what model and batch hold. CPU: rise of the process's
+    peak resident set (``VmHWM``, reset just before) above its resident set before the call.
+    """
+    cfg = cfg_from_yaml_file(cfg_file)
+    cfg.DATA_CONFIG.DATA_PATH = data_path
+    dev = torch.device(device)
+    _, loader, _ = build_dataloader(
+        cfg.DATA_CONFIG, cfg.CLASS_NAMES, 1, False, workers=0, training=False
+    )
+    batch = load_data_to_device(next(iter(loader)), dev)
+    torch.manual_seed(0)
+    model = build_network_from_config(cfg).to(dev).eval()
+    if trained:
+        model.load_params_from_file(REPO_ROOT / cfg.ATLAS.CHECKPOINT)
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+        torch.cuda.reset_peak_memory_stats(dev)
+        base = torch.cuda.memory_allocated(dev)
+        model.predict(batch)
+        return (torch.cuda.max_memory_allocated(dev) - base) / 2**20
+    base, ok = _rss_kib(), _reset_hwm()
+    model.predict(batch)
+    hwm = _read_hwm_kib()
+    return (hwm - base) / 1024 if ok and hwm is not None else float("nan")
 
 
 def parse_args():
@@ -159,18 +190,13 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
              "params": sum(p.numel() for p in model.parameters())}
         )  # fmt: skip
 
-    for run in runs:  # warm-up and peak memory, one model at a time
-        if device.type == "cuda":
-            torch.cuda.reset_peak_memory_stats(device)
-            base = torch.cuda.memory_allocated(device)
-        else:
-            base, ok = _rss_kib(), _reset_hwm()
+    ctx = multiprocessing.get_context("spawn")
+    for run in runs:  # peak memory in a fresh process per model (no allocator reuse), warm-up
+        with ctx.Pool(1) as pool:
+            run["peak_mib"] = pool.apply(
+                _peak_memory_mib, (run["cfg"], str(data_path), str(device), run["trained"])
+            )
         run["model"].predict(run["batches"][0])
-        if device.type == "cuda":
-            run["peak_mib"] = (torch.cuda.max_memory_allocated(device) - base) / 2**20
-        else:
-            hwm = _read_hwm_kib()
-            run["peak_mib"] = (hwm - base) / 1024 if ok and hwm is not None else float("nan")
     for i in range(1, args.frames + 1):  # models take turns frame by frame
         for run in runs:
             batch = run["batches"][min(i, len(run["batches"]) - 1)]
