@@ -28,6 +28,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pcdet_atlas.attacks import schedule as sched
+from pcdet_atlas.attacks.config_values import config_value
 from pcdet_atlas.attacks.metadata import make_meta
 from pcdet_atlas.attacks.tracking import FrameLabels
 from pcdet_atlas.config import ConfigError, cfg_from_yaml_file, check_known_keys, key_source
@@ -192,8 +193,16 @@ class BaseAttack(ABC):
             )
         return {
             "variant": str(variant),
-            "seed": int(cfg.get("SEED", 0)),
-            "window": int(schedule_cfg.get("WINDOW", sched.DEFAULT_WINDOW)),
+            "seed": config_value(cfg, "SEED", int, default=0, expected="an integer"),
+            "window": config_value(
+                schedule_cfg,
+                "WINDOW",
+                int,
+                "SCHEDULE",
+                default=sched.DEFAULT_WINDOW,
+                valid=lambda w: w >= 1,
+                expected="a positive integer (frames)",
+            ),
         }
 
     # ------------------------------------------------------------------ schedule

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pcdet_atlas.attacks.config_values import config_files, config_value
 from pcdet_atlas.config import ConfigError, check_known_keys
 
 __all__ = ["GroundEstimator"]
@@ -81,10 +82,15 @@ class GroundEstimator:
             "MAX_ABS_Z": "max_abs_z",
         }
         check_known_keys(cfg, keys, "GROUND")
+        kwargs = {
+            name: config_value(cfg, key, int if key == "MIN_POINTS" else float, "GROUND")
+            for key, name in keys.items()
+            if key in cfg
+        }
         try:
-            return cls(**{keys[k]: v for k, v in cfg.items()})
-        except (TypeError, ValueError) as err:
-            raise ConfigError(f"GROUND: {err}") from err
+            return cls(**kwargs)
+        except ValueError as err:
+            raise ConfigError(f"GROUND ({config_files(cfg)}): {err}") from err
 
     def __call__(self, scene_xyz: np.ndarray, center_xy) -> GroundEstimate:
         """Ground height at ``center_xy`` (2,) from ``(N, 3+)`` scene points (vehicle frame)."""

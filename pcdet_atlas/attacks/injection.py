@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, ScheduleState, SequenceData
+from pcdet_atlas.attacks.config_values import config_files, config_value
 from pcdet_atlas.attacks.counters import COUNTERS
 from pcdet_atlas.attacks.ground import GroundEstimator
 from pcdet_atlas.attacks.intensity import RangeIntensityModel
@@ -106,10 +107,16 @@ def sample_phantom(
 
 
 def _range_pair(cfg: Mapping, key: str, default, cast=float) -> tuple:
-    val = cfg.get(key, default)
-    if not isinstance(val, (list, tuple)) or len(val) != 2 or cast(val[0]) > cast(val[1]):
-        raise ConfigError(f"{key} must be [lo, hi] with lo <= hi, got {val!r}")
-    return cast(val[0]), cast(val[1])
+    def pair(val) -> tuple:
+        if not isinstance(val, (list, tuple)) or len(val) != 2:
+            raise ValueError(val)
+        return cast(val[0]), cast(val[1])
+
+    kind = "integers" if cast is int else "numbers"
+    return config_value(
+        cfg, key, pair, default=default, valid=lambda v: v[0] <= v[1],
+        expected=f"[lo, hi], two {kind} with lo <= hi",
+    )  # fmt: skip
 
 
 @ATTACKS.register()
@@ -199,14 +206,27 @@ class InjectionAttack(BaseAttack):
         try:
             return cls(
                 library=path,
-                position_mode=str(cfg["POSITION_MODE"]),
+                position_mode=config_value(
+                    cfg,
+                    "POSITION_MODE",
+                    str,
+                    valid=lambda m: m in POSITION_MODES,
+                    expected=f"one of {POSITION_MODES}",
+                ),  # fmt: skip
                 budget=_range_pair(cfg, "BUDGET", None, int),
                 offset_x=_range_pair(cfg, "OFFSET_X", (15.0, 20.0)),
                 offset_y=_range_pair(cfg, "OFFSET_Y", (-3.0, 3.0)),
                 yaw_range=_range_pair(cfg, "YAW", (-0.2, 0.2)),
                 ground=GroundEstimator.from_config(cfg.get("GROUND")),
                 intensity=RangeIntensityModel.from_config(cfg.get("INTENSITY")),
-                p_dual=float(cfg.get("P_DUAL", 0.01)),
+                p_dual=config_value(
+                    cfg,
+                    "P_DUAL",
+                    float,
+                    default=0.01,
+                    valid=lambda p: 0.0 <= p <= 1.0,
+                    expected="a probability in [0, 1]",
+                ),  # fmt: skip
                 lidar=LidarModel.from_config(cfg.get("LIDAR")),
                 device=str(cfg.get("DEVICE", "cpu")),
                 trace_filter=trace_filter,
@@ -215,7 +235,7 @@ class InjectionAttack(BaseAttack):
         except ValueError as err:
             if isinstance(err, ConfigError):
                 raise
-            raise ConfigError(f"{kwargs['variant']}: {err}") from err
+            raise ConfigError(f"{kwargs['variant']} ({config_files(cfg)}): {err}") from err
 
     @property
     def library(self) -> TraceLibrary:

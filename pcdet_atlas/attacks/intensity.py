@@ -24,6 +24,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from pcdet_atlas.attacks.config_values import config_files, config_value
 from pcdet_atlas.config import ConfigError, check_known_keys
 
 __all__ = ["RangeIntensityModel"]
@@ -69,10 +70,17 @@ class RangeIntensityModel:
             "MAX_ELONGATION": "max_elongation",
         }
         check_known_keys(cfg, keys, "INTENSITY")
+        kwargs = {name: config_value(cfg, key, float, "INTENSITY") for key, name in keys.items()
+                  if key in cfg}  # fmt: skip
+        if "MIN_RANGE" in cfg:
+            kwargs["min_range"] = config_value(
+                cfg, "MIN_RANGE", float, "INTENSITY", valid=lambda r: r > 0,
+                expected="a positive range in metres",
+            )  # fmt: skip
         try:
-            return cls(**{keys[k]: v for k, v in cfg.items()})
-        except (TypeError, ValueError) as err:
-            raise ConfigError(f"INTENSITY: {err}") from err
+            return cls(**kwargs)
+        except ValueError as err:
+            raise ConfigError(f"INTENSITY ({config_files(cfg)}): {err}") from err
 
     def __call__(
         self,

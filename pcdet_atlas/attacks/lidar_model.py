@@ -12,6 +12,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
+from pcdet_atlas.attacks.config_values import config_value
 from pcdet_atlas.config import ConfigError, check_known_keys
 
 __all__ = ["LidarModel", "WAYMO_TOP_FOV_DEG", "waymo_top_inclinations_deg"]
@@ -157,10 +158,19 @@ class LidarModel:
         if "INCLINATIONS" in cfg and "INCLINATIONS_DEG" in cfg:
             raise ConfigError("LIDAR: give INCLINATIONS (rad) or INCLINATIONS_DEG, not both")
         kwargs = {
-            "azimuth_bins": int(cfg.get("AZIMUTH_BINS", WAYMO_AZIMUTH_BINS)),
-            "origin": tuple(cfg.get("ORIGIN", WAYMO_TOP_ORIGIN)),
-            "max_range": float(cfg.get("MAX_RANGE", 75.0)),
-        }
+            "azimuth_bins": config_value(
+                cfg, "AZIMUTH_BINS", int, "LIDAR", WAYMO_AZIMUTH_BINS,
+                valid=lambda m: m >= 1, expected="a positive integer",
+            ),
+            "origin": config_value(
+                cfg, "ORIGIN", lambda o: tuple(float(v) for v in o), "LIDAR", WAYMO_TOP_ORIGIN,
+                valid=lambda o: len(o) == 3, expected="[x, y, z] in metres",
+            ),
+            "max_range": config_value(
+                cfg, "MAX_RANGE", float, "LIDAR", 75.0,
+                valid=lambda r: r > 0, expected="a positive range in metres",
+            ),
+        }  # fmt: skip
         if "INCLINATIONS" in cfg:
             return cls(list(cfg["INCLINATIONS"]), **kwargs)
         if "INCLINATIONS_DEG" in cfg:

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, ScheduleState, SequenceData
+from pcdet_atlas.attacks.config_values import config_files, config_value
 from pcdet_atlas.attacks.counters import COUNTERS
 from pcdet_atlas.attacks.lidar_model import LidarModel
 from pcdet_atlas.attacks.tracking import TargetPolicy, TrackedFrame, Tracker, choose_target
@@ -69,13 +70,17 @@ class PDistTable:
                 raise ConfigError(f"P_DIST: missing {key}")
         try:
             return cls(cfg["EDGES_M"], cfg["PROB"])
-        except ValueError as err:
-            raise ConfigError(str(err)) from err
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"{err} (from {config_files(cfg)})") from err
 
     def __call__(self, range_m: float) -> float:
         if not range_m >= 0:
             raise ValueError(f"range must be >= 0, got {range_m}")
         return float(self.prob[np.searchsorted(self.edges, range_m, side="right") - 1])
+
+
+def _is_probability(p: float) -> bool:
+    return 0.0 <= p <= 1.0
 
 
 def wrap_angle(a: np.ndarray) -> np.ndarray:
@@ -208,11 +213,20 @@ class RemovalAttack(BaseAttack):
         for key in ("AZIMUTH_WIDTH_DEG", "P_REMOVE", "P_DIST"):
             if key not in cfg:
                 raise ConfigError(f"{kwargs['variant']}: RemovalAttack needs {key}")
+        width = {"valid": lambda w: 0 < w < 180, "expected": "an angle in (0, 180) degrees"}
         try:
             return cls(
-                azimuth_width=math.radians(float(cfg["AZIMUTH_WIDTH_DEG"])),
-                elevation_width=math.radians(float(cfg.get("ELEVATION_WIDTH_DEG", 16.0))),
-                p_remove=float(cfg["P_REMOVE"]),
+                azimuth_width=math.radians(config_value(cfg, "AZIMUTH_WIDTH_DEG", float, **width)),
+                elevation_width=math.radians(
+                    config_value(cfg, "ELEVATION_WIDTH_DEG", float, default=16.0, **width)
+                ),
+                p_remove=config_value(
+                    cfg,
+                    "P_REMOVE",
+                    float,
+                    valid=_is_probability,
+                    expected="a probability in [0, 1]",
+                ),
                 p_dist=PDistTable.from_config(cfg["P_DIST"]),
                 target_policy=TargetPolicy.from_config(cfg.get("TARGET")),
                 tracker=Tracker.from_config(cfg.get("TRACKING")),
@@ -222,7 +236,7 @@ class RemovalAttack(BaseAttack):
         except ValueError as err:
             if isinstance(err, ConfigError):
                 raise
-            raise ConfigError(f"{kwargs['variant']}: {err}") from err
+            raise ConfigError(f"{kwargs['variant']} ({config_files(cfg)}): {err}") from err
 
     # ------------------------------------------------------------------ per run
     def prepare_run(self, seq: SequenceData, run_id: int) -> RemovalRun:

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pcdet_atlas.attacks.config_values import config_value
 from pcdet_atlas.config import ConfigError, check_known_keys
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.utils.box_utils import points_in_boxes_mask
@@ -118,7 +119,8 @@ class TraceFilter:
         }
         for key, name in names.items():
             if key in cfg:
-                kwargs[name] = cfg[key]
+                cast = str if key in ("PATH", "SPLIT") else int
+                kwargs[name] = config_value(cfg, key, cast, "TRACE_LIBRARY")
         if "CLASSES" in cfg:
             kwargs["classes"] = tuple(str(c) for c in cfg["CLASSES"])
         if "RANGE_M" in cfg:

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pcdet_atlas.config import ConfigError, check_known_keys
+from pcdet_atlas.attacks.config_values import config_value
+from pcdet_atlas.config import check_known_keys
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.utils.box_utils import transform_boxes
 from pcdet_atlas.utils.seeding import numpy_generator
@@ -93,19 +94,25 @@ class TargetPolicy:
         """Keys: ``POLICY``, ``CLASS``, ``MIN_POINTS``, ``RANGE_M`` (all optional)."""
         cfg = cfg or {}
         check_known_keys(cfg, {"POLICY", "CLASS", "MIN_POINTS", "RANGE_M"}, "TARGET")
-        out = cls(
-            policy=str(cfg.get("POLICY", "nearest")),
-            class_name=str(cfg.get("CLASS", "Vehicle")),
-            min_points=int(cfg.get("MIN_POINTS", 20)),
-            range_m=tuple(float(v) for v in cfg.get("RANGE_M", (5.0, 50.0))),
-        )
-        if out.policy not in ("nearest", "random"):
-            raise ConfigError(f"TARGET.POLICY must be 'nearest' or 'random', got {out.policy!r}")
-        if out.class_name not in wf.WAYMO_CLASSES:
-            raise ConfigError(f"TARGET.CLASS: unknown class {out.class_name!r}")
-        if len(out.range_m) != 2 or not 0 <= out.range_m[0] < out.range_m[1]:
-            raise ConfigError(f"TARGET.RANGE_M must be [lo, hi], 0 <= lo < hi, got {out.range_m}")
-        return out
+        return cls(
+            policy=config_value(
+                cfg, "POLICY", str, "TARGET", "nearest",
+                valid=lambda p: p in ("nearest", "random"), expected="'nearest' or 'random'",
+            ),
+            class_name=config_value(
+                cfg, "CLASS", str, "TARGET", "Vehicle",
+                valid=lambda c: c in wf.WAYMO_CLASSES, expected=f"one of {wf.WAYMO_CLASSES}",
+            ),
+            min_points=config_value(
+                cfg, "MIN_POINTS", int, "TARGET", 20,
+                valid=lambda n: n >= 0, expected="a non-negative integer",
+            ),
+            range_m=config_value(
+                cfg, "RANGE_M", lambda v: tuple(float(x) for x in v), "TARGET", (5.0, 50.0),
+                valid=lambda r: len(r) == 2 and 0 <= r[0] < r[1],
+                expected="[lo, hi] in metres with 0 <= lo < hi",
+            ),
+        )  # fmt: skip
 
 
 def choose_target(
@@ -173,14 +180,15 @@ class Tracker:
         """Keys: ``DT``, ``D_MAX``, ``VOLUME_RATIO`` (all optional)."""
         cfg = cfg or {}
         check_known_keys(cfg, {"DT", "D_MAX", "VOLUME_RATIO"}, "TRACKING")
-        try:
-            return cls(
-                dt=float(cfg.get("DT", 0.1)),
-                d_max=float(cfg.get("D_MAX", 2.0)),
-                volume_ratio=float(cfg.get("VOLUME_RATIO", 0.7)),
-            )
-        except ValueError as err:
-            raise ConfigError(f"TRACKING: {err}") from err
+        positive = {"valid": lambda v: v > 0, "expected": "a positive number"}
+        return cls(
+            dt=config_value(cfg, "DT", float, "TRACKING", 0.1, **positive),
+            d_max=config_value(cfg, "D_MAX", float, "TRACKING", 2.0, **positive),
+            volume_ratio=config_value(
+                cfg, "VOLUME_RATIO", float, "TRACKING", 0.7,
+                valid=lambda q: 0 < q <= 1, expected="a ratio in (0, 1]",
+            ),
+        )  # fmt: skip
 
     def _match(
         self, labels: FrameLabels, class_name: str, center_w: np.ndarray, volume: float

@@ -89,6 +89,38 @@ def test_unknown_keys_fail_naming_key_and_file(tmp_path):
         build_attack(cfg_from_yaml_file(_write(tmp_path / "n.yaml", "NAME: InjectonAttack\n")))
 
 
+BAD_VALUES = [  # (base variant, YAML body, the key the error must name)
+    ("clean", "SEED: abc\n", "SEED"),
+    ("clean", "SCHEDULE:\n  WINDOW: many\n", "WINDOW"),
+    ("rem_10", "SCHEDULE:\n  WINDOW: 0\n", "WINDOW"),
+    ("rem_10", "AZIMUTH_WIDTH_DEG: wide\n", "AZIMUTH_WIDTH_DEG"),
+    ("rem_10", "P_REMOVE: 1.5\n", "P_REMOVE"),
+    ("rem_10", "TARGET:\n  MIN_POINTS: some\n", "MIN_POINTS"),
+    ("rem_10", "TRACKING:\n  D_MAX: -1.0\n", "D_MAX"),
+    ("rem_10", "P_DIST:\n  PROB: [0.5, 0.5, 0.5, 0.5, 2.0]\n", "PROB"),
+    ("inj_rel_easy", "BUDGET: [a, 5]\n", "BUDGET"),
+    ("inj_rel_easy", "POSITION_MODE: sideways\n", "POSITION_MODE"),
+    ("inj_rel_easy", "P_DUAL: 2.0\n", "P_DUAL"),
+    ("inj_rel_easy", "GROUND:\n  RADIUS: wide\n", "RADIUS"),
+    ("inj_rel_easy", "INTENSITY:\n  MIN_RANGE: -1.0\n", "MIN_RANGE"),
+    ("inj_rel_easy", "TRACE_LIBRARY:\n  MIN_POINTS: many\n", "MIN_POINTS"),
+    ("inj_rel_easy", "LIDAR:\n  MAX_RANGE: far\n", "MAX_RANGE"),
+]
+
+
+@pytest.mark.parametrize("base,body,key", BAD_VALUES)
+def test_bad_values_fail_naming_key_value_and_file(tmp_path, base, body, key):
+    """A wrong value is a ConfigError that names the key, the value and the file it came from
+    (never a bare ValueError/TypeError from deep inside a constructor)."""
+    bad = _write(tmp_path / "bad_value.yaml", f"_BASE_CONFIG_: {ATTACK_DIR / base}.yaml\n{body}")
+    value = body.strip().rsplit(":", 1)[-1].strip().strip("[]").split(",")[-1].strip()
+    with pytest.raises(ConfigError) as info:
+        build_attack(cfg_from_yaml_file(bad))
+    message = str(info.value)
+    assert key in message and "bad_value.yaml" in message, message
+    assert value in message, message
+
+
 def test_new_variant_is_yaml_only(tmp_path, frame):
     _, seq, points = frame
     path = _write(

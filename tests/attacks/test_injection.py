@@ -168,7 +168,7 @@ def test_config_errors_and_library_checks(tiny, tmp_path):
     root, lib, _ = tiny
     cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs/attacks/inj_rel_easy.yaml")
     cfg.POSITION_MODE = "sideways"
-    with pytest.raises(ConfigError, match="position_mode"):
+    with pytest.raises(ConfigError, match="POSITION_MODE = 'sideways'"):
         InjectionAttack.from_config(cfg, data_root=root)
     cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs/attacks/inj_rel_easy.yaml")
     cfg.BUDGET = [300, 100]
