@@ -214,13 +214,16 @@ def collate_batch(batch_list: list[dict]) -> dict:
         if len(vals) != batch_size:
             ret[key] = vals  # a key only some samples have: keep what there is, as a list
         elif key == "points":
-            ret[key] = np.concatenate(
-                [
-                    np.pad(np.asarray(v, np.float32), ((0, 0), (1, 0)), constant_values=i)
-                    for i, v in enumerate(vals)
-                ],
-                axis=0,
-            )
+            widths = {np.shape(v)[1] for v in vals}
+            if len(widths) != 1:
+                raise ValueError(f"collate_batch: points of different widths {sorted(widths)}")
+            out = np.empty((sum(len(v) for v in vals), 1 + widths.pop()), dtype=np.float32)
+            start = 0
+            for i, v in enumerate(vals):  # one copy into place (no pad + concatenate)
+                out[start : start + len(v), 0] = i
+                out[start : start + len(v), 1:] = v
+                start += len(v)
+            ret[key] = out
         elif key == "gt_boxes":
             max_gt = max(len(v) for v in vals)
             width = vals[0].shape[-1]

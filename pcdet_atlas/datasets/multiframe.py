@@ -20,6 +20,8 @@ __all__ = [
     "relative_pose",
     "outside_ego_mask",
     "transform_points_to_frame",
+    "transform_points_into",
+    "compress_rows",
 ]
 
 SECONDS_PER_FRAME = 0.1
@@ -85,3 +87,45 @@ def outside_ego_mask(xyz: np.ndarray, center_radius: float = 1.0) -> np.ndarray:
     """``(N,)`` bool, False for points with ``|x| < r`` and ``|y| < r`` (m): the ego's own
     returns, which OpenPCDet's ``remove_ego_points`` drops from history frames."""
     return ~((np.abs(xyz[:, 0]) < center_radius) & (np.abs(xyz[:, 1]) < center_radius))
+
+
+def transform_points_into(
+    xyz: np.ndarray, transform: np.ndarray, out: np.ndarray, ego_radius: float | None = None
+) -> np.ndarray | None:
+    """Apply a 4x4 transform to ``(N, 3)`` points, writing the result into ``out`` ``(N, 3)``
+    (any float dtype, e.g. three columns of a float32 stacked array) without temporaries.
+
+    The arithmetic is that of :func:`transform_points_to_frame` (float64, ``t[r, 0] * x +
+    t[r, 1] * y + t[r, 2] * z + t[r, 3]`` left to right), so the stored values are the same
+    bits as casting its result to ``out.dtype``.
+
+    Returns:
+        with ``ego_radius``, the ``(N,)`` bool of :func:`outside_ego_mask` evaluated on the
+        float64 result (before any cast); else ``None``.
+    """
+    t = np.asarray(transform, dtype=np.float64).reshape(4, 4)
+    n = xyz.shape[0]
+    x, y, z = (np.asarray(xyz[:, i], dtype=np.float64) for i in range(3))
+    acc, tmp = np.empty(n), np.empty(n)
+    near = None
+    for r in range(3):
+        np.multiply(x, t[r, 0], out=acc)
+        np.multiply(y, t[r, 1], out=tmp)
+        acc += tmp
+        np.multiply(z, t[r, 2], out=tmp)
+        acc += tmp
+        acc += t[r, 3]
+        if ego_radius is not None and r < 2:
+            inside = np.less(np.abs(acc, out=tmp), ego_radius)
+            near = inside if near is None else np.logical_and(near, inside, out=near)
+        out[:, r] = acc
+    return None if near is None else ~near
+
+
+def compress_rows(mask: np.ndarray, array: np.ndarray) -> np.ndarray:
+    """``array[mask]`` for a C-contiguous 2-D ``array``, gathering whole rows as opaque
+    records (several times faster than numpy's element-wise 2-D boolean indexing)."""
+    if not array.flags.c_contiguous or array.ndim != 2 or array.shape[1] == 0:
+        return array[mask]
+    rows = array.view(np.dtype((np.void, array.shape[1] * array.itemsize))).reshape(-1)
+    return rows[mask].view(array.dtype).reshape(-1, array.shape[1])

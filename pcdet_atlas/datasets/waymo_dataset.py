@@ -22,9 +22,10 @@ from pcdet_atlas.datasets.dataset import DatasetTemplate
 from pcdet_atlas.datasets.multiframe import (
     SECONDS_PER_FRAME,
     SequenceConfig,
+    compress_rows,
     history_sample_indices,
-    outside_ego_mask,
-    transform_points_to_frame,
+    relative_pose,
+    transform_points_into,
 )
 from pcdet_atlas.datasets.waymo_format import (
     PROCESSED_DATA_TAG,
@@ -159,10 +160,11 @@ class WaymoDataset(DatasetTemplate):
         tanh on the ``POINTS_TANH_DIM`` columns, default intensity only)."""
         path = frame_npy_path(self.root_path, sequence_name, sample_idx, self.processed_data_tag)
         point_features = load_frame_points(path)
-        points = point_features[:, :NUM_LOADED_FEATURES]
-        if not self.disable_nlz_flag:
-            points = points[point_features[:, 5] == -1]
-        points = np.array(points, dtype=np.float32)  # own copy, contiguous
+        if self.disable_nlz_flag:
+            points = np.array(point_features[:, :NUM_LOADED_FEATURES], dtype=np.float32)
+        else:  # the row selection already makes a new array: no second copy
+            keep = point_features[:, 5] == -1
+            points = np.ascontiguousarray(point_features[keep, :NUM_LOADED_FEATURES])
         for dim in self.tanh_dims:
             points[:, dim] = np.tanh(points[:, dim])
         return points
@@ -192,33 +194,49 @@ class WaymoDataset(DatasetTemplate):
         """
         pose_cur = np.asarray(info["pose"], dtype=np.float64).reshape(4, 4)
         history = history_sample_indices(sample_idx, sequence_cfg.sample_offset)
-
-        num_cols = points.shape[1] + sequence_cfg.num_extra_columns
-        frames = [(points.astype(np.float32, copy=False), None, 0.0)]  # (points, xyz or None, lag)
+        frames = [points]
         poses = [pose_cur]
         for s_pre in history:
-            pre = self.get_lidar(sequence_name, int(s_pre))
-            pose_pre = np.asarray(
-                self.get_frame_info(sequence_name, int(s_pre))["pose"], dtype=np.float64
-            ).reshape(4, 4)
-            xyz = transform_points_to_frame(pre[:, :3], pose_pre, pose_cur)
-            keep = outside_ego_mask(xyz, EGO_RADIUS_M)
-            lag = SECONDS_PER_FRAME * (sample_idx - int(s_pre))
-            frames.append((pre[keep], xyz[keep], lag))
-            poses.append(pose_pre)
-        num_points_all = np.array([len(f[0]) for f in frames], dtype=np.int32)
-        stacked = np.zeros((int(num_points_all.sum()), num_cols), dtype=np.float32)
+            frames.append(self.get_lidar(sequence_name, int(s_pre)))
+            poses.append(
+                np.asarray(
+                    self.get_frame_info(sequence_name, int(s_pre))["pose"], dtype=np.float64
+                ).reshape(4, 4)
+            )
+        num_feat = points.shape[1]
+        num_cols = num_feat + sequence_cfg.num_extra_columns
+        # One output array, every frame written once in place (history xyz straight from the
+        # float64 transform); ego points of the history are then dropped in one row gather.
+        stacked = np.empty((sum(len(f) for f in frames), num_cols), dtype=np.float32)
+        keep = np.ones(len(stacked), dtype=bool)
+        num_points_all = np.empty(len(frames), dtype=np.int32)
         start = 0
-        for position, (pts, xyz, lag) in enumerate(frames):
-            rows = slice(start, start + len(pts))
-            stacked[rows, : pts.shape[1]] = pts
-            if xyz is not None:
-                stacked[rows, :3] = xyz
-            if sequence_cfg.onehot_timestamp:
-                stacked[rows, pts.shape[1] + position] = 1.0
+        frame_indices = [sample_idx, *(int(s) for s in history)]
+        for position, (pts, pose) in enumerate(zip(frames, poses)):
+            block = stacked[start : start + len(pts)]
+            if position == 0:
+                block[:, :num_feat] = pts
+                num_points_all[0] = len(pts)
             else:
-                stacked[rows, pts.shape[1]] = lag
+                if pts.shape[1] != num_feat:
+                    raise WaymoFormatError(
+                        f"{sequence_name} frame {frame_indices[position]}: get_lidar gave "
+                        f"{pts.shape[1]} columns, the current frame {num_feat}"
+                    )
+                block[:, 3:num_feat] = pts[:, 3:]
+                outside = transform_points_into(
+                    pts[:, :3], relative_pose(pose, pose_cur), block[:, :3], EGO_RADIUS_M
+                )
+                keep[start : start + len(pts)] = outside
+                num_points_all[position] = np.count_nonzero(outside)
+            if sequence_cfg.onehot_timestamp:
+                block[:, num_feat:] = 0.0
+                block[:, num_feat + position] = 1.0
+            else:  # time lag 0.1 s per frame, from the (clipped) history index
+                block[:, num_feat] = SECONDS_PER_FRAME * (sample_idx - frame_indices[position])
             start += len(pts)
+        if num_points_all.sum() != len(stacked):
+            stacked = compress_rows(keep, stacked)
         return stacked, num_points_all, history, np.concatenate(poses).astype(np.float32)
 
     # ------------------------------------------------------------------ samples

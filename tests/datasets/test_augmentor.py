@@ -29,6 +29,7 @@ from pcdet_atlas.datasets.augmentor.world_transforms import (
     RandomWorldRotation,
     RandomWorldScaling,
 )
+from pcdet_atlas.datasets.multiframe import compress_rows
 from pcdet_atlas.datasets.waymo_format import WaymoFormatError
 from pcdet_atlas.registry import TRANSFORMS
 from pcdet_atlas.utils.box_utils import points_in_boxes_mask
@@ -151,6 +152,16 @@ def test_mask_boxes_by_corners_counts_all_8_corners_as_openpcdet():
     np.testing.assert_array_equal(keep, [False])
     keep = mask_boxes_outside_range(box, rng, min_num_corners=1, use_center_to_filter=True)
     np.testing.assert_array_equal(keep, [False])  # centre outside
+
+
+def test_compress_rows_equals_boolean_indexing():
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal((1000, 6)).astype(np.float32)
+    for mask in (rng.random(1000) < 0.7, np.zeros(1000, bool), np.ones(1000, bool)):
+        for arr in (a, a[:, :5], np.asfortranarray(a)):
+            got = compress_rows(mask, arr)
+            assert got.shape == arr[mask].shape and got.dtype == arr.dtype
+            np.testing.assert_array_equal(got, arr[mask])
 
 
 def test_shuffle_is_a_permutation():

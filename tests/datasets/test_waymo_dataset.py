@@ -23,7 +23,11 @@ from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import WaymoDataset, build_dataloader
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.datasets.dataset import resolve_data_path
-from pcdet_atlas.datasets.multiframe import history_sample_indices
+from pcdet_atlas.datasets.multiframe import (
+    history_sample_indices,
+    outside_ego_mask,
+    transform_points_to_frame,
+)
 from pcdet_atlas.registry import DATASETS
 from pcdet_atlas.utils.box_utils import points_in_boxes_mask, transform_points
 
@@ -144,6 +148,64 @@ def test_multiframe_static_world_points_align_within_1cm(tiny_root, sample_idx):
     # history points within 1 m of the ego are removed, current ones kept
     hist = stacked[lags > 0]
     assert not ((np.abs(hist[:, 0]) < 1) & (np.abs(hist[:, 1]) < 1)).any()
+
+
+def _stack_per_frame(ds, info, points, seq, sample_idx, k, onehot):
+    """Reference stacking, one frame at a time as OpenPCDet's loop: float64 column-wise
+    transform, ego mask, lag/one-hot, then one concatenation."""
+    pose_cur = info["pose"].astype(np.float64)
+    history = history_sample_indices(sample_idx, (-k, 0))
+    extra = np.zeros((len(points), k + 1 if onehot else 1))
+    if onehot:
+        extra[:, 0] = 1
+    parts = [np.hstack([points, extra])]
+    for j, s_pre in enumerate(history):
+        pre = ds.get_lidar(seq, int(s_pre))
+        pose_pre = ds.get_frame_info(seq, int(s_pre))["pose"].astype(np.float64)
+        xyz = transform_points_to_frame(pre[:, :3], pose_pre, pose_cur)
+        extra = np.zeros((len(pre), k + 1 if onehot else 1))
+        extra[:, j + 1 if onehot else 0] = 1 if onehot else 0.1 * (sample_idx - s_pre)
+        part = np.hstack([xyz.astype(np.float32), pre[:, 3:], extra.astype(np.float32)])
+        parts.append(part[outside_ego_mask(xyz, 1.0)])
+    return np.concatenate(parts).astype(np.float32), [len(p) for p in parts]
+
+
+@pytest.mark.parametrize("onehot", [False, True])
+def test_multiframe_stacking_is_bitwise_the_per_frame_reference(tiny_root, onehot):
+    """The single-buffer stacking gives the same bits as the frame-by-frame reference, and
+    agrees with OpenPCDet's homogeneous float32-pose matmuls within float32 rounding."""
+    cfg = dataset_cfg(multiframe=True)
+    if onehot:
+        cfg.SEQUENCE_CONFIG.ONEHOT_TIMESTAMP = True
+        feats = ["x", "y", "z", "intensity", "elongation", "t0", "t1", "t2", "t3"]
+        cfg.POINT_FEATURE_ENCODING.src_feature_list = feats
+        cfg.POINT_FEATURE_ENCODING.used_feature_list = feats
+    ds = WaymoDataset(cfg, CLASS_NAMES, training=False, root_path=tiny_root)
+    dropped_ego = False
+    for sample_idx in (0, 2, 4, 5):
+        info = ds.get_frame_info(SEQ_V, sample_idx)
+        points = ds.get_lidar(SEQ_V, sample_idx)
+        got, counts, _, _ = ds.get_sequence_data(info, points, SEQ_V, sample_idx, ds.sequence_cfg)
+        ref, ref_counts = _stack_per_frame(ds, info, points, SEQ_V, sample_idx, 3, onehot)
+        assert got.dtype == np.float32 and got.flags.c_contiguous
+        np.testing.assert_array_equal(got, ref)
+        np.testing.assert_array_equal(counts, ref_counts)
+        raw = [
+            len(ds.get_lidar(SEQ_V, int(s))) for s in history_sample_indices(sample_idx, (-3, 0))
+        ]
+        dropped_ego |= sum(ref_counts[1:]) < sum(raw)
+        # OpenPCDet: [xyz, 1] @ pose_pre.T -> global, [g, 1] @ inv(pose_cur.T) (float32 poses)
+        start = counts[0]
+        for s_pre in history_sample_indices(sample_idx, (-3, 0)):
+            pre = ds.get_lidar(SEQ_V, int(s_pre))
+            pose_pre = ds.get_frame_info(SEQ_V, int(s_pre))["pose"]
+            ones = np.ones((len(pre), 1))
+            g = np.dot(np.concatenate([pre[:, :3], ones], -1), pose_pre.T)[:, :3]
+            cur = np.dot(np.concatenate([g, ones], -1), np.linalg.inv(info["pose"].T))[:, :3]
+            cur = cur[outside_ego_mask(cur, 1.0)]
+            np.testing.assert_allclose(got[start : start + len(cur), :3], cur, rtol=0, atol=2e-4)
+            start += len(cur)
+    assert dropped_ego  # the ego-removal path was exercised
 
 
 def test_multiframe_time_column_and_clipping_at_sequence_start(tiny_root):

@@ -37,6 +37,7 @@ from pcdet_atlas.datasets.augmentor.box_ops import (
     boxes_bev_overlap,
     enlarge_boxes,
 )
+from pcdet_atlas.datasets.multiframe import compress_rows
 from pcdet_atlas.datasets.waymo_format import WaymoFormatError
 from pcdet_atlas.registry import TRANSFORMS
 
@@ -333,7 +334,7 @@ class GTSampling:
             lag = obj[:, -1]
             obj = obj[(lag < t_max + 1e-6) & (lag > t_min - 1e-6)]
         clear = enlarge_boxes(sampled_boxes[:, :7], self.remove_extra_width)
-        points = points[box_index_of_points(points, clear) < 0]
+        points = compress_rows(box_index_of_points(points, clear) < 0, points)
         data_dict["points"] = np.concatenate(
             [obj[:, : points.shape[1]].astype(points.dtype), points], axis=0
         )

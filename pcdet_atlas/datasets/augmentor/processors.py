@@ -8,6 +8,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from pcdet_atlas.config import ConfigError
+from pcdet_atlas.datasets.multiframe import compress_rows
 from pcdet_atlas.registry import TRANSFORMS
 from pcdet_atlas.utils.box_utils import boxes_to_corners_3d
 
@@ -87,7 +88,8 @@ class MaskPointsAndBoxesOutsideRange:
     def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
         if data_dict.get("points") is not None:
             mask = mask_points_by_range(data_dict["points"], self.point_cloud_range, self.filter_z)
-            data_dict["points"] = data_dict["points"][mask]
+            if not mask.all():
+                data_dict["points"] = compress_rows(mask, data_dict["points"])
         boxes = data_dict.get("gt_boxes")
         if boxes is not None and self.remove_outside_boxes and self.training:
             keep = mask_boxes_outside_range(
