@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from pcdet_atlas.attacks.lidar_model import LidarModel
@@ -57,7 +58,7 @@ def main(argv=None) -> Path:
     sizes = library.trace_sizes()
     logger.info(
         f"wrote {out}: {len(library)} traces, points per trace min/median/max "
-        f"{sizes.min()}/{int(sizes.mean())}/{sizes.max()}"
+        f"{sizes.min()}/{int(np.median(sizes))}/{sizes.max()}"
     )
     return out
 

@@ -65,13 +65,17 @@ def test_filter_config_keys():
         TraceFilter.from_config(cfg)
 
 
-def test_build_tool_writes_under_data_root(tiny_root):
+def test_build_tool_writes_under_data_root(tiny_root, capfd):
     out = load_tool("build_trace_library").main(
         ["--cfg", str(REPO_ROOT / "cfgs/attacks/inj_rel_easy.yaml"), "--data_path", str(tiny_root)]
     )
     assert out == tiny_root / "atlas_trace_library.npz"
     lib = TraceLibrary.load(out)
     assert len(lib) >= 1 and lib.build_info["split"] == "train"
+    sizes = lib.trace_sizes()  # the summary line says min/median/max: it must print the median
+    expected = f"{sizes.min()}/{int(np.median(sizes))}/{sizes.max()}"
+    logged = capfd.readouterr()
+    assert f"min/median/max {expected}" in logged.out + logged.err
 
 
 def test_library_of_the_synthetic_dataset(synthetic_root, tmp_path):
