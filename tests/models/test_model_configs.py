@@ -49,6 +49,9 @@ def test_build_forward_loss_gradients(path: Path):
     nfeat = model.vfe.num_point_features
     with_vel = model.dense_head.with_velocity
     assert with_vel == (nfeat == 6)  # CP4F: time column and velocity head together
+    seq = cfg.DATA_CONFIG.get("SEQUENCE_CONFIG") or {}
+    frames = seq.SAMPLE_OFFSET[1] - seq.SAMPLE_OFFSET[0] + 1 if seq.get("ENABLED") else 1
+    assert cfg.ATLAS.TEMPORAL_WINDOW == frames  # the lifecycle W is the input window
     half = CELLS * cfg.MODEL.VFE.VOXEL_SIZE[0] / 2
     batch = make_batch(
         num_point_features=nfeat, with_velocity=with_vel, extent=half, scale=half / 20
