@@ -19,8 +19,9 @@ points ``AtlasWaymoDataset`` serves on the fly. ``num_points_of_each_lidar`` cou
 kept per LiDAR; ``info['atlas']['num_injected_rows']`` the appended phantom rows. Labels are the
 source labels (attack targets are in the metadata, apart from the ground truth).
 
-Resumable: a sequence whose ``<seq>.pkl`` and ``<seq>_atlas.pkl`` exist for the same variant is
-skipped; a sequence interrupted midway is redone.
+Resumable: a sequence whose ``<seq>.pkl`` and ``<seq>_atlas.pkl`` exist for the same variant and
+the same merged attack config is skipped; another config (e.g. ``--set SEED 1``) is an error naming
+the keys that differ, never a silent mix; a sequence interrupted midway is redone.
 """
 
 from __future__ import annotations
@@ -67,7 +68,19 @@ def _lidar_counts(keep_rows: np.ndarray, counts: list[int]) -> list[int]:
     return [int(keep_rows[a:b].sum()) for a, b in zip(edges[:-1], edges[1:])]
 
 
-def write_sequence(dataset: AtlasWaymoDataset, seq_name: str, out_root: Path, progress) -> dict:
+def _flatten(node, prefix: str = "") -> dict:
+    """``{'A.B': value}`` of a nested plain config."""
+    if not isinstance(node, dict):
+        return {prefix: node}
+    out: dict = {}
+    for key, value in node.items():
+        out.update(_flatten(value, f"{prefix}.{key}" if prefix else str(key)))
+    return out
+
+
+def write_sequence(
+    dataset: AtlasWaymoDataset, seq_name: str, out_root: Path, progress, attack_cfg: dict
+) -> dict:
     """Attack and write every frame of one sequence; returns ``{frame_id: meta}``."""
     attack = dataset.attack
     seq = dataset.sequence_data(seq_name)
@@ -101,12 +114,13 @@ def write_sequence(dataset: AtlasWaymoDataset, seq_name: str, out_root: Path, pr
         infos.append(info)
         metas[info["frame_id"]] = meta
         progress.update(1)
-    _dump_atomic({"variant": attack.variant, "frames": metas}, out_seq / f"{seq_name}_atlas.pkl")
+    saved = {"variant": attack.variant, "attack_cfg": attack_cfg, "frames": metas}
+    _dump_atomic(saved, out_seq / f"{seq_name}_atlas.pkl")
     wf.save_sequence_infos(out_seq / f"{seq_name}.pkl", infos)  # written last: the done marker
     return metas
 
 
-def _done(out_seq: Path, seq_name: str, variant: str) -> dict | None:
+def _done(out_seq: Path, seq_name: str, variant: str, attack_cfg: dict) -> dict | None:
     meta_pkl, info_pkl = out_seq / f"{seq_name}_atlas.pkl", out_seq / f"{seq_name}.pkl"
     if not (meta_pkl.is_file() and info_pkl.is_file()):
         return None
@@ -116,6 +130,14 @@ def _done(out_seq: Path, seq_name: str, variant: str) -> dict | None:
         raise ValueError(
             f"{meta_pkl}: holds variant {saved.get('variant')!r}, not {variant!r}; "
             "use another --out_dir"
+        )
+    old, new = _flatten(saved.get("attack_cfg", {})), _flatten(attack_cfg)
+    differ = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
+    if differ:
+        raise ValueError(
+            f"{meta_pkl}: written with another attack config of {variant!r} (keys {differ}: "
+            f"{[old.get(k) for k in differ]} there, {[new.get(k) for k in differ]} now); "
+            "use another --out_dir or delete it"
         )
     return saved["frames"]
 
@@ -131,11 +153,11 @@ def main(argv=None) -> Path:
         data_cfg.DATA_SPLIT["test"] = args.split
     data_cfg.SAMPLED_INTERVAL["test"] = 1
     dataset = AtlasWaymoDataset(data_cfg, CLASS_NAMES, attack_cfg, training=False, logger=logger)
+    plain_cfg = to_plain(attack_cfg)
     out_root = Path(args.out_dir)
     if not out_root.is_absolute():
         out_root = REPO_ROOT / out_root
     (out_root / "ImageSets").mkdir(parents=True, exist_ok=True)
-    save_config(attack_cfg, out_root / "atlas_attack.yaml")
     names = list(dataset.seq_name_to_infos)[: args.max_sequences]
     listing = "".join(f"{name}.tfrecord\n" for name in names)
     (out_root / "ImageSets" / f"{dataset.split}.txt").write_text(listing)
@@ -144,18 +166,19 @@ def main(argv=None) -> Path:
     with tqdm(total=total, desc=dataset.attack.variant, unit="frame") as progress:
         for name in names:
             out_seq = wf.data_dir(out_root, dataset.processed_data_tag) / name
-            done = _done(out_seq, name, dataset.attack.variant)
+            done = _done(out_seq, name, dataset.attack.variant, plain_cfg)
             if done is not None:
                 frames.update(done)
                 progress.update(len(dataset.seq_name_to_infos[name]))
                 continue
-            frames.update(write_sequence(dataset, name, out_root, progress))
+            frames.update(write_sequence(dataset, name, out_root, progress, plain_cfg))
     summary = {
         "variant": dataset.attack.variant,
-        "attack_cfg": to_plain(attack_cfg),
+        "attack_cfg": plain_cfg,
         "frames": frames,
     }
     _dump_atomic(summary, out_root / "atlas_attack_metadata.pkl")
+    save_config(attack_cfg, out_root / "atlas_attack.yaml")
     spoofed = sum(m["spoofed"] for m in frames.values())
     logger.info(
         f"wrote {len(frames)} frames ({spoofed} spoofed) of {len(names)} sequences to {out_root}"

@@ -175,6 +175,10 @@ def test_generate_atlas_roundtrip_and_resume(tmp_path, keep_nlz):
     stamp = npy.stat().st_mtime_ns
     gen.main(args)
     assert npy.stat().st_mtime_ns == stamp
+    # resuming with another config of the same variant must not keep the old frames silently
+    with pytest.raises(ValueError, match="SEED"):
+        gen.main([*args, "SEED", "1"])
+    assert npy.stat().st_mtime_ns == stamp
 
 
 def test_visualize_attack_writes_png(synthetic_root, tmp_path):
