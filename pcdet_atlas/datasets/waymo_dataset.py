@@ -281,7 +281,7 @@ class WaymoDataset(DatasetTemplate):
             "frame_id": info["frame_id"],
             "sequence_name": sequence_name,
             "sample_idx": sample_idx,
-            "pose": np.asarray(info["pose"], dtype=np.float32).reshape(4, 4),
+            "pose": np.array(info["pose"], dtype=np.float32).reshape(4, 4),  # a copy
             "metadata": copy.deepcopy(info.get("metadata", info["frame_id"])),
         }
         if self.sequence_cfg is not None:

@@ -112,6 +112,24 @@ def test_get_lidar_nlz_and_tanh(tiny_root):
     np.testing.assert_allclose(pts[:, 4], np.tanh(kept[:, 4]), rtol=1e-6)
 
 
+@pytest.mark.parametrize("multiframe", [False, True])
+def test_samples_do_not_alias_the_infos(tiny_root, multiframe):
+    """As OpenPCDet (which deep-copies the info), editing a sample in place never changes the
+    dataset's infos or a later sample."""
+    ds = WaymoDataset(
+        dataset_cfg(multiframe=multiframe), CLASS_NAMES, training=False, root_path=tiny_root
+    )
+    first = ds[3]
+    pose_before = ds.infos[3]["pose"].copy()
+    for value in first.values():
+        if isinstance(value, np.ndarray) and value.dtype.kind == "f":
+            value[...] = -7.0
+    np.testing.assert_array_equal(ds.infos[3]["pose"], pose_before)
+    again = ds[3]
+    np.testing.assert_array_equal(again["pose"], pose_before)
+    assert not (again["points"] == -7.0).all() and not (again["gt_boxes"] == -7.0).all()
+
+
 # ---------------------------------------------------------------------------- multi-frame
 @pytest.mark.parametrize("sample_idx", [5, 3])
 def test_multiframe_static_world_points_align_within_1cm(tiny_root, sample_idx):
