@@ -2,8 +2,8 @@ import math
 
 import numpy as np
 import pytest
-import torch
 from atlas_helpers import GROUND_Z, synthetic_library, write_tiny_waymo
+from device_params import DEVICES
 
 from pcdet_atlas.attacks.base import SequenceData
 from pcdet_atlas.attacks.ground import GroundEstimator
@@ -215,19 +215,7 @@ def test_on_synthetic_data_phantom_sits_on_ground_and_stays_in_world(synthetic_r
     assert np.abs(world[:, :2] - world[0, :2]).max() <= 0.01
 
 
-@pytest.mark.parametrize(
-    "device",
-    [
-        "cpu",
-        pytest.param(
-            "cuda",
-            marks=[
-                pytest.mark.cuda,
-                pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device"),
-            ],
-        ),
-    ],
-)
+@pytest.mark.parametrize("device", DEVICES)
 def test_raycast_device_gives_identical_frames(tiny, device):
     root, lib, seq = tiny
     ref = run_frames(make_attack(lib, "global", p_dual=0.3), seq, root, [47])[47][1]

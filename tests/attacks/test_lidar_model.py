@@ -3,6 +3,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from device_params import DEVICES
 
 from pcdet_atlas.attacks.lidar_model import LidarModel, waymo_top_inclinations_deg
 from pcdet_atlas.config import ConfigError
@@ -67,18 +68,6 @@ def test_from_config_and_errors():
         LidarModel.from_config({"BEAMS": 64})
     with pytest.raises(ValueError, match="ascending"):
         LidarModel([0.1, 0.0])
-
-
-DEVICES = [
-    "cpu",
-    pytest.param(
-        "cuda",
-        marks=[
-            pytest.mark.cuda,
-            pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device"),
-        ],
-    ),
-]
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -4,23 +4,13 @@ from collections import defaultdict
 import numpy as np
 import pytest
 import torch
+from device_params import DEVICES
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pcdet_atlas.attacks.counters import AttackCounters
 from pcdet_atlas.attacks.lidar_model import LidarModel
 from pcdet_atlas.attacks.raycast import azimuth_sector_candidates, raycast_merge
-
-DEVICES = [
-    "cpu",
-    pytest.param(
-        "cuda",
-        marks=[
-            pytest.mark.cuda,
-            pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device"),
-        ],
-    ),
-]
 
 
 def reference_merge(scene, spoof, lidar, p_dual=0.0, generator=None):

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from device_params import DEVICES
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from shapely.geometry import Polygon
@@ -19,17 +20,6 @@ from pcdet_atlas.evaluation.iou3d import (
     boxes_overlap_bev,
     nms_bev,
 )
-
-DEVICES = [
-    "cpu",
-    pytest.param(
-        "cuda",
-        marks=[
-            pytest.mark.cuda,
-            pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device"),
-        ],
-    ),
-]
 
 
 def _random_boxes(n: int, seed: int, spread: float = 4.0, offset: float = 0.0) -> torch.Tensor:

@@ -4,17 +4,9 @@ from __future__ import annotations
 
 import importlib.util
 
-import pytest
 import torch
 
 from pcdet_atlas.config import REPO_ROOT
-
-DEVICES = [
-    "cpu",
-    pytest.param(
-        "cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-    ),
-]
 
 # (x, y, z, dx, dy, dz, heading, vx, vy, cls) per sample: cars, a pedestrian, a cyclist
 BOXES = [

@@ -2,7 +2,8 @@ import math
 
 import pytest
 import torch
-from model_batches import BOXES, DEVICES
+from device_params import DEVICES
+from model_batches import BOXES
 
 from pcdet_atlas.models.dense_heads.center_head import CenterHead
 from pcdet_atlas.models.model_utils import centernet_utils as cu

@@ -4,7 +4,8 @@ from pathlib import Path
 
 import pytest
 import torch
-from model_batches import DEVICES, make_batch
+from device_params import DEVICES
+from model_batches import make_batch
 
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
 from pcdet_atlas.models import build_network, build_network_from_config, num_point_features_of

@@ -2,7 +2,7 @@ from collections import defaultdict
 
 import pytest
 import torch
-from model_batches import DEVICES
+from device_params import DEVICES
 
 from pcdet_atlas.models.model_utils import voxelize as voxelize_module
 from pcdet_atlas.models.model_utils.scatter import scatter_max, scatter_mean, scatter_sum
