@@ -39,6 +39,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data_cfg", default="cfgs/dataset_configs/synthetic_waymo.yaml")
     parser.add_argument("--attack", required=True, help="attack yaml")
+    parser.add_argument("--data_path", default=None, help="dataset root (default: DATA_PATH)")
     parser.add_argument("--frame", type=int, default=40, help="index into the split's frames")
     parser.add_argument("--out", default=None, help="PNG path (default output/viz/...)")
     parser.add_argument("--bev_range", type=float, nargs=4, default=[-25.0, 55.0, -30.0, 30.0],
@@ -165,7 +166,10 @@ def main(argv=None) -> Path:
     attack_cfg = cfg_from_yaml_file(args.attack)
     if args.set_cfgs:
         cfg_from_list(args.set_cfgs, attack_cfg)
-    dataset = AtlasWaymoDataset(cfg_from_yaml_file(args.data_cfg), CLASS_NAMES, attack_cfg)
+    data_cfg = cfg_from_yaml_file(args.data_cfg)
+    if args.data_path is not None:
+        cfg_from_list(["DATA_PATH", args.data_path], data_cfg)
+    dataset = AtlasWaymoDataset(data_cfg, CLASS_NAMES, attack_cfg)
     if not 0 <= args.frame < len(dataset):
         raise SystemExit(f"--frame {args.frame} outside the split's {len(dataset)} frames")
     out = Path(args.out) if args.out else REPO_ROOT / "output" / "viz" / (
