@@ -14,13 +14,27 @@ process's peak resident set (``VmHWM``, reset through ``/proc/self/clear_refs``)
 With ``--eval``, a model whose ``ATLAS.CHECKPOINT`` exists is evaluated (Waymo L2 mAP) on the
 val split of ``--data_path``; without a checkpoint the model runs with random weights and the
 column says "not yet trained".
+
+``--train_step`` instead times training steps (batch ``--batch_size``, the configs' own train
+pipeline with GT sampling and augmentation, AdamW + one-cycle, gradient clipping: what
+``tools/train.py`` does per iteration) of each ``--train_cfgs`` config, in a fresh process per
+config and round: seconds per step of the model (forward, loss, backward, clip, optimizer) and of
+the whole step with data loading (``--workers``). ``--baseline_src DIR`` runs the same on an older
+source tree (``git archive <commit> pcdet_atlas cfgs | tar -x -C DIR``) in alternating
+processes and prints both side by side, with the losses of both trees on the same batches:
+
+    python tools/bench_models.py --train_step --baseline_src /tmp/old --rounds 2 --steps 4
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import multiprocessing
+import os
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -102,7 +116,126 @@ def parse_args():
         help="also time a tools/test.py step of this model config on clean / injection / removal",
     )  # fmt: skip
     p.add_argument("--share_frames", type=int, default=8, help="frames from 32 on (a spoofed run)")
+    t = p.add_argument_group("training step (--train_step)")
+    t.add_argument("--train_step", action="store_true", help="time training steps instead")
+    t.add_argument("--train_cfgs", nargs="+", default=list(TRAIN_STEP_CFGS))
+    t.add_argument("--steps", type=int, default=4, help="timed steps per process (after 1)")
+    t.add_argument("--rounds", type=int, default=2, help="processes per tree and config")
+    t.add_argument("--batch_size", type=int, default=4)
+    t.add_argument("--workers", type=int, default=0, help="loader workers")
+    t.add_argument("--baseline_src", default=None, help="older source tree to compare against")
+    t.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     return p.parse_args()
+
+
+TRAIN_STEP_CFGS = ("cfgs/atlas/synthetic/centerpoint.yaml", "cfgs/atlas/synthetic/cp4f.yaml")
+
+
+def _train_step_child(cfg_file: str, data_path: str, args) -> dict:
+    """Time ``1 + args.steps`` training steps of ``cfg_file`` in this process (the first one is
+    a warm-up and is not counted). Returns per-step seconds and losses."""
+    import pcdet_atlas
+    from pcdet_atlas.models.optimization import build_optimizer, build_scheduler
+
+    cfg = cfg_from_yaml_file(cfg_file)
+    cfg.DATA_CONFIG.DATA_PATH = data_path
+    _, loader, _ = build_dataloader(
+        cfg.DATA_CONFIG, cfg.CLASS_NAMES, args.batch_size, False, workers=args.workers, seed=0,
+        training=True, total_epochs=cfg.OPTIMIZATION.NUM_EPOCHS,
+    )  # fmt: skip
+    if hasattr(loader.dataset, "set_epoch"):
+        loader.dataset.set_epoch(0)
+    torch.manual_seed(0)
+    model = build_network_from_config(cfg).train()
+    optimizer = build_optimizer(model, cfg.OPTIMIZATION)
+    scheduler = build_scheduler(
+        optimizer, cfg.OPTIMIZATION, iters_per_epoch=len(loader),
+        total_epochs=cfg.OPTIMIZATION.NUM_EPOCHS,
+    )  # fmt: skip
+    clip = float(cfg.OPTIMIZATION.get("GRAD_NORM_CLIP", 10.0))
+    res: dict = {"package": str(Path(pcdet_atlas.__file__).parent), "threads": 0}
+    res.update(data=[], model=[], step=[], loss=[], points=[])
+    it = iter(loader)
+    t_prev = time.perf_counter()
+    for _ in range(args.steps + 1):
+        batch = next(it)
+        t_data = time.perf_counter()
+        batch = load_data_to_device(batch, "cpu")
+        optimizer.zero_grad(set_to_none=True)
+        ret, _, _ = model(batch)
+        ret["loss"].backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), clip)
+        optimizer.step()
+        scheduler.step()
+        t_end = time.perf_counter()
+        res["data"].append(t_data - t_prev)
+        res["model"].append(t_end - t_data)
+        res["step"].append(t_end - t_prev)
+        res["loss"].append(float(ret["loss"].detach()))
+        res["points"].append(int(batch["points"].shape[0]))
+        t_prev = t_end
+    res["threads"] = torch.get_num_threads()
+    return res
+
+
+def train_step_table(args, data_path: Path) -> None:
+    """Seconds per training step of each config (and of the baseline tree, if given)."""
+    trees = {"this tree": REPO_ROOT}
+    if args.baseline_src:
+        trees = {"baseline": Path(args.baseline_src).resolve(), **trees}
+    for tree in trees.values():
+        if not (tree / "pcdet_atlas" / "__init__.py").is_file():
+            raise SystemExit(f"--baseline_src: no pcdet_atlas package under {tree}")
+    results: dict = {(t, c): [] for t in trees for c in args.train_cfgs}
+    loads = [os.getloadavg()[0]]
+    for _ in range(args.rounds):
+        for cfg_file in args.train_cfgs:
+            for tree, src in trees.items():
+                env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(src), str(REPO_ROOT)]))
+                cmd = [
+                    sys.executable, __file__, "--train_step", "--child", "--train_cfgs",
+                    str((src / cfg_file) if (src / cfg_file).is_file() else Path(cfg_file)),
+                    "--data_path", str(data_path), "--steps", str(args.steps),
+                    "--batch_size", str(args.batch_size), "--workers", str(args.workers),
+                ] + (["--threads", str(args.threads)] if args.threads else [])  # fmt: skip
+                out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True)
+                res = json.loads(out.stdout.strip().splitlines()[-1])
+                if not Path(res["package"]).resolve().is_relative_to(src):
+                    raise SystemExit(f"{tree}: imported {res['package']}, not {src}")
+                results[(tree, cfg_file)].append(res)
+                loads.append(os.getloadavg()[0])
+    first = next(iter(results.values()))[0]
+    print(
+        f"\ntraining steps: batch {args.batch_size}, {args.workers} loader workers, "
+        f"{first['threads']} torch threads, {args.steps} timed steps x {args.rounds} processes "
+        f"per row (after 1 warm-up step each), medians; load average "
+        f"{min(loads):.1f}-{max(loads):.1f}; data {data_path}\n"
+    )
+    print(
+        "| config | tree | points/step | model s/step (fwd+loss+bwd+opt) | data s/step "
+        "| total s/step | speed-up | loss step 1 .. last |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for cfg_file in args.train_cfgs:
+        base_total = None
+        for tree in trees:
+            runs = results[(tree, cfg_file)]
+            med = {
+                k: statistics.median(v for r in runs for v in r[k][1:])
+                for k in ("model", "data", "step", "points")
+            }
+            base_total = base_total or med["step"]
+            losses = runs[0]["loss"]
+            name = str(Path(cfg_file)).replace("cfgs/atlas/", "")
+            print(
+                f"| {name} | {tree} | {med['points']:,.0f} | {med['model']:.2f} | "
+                f"{med['data']:.2f} | {med['step']:.2f} | {base_total / med['step']:.2f}x | "
+                f"{losses[0]:.5f} .. {losses[-1]:.5f} |"
+            )
+        if len(trees) == 2:
+            a, b = (results[(t, cfg_file)][0]["loss"] for t in trees)
+            rel = max(abs(x - y) / max(abs(x), 1e-12) for x, y in zip(a, b))
+            print(f"|  | max rel. loss difference over the steps | {rel:.1e} | | | | | |")
 
 
 def test_step_shares(cfg_file: str, data_path: Path, frames: int, device: torch.device) -> None:
@@ -247,6 +380,9 @@ def main() -> None:
     args = parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.child:  # one --train_step process (see train_step_table)
+        print(json.dumps(_train_step_child(args.train_cfgs[0], args.data_path, args)))
+        return
     device = torch.device(args.device)
     all_cfgs = sorted(str(p) for p in (REPO_ROOT / "cfgs" / "atlas").rglob("*.yaml"))
     cfg_files = all_cfgs if args.cfgs is None else args.cfgs
@@ -264,7 +400,9 @@ def main() -> None:
             seed=0,
         )  # fmt: skip
 
-    if cfg_files:
+    if args.train_step:
+        train_step_table(args, data_path)
+    elif cfg_files:
         latency_table(cfg_files, data_path, args, device)
     if args.share_cfg is not None:
         test_step_shares(args.share_cfg, data_path, args.share_frames, device)

@@ -90,13 +90,16 @@ def voxelize(points: torch.Tensor, grid: VoxelGrid) -> Voxelization:
     nx, ny, nz = grid.grid_size
     pc_min = points.new_tensor(grid.point_cloud_range[:3], dtype=torch.float64)
     vsize = points.new_tensor(grid.voxel_size, dtype=torch.float64)
-    cell = torch.floor((points[:, 1:4].double() - pc_min) / vsize).long()  # (N, 3) x, y, z
+    # float64 cell coordinates (exact cell edges for float32 input), in place on one copy
+    cell = points[:, 1:4].to(torch.float64, copy=True).sub_(pc_min).div_(vsize).floor_().long()
     upper = torch.tensor([nx, ny, nz], device=points.device)
-    mask = ((cell >= 0) & (cell < upper)).all(dim=1)
-    cell = cell[mask]
-    batch = points[mask, 0].long()
-    key = ((batch * nz + cell[:, 2]) * ny + cell[:, 1]) * nx + cell[:, 0]
-    num_cells = (int(batch.max()) + 1) * nx * ny * nz if key.numel() else 0
+    mask = ((cell >= 0) & (cell < upper)).all(dim=1)  # (N,)
+    # linear key of every point (garbage outside the range), then one 1-D selection
+    key = (
+        points[:, 0].to(torch.int64, copy=True).mul_(nz).add_(cell[:, 2]).mul_(ny).add_(cell[:, 1])
+    )
+    key = key.mul_(nx).add_(cell[:, 0])[mask]
+    num_cells = (int(key.max()) // (nx * ny * nz) + 1) * nx * ny * nz if key.numel() else 0
     if num_cells <= DENSE_KEY_LIMIT:
         # dense path (pillar grids): occupancy counts per cell, no sort; same result as unique
         counts_all = torch.bincount(key, minlength=num_cells)

@@ -34,7 +34,7 @@ class PFNLayer(nn.Module):
         x_max = scatter_max(x, pillar_idx, num_pillars)  # (P, width)
         if self.last_layer:
             return x_max
-        return torch.cat([x, x_max[pillar_idx]], dim=1)
+        return torch.cat([x, x_max.index_select(0, pillar_idx)], dim=1)
 
 
 @MODEL_STAGES.register()
@@ -121,9 +121,9 @@ class DynamicPillarVFE(nn.Module):
         num_pillars = vox.voxel_coords.shape[0]
         xyz = pts[:, :3]
         pillar_mean = scatter_mean(xyz, idx, num_pillars, vox.voxel_num_points)  # (P, 3)
-        f_cluster = xyz - pillar_mean[idx]
+        f_cluster = xyz - pillar_mean.index_select(0, idx)
         vs, pcr = self.grid.voxel_size, self.grid.point_cloud_range
-        coords = vox.voxel_coords[idx]  # (N_in, 4) b, z, y, x
+        coords = vox.voxel_coords.index_select(0, idx)  # (N_in, 4) b, z, y, x
         centre = torch.stack(
             [
                 coords[:, 3].to(xyz.dtype) * vs[0] + (vs[0] / 2 + pcr[0]),
