@@ -92,11 +92,14 @@ class FrameAttack:
         added: ``(K, 5)`` float32 points added: ``x, y, z`` (vehicle frame, m) and **raw**
             intensity and elongation (the dataset applies its feature transform, e.g. tanh).
         meta: the metadata record (:mod:`pcdet_atlas.attacks.metadata`).
+        removed: ``(R,)`` int64 ascending indices of the rows ``keep`` drops, when the attack
+            has them at hand (saves two passes over the mask); derived from ``keep`` otherwise.
     """
 
     keep: np.ndarray | None
     added: np.ndarray
     meta: dict
+    removed: np.ndarray | None = field(default=None, repr=False)
 
     def apply(
         self,
@@ -115,7 +118,12 @@ class FrameAttack:
         if self.keep is None and num_added == 0:
             return points
         added = self.added if feature_fn is None else feature_fn(self.added.copy())
-        removed = _EMPTY_INDEX if self.keep is None else np.flatnonzero(~self.keep)
+        if self.keep is None:
+            removed = _EMPTY_INDEX
+        elif self.removed is not None:
+            removed = self.removed
+        else:
+            removed = (~self.keep).nonzero()[0]
         num_kept = points.shape[0] - removed.size
         out = np.empty((num_kept + num_added, points.shape[1]), dtype=points.dtype)  # one copy
         _copy_kept_rows(points, removed, out[:num_kept])
@@ -126,24 +134,28 @@ class FrameAttack:
 
 
 _EMPTY_INDEX = np.zeros(0, dtype=np.int64)
-#: Above this many removed rows, a masked copy beats copying the runs between them.
+#: Above this many runs of removed rows, a masked copy beats copying the blocks between them.
 _MAX_RUN_COPIES = 1024
 
 
 def _copy_kept_rows(points: np.ndarray, removed: np.ndarray, out: np.ndarray) -> None:
-    """``out[:] = points`` without the ascending row indices ``removed``: for a few removed rows
-    the runs between them are block copies (a phantom occludes a few hundred points)."""
-    if removed.size > _MAX_RUN_COPIES:
+    """``out[:] = points`` without the ascending row indices ``removed``, as block copies of
+    the rows between runs of consecutive removed rows (a phantom occludes a few hundred scattered
+    points; a removal sector is a few dozen runs, one or two per beam)."""
+    if removed.size == 0:
+        out[:] = points
+        return
+    breaks = (np.diff(removed) != 1).nonzero()[0]  # last removed row of each run but the last
+    if breaks.size + 1 > _MAX_RUN_COPIES:
         keep = np.ones(points.shape[0], dtype=bool)
         keep[removed] = False
         np.compress(keep, points, axis=0, out=out)
         return
-    o = prev = 0
-    for j in removed.tolist():
-        n = j - prev
-        out[o : o + n] = points[prev:j]
-        o, prev = o + n, j + 1
-    out[o:] = points[prev:]
+    starts = removed[np.concatenate([[0], breaks + 1])].tolist()  # first row of each run
+    stops = (removed[np.concatenate([breaks, [removed.size - 1]])] + 1).tolist()
+    parts = [points[prev:start] for prev, start in zip([0, *stops[:-1]], starts)]
+    parts.append(points[stops[-1] :])
+    np.concatenate(parts, axis=0, out=out)
 
 
 class BaseAttack(ABC):

@@ -92,26 +92,53 @@ class GroundEstimator:
         except ValueError as err:
             raise ConfigError(f"GROUND ({config_files(cfg)}): {err}") from err
 
-    def __call__(self, scene_xyz: np.ndarray, center_xy) -> GroundEstimate:
-        """Ground height at ``center_xy`` (2,) from ``(N, 3+)`` scene points (vehicle frame)."""
+    def __call__(
+        self,
+        scene_xyz: np.ndarray,
+        center_xy,
+        scene_xy: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> GroundEstimate:
+        """Ground height at ``center_xy`` (2,) from ``(N, 3+)`` scene points (vehicle frame).
+
+        ``scene_xy``: contiguous ``x`` and ``y`` columns of ``scene_xyz``
+        (:func:`~pcdet_atlas.attacks.raycast.scene_columns`) when the caller has them already.
+        """
         cx, cy = float(center_xy[0]), float(center_xy[1])
         xyz = np.asarray(scene_xyz)
-        # cheap pre-filter on the wide disc's bounding square (compares on contiguous column
-        # copies), then z and exact distances on the survivors only
-        r_wide = self.fallback_radius
-        x = np.ascontiguousarray(xyz[:, 0])
-        y = np.ascontiguousarray(xyz[:, 1])
-        sel = np.flatnonzero(
-            (x >= cx - r_wide) & (x <= cx + r_wide) & (y >= cy - r_wide) & (y <= cy + r_wide)
-        )
-        cand = xyz[sel, :3].astype(np.float64)
-        cand = cand[np.abs(cand[:, 2]) <= self.max_abs_z]
+        x, y = scene_xy if scene_xy is not None else _columns(xyz)
+        # cheap pre-filter on the small disc's bounding square (widened by 1 mm, far above the
+        # float32 rounding of the bounds), then z and exact float64 distances on the survivors;
+        # the wide disc's square is scanned only when the small disc is too sparse
+        r = self.radius + _SQUARE_SLACK_M
+        cand = _disc_candidates(xyz, x, y, cx, cy, r, self.max_abs_z)
         d2 = (cand[:, 0] - cx) ** 2 + (cand[:, 1] - cy) ** 2
-        for radius, source in ((self.radius, "disc"), (self.fallback_radius, "wide_disc")):
-            z = cand[d2 <= radius * radius, 2]
-            if z.size >= self.min_points:
-                return GroundEstimate(_lower_percentile(z, self.percentile), source, int(z.size))
+        z = cand[d2 <= self.radius * self.radius, 2]
+        if z.size >= self.min_points:
+            return GroundEstimate(_lower_percentile(z, self.percentile), "disc", int(z.size))
+        cand = _disc_candidates(xyz, x, y, cx, cy, self.fallback_radius, self.max_abs_z)
+        d2 = (cand[:, 0] - cx) ** 2 + (cand[:, 1] - cy) ** 2
+        z = cand[d2 <= self.fallback_radius * self.fallback_radius, 2]
+        if z.size >= self.min_points:
+            return GroundEstimate(_lower_percentile(z, self.percentile), "wide_disc", int(z.size))
         return GroundEstimate(self.fallback_z, "fallback", int(cand.shape[0]))
+
+
+#: Widening of the small disc's bounding square, metres.
+_SQUARE_SLACK_M = 1e-3
+
+
+def _columns(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return np.ascontiguousarray(xyz[:, 0]), np.ascontiguousarray(xyz[:, 1])
+
+
+def _disc_candidates(
+    xyz: np.ndarray, x: np.ndarray, y: np.ndarray, cx: float, cy: float, r: float, max_abs_z: float
+) -> np.ndarray:
+    """``(C, 3)`` float64 points inside the square ``|x - cx|, |y - cy| <= r`` with
+    ``|z| <= max_abs_z``."""
+    sel = ((x >= cx - r) & (x <= cx + r) & (y >= cy - r) & (y <= cy + r)).nonzero()[0]
+    cand = xyz[sel, :3].astype(np.float64)
+    return cand[np.abs(cand[:, 2]) <= max_abs_z]
 
 
 def _lower_percentile(values: np.ndarray, percentile: float) -> float:

@@ -36,11 +36,11 @@ from pcdet_atlas.attacks.counters import COUNTERS
 from pcdet_atlas.attacks.ground import GroundEstimator
 from pcdet_atlas.attacks.intensity import RangeIntensityModel
 from pcdet_atlas.attacks.lidar_model import LidarModel
-from pcdet_atlas.attacks.raycast import raycast_merge
+from pcdet_atlas.attacks.raycast import raycast_merge, raycast_numpy_indices, scene_columns
 from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary
 from pcdet_atlas.config import REPO_ROOT, ConfigError
 from pcdet_atlas.registry import ATTACKS
-from pcdet_atlas.utils.box_utils import transform_boxes, transform_points
+from pcdet_atlas.utils.common import limit_period
 from pcdet_atlas.utils.seeding import numpy_generator, torch_generator
 
 __all__ = ["InjectionAttack", "PhantomRun", "sample_phantom"]
@@ -299,7 +299,16 @@ class InjectionAttack(BaseAttack):
         if run.anchor_pose is None:
             return run.xyz, run.box
         rel = np.linalg.inv(seq.pose(frame_idx)) @ run.anchor_pose  # anchor ego -> frame ego
-        return transform_points(run.xyz, rel), transform_boxes(run.box[None], rel)[0]
+        # the torch ops of transform_points / transform_boxes, without their per-call
+        # conversions (bit for bit the same; this runs on every spoofed frame)
+        t = torch.from_numpy(rel)
+        rot_t, shift = t[:3, :3].T, t[:3, 3]
+        xyz = (torch.from_numpy(run.xyz) @ rot_t + shift).numpy()
+        b = torch.from_numpy(run.box[None])
+        box = b.clone()
+        box[:, 0:3] = b[:, 0:3] @ rot_t + shift
+        box[:, 6] = limit_period(b[:, 6] + torch.atan2(t[1, 0], t[0, 0]))
+        return xyz, box[0].numpy()
 
     def phantom_id(self, run: PhantomRun) -> str:
         return f"phantom_run{run.run_id}"
@@ -315,22 +324,34 @@ class InjectionAttack(BaseAttack):
     ) -> FrameAttack:
         COUNTERS.add(frames_simulated=1)
         xyz, box = self.phantom_pose(seq, frame_idx, run)
-        ground = self.ground(scene_xyz, box[:2])
+        on_cpu = self.device.type == "cpu"
+        # CPU: the contiguous x / y columns of the scene are made once and shared by the ground
+        # pre-filter and the raycaster's sector pre-filter (the only full-scene passes)
+        scene_xy = scene_columns(scene_xyz) if on_cpu else None
+        ground = self.ground(scene_xyz, box[:2], scene_xy=scene_xy)
         dz = ground.z + box[5] / 2 - box[2]
         box = box.copy()
         box[2] += dz
         spoof = (xyz + np.array([0.0, 0.0, dz])).astype(np.float32)  # (n, 3)
         new_range = np.linalg.norm(spoof.astype(np.float64) - self._origin[None], axis=1)
         inten, elong = self.intensity(run.intensity, run.elongation, run.src_range, new_range)
-        scene_t = torch.from_numpy(scene_xyz[:, :3]).to(self.device)  # a strided view, no copy
-        spoof_t = torch.from_numpy(spoof).to(self.device)
         gen = None
         if self.p_dual > 0:
             keys = (*self.rng_keys(seq.name, run.start), frame_idx, "dual")
             gen = torch_generator(*keys)
-        keep_scene, keep_spoof = raycast_merge(scene_t, spoof_t, self.lidar, self.p_dual, gen)
-        keep_scene = keep_scene.cpu().numpy()
-        keep_spoof = keep_spoof.cpu().numpy()
+        if on_cpu:
+            removed, keep_spoof = raycast_numpy_indices(
+                scene_xyz, spoof, self.lidar, self.p_dual, gen, scene_xy=scene_xy
+            )
+            keep_scene = np.ones(scene_xyz.shape[0], dtype=bool)
+            keep_scene[removed] = False
+        else:
+            scene_t = torch.from_numpy(scene_xyz[:, :3]).to(self.device)  # strided, no copy
+            spoof_t = torch.from_numpy(spoof).to(self.device)
+            keep_scene, keep_spoof = raycast_merge(scene_t, spoof_t, self.lidar, self.p_dual, gen)
+            keep_scene = keep_scene.cpu().numpy()
+            keep_spoof = keep_spoof.cpu().numpy()
+            removed = None
         added = np.concatenate(
             [spoof[keep_spoof], inten[keep_spoof, None], elong[keep_spoof, None]], axis=1
         )
@@ -340,11 +361,13 @@ class InjectionAttack(BaseAttack):
             target_obj_id=self.phantom_id(run),
             num_spoof_points=run.budget,
             num_visible=int(keep_spoof.sum()),
-            num_removed=int(keep_scene.size - keep_scene.sum()),
+            num_removed=int(keep_scene.size - keep_scene.sum())
+            if removed is None
+            else int(removed.size),
             tracked=True,
             fired=True,
         )
-        return FrameAttack(keep_scene, added.astype(np.float32), meta)
+        return FrameAttack(keep_scene, added.astype(np.float32), meta, removed=removed)
 
     def shadow_meta(
         self, seq: SequenceData, frame_idx: int, run: PhantomRun, state: ScheduleState

@@ -33,7 +33,18 @@ import torch
 from pcdet_atlas.attacks.counters import COUNTERS, AttackCounters
 from pcdet_atlas.attacks.lidar_model import LidarModel
 
-__all__ = ["raycast_merge", "azimuth_sector_candidates"]
+__all__ = [
+    "raycast_merge",
+    "raycast_merge_numpy",
+    "azimuth_sector_candidates",
+    "azimuth_sector_candidates_numpy",
+    "scene_columns",
+]
+
+#: ``raycast_merge(..., backend=)`` values: ``'auto'`` runs CPU tensors through the numpy
+#: implementation and every other device through the torch one.
+BACKENDS = ("auto", "torch", "numpy")
+_NUMPY_DTYPES = (torch.float16, torch.float32, torch.float64)
 
 #: Angular margin added to each side of a candidate wedge, radians (>> float32 atan error).
 _WEDGE_MARGIN_RAD = 1e-4
@@ -43,6 +54,9 @@ _WEDGE_SLACK_M = 1e-3
 _MAX_INTERVALS = 8
 #: Widest wedge (the half-plane test needs < pi); wider intervals are split.
 _MAX_WEDGE_RAD = math.pi / 2
+#: Occupied azimuth runs at most this far apart (radians) share one wedge: a wedge costs two
+#: passes over the whole scene, the columns of a small gap only a few more candidates.
+_MERGE_GAP_RAD = math.radians(5.0)
 #: Above this covered fraction of the circle, every scene point is a candidate (cheaper).
 _FULL_SCAN_FRACTION = 0.5
 
@@ -56,16 +70,19 @@ def _as_xyz(points, name: str) -> torch.Tensor:
     return pts[:, :3]
 
 
-def _azimuth_intervals(columns: list[int], num_columns: int) -> list[tuple[int, int]]:
+def _azimuth_intervals(
+    columns: list[int], num_columns: int, max_gap: int = 0
+) -> list[tuple[int, int]]:
     """Circular intervals ``(lo, hi)`` (``hi`` may exceed ``num_columns - 1`` when wrapping)
-    covering the sorted distinct occupied columns, at most ``_MAX_INTERVALS`` of them."""
+    covering the sorted distinct occupied columns, at most ``_MAX_INTERVALS`` of them; runs
+    separated by at most ``max_gap`` empty columns are one interval."""
     runs: list[list[int]] = []
     for c in columns:
-        if runs and c == runs[-1][1] + 1:
+        if runs and c <= runs[-1][1] + 1 + max_gap:
             runs[-1][1] = c
         else:
             runs.append([c, c])
-    if len(runs) > 1 and runs[0][0] == 0 and runs[-1][1] == num_columns - 1:
+    if len(runs) > 1 and runs[0][0] + num_columns - runs[-1][1] - 1 <= max_gap:
         last = runs.pop()  # a run through the +-pi seam: M-1 -> 0
         runs[0] = [last[0], runs[0][1] + num_columns]
     runs.sort()
@@ -83,6 +100,23 @@ def _azimuth_intervals(columns: list[int], num_columns: int) -> list[tuple[int, 
             runs[j][1] = runs[j + 1][1]
             runs.pop(j + 1)
     return [(lo, hi) for lo, hi in runs]
+
+
+def _sector_wedges(columns: list[int], num_columns: int) -> list[tuple[float, float]] | None:
+    """The candidate wedges ``(a0, a1)`` (radians, each narrower than pi) covering the sorted
+    distinct azimuth ``columns`` with their margins, or ``None`` when they cover so much of the
+    circle that testing every point is cheaper."""
+    width = 2 * math.pi / num_columns
+    max_gap = int(_MERGE_GAP_RAD / width)
+    wedges: list[tuple[float, float]] = []
+    for lo, hi in _azimuth_intervals(columns, num_columns, max_gap):
+        a0 = -math.pi + lo * width - _WEDGE_MARGIN_RAD
+        a1 = -math.pi + (hi + 1) * width + _WEDGE_MARGIN_RAD
+        pieces = max(1, math.ceil((a1 - a0) / _MAX_WEDGE_RAD))
+        step = (a1 - a0) / pieces
+        wedges.extend((a0 + p * step, a0 + (p + 1) * step) for p in range(pieces))
+    covered = sum(b - a for a, b in wedges)
+    return None if covered >= _FULL_SCAN_FRACTION * 2 * math.pi else wedges
 
 
 def azimuth_sector_candidates(
@@ -103,20 +137,11 @@ def azimuth_sector_candidates(
         ``(C,)`` long indices into ``scene_xyz``, ascending.
     """
     device = scene_xyz.device
-    num_columns = lidar.azimuth_bins
     cols = columns.tolist()
     if not cols or scene_xyz.shape[0] == 0:
         return torch.zeros(0, dtype=torch.long, device=device)
-    width = 2 * math.pi / num_columns
-    wedges: list[tuple[float, float]] = []
-    for lo, hi in _azimuth_intervals(cols, num_columns):
-        a0 = -math.pi + lo * width - _WEDGE_MARGIN_RAD
-        a1 = -math.pi + (hi + 1) * width + _WEDGE_MARGIN_RAD
-        pieces = max(1, math.ceil((a1 - a0) / _MAX_WEDGE_RAD))
-        step = (a1 - a0) / pieces
-        wedges.extend((a0 + p * step, a0 + (p + 1) * step) for p in range(pieces))
-    covered = sum(b - a for a, b in wedges)
-    if covered >= _FULL_SCAN_FRACTION * 2 * math.pi:
+    wedges = _sector_wedges(cols, lidar.azimuth_bins)
+    if wedges is None:
         ok = torch.isfinite(scene_xyz).all(dim=1)
         return torch.nonzero(ok).squeeze(1)
     dtype = scene_xyz.dtype if scene_xyz.dtype in (torch.float32, torch.float64) else torch.float32
@@ -130,6 +155,62 @@ def azimuth_sector_candidates(
         inside &= _half_plane(x, y, math.sin(a1), -math.cos(a1), ox, oy)
         mask = inside if mask is None else mask | inside
     return torch.nonzero(mask).squeeze(1)
+
+
+def scene_columns(scene_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Contiguous copies of the ``x`` and ``y`` columns of ``(N, 3+)`` points (float32 unless
+    float64): the layout of every full-scene pre-filter on CPU, made once per frame and shared
+    (:func:`raycast_merge_numpy`, :class:`~pcdet_atlas.attacks.ground.GroundEstimator`)."""
+    dtype = scene_xyz.dtype if scene_xyz.dtype in (np.float32, np.float64) else np.float32
+    x = np.ascontiguousarray(scene_xyz[:, 0], dtype=dtype)
+    y = np.ascontiguousarray(scene_xyz[:, 1], dtype=dtype)
+    return x, y
+
+
+def azimuth_sector_candidates_numpy(
+    scene_xyz: np.ndarray,
+    columns: np.ndarray,
+    lidar: LidarModel,
+    scene_xy: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """:func:`azimuth_sector_candidates` on numpy arrays (the same wedges and margins; each
+    half-plane test is a multiply, an add and a compare over contiguous columns).
+
+    Args:
+        scene_xyz: ``(N, 3+)`` float points, vehicle frame, metres.
+        columns: ``(K,)`` distinct occupied azimuth columns, sorted.
+        scene_xy: :func:`scene_columns` of ``scene_xyz`` when the caller already has them.
+    Returns:
+        ``(C,)`` int64 indices into ``scene_xyz``, ascending.
+    """
+    cols = np.asarray(columns).tolist()
+    if not cols or scene_xyz.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    wedges = _sector_wedges(cols, lidar.azimuth_bins)
+    if wedges is None:
+        return np.isfinite(scene_xyz[:, :3]).all(axis=1).nonzero()[0]
+    x, y = scene_columns(scene_xyz) if scene_xy is None else scene_xy
+    ox, oy = float(lidar.origin[0]), float(lidar.origin[1])
+    buf = np.empty_like(x)
+    mask = None
+    for a0, a1 in wedges:
+        inside = _half_plane_numpy(x, y, -math.sin(a0), math.cos(a0), ox, oy, buf)
+        inside &= _half_plane_numpy(x, y, math.sin(a1), -math.cos(a1), ox, oy, buf)
+        mask = inside if mask is None else mask | inside
+    return mask.nonzero()[0]
+
+
+def _half_plane_numpy(
+    x: np.ndarray, y: np.ndarray, a: float, b: float, ox: float, oy: float, buf: np.ndarray
+) -> np.ndarray:
+    """:func:`_half_plane` in numpy, in the columns' dtype (``buf``: scratch of that shape)."""
+    thresh = a * ox + b * oy - _WEDGE_SLACK_M
+    if abs(b) < abs(a):
+        x, y, a, b = y, x, b, a
+    np.multiply(x, x.dtype.type(a / b), out=buf)
+    np.add(buf, y, out=buf)
+    bound = x.dtype.type(thresh / b)
+    return np.greater_equal(buf, bound) if b > 0 else np.less_equal(buf, bound)
 
 
 def _half_plane(
@@ -155,6 +236,7 @@ def raycast_merge(
     p_dual: float = 0.01,
     generator: torch.Generator | None = None,
     counters: AttackCounters | None = None,
+    backend: str = "auto",
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Merge spoofed points into a scan, one echo per ray (SPEC §3.3, rules 1-6).
 
@@ -182,6 +264,12 @@ def raycast_merge(
         p_dual: dual-return probability in ``[0, 1]``.
         generator: ``torch.Generator``, required when ``p_dual > 0``.
         counters: where to count the work; the per-process ``COUNTERS`` by default.
+        backend: ``'auto'`` (numpy for CPU tensors, torch otherwise), ``'torch'`` or
+            ``'numpy'`` (CPU tensors only). Both give identical masks, counters and draws: the
+            float64 ``sqrt`` / ``atan2`` of the binning are the same torch calls in both,
+            everything else is IEEE-exact arithmetic or integer/comparison logic. The numpy
+            one avoids ~60 small torch ops, whose fixed cost dominates a few thousand candidate
+            points on CPU.
 
     Returns:
         keep_scene: ``(N,)`` bool, on the scene's device.
@@ -191,17 +279,22 @@ def raycast_merge(
     spoof = _as_xyz(spoof_xyz, "spoof_xyz")
     if scene.device != spoof.device:
         raise ValueError(f"scene_xyz on {scene.device} but spoof_xyz on {spoof.device}")
-    p_dual = float(p_dual)
-    if not 0.0 <= p_dual <= 1.0:
-        raise ValueError(f"p_dual must be in [0, 1], got {p_dual}")
-    if p_dual > 0 and generator is None:
-        raise ValueError(
-            "raycast_merge: p_dual > 0 needs an explicit torch.Generator (no global RNG); "
-            "pass generator=... or p_dual=0"
-        )
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    p_dual = _check_dual(p_dual, generator)
     if not bool(torch.isfinite(spoof).all()):
         raise ValueError("spoof_xyz contains non-finite coordinates")
     counters = COUNTERS if counters is None else counters
+    numpy_ok = scene.device.type == "cpu" and scene.dtype in _NUMPY_DTYPES
+    if backend == "numpy" and not numpy_ok:
+        raise ValueError(f"backend 'numpy' needs CPU float16/32/64 tensors, got {scene.dtype}")
+    if backend == "numpy" or (backend == "auto" and numpy_ok and spoof.dtype in _NUMPY_DTYPES):
+        occluded, keep_spoof = _raycast_numpy(
+            scene.numpy(), spoof.numpy(), lidar, p_dual, generator, counters
+        )
+        keep_scene = torch.ones(scene.shape[0], dtype=torch.bool)
+        keep_scene[torch.from_numpy(occluded)] = False
+        return keep_scene, torch.from_numpy(keep_spoof)
     device = scene.device
     num_scene, num_spoof = scene.shape[0], spoof.shape[0]
     keep_scene = torch.ones(num_scene, dtype=torch.bool, device=device)
@@ -270,3 +363,206 @@ def raycast_merge(
         dual_draws=draws,
     )
     return keep_scene, keep_spoof
+
+
+def _check_dual(p_dual: float, generator: torch.Generator | None) -> float:
+    p_dual = float(p_dual)
+    if not 0.0 <= p_dual <= 1.0:
+        raise ValueError(f"p_dual must be in [0, 1], got {p_dual}")
+    if p_dual > 0 and generator is None:
+        raise ValueError(
+            "raycast_merge: p_dual > 0 needs an explicit torch.Generator (no global RNG); "
+            "pass generator=... or p_dual=0"
+        )
+    return p_dual
+
+
+def raycast_merge_numpy(
+    scene_xyz: np.ndarray,
+    spoof_xyz: np.ndarray,
+    lidar: LidarModel,
+    p_dual: float = 0.01,
+    generator: torch.Generator | None = None,
+    counters: AttackCounters | None = None,
+    scene_xy: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`raycast_merge` on numpy arrays (CPU), with identical results.
+
+    Args:
+        scene_xyz: ``(N, 3+)`` float scene points (a strided view is fine: never copied whole).
+        spoof_xyz: ``(M, 3+)`` float spoofed points.
+        lidar, p_dual, generator, counters: as :func:`raycast_merge` (the uniforms of rule 5
+            come from the torch ``generator``, so the draws are the same).
+        scene_xy: :func:`scene_columns` of ``scene_xyz`` if the caller has them already.
+
+    Returns:
+        keep_scene ``(N,)`` and keep_spoof ``(M,)`` bool arrays.
+    """
+    occluded, keep_spoof = raycast_numpy_indices(
+        scene_xyz, spoof_xyz, lidar, p_dual, generator, counters, scene_xy
+    )
+    keep_scene = np.ones(np.shape(scene_xyz)[0], dtype=bool)
+    keep_scene[occluded] = False
+    return keep_scene, keep_spoof
+
+
+def raycast_numpy_indices(
+    scene_xyz: np.ndarray,
+    spoof_xyz: np.ndarray,
+    lidar: LidarModel,
+    p_dual: float = 0.01,
+    generator: torch.Generator | None = None,
+    counters: AttackCounters | None = None,
+    scene_xy: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`raycast_merge_numpy` returning the **ascending int64 indices** of the occluded
+    scene points (instead of an ``(N,)`` mask) and the ``(M,)`` bool keep mask of the spoof."""
+    scene = _as_xyz_numpy(scene_xyz, "scene_xyz")
+    spoof = _as_xyz_numpy(spoof_xyz, "spoof_xyz")
+    p_dual = _check_dual(p_dual, generator)
+    if not np.isfinite(spoof).all():
+        raise ValueError("spoof_xyz contains non-finite coordinates")
+    counters = COUNTERS if counters is None else counters
+    return _raycast_numpy(scene, spoof, lidar, p_dual, generator, counters, scene_xy)
+
+
+def _as_xyz_numpy(points, name: str) -> np.ndarray:
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] < 3:
+        raise ValueError(f"{name} must have shape (N, 3+), got {pts.shape}")
+    if not np.issubdtype(pts.dtype, np.floating):
+        raise TypeError(f"{name} must be a floating-point array, got {pts.dtype}")
+    return pts[:, :3]
+
+
+def _bin_index_numpy(lidar: LidarModel, xyz: np.ndarray) -> tuple[np.ndarray, ...]:
+    """:meth:`LidarModel.bin_index` of ``(N, 3)`` numpy points, bit for bit.
+
+    The IEEE-exact float64 steps (conversion, subtraction, squares, sums, division, floor,
+    comparisons) run in numpy; ``sqrt`` and ``atan2``, whose torch CPU kernels round
+    differently from numpy's, are the same torch calls on the same memory layouts as in
+    :meth:`LidarModel.spherical` (both are independent of an element's position in the array,
+    so binning a subset gives each point the bin it gets in the whole scene).
+    """
+    origin, mids = lidar._constants(torch.device("cpu"))
+    rel = xyz[:, :3].astype(np.float64) - origin.numpy()  # (N, 3), C-contiguous like torch's
+    rel_t = torch.from_numpy(rel)
+    horiz = torch.sqrt(torch.from_numpy(rel[:, 0] ** 2 + rel[:, 1] ** 2))
+    azimuth = torch.atan2(rel_t[:, 1], rel_t[:, 0]).numpy()
+    azimuth[azimuth == -math.pi] = math.pi
+    elevation = torch.atan2(rel_t[:, 2], horiz).numpy()
+    horiz = horiz.numpy()
+    rng = torch.sqrt(torch.from_numpy(horiz**2 + rel[:, 2] ** 2)).numpy()
+    width = 2 * math.pi / lidar.azimuth_bins
+    with np.errstate(invalid="ignore"):  # non-finite points: any bin, never in the FOV
+        col = np.clip(np.floor((azimuth + math.pi) / width), 0, lidar.azimuth_bins - 1)
+        col = col.astype(np.int64)
+    beam = np.searchsorted(mids.numpy(), elevation, side="left")
+    fov = (elevation >= lidar.fov_min) & (elevation <= lidar.fov_max)
+    return beam * lidar.azimuth_bins + col, fov, rng
+
+
+def _raycast_numpy(
+    scene: np.ndarray,
+    spoof: np.ndarray,
+    lidar: LidarModel,
+    p_dual: float,
+    generator: torch.Generator | None,
+    counters: AttackCounters,
+    scene_xy: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The merge of :func:`raycast_merge` in numpy; returns (occluded scene indices ascending,
+    keep_spoof). Per-ray minima by one stable sort instead of two-pass scatters."""
+    num_scene, num_spoof = scene.shape[0], spoof.shape[0]
+    keep_spoof = np.zeros(num_spoof, dtype=bool)
+    no_index = np.zeros(0, dtype=np.int64)
+    if num_spoof == 0:
+        return no_index, keep_spoof
+
+    # ---- spoof rays (rules 1, 2): nearest per ray, ties to the lower index
+    spoof_bin, spoof_fov, spoof_rng = _bin_index_numpy(lidar, spoof)
+    valid = spoof_fov & (spoof_rng > 0) & (spoof_rng <= lidar.max_range)
+    spoof_idx = valid.nonzero()[0]  # (V,)
+    if spoof_idx.size == 0:
+        counters.add(raycast_calls=1, points_examined=num_spoof)
+        return no_index, keep_spoof
+    spoof_ray_bin = spoof_bin[spoof_idx]
+    spoof_r = spoof_rng[spoof_idx]
+    order = np.lexsort((spoof_idx, spoof_r, spoof_ray_bin))  # by ray, range, index
+    sorted_bin = spoof_ray_bin[order]
+    head = np.ones(order.size, dtype=bool)
+    head[1:] = sorted_bin[1:] != sorted_bin[:-1]
+    first = order[head]  # (K,) the echo of each ray, ascending ray id
+    rays = spoof_ray_bin[first]
+    echo_r = spoof_r[first]
+    echo_idx = spoof_idx[first]
+    num_rays = rays.size
+
+    # ---- scene returns of those rays, from the candidates of the sector only
+    columns = np.sort(rays % lidar.azimuth_bins)
+    columns = columns[np.concatenate([[True], columns[1:] != columns[:-1]])]
+    cand = azimuth_sector_candidates_numpy(scene, columns, lidar, scene_xy)  # (C,)
+    num_cand = cand.size
+    cand_xyz = scene[cand]  # (C, 3)
+    sub = _elevation_band(cand_xyz, rays // lidar.azimuth_bins, lidar)
+    if sub is not None:  # only the candidates in the spoof's beams get trigonometry
+        cand, cand_xyz = cand[sub], cand_xyz[sub]
+    cand_bin, cand_fov, cand_rng = _bin_index_numpy(lidar, cand_xyz)
+    pos = np.minimum(np.searchsorted(rays, cand_bin), num_rays - 1)
+    is_ret = cand_fov & (cand_rng > 0) & np.isfinite(cand_rng) & (rays[pos] == cand_bin)
+    ret_idx = cand[is_ret]  # (R,) ascending scene indices
+    ret_ray = pos[is_ret]
+    ret_r = cand_rng[is_ret]
+    far_r = np.full(num_rays, -math.inf)
+    np.maximum.at(far_r, ret_ray, ret_r)
+    near_r = np.full(num_rays, math.inf)
+    np.minimum.at(near_r, ret_ray, ret_r)
+    has_scene = far_r > -math.inf
+
+    # ---- rules 3, 4, 6
+    ray_keeps = ~has_scene | (echo_r < far_r)
+    keep_spoof[echo_idx[ray_keeps]] = True
+    occluded = ray_keeps[ret_ray] & (ret_r > echo_r[ret_ray])
+
+    # ---- rule 5: dual returns, drawn only in primary rays (same uniforms as the torch path)
+    draws = 0
+    if p_dual > 0:
+        primary = (ray_keeps & has_scene & (echo_r < near_r)).nonzero()[0]
+        draws = primary.size
+        if draws:
+            u = torch.rand(draws, generator=generator, dtype=torch.float64, device=generator.device)
+            dual_rays = primary[u.cpu().numpy() < p_dual]
+            if dual_rays.size:
+                nearest = ret_r == near_r[ret_ray]
+                near_idx = np.full(num_rays, num_scene, dtype=np.int64)
+                np.minimum.at(near_idx, ret_ray[nearest], ret_idx[nearest])
+                second = np.zeros(num_rays, dtype=bool)
+                second[dual_rays] = True
+                occluded &= ~(second[ret_ray] & (ret_idx == near_idx[ret_ray]))
+    counters.add(
+        raycast_calls=1,
+        bins_touched=num_rays,
+        points_examined=num_cand + num_spoof,
+        dual_draws=draws,
+    )
+    return ret_idx[occluded], keep_spoof
+
+
+def _elevation_band(xyz: np.ndarray, beams: np.ndarray, lidar: LidarModel) -> np.ndarray | None:
+    """Indices of the ``(C, 3)`` points whose elevation may fall in the beams ``[min(beams),
+    max(beams)]`` (a superset: the beam boundaries are widened by ``_WEDGE_MARGIN_RAD``), by
+    ``z >= h tan(lo)`` and ``z <= h tan(hi)`` in float64 -- no trigonometry per point. ``None``
+    when the beams span the whole fan (every point passes)."""
+    b_lo, b_hi = int(beams.min()), int(beams.max())
+    if b_lo == 0 and b_hi == lidar.num_beams - 1:
+        return None
+    mids = lidar._constants(torch.device("cpu"))[1].numpy()
+    rel = xyz.astype(np.float64) - lidar.origin.numpy()
+    horiz = np.sqrt(rel[:, 0] ** 2 + rel[:, 1] ** 2)
+    ok = None
+    if b_lo > 0:
+        ok = rel[:, 2] >= horiz * math.tan(float(mids[b_lo - 1]) - _WEDGE_MARGIN_RAD)
+    if b_hi < lidar.num_beams - 1:
+        below = rel[:, 2] <= horiz * math.tan(float(mids[b_hi]) + _WEDGE_MARGIN_RAD)
+        ok = below if ok is None else ok & below
+    return ok.nonzero()[0]

@@ -28,6 +28,7 @@ from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, ScheduleState, Seq
 from pcdet_atlas.attacks.config_values import config_files, config_value
 from pcdet_atlas.attacks.counters import COUNTERS
 from pcdet_atlas.attacks.lidar_model import LidarModel
+from pcdet_atlas.attacks.raycast import _half_plane_numpy, scene_columns
 from pcdet_atlas.attacks.tracking import TargetPolicy, TrackedFrame, Tracker, choose_target
 from pcdet_atlas.config import ConfigError, check_known_keys
 from pcdet_atlas.registry import ATTACKS
@@ -124,21 +125,30 @@ def sector_mask(
         float(v[0]) for v in _azimuth_elevation(np.reshape(center_xyz, (1, 3)), origin)
     )
     xyz = np.asarray(scene_xyz)
-    dx = xyz[:, 0] - xyz.dtype.type(origin[0])
-    dy = xyz[:, 1] - xyz.dtype.type(origin[1])
-    # pre-filter: angle to the aim direction below alpha/2 + margin, i.e. u.d >= cos(.) |d|
-    half = min(alpha / 2 + 1e-3, math.pi / 2 - 1e-6)
-    ux, uy = math.cos(theta_c), math.sin(theta_c)
-    dot = dx * ux + dy * uy
-    cand = np.flatnonzero((dot > 0) & (dot * dot >= (math.cos(half) ** 2) * (dx * dx + dy * dy)))
-    if alpha / 2 + 1e-3 >= math.pi / 2:  # wide sectors: the cone test above is not a superset
+    half = alpha / 2 + _PREFILTER_MARGIN_RAD
+    if half >= math.pi / 2:  # wide sectors: every point gets exact angles
         cand = np.arange(xyz.shape[0])
+    else:
+        # pre-filter: the wedge [theta* - half, theta* + half] as two half-planes through the
+        # sensor origin, each a multiply, an add and a compare over contiguous x / y columns
+        # (1 mm slack at the apex covers the rounding of points near the sensor axis)
+        x, y = scene_columns(xyz)
+        buf = np.empty_like(x)
+        ox, oy = float(origin[0]), float(origin[1])
+        a0, a1 = theta_c - half, theta_c + half
+        inside = _half_plane_numpy(x, y, -math.sin(a0), math.cos(a0), ox, oy, buf)
+        inside &= _half_plane_numpy(x, y, math.sin(a1), -math.cos(a1), ox, oy, buf)
+        cand = inside.nonzero()[0]
     if cand.size == 0:
         return cand.astype(np.int64), 0
     theta, phi = _azimuth_elevation(xyz[cand, :3], origin)
     dtheta = np.abs(wrap_angle(theta - theta_c))
     inside = (dtheta <= alpha / 2) & (np.abs(phi - phi_c) <= beta / 2)
     return cand[inside].astype(np.int64), int(cand.size)
+
+
+#: Angular margin of the sector pre-filter on each side, radians (>> float32 rounding).
+_PREFILTER_MARGIN_RAD = 1e-3
 
 
 @dataclass(frozen=True)
@@ -290,7 +300,7 @@ class RemovalAttack(BaseAttack):
         )
         COUNTERS.add(removal_points_examined=examined)
         gen = numpy_generator(self.seed, self.family, seq.name, frame_idx, "points")
-        removed = idx[gen.random(idx.size) < self.p_remove]
+        removed = idx[gen.random(idx.size) < self.p_remove]  # ascending
         keep = np.ones(scene_xyz.shape[0], dtype=bool)
         keep[removed] = False
         meta = self.meta(
@@ -301,7 +311,7 @@ class RemovalAttack(BaseAttack):
             tracked=True,
             fired=True,
         )
-        return FrameAttack(keep, _EMPTY, meta)
+        return FrameAttack(keep, _EMPTY, meta, removed=removed)
 
     def shadow_meta(
         self, seq: SequenceData, frame_idx: int, run: RemovalRun, state: ScheduleState

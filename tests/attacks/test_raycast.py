@@ -10,7 +10,23 @@ from hypothesis import strategies as st
 
 from pcdet_atlas.attacks.counters import AttackCounters
 from pcdet_atlas.attacks.lidar_model import LidarModel
-from pcdet_atlas.attacks.raycast import azimuth_sector_candidates, raycast_merge
+from pcdet_atlas.attacks.raycast import (
+    _bin_index_numpy,
+    _sector_wedges,
+    azimuth_sector_candidates,
+    azimuth_sector_candidates_numpy,
+    raycast_merge,
+    raycast_merge_numpy,
+    raycast_numpy_indices,
+)
+
+
+def numpy_candidates(scene, columns, lidar):
+    return torch.from_numpy(azimuth_sector_candidates_numpy(scene.numpy(), columns.numpy(), lidar))
+
+
+#: Both sector pre-filters (torch: GPU path; numpy: CPU path) must be supersets.
+CANDIDATE_FNS = [azimuth_sector_candidates, numpy_candidates]
 
 
 def reference_merge(scene, spoof, lidar, p_dual=0.0, generator=None):
@@ -173,9 +189,10 @@ def test_bin_edges_and_beam_midpoints():
         # the sector prefilter never misses a point of an occupied column
         s_bin = lidar.bin_index(scene.double())[0] % 48
         p_cols = torch.unique(lidar.bin_index(spoof.double())[0] % 48)
-        cand = azimuth_sector_candidates(scene, p_cols, lidar)
         needed = torch.nonzero(torch.isin(s_bin, p_cols)).squeeze(1)
-        assert torch.isin(needed, cand).all()
+        for candidates in CANDIDATE_FNS:
+            assert torch.isin(needed, candidates(scene, p_cols, lidar)).all()
+        check_backends_agree(scene, spoof, lidar)
 
 
 @settings(max_examples=40, deadline=None)
@@ -260,9 +277,9 @@ def test_points_near_the_sensor_axis():
     present = torch.unique(cols)
     assert present.numel() > 100
     for c in present[:: max(1, present.numel() // 60)]:
-        cand = azimuth_sector_candidates(scene, c.view(1), lidar)
         needed = torch.nonzero(cols == c).squeeze(1)
-        assert torch.isin(needed, cand).all(), int(c)
+        for candidates in CANDIDATE_FNS:
+            assert torch.isin(needed, candidates(scene, c.view(1), lidar)).all(), int(c)
     # and the merge agrees with the reference on such a scene
     spoof = ray_points(lidar, [40, 50, 60], [300, 1325, 2000], [10.0, 12.0, 14.0])
     check_against_reference(scene, spoof, lidar)
@@ -388,3 +405,129 @@ def test_bad_arguments():
         raycast_merge(torch.zeros(3, 3, dtype=torch.long), pts, lidar, p_dual=0.0)
     with pytest.raises(ValueError, match="non-finite"):
         raycast_merge(pts, torch.full((1, 3), math.nan), lidar, p_dual=0.0)
+
+
+# ---------------------------------------------------------------- CPU numpy path == torch path
+def check_backends_agree(scene, spoof, lidar, p_dual=0.0, seed=0):
+    """``backend='torch'`` and ``'numpy'`` give the same masks, counters and draws."""
+    results = []
+    for backend in ("torch", "numpy"):
+        gen = torch.Generator().manual_seed(seed)
+        counters = AttackCounters()
+        keep = raycast_merge(scene, spoof, lidar, p_dual, gen, counters, backend=backend)
+        results.append((keep, counters.snapshot(), torch.rand(1, generator=gen).item()))
+    (ks_t, kp_t), c_t, next_t = results[0]
+    (ks_n, kp_n), c_n, next_n = results[1]
+    assert ks_n.dtype == torch.bool and kp_n.dtype == torch.bool
+    assert torch.equal(ks_t, ks_n) and torch.equal(kp_t, kp_n)
+    assert c_t == c_n and next_t == next_n  # same work counted, same uniforms consumed
+    return ks_n, kp_n
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_numpy_backend_matches_torch_backend(seed):
+    lidar = small_lidar() if seed % 2 else LidarModel.waymo_top()
+    spread = [3.0, 20.0, 120.0, 200.0][seed % 4]  # narrow, wide, split wedges, full scan
+    center = [None, 179.0, -179.5, None][seed // 2 % 4]  # incl. sectors across the seam
+    scene, spoof = random_case(seed, lidar, 3000, 300, center_deg=center, spread_deg=spread)
+    for p_dual in (0.0, 0.5):
+        keep_scene, keep_spoof = check_backends_agree(scene, spoof, lidar, p_dual, seed)
+        exp_scene, exp_spoof = reference_merge(
+            scene, spoof, lidar, p_dual, torch.Generator().manual_seed(seed)
+        )
+        assert torch.equal(keep_scene, exp_scene) and torch.equal(keep_spoof, exp_spoof)
+    check_backends_agree(scene.double(), spoof.double(), lidar, 0.3, seed)
+    extra = torch.randn(scene.shape[0], 2)
+    check_backends_agree(torch.cat([scene, extra], 1), spoof, lidar, 0.3, seed)
+
+
+def test_numpy_backend_spoof_in_few_beams_on_beam_midpoints():
+    """The CPU path bins only the candidates whose elevation may fall in the spoof's beams;
+    scene points exactly on beam midpoints (and on column edges) around that band are kept."""
+    lidar = LidarModel.waymo_top()
+    g = np.random.default_rng(3)
+    n = 6000
+    mids = ((lidar.inclinations[1:] + lidar.inclinations[:-1]) / 2).numpy()
+    beams = g.integers(18, 34, n)
+    on_mid = g.random(n) < 0.5
+    el = np.where(on_mid, mids[beams], lidar.inclinations.numpy()[beams])
+    cols = 1300 + g.integers(-40, 40, n)
+    az = -np.pi + (cols + np.where(g.random(n) < 0.3, 0.0, g.random(n))) * 2 * np.pi / 2651
+    r = g.uniform(3, 70, n)
+    o = lidar.origin.numpy()
+    xyz = np.stack(
+        [
+            o[0] + r * np.cos(el) * np.cos(az),
+            o[1] + r * np.cos(el) * np.sin(az),
+            o[2] + r * np.sin(el),
+        ],
+        1,
+    )
+    scene = torch.as_tensor(xyz[:5000], dtype=torch.float32)
+    spoof = ray_points(
+        lidar, g.integers(22, 29, 400), 1300 + g.integers(-30, 30, 400), g.uniform(4, 60, 400)
+    )
+    for p_dual in (0.0, 1.0):
+        keep_scene, keep_spoof = check_backends_agree(scene, spoof, lidar, p_dual)
+        exp = reference_merge(scene, spoof, lidar, p_dual, torch.Generator().manual_seed(0))
+        assert torch.equal(keep_scene, exp[0]) and torch.equal(keep_spoof, exp[1])
+    assert (~keep_scene).sum() > 50 and keep_spoof.sum() > 50
+
+
+def test_bin_index_numpy_is_bitwise_the_torch_one():
+    g = np.random.default_rng(0)
+    for lidar in (small_lidar(48), LidarModel.waymo_top()):
+        for dtype in (np.float32, np.float64):
+            xyz = (g.normal(size=(5001, 3)) * 30).astype(dtype)
+            xyz[:5] = lidar.origin.numpy()  # range 0
+            want = lidar.bin_index(torch.from_numpy(xyz))
+            got = _bin_index_numpy(lidar, xyz)
+            for w, o in zip(want, got):
+                assert w.numpy().dtype == o.dtype and np.array_equal(w.numpy(), o)
+            # a subset gets the same values (no dependence on the position in the array)
+            sub = g.choice(len(xyz), 777, replace=False)
+            got_sub = _bin_index_numpy(lidar, xyz[sub])
+            for w, o in zip(want, got_sub):
+                assert np.array_equal(w.numpy()[sub], o)
+
+
+def test_raycast_merge_numpy_api_and_errors():
+    lidar = LidarModel.waymo_top()
+    scene, spoof = random_case(2, lidar, num_scene=2000, num_spoof=200)
+    gen_a, gen_b = torch.Generator().manual_seed(4), torch.Generator().manual_seed(4)
+    ks, kp = raycast_merge(scene, spoof, lidar, 0.5, gen_a, backend="torch")
+    ks_np, kp_np = raycast_merge_numpy(scene.numpy(), spoof.numpy(), lidar, 0.5, gen_b)
+    assert isinstance(ks_np, np.ndarray) and np.array_equal(ks_np, ks.numpy())
+    assert np.array_equal(kp_np, kp.numpy())
+    occluded, kp2 = raycast_numpy_indices(
+        scene.numpy(), spoof.numpy(), lidar, 0.5, torch.Generator().manual_seed(4)
+    )
+    assert np.array_equal(occluded, np.flatnonzero(~ks_np)) and np.array_equal(kp2, kp_np)
+    pts = np.zeros((3, 3), np.float32)
+    with pytest.raises(ValueError, match="explicit torch.Generator"):
+        raycast_merge_numpy(pts, pts, lidar, p_dual=0.01)
+    with pytest.raises(ValueError, match="shape"):
+        raycast_merge_numpy(np.zeros((3, 2)), pts, lidar, p_dual=0.0)
+    with pytest.raises(TypeError, match="floating"):
+        raycast_merge_numpy(np.zeros((3, 3), np.int64), pts, lidar, p_dual=0.0)
+    with pytest.raises(ValueError, match="non-finite"):
+        raycast_merge_numpy(pts, np.full((1, 3), np.nan), lidar, p_dual=0.0)
+    with pytest.raises(ValueError, match="backend"):
+        raycast_merge(scene, spoof, lidar, 0.0, backend="fast")
+    with pytest.raises(ValueError, match="backend 'numpy'"):
+        raycast_merge(scene.bfloat16(), spoof.bfloat16(), lidar, 0.0, backend="numpy")
+    # 'auto' runs bfloat16 through torch instead
+    ks_bf, _ = raycast_merge(scene.bfloat16(), spoof.bfloat16(), lidar, 0.0)
+    assert ks_bf.shape == (scene.shape[0],)
+
+
+def test_sector_wedges_merge_small_gaps_only():
+    width = 2 * math.pi / 2651
+    one = _sector_wedges([100, 101, 105, 120, 130], 2651)  # gaps of a few columns: one wedge
+    assert len(one) == 1
+    assert one[0][0] < -math.pi + 100 * width and one[0][1] > -math.pi + 131 * width
+    two = _sector_wedges([100, 101, 1000, 1001], 2651)  # ~120 deg apart: two wedges
+    assert len(two) == 2
+    seam = _sector_wedges([0, 3, 2645, 2650], 2651)  # small gaps across the +-pi seam
+    assert len(seam) == 1 and seam[0][0] < math.pi < seam[0][1]
+    assert _sector_wedges(list(range(0, 2651, 10)), 2651) is None  # most of the circle

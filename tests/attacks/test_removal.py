@@ -229,3 +229,24 @@ def test_frame_attack_apply_matches_masked_reference(num_removed):
             rows = np.full((len(added), 6), -1.0, np.float32)
             rows[:, :5] = 2 * added
             np.testing.assert_array_equal(out, np.concatenate([expected, rows]))
+
+
+@pytest.mark.parametrize("num_runs", [1, 40, 2000])
+def test_frame_attack_apply_runs_of_removed_rows(num_runs):
+    """Removal sectors delete runs of consecutive rows: block copies between runs (or one
+    masked copy beyond ``_MAX_RUN_COPIES`` runs) give ``points[keep]``; a ``removed`` index
+    array passed along gives the same rows as the mask alone."""
+    from pcdet_atlas.attacks.base import FrameAttack
+
+    rng = np.random.default_rng(num_runs)
+    points = rng.random((30000, 5)).astype(np.float32)
+    keep = np.ones(len(points), bool)
+    starts = np.sort(rng.choice(len(points) - 8, num_runs, replace=False))
+    for s, n in zip(starts, rng.integers(1, 8, num_runs)):
+        keep[s : s + n] = False
+    keep[-3:] = False  # a run at the end
+    removed = np.flatnonzero(~keep)
+    added = rng.random((5, 5)).astype(np.float32)
+    expected = np.concatenate([points[keep], added])
+    for attack in (FrameAttack(keep, added, {}), FrameAttack(keep, added, {}, removed=removed)):
+        np.testing.assert_array_equal(attack.apply(points), expected)
