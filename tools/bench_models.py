@@ -124,6 +124,10 @@ def parse_args():
     t.add_argument("--batch_size", type=int, default=4)
     t.add_argument("--workers", type=int, default=0, help="loader workers")
     t.add_argument("--baseline_src", default=None, help="older source tree to compare against")
+    t.add_argument(
+        "--default_malloc", action="store_true",
+        help="also time this tree with glibc malloc left as it is (no retain_freed_cpu_memory)",
+    )  # fmt: skip
     t.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     return p.parse_args()
 
@@ -136,6 +140,15 @@ def _train_step_child(cfg_file: str, data_path: str, args) -> dict:
     a warm-up and is not counted). Returns per-step seconds and losses."""
     import pcdet_atlas
     from pcdet_atlas.models.optimization import build_optimizer, build_scheduler
+
+    malloc = "default"
+    if not args.default_malloc:
+        try:  # what tools/train.py does on CPU (absent from older trees)
+            from pcdet_atlas.train_utils.cpu_memory import retain_freed_cpu_memory
+        except ImportError:
+            retain_freed_cpu_memory = None
+        if retain_freed_cpu_memory is not None and retain_freed_cpu_memory():
+            malloc = "retained"
 
     cfg = cfg_from_yaml_file(cfg_file)
     cfg.DATA_CONFIG.DATA_PATH = data_path
@@ -153,7 +166,7 @@ def _train_step_child(cfg_file: str, data_path: str, args) -> dict:
         total_epochs=cfg.OPTIMIZATION.NUM_EPOCHS,
     )  # fmt: skip
     clip = float(cfg.OPTIMIZATION.get("GRAD_NORM_CLIP", 10.0))
-    res: dict = {"package": str(Path(pcdet_atlas.__file__).parent), "threads": 0}
+    res: dict = {"package": str(Path(pcdet_atlas.__file__).parent), "threads": 0, "malloc": malloc}
     res.update(data=[], model=[], step=[], loss=[], points=[])
     it = iter(loader)
     t_prev = time.perf_counter()
@@ -180,17 +193,19 @@ def _train_step_child(cfg_file: str, data_path: str, args) -> dict:
 
 def train_step_table(args, data_path: Path) -> None:
     """Seconds per training step of each config (and of the baseline tree, if given)."""
-    trees = {"this tree": REPO_ROOT}
+    trees = {"this tree": (REPO_ROOT, False)}  # label -> (source tree, default malloc)
+    if args.default_malloc:
+        trees = {"this tree, default malloc": (REPO_ROOT, True), **trees}
     if args.baseline_src:
-        trees = {"baseline": Path(args.baseline_src).resolve(), **trees}
-    for tree in trees.values():
+        trees = {"baseline": (Path(args.baseline_src).resolve(), False), **trees}
+    for tree, _ in trees.values():
         if not (tree / "pcdet_atlas" / "__init__.py").is_file():
             raise SystemExit(f"--baseline_src: no pcdet_atlas package under {tree}")
     results: dict = {(t, c): [] for t in trees for c in args.train_cfgs}
     loads = [os.getloadavg()[0]]
     for _ in range(args.rounds):
         for cfg_file in args.train_cfgs:
-            for tree, src in trees.items():
+            for tree, (src, default_malloc) in trees.items():
                 env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(src), str(REPO_ROOT)]))
                 cmd = [
                     sys.executable, __file__, "--train_step", "--child", "--train_cfgs",
@@ -198,6 +213,7 @@ def train_step_table(args, data_path: Path) -> None:
                     "--data_path", str(data_path), "--steps", str(args.steps),
                     "--batch_size", str(args.batch_size), "--workers", str(args.workers),
                 ] + (["--threads", str(args.threads)] if args.threads else [])  # fmt: skip
+                cmd += ["--default_malloc"] if default_malloc else []
                 out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True)
                 res = json.loads(out.stdout.strip().splitlines()[-1])
                 if not Path(res["package"]).resolve().is_relative_to(src):
@@ -228,14 +244,19 @@ def train_step_table(args, data_path: Path) -> None:
             losses = runs[0]["loss"]
             name = str(Path(cfg_file)).replace("cfgs/atlas/", "")
             print(
-                f"| {name} | {tree} | {med['points']:,.0f} | {med['model']:.2f} | "
+                f"| {name} | {tree.split(',')[0]} ({runs[0]['malloc']} malloc) | "
+                f"{med['points']:,.0f} | {med['model']:.2f} | "
                 f"{med['data']:.2f} | {med['step']:.2f} | {base_total / med['step']:.2f}x | "
                 f"{losses[0]:.5f} .. {losses[-1]:.5f} |"
             )
-        if len(trees) == 2:
-            a, b = (results[(t, cfg_file)][0]["loss"] for t in trees)
-            rel = max(abs(x - y) / max(abs(x), 1e-12) for x, y in zip(a, b))
-            print(f"|  | max rel. loss difference over the steps | {rel:.1e} | | | | | |")
+        if len(trees) > 1:
+            losses = [results[(t, cfg_file)][0]["loss"] for t in trees]
+            rel = max(
+                abs(x - y) / max(abs(y), 1e-12)
+                for other in losses[:-1]
+                for x, y in zip(other, losses[-1])
+            )
+            print(f"|  | max rel. loss difference to this tree | {rel:.1e} | | | | | |")
 
 
 def test_step_shares(cfg_file: str, data_path: Path, frames: int, device: torch.device) -> None:

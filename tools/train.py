@@ -25,6 +25,7 @@ from pcdet_atlas.train_utils import (
     eval_one_epoch,
     find_latest_checkpoint,
     load_checkpoint,
+    retain_freed_cpu_memory,
     train_model,
 )
 from pcdet_atlas.train_utils.setup import add_common_args, load_cfg, output_dir_for, setup_runtime
@@ -44,6 +45,11 @@ def parse_args(argv=None):
     parser.add_argument("--logger_iter_interval", type=int, default=50)
     parser.add_argument("--use_amp", action="store_true", default=False)
     parser.add_argument("--no_progress", action="store_true", default=False, help="no tqdm bars")
+    parser.add_argument(
+        "--default_malloc", action="store_true", default=False,
+        help="on CPU, leave glibc malloc as it is (default: keep freed memory for reuse, "
+        "pcdet_atlas.train_utils.cpu_memory; ~2x faster CPU steps, same results)",
+    )  # fmt: skip
     return parser.parse_args(argv)
 
 
@@ -51,6 +57,7 @@ def main(argv=None) -> dict:
     args = parse_args(argv)
     cfg = load_cfg(args.cfg_file, args.set_cfgs)
     dist, rank, world, device = setup_runtime(args)
+    retained = device.type == "cpu" and not args.default_malloc and retain_freed_cpu_memory()
     optim_cfg = cfg.OPTIMIZATION
     batch_size = args.batch_size or optim_cfg.BATCH_SIZE_PER_GPU * world
     if batch_size % world:
@@ -62,6 +69,8 @@ def main(argv=None) -> dict:
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
     logger = create_logger(out_dir / f"train_{stamp}.log", rank=rank)
     logger.info(f"output: {out_dir}  processes: {world}  device: {device}  batch: {batch_size}")
+    if retained:
+        logger.info("CPU: freed memory is kept for reuse (glibc mallopt; --default_malloc: off)")
     if rank == 0:
         save_config(cfg, out_dir / f"{cfg.TAG}.yaml")
         log_config_to_file(cfg, logger)

@@ -7,6 +7,7 @@ from pcdet_atlas.train_utils.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
+from pcdet_atlas.train_utils.cpu_memory import retain_freed_cpu_memory
 from pcdet_atlas.train_utils.dist import get_dist_info, init_dist_pytorch
 from pcdet_atlas.train_utils.eval_utils import eval_one_epoch, predict_dataset
 from pcdet_atlas.train_utils.trainer import TrainState, train_model, train_one_epoch
@@ -21,6 +22,7 @@ __all__ = [
     "init_dist_pytorch",
     "load_checkpoint",
     "predict_dataset",
+    "retain_freed_cpu_memory",
     "save_checkpoint",
     "train_model",
     "train_one_epoch",
