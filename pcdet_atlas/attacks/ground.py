@@ -96,16 +96,16 @@ class GroundEstimator:
         self,
         scene_xyz: np.ndarray,
         center_xy,
-        scene_xy: tuple[np.ndarray, np.ndarray] | None = None,
+        scene_xy: tuple[np.ndarray, ...] | None = None,
     ) -> GroundEstimate:
         """Ground height at ``center_xy`` (2,) from ``(N, 3+)`` scene points (vehicle frame).
 
-        ``scene_xy``: contiguous ``x`` and ``y`` columns of ``scene_xyz``
+        ``scene_xy``: contiguous ``x`` and ``y`` columns of ``scene_xyz`` (first two entries)
         (:func:`~pcdet_atlas.attacks.raycast.scene_columns`) when the caller has them already.
         """
         cx, cy = float(center_xy[0]), float(center_xy[1])
         xyz = np.asarray(scene_xyz)
-        x, y = scene_xy if scene_xy is not None else _columns(xyz)
+        x, y = scene_xy[:2] if scene_xy is not None else _columns(xyz)
         # cheap pre-filter on the small disc's bounding square (widened by 1 mm, far above the
         # float32 rounding of the bounds), then z and exact float64 distances on the survivors;
         # the wide disc's square is scanned only when the small disc is too sparse
@@ -136,7 +136,9 @@ def _disc_candidates(
 ) -> np.ndarray:
     """``(C, 3)`` float64 points inside the square ``|x - cx|, |y - cy| <= r`` with
     ``|z| <= max_abs_z``."""
-    sel = ((x >= cx - r) & (x <= cx + r) & (y >= cy - r) & (y <= cy + r)).nonzero()[0]
+    sel = ((x >= cx - r) & (x <= cx + r)).nonzero()[0]  # a slab: a few % of the scene
+    ys = y[sel]
+    sel = sel[(ys >= cy - r) & (ys <= cy + r)]
     cand = xyz[sel, :3].astype(np.float64)
     return cand[np.abs(cand[:, 2]) <= max_abs_z]
 

@@ -36,7 +36,12 @@ from pcdet_atlas.attacks.counters import COUNTERS
 from pcdet_atlas.attacks.ground import GroundEstimator
 from pcdet_atlas.attacks.intensity import RangeIntensityModel
 from pcdet_atlas.attacks.lidar_model import LidarModel
-from pcdet_atlas.attacks.raycast import raycast_merge, raycast_numpy_indices, scene_columns
+from pcdet_atlas.attacks.raycast import (
+    ColumnScratch,
+    raycast_merge,
+    raycast_numpy_indices,
+    scene_columns,
+)
 from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary
 from pcdet_atlas.config import REPO_ROOT, ConfigError
 from pcdet_atlas.registry import ATTACKS
@@ -190,6 +195,7 @@ class InjectionAttack(BaseAttack):
         self.device = torch.device(device)
         self.trace_filter = trace_filter
         self._origin = self.lidar.origin.numpy()
+        self._scratch = ColumnScratch()
 
     @classmethod
     def from_config(cls, cfg: Mapping, data_root: str | Path | None = None) -> InjectionAttack:
@@ -327,7 +333,7 @@ class InjectionAttack(BaseAttack):
         on_cpu = self.device.type == "cpu"
         # CPU: the contiguous x / y columns of the scene are made once and shared by the ground
         # pre-filter and the raycaster's sector pre-filter (the only full-scene passes)
-        scene_xy = scene_columns(scene_xyz) if on_cpu else None
+        scene_xy = scene_columns(scene_xyz, self._scratch) if on_cpu else None
         ground = self.ground(scene_xyz, box[:2], scene_xy=scene_xy)
         dz = ground.z + box[5] / 2 - box[2]
         box = box.copy()

@@ -157,21 +157,50 @@ def azimuth_sector_candidates(
     return torch.nonzero(mask).squeeze(1)
 
 
-def scene_columns(scene_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+class ColumnScratch:
+    """Reusable storage of the per-frame column copies of :func:`scene_columns`.
+
+    The full-scene pre-filters need ``x``, ``y`` and one work array per frame: ~1.7 MB for a
+    140k-point frame, which a fresh allocation pays again in page faults on every spoofed frame.
+    One instance per attack object; not for concurrent use from several threads (each
+    DataLoader worker process has its own copy; it pickles empty).
+    """
+
+    def __init__(self):
+        self._store: np.ndarray | None = None
+
+    def rows(self, n: int, dtype: np.dtype) -> np.ndarray:
+        """A ``(3, n)`` array of ``dtype`` (uninitialised; valid until the next call)."""
+        store = self._store
+        if store is None or store.dtype != dtype or store.shape[1] < n:
+            store = self._store = np.empty((3, max(n, 1) + max(n, 1) // 4), dtype=dtype)
+        return store[:, :n]
+
+    def __getstate__(self) -> dict:
+        return {"_store": None}
+
+
+def scene_columns(
+    scene_xyz: np.ndarray, scratch: ColumnScratch | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Contiguous copies of the ``x`` and ``y`` columns of ``(N, 3+)`` points (float32 unless
-    float64): the layout of every full-scene pre-filter on CPU, made once per frame and shared
-    (:func:`raycast_merge_numpy`, :class:`~pcdet_atlas.attacks.ground.GroundEstimator`)."""
+    float64) and a work array of the same shape: the layout of every full-scene pre-filter on
+    CPU, made once per frame and shared (:func:`raycast_merge_numpy`,
+    :class:`~pcdet_atlas.attacks.ground.GroundEstimator`, the removal sector). With ``scratch``
+    they are views into its reusable storage."""
     dtype = scene_xyz.dtype if scene_xyz.dtype in (np.float32, np.float64) else np.float32
-    x = np.ascontiguousarray(scene_xyz[:, 0], dtype=dtype)
-    y = np.ascontiguousarray(scene_xyz[:, 1], dtype=dtype)
-    return x, y
+    n = scene_xyz.shape[0]
+    rows = np.empty((3, n), dtype=dtype) if scratch is None else scratch.rows(n, np.dtype(dtype))
+    np.copyto(rows[0], scene_xyz[:, 0], casting="same_kind")
+    np.copyto(rows[1], scene_xyz[:, 1], casting="same_kind")
+    return rows[0], rows[1], rows[2]
 
 
 def azimuth_sector_candidates_numpy(
     scene_xyz: np.ndarray,
     columns: np.ndarray,
     lidar: LidarModel,
-    scene_xy: tuple[np.ndarray, np.ndarray] | None = None,
+    scene_xy: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """:func:`azimuth_sector_candidates` on numpy arrays (the same wedges and margins; each
     half-plane test is a multiply, an add and a compare over contiguous columns).
@@ -189,9 +218,8 @@ def azimuth_sector_candidates_numpy(
     wedges = _sector_wedges(cols, lidar.azimuth_bins)
     if wedges is None:
         return np.isfinite(scene_xyz[:, :3]).all(axis=1).nonzero()[0]
-    x, y = scene_columns(scene_xyz) if scene_xy is None else scene_xy
+    x, y, buf = scene_columns(scene_xyz) if scene_xy is None else scene_xy
     ox, oy = float(lidar.origin[0]), float(lidar.origin[1])
-    buf = np.empty_like(x)
     mask = None
     for a0, a1 in wedges:
         inside = _half_plane_numpy(x, y, -math.sin(a0), math.cos(a0), ox, oy, buf)
@@ -384,7 +412,7 @@ def raycast_merge_numpy(
     p_dual: float = 0.01,
     generator: torch.Generator | None = None,
     counters: AttackCounters | None = None,
-    scene_xy: tuple[np.ndarray, np.ndarray] | None = None,
+    scene_xy: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`raycast_merge` on numpy arrays (CPU), with identical results.
 
@@ -413,7 +441,7 @@ def raycast_numpy_indices(
     p_dual: float = 0.01,
     generator: torch.Generator | None = None,
     counters: AttackCounters | None = None,
-    scene_xy: tuple[np.ndarray, np.ndarray] | None = None,
+    scene_xy: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`raycast_merge_numpy` returning the **ascending int64 indices** of the occluded
     scene points (instead of an ``(N,)`` mask) and the ``(M,)`` bool keep mask of the spoof."""
@@ -469,7 +497,7 @@ def _raycast_numpy(
     p_dual: float,
     generator: torch.Generator | None,
     counters: AttackCounters,
-    scene_xy: tuple[np.ndarray, np.ndarray] | None = None,
+    scene_xy: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The merge of :func:`raycast_merge` in numpy; returns (occluded scene indices ascending,
     keep_spoof). Per-ray minima by one stable sort instead of two-pass scatters."""
@@ -479,8 +507,23 @@ def _raycast_numpy(
     if num_spoof == 0:
         return no_index, keep_spoof
 
+    # ---- where the spoof can be: its columns and beams by numpy trigonometry, each widened by
+    # one (numpy's atan2 may differ from torch's by an ulp at a bin edge), so the candidates are
+    # a superset of the exact ones; then ONE exact binning pass over spoof and candidates
+    columns, beam_lo, beam_hi = _spoof_extent(lidar, spoof)
+    cand = azimuth_sector_candidates_numpy(scene, columns, lidar, scene_xy)  # (C,)
+    num_cand = cand.size
+    cand_xyz = scene[cand]  # (C, 3)
+    sub = _elevation_band(cand_xyz, beam_lo, beam_hi, lidar)
+    if sub is not None:  # only the candidates in the spoof's beams get trigonometry
+        cand, cand_xyz = cand[sub], cand_xyz[sub]
+    bins, fov, rng = _bin_index_numpy(
+        lidar, np.concatenate([spoof.astype(np.float64), cand_xyz.astype(np.float64)])
+    )
+    spoof_bin, spoof_fov, spoof_rng = bins[:num_spoof], fov[:num_spoof], rng[:num_spoof]
+    cand_bin, cand_fov, cand_rng = bins[num_spoof:], fov[num_spoof:], rng[num_spoof:]
+
     # ---- spoof rays (rules 1, 2): nearest per ray, ties to the lower index
-    spoof_bin, spoof_fov, spoof_rng = _bin_index_numpy(lidar, spoof)
     valid = spoof_fov & (spoof_rng > 0) & (spoof_rng <= lidar.max_range)
     spoof_idx = valid.nonzero()[0]  # (V,)
     if spoof_idx.size == 0:
@@ -498,16 +541,7 @@ def _raycast_numpy(
     echo_idx = spoof_idx[first]
     num_rays = rays.size
 
-    # ---- scene returns of those rays, from the candidates of the sector only
-    columns = np.sort(rays % lidar.azimuth_bins)
-    columns = columns[np.concatenate([[True], columns[1:] != columns[:-1]])]
-    cand = azimuth_sector_candidates_numpy(scene, columns, lidar, scene_xy)  # (C,)
-    num_cand = cand.size
-    cand_xyz = scene[cand]  # (C, 3)
-    sub = _elevation_band(cand_xyz, rays // lidar.azimuth_bins, lidar)
-    if sub is not None:  # only the candidates in the spoof's beams get trigonometry
-        cand, cand_xyz = cand[sub], cand_xyz[sub]
-    cand_bin, cand_fov, cand_rng = _bin_index_numpy(lidar, cand_xyz)
+    # ---- scene returns of those rays
     pos = np.minimum(np.searchsorted(rays, cand_bin), num_rays - 1)
     is_ret = cand_fov & (cand_rng > 0) & np.isfinite(cand_rng) & (rays[pos] == cand_bin)
     ret_idx = cand[is_ret]  # (R,) ascending scene indices
@@ -548,12 +582,28 @@ def _raycast_numpy(
     return ret_idx[occluded], keep_spoof
 
 
-def _elevation_band(xyz: np.ndarray, beams: np.ndarray, lidar: LidarModel) -> np.ndarray | None:
-    """Indices of the ``(C, 3)`` points whose elevation may fall in the beams ``[min(beams),
-    max(beams)]`` (a superset: the beam boundaries are widened by ``_WEDGE_MARGIN_RAD``), by
+def _spoof_extent(lidar: LidarModel, spoof: np.ndarray) -> tuple[np.ndarray, int, int]:
+    """Sorted distinct azimuth columns and the lowest / highest beam of ``(M, 3)`` spoof points
+    by numpy trigonometry, each widened by one column / beam: a superset of their exact
+    (:meth:`LidarModel.bin_index`) columns and beams."""
+    num_columns = lidar.azimuth_bins
+    rel = spoof.astype(np.float64) - lidar.origin.numpy()
+    horiz = np.sqrt(rel[:, 0] ** 2 + rel[:, 1] ** 2)
+    width = 2 * math.pi / num_columns
+    col = np.floor((np.arctan2(rel[:, 1], rel[:, 0]) + math.pi) / width).astype(np.int64)
+    cols = np.concatenate([col - 1, col, col + 1]) % num_columns
+    cols.sort()
+    cols = cols[np.concatenate([[True], cols[1:] != cols[:-1]])]
+    mids = lidar._constants(torch.device("cpu"))[1].numpy()
+    beam = np.searchsorted(mids, np.arctan2(rel[:, 2], horiz), side="left")
+    return cols, max(int(beam.min()) - 1, 0), min(int(beam.max()) + 1, lidar.num_beams - 1)
+
+
+def _elevation_band(xyz: np.ndarray, b_lo: int, b_hi: int, lidar: LidarModel) -> np.ndarray | None:
+    """Indices of the ``(C, 3)`` points whose elevation may fall in the beams ``[b_lo, b_hi]``
+    (a superset: the beam boundaries are widened by ``_WEDGE_MARGIN_RAD``), by
     ``z >= h tan(lo)`` and ``z <= h tan(hi)`` in float64 -- no trigonometry per point. ``None``
     when the beams span the whole fan (every point passes)."""
-    b_lo, b_hi = int(beams.min()), int(beams.max())
     if b_lo == 0 and b_hi == lidar.num_beams - 1:
         return None
     mids = lidar._constants(torch.device("cpu"))[1].numpy()

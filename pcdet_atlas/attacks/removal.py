@@ -28,7 +28,7 @@ from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, ScheduleState, Seq
 from pcdet_atlas.attacks.config_values import config_files, config_value
 from pcdet_atlas.attacks.counters import COUNTERS
 from pcdet_atlas.attacks.lidar_model import LidarModel
-from pcdet_atlas.attacks.raycast import _half_plane_numpy, scene_columns
+from pcdet_atlas.attacks.raycast import ColumnScratch, _half_plane_numpy, scene_columns
 from pcdet_atlas.attacks.tracking import TargetPolicy, TrackedFrame, Tracker, choose_target
 from pcdet_atlas.config import ConfigError, check_known_keys
 from pcdet_atlas.registry import ATTACKS
@@ -103,6 +103,7 @@ def sector_mask(
     lidar: LidarModel,
     alpha: float,
     beta: float,
+    scratch: ColumnScratch | None = None,
 ) -> tuple[np.ndarray, int]:
     """Indices of the points of the A-HFR sector aimed at ``center_xyz``.
 
@@ -114,6 +115,7 @@ def sector_mask(
         scene_xyz: ``(N, 3+)`` points, vehicle frame, m.
         center_xyz: ``(3,)`` sector aim point, vehicle frame, m.
         alpha, beta: full azimuth and elevation widths, radians (``alpha < pi``).
+        scratch: reusable storage of the pre-filter's column copies (per attack object).
     Returns:
         ``(S,)`` int64 ascending indices of the sector points, and the number of points the
         exact test examined.
@@ -132,8 +134,7 @@ def sector_mask(
         # pre-filter: the wedge [theta* - half, theta* + half] as two half-planes through the
         # sensor origin, each a multiply, an add and a compare over contiguous x / y columns
         # (1 mm slack at the apex covers the rounding of points near the sensor axis)
-        x, y = scene_columns(xyz)
-        buf = np.empty_like(x)
+        x, y, buf = scene_columns(xyz, scratch)
         ox, oy = float(origin[0]), float(origin[1])
         a0, a1 = theta_c - half, theta_c + half
         inside = _half_plane_numpy(x, y, -math.sin(a0), math.cos(a0), ox, oy, buf)
@@ -216,6 +217,7 @@ class RemovalAttack(BaseAttack):
         self.tracker = tracker or Tracker()
         self.lidar = lidar or LidarModel.waymo_top()
         self._origin = self.lidar.origin.numpy()
+        self._scratch = ColumnScratch()
 
     @classmethod
     def from_config(cls, cfg: Mapping, data_root: str | Path | None = None) -> RemovalAttack:
@@ -296,7 +298,7 @@ class RemovalAttack(BaseAttack):
                 None, _EMPTY, self.meta(state, target_obj_id=tracked.obj_id, tracked=True)
             )
         idx, examined = sector_mask(
-            scene_xyz, center, self.lidar, self.azimuth_width, self.elevation_width
+            scene_xyz, center, self.lidar, self.azimuth_width, self.elevation_width, self._scratch
         )
         COUNTERS.add(removal_points_examined=examined)
         gen = numpy_generator(self.seed, self.family, seq.name, frame_idx, "points")

@@ -420,7 +420,11 @@ def check_backends_agree(scene, spoof, lidar, p_dual=0.0, seed=0):
     (ks_n, kp_n), c_n, next_n = results[1]
     assert ks_n.dtype == torch.bool and kp_n.dtype == torch.bool
     assert torch.equal(ks_t, ks_n) and torch.equal(kp_t, kp_n)
-    assert c_t == c_n and next_t == next_n  # same work counted, same uniforms consumed
+    assert next_t == next_n  # same uniforms consumed
+    # same work counted; the CPU path's sector is found from numpy angles widened by one
+    # column (a superset), so it may examine a few more scene points
+    examined_t, examined_n = c_t.pop("points_examined"), c_n.pop("points_examined")
+    assert c_t == c_n and examined_t <= examined_n <= 1.2 * examined_t + 50
     return ks_n, kp_n
 
 
