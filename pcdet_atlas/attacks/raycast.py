@@ -313,9 +313,15 @@ def raycast_merge(
     if not bool(torch.isfinite(spoof).all()):
         raise ValueError("spoof_xyz contains non-finite coordinates")
     counters = COUNTERS if counters is None else counters
-    numpy_ok = scene.device.type == "cpu" and scene.dtype in _NUMPY_DTYPES
+    numpy_ok = (
+        scene.device.type == "cpu"
+        and scene.dtype in _NUMPY_DTYPES
+        and not (scene.requires_grad or spoof.requires_grad)
+    )
     if backend == "numpy" and not numpy_ok:
-        raise ValueError(f"backend 'numpy' needs CPU float16/32/64 tensors, got {scene.dtype}")
+        raise ValueError(
+            f"backend 'numpy' needs CPU float16/32/64 tensors without grad, got {scene.dtype}"
+        )
     if backend == "numpy" or (backend == "auto" and numpy_ok and spoof.dtype in _NUMPY_DTYPES):
         occluded, keep_spoof = _raycast_numpy(
             scene.numpy(), spoof.numpy(), lidar, p_dual, generator, counters

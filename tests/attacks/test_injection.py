@@ -223,3 +223,41 @@ def test_raycast_device_gives_identical_frames(tiny, device):
     out = run_frames(attack, seq, root, [47])[47][1]
     np.testing.assert_array_equal(out.keep, ref.keep)
     np.testing.assert_array_equal(out.added, ref.added)
+
+
+def test_ground_estimator_matches_brute_force_disc_percentile():
+    """The small disc's square is scanned first and the wide disc's only when needed; the
+    estimate is the brute-force lower percentile of the points within each radius (float64
+    distances), including points exactly on the disc boundaries, with or without precomputed
+    columns."""
+    from pcdet_atlas.attacks.raycast import ColumnScratch, scene_columns
+
+    rng = np.random.default_rng(0)
+    est = GroundEstimator(radius=3.0, percentile=10.0, min_points=10, fallback_radius=8.0)
+    scratch = ColumnScratch()
+    for trial in range(30):
+        n = [5, 40, 400, 4000][trial % 4]
+        center = rng.uniform(-20, 20, 2)
+        xyz = np.concatenate(
+            [
+                np.c_[center + rng.uniform(-9, 9, (n, 2)), rng.normal(0, 2.0, n)],
+                # exactly on both boundaries (in float32)
+                np.c_[center + [[3.0, 0.0], [0.0, -8.0]], [[0.1], [0.2]]],
+            ]
+        ).astype(np.float32)
+        d2 = ((xyz[:, :2].astype(np.float64) - center) ** 2).sum(1)
+        z = xyz[:, 2].astype(np.float64)
+        ok = np.abs(z) <= est.max_abs_z
+        expected = None
+        for radius, source in ((3.0, "disc"), (8.0, "wide_disc")):
+            sel = z[ok & (d2 <= radius * radius)]
+            if sel.size >= 10:
+                k = int(np.floor(0.10 * (sel.size - 1)))
+                expected = (np.sort(sel)[k], source, sel.size)
+                break
+        for cols in (None, scene_columns(xyz, scratch)):
+            got = est(xyz, center, scene_xy=cols)
+            if expected is None:
+                assert got.source == "fallback" and got.z == est.fallback_z
+            else:
+                assert (got.z, got.source, got.num_points) == expected

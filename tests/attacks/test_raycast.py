@@ -520,9 +520,12 @@ def test_raycast_merge_numpy_api_and_errors():
         raycast_merge(scene, spoof, lidar, 0.0, backend="fast")
     with pytest.raises(ValueError, match="backend 'numpy'"):
         raycast_merge(scene.bfloat16(), spoof.bfloat16(), lidar, 0.0, backend="numpy")
-    # 'auto' runs bfloat16 through torch instead
+    # 'auto' runs bfloat16 and tensors that require grad through torch instead
     ks_bf, _ = raycast_merge(scene.bfloat16(), spoof.bfloat16(), lidar, 0.0)
     assert ks_bf.shape == (scene.shape[0],)
+    ks_grad, kp_grad = raycast_merge(scene.clone().requires_grad_(), spoof, lidar, 0.0)
+    ks_auto, kp_auto = raycast_merge(scene, spoof, lidar, 0.0)
+    assert torch.equal(ks_grad, ks_auto) and torch.equal(kp_grad, kp_auto)
 
 
 def test_sector_wedges_merge_small_gaps_only():
