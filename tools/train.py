@@ -46,6 +46,11 @@ def parse_args(argv=None):
     parser.add_argument("--use_amp", action="store_true", default=False)
     parser.add_argument("--no_progress", action="store_true", default=False, help="no tqdm bars")
     parser.add_argument(
+        "--threads", type=int, default=None,
+        help="torch CPU threads of the training process (default: torch's, one per core); "
+        "1 is faster on a 2-core CPU shared with other jobs or with --workers",
+    )  # fmt: skip
+    parser.add_argument(
         "--default_malloc", action="store_true", default=False,
         help="on CPU, leave glibc malloc as it is (default: keep freed memory for reuse, "
         "pcdet_atlas.train_utils.cpu_memory; ~2x faster CPU steps, same results)",
@@ -58,6 +63,8 @@ def main(argv=None) -> dict:
     cfg = load_cfg(args.cfg_file, args.set_cfgs)
     dist, rank, world, device = setup_runtime(args)
     retained = device.type == "cpu" and not args.default_malloc and retain_freed_cpu_memory()
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
     optim_cfg = cfg.OPTIMIZATION
     batch_size = args.batch_size or optim_cfg.BATCH_SIZE_PER_GPU * world
     if batch_size % world:
@@ -71,6 +78,8 @@ def main(argv=None) -> dict:
     logger.info(f"output: {out_dir}  processes: {world}  device: {device}  batch: {batch_size}")
     if retained:
         logger.info("CPU: freed memory is kept for reuse (glibc mallopt; --default_malloc: off)")
+    if device.type == "cpu":
+        logger.info(f"CPU: {torch.get_num_threads()} torch threads")
     if rank == 0:
         save_config(cfg, out_dir / f"{cfg.TAG}.yaml")
         log_config_to_file(cfg, logger)
