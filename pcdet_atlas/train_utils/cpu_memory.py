@@ -18,12 +18,21 @@ import ctypes
 import ctypes.util
 import sys
 
-__all__ = ["retain_freed_cpu_memory"]
+__all__ = ["retain_freed_cpu_memory", "trim_cpu_memory"]
 
 # glibc <malloc.h> parameter numbers
 M_TRIM_THRESHOLD = -1
 M_MMAP_MAX = -4
 INT_MAX = 2**31 - 1
+
+
+def _libc() -> ctypes.CDLL | None:
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    except OSError:
+        return None
 
 
 def retain_freed_cpu_memory() -> bool:
@@ -33,14 +42,24 @@ def retain_freed_cpu_memory() -> bool:
     True if the settings were applied, False where there is no glibc ``mallopt`` (other
     platforms / C libraries), in which case nothing changes.
     """
-    if not sys.platform.startswith("linux"):
-        return False
-    name = ctypes.util.find_library("c") or "libc.so.6"
-    try:
-        libc = ctypes.CDLL(name)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
+    mallopt = getattr(_libc(), "mallopt", None)
+    if mallopt is None:
         return False
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     mallopt.restype = ctypes.c_int
     return mallopt(M_MMAP_MAX, 0) == 1 and mallopt(M_TRIM_THRESHOLD, INT_MAX) == 1
+
+
+def trim_cpu_memory() -> bool:
+    """Give the free memory of the heap back to the OS now (glibc ``malloc_trim(0)``).
+
+    With :func:`retain_freed_cpu_memory` the heap keeps what it once held, and fragmentation can
+    add to it over a long run; the trainer calls this once per epoch, which costs one step's
+    worth of page faults. Returns False where there is no ``malloc_trim``.
+    """
+    malloc_trim = getattr(_libc(), "malloc_trim", None)
+    if malloc_trim is None:
+        return False
+    malloc_trim.argtypes = [ctypes.c_size_t]
+    malloc_trim(0)
+    return True

@@ -21,6 +21,7 @@ from torch import nn
 
 from pcdet_atlas.models.batch import load_data_to_device
 from pcdet_atlas.train_utils.checkpoint import checkpoint_state, save_checkpoint
+from pcdet_atlas.train_utils.cpu_memory import trim_cpu_memory
 from pcdet_atlas.train_utils.dist import get_dist_info
 from pcdet_atlas.utils.seeding import derive_seed
 
@@ -161,6 +162,8 @@ def train_model(
         )  # fmt: skip
         state.epoch = epoch + 1
         state.history.append(means)
+        if device.type == "cpu":  # bound the heap that retain_freed_cpu_memory keeps
+            trim_cpu_memory()
         if logger is not None and rank == 0:
             logger.info(
                 f"epoch {state.epoch}/{total_epochs} done ({state.it} iterations): "
