@@ -21,7 +21,9 @@ pipeline with GT sampling and augmentation, AdamW + one-cycle, gradient clipping
 config and round: seconds per step of the model (forward, loss, backward, clip, optimizer) and of
 the whole step with data loading (``--workers``). ``--baseline_src DIR`` runs the same on an older
 source tree (``git archive <commit> pcdet_atlas cfgs | tar -x -C DIR``) in alternating
-processes and prints both side by side, with the losses of both trees on the same batches:
+processes and prints both side by side, with the losses of both trees on the same batches;
+``--default_malloc`` adds a row of this tree without ``retain_freed_cpu_memory`` (which
+``tools/train.py`` applies on CPU). Needs a dataset with its GT databases (``--data_path``):
 
     python tools/bench_models.py --train_step --baseline_src /tmp/old --rounds 2 --steps 4
 """
