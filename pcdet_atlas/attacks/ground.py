@@ -110,17 +110,17 @@ class GroundEstimator:
         # float32 rounding of the bounds), then z and exact float64 distances on the survivors;
         # the wide disc's square is scanned only when the small disc is too sparse
         r = self.radius + _SQUARE_SLACK_M
-        cand = _disc_candidates(xyz, x, y, cx, cy, r, self.max_abs_z)
-        d2 = (cand[:, 0] - cx) ** 2 + (cand[:, 1] - cy) ** 2
-        z = cand[d2 <= self.radius * self.radius, 2]
+        cx_, cy_, cz_ = _disc_candidates(xyz, x, y, cx, cy, r, self.max_abs_z)
+        d2 = (cx_ - cx) ** 2 + (cy_ - cy) ** 2
+        z = cz_[d2 <= self.radius * self.radius]
         if z.size >= self.min_points:
             return GroundEstimate(_lower_percentile(z, self.percentile), "disc", int(z.size))
-        cand = _disc_candidates(xyz, x, y, cx, cy, self.fallback_radius, self.max_abs_z)
-        d2 = (cand[:, 0] - cx) ** 2 + (cand[:, 1] - cy) ** 2
-        z = cand[d2 <= self.fallback_radius * self.fallback_radius, 2]
+        cx_, cy_, cz_ = _disc_candidates(xyz, x, y, cx, cy, self.fallback_radius, self.max_abs_z)
+        d2 = (cx_ - cx) ** 2 + (cy_ - cy) ** 2
+        z = cz_[d2 <= self.fallback_radius * self.fallback_radius]
         if z.size >= self.min_points:
             return GroundEstimate(_lower_percentile(z, self.percentile), "wide_disc", int(z.size))
-        return GroundEstimate(self.fallback_z, "fallback", int(cand.shape[0]))
+        return GroundEstimate(self.fallback_z, "fallback", int(cz_.size))
 
 
 #: Widening of the small disc's bounding square, metres.
@@ -134,13 +134,16 @@ def _columns(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _disc_candidates(
     xyz: np.ndarray, x: np.ndarray, y: np.ndarray, cx: float, cy: float, r: float, max_abs_z: float
 ) -> np.ndarray:
-    """``(C, 3)`` float64 points inside the square ``|x - cx|, |y - cy| <= r`` with
-    ``|z| <= max_abs_z``."""
+    """``x``, ``y``, ``z`` (float64, ``(C,)`` each) of the points inside the square
+    ``|x - cx|, |y - cy| <= r`` with ``|z| <= max_abs_z``, in ascending point order (1-D
+    gathers from the contiguous columns; the values are those of ``xyz``)."""
     sel = ((x >= cx - r) & (x <= cx + r)).nonzero()[0]  # a slab: a few % of the scene
     ys = y[sel]
     sel = sel[(ys >= cy - r) & (ys <= cy + r)]
-    cand = xyz[sel, :3].astype(np.float64)
-    return cand[np.abs(cand[:, 2]) <= max_abs_z]
+    z = xyz[:, 2][sel].astype(np.float64)
+    ok = np.abs(z) <= max_abs_z
+    sel = sel[ok]
+    return x[sel].astype(np.float64), y[sel].astype(np.float64), z[ok]
 
 
 def _lower_percentile(values: np.ndarray, percentile: float) -> float:

@@ -478,8 +478,14 @@ def _bin_index_numpy(lidar: LidarModel, xyz: np.ndarray) -> tuple[np.ndarray, ..
     :meth:`LidarModel.spherical` (both are independent of an element's position in the array,
     so binning a subset gives each point the bin it gets in the whole scene).
     """
-    origin, mids = lidar._constants(torch.device("cpu"))
-    rel = xyz[:, :3].astype(np.float64) - origin.numpy()  # (N, 3), C-contiguous like torch's
+    origin = lidar._constants(torch.device("cpu"))[0]
+    return _bin_index_rel(lidar, xyz[:, :3].astype(np.float64) - origin.numpy())
+
+
+def _bin_index_rel(lidar: LidarModel, rel: np.ndarray) -> tuple[np.ndarray, ...]:
+    """:func:`_bin_index_numpy` of points already given as C-contiguous ``(N, 3)`` float64
+    offsets from the sensor origin (``float64(xyz) - origin``, the first step of the binning)."""
+    mids = lidar._constants(torch.device("cpu"))[1]
     rel_t = torch.from_numpy(rel)
     horiz = torch.sqrt(torch.from_numpy(rel[:, 0] ** 2 + rel[:, 1] ** 2))
     azimuth = torch.atan2(rel_t[:, 1], rel_t[:, 0]).numpy()
@@ -516,16 +522,22 @@ def _raycast_numpy(
     # ---- where the spoof can be: its columns and beams by numpy trigonometry, each widened by
     # one (numpy's atan2 may differ from torch's by an ulp at a bin edge), so the candidates are
     # a superset of the exact ones; then ONE exact binning pass over spoof and candidates
-    columns, beam_lo, beam_hi = _spoof_extent(lidar, spoof)
+    origin = lidar.origin.numpy()
+    spoof_rel = spoof.astype(np.float64) - origin  # (M, 3) offsets from the sensor
+    columns, beam_lo, beam_hi = _spoof_extent(lidar, spoof_rel)
     cand = azimuth_sector_candidates_numpy(scene, columns, lidar, scene_xy)  # (C,)
     num_cand = cand.size
-    cand_xyz = scene[cand]  # (C, 3)
-    sub = _elevation_band(cand_xyz, beam_lo, beam_hi, lidar)
+    cand_rel = _gather_rel(scene, cand, scene_xy, origin)  # 3 x (C,)
+    sub = _elevation_band(cand_rel, beam_lo, beam_hi, lidar)
     if sub is not None:  # only the candidates in the spoof's beams get trigonometry
-        cand, cand_xyz = cand[sub], cand_xyz[sub]
-    bins, fov, rng = _bin_index_numpy(
-        lidar, np.concatenate([spoof.astype(np.float64), cand_xyz.astype(np.float64)])
-    )
+        cand, cand_rel = cand[sub], [v[sub] for v in cand_rel]
+    # float64(xyz) - origin of spoof and candidates stacked, element by element the same as
+    # binning the concatenated float64 points (and in the same C-contiguous layout)
+    rel = np.empty((num_spoof + cand.size, 3), dtype=np.float64)
+    rel[:num_spoof] = spoof_rel
+    for dim in range(3):
+        rel[num_spoof:, dim] = cand_rel[dim]
+    bins, fov, rng = _bin_index_rel(lidar, rel)
     spoof_bin, spoof_fov, spoof_rng = bins[:num_spoof], fov[:num_spoof], rng[:num_spoof]
     cand_bin, cand_fov, cand_rng = bins[num_spoof:], fov[num_spoof:], rng[num_spoof:]
 
@@ -588,37 +600,65 @@ def _raycast_numpy(
     return ret_idx[occluded], keep_spoof
 
 
-def _spoof_extent(lidar: LidarModel, spoof: np.ndarray) -> tuple[np.ndarray, int, int]:
-    """Sorted distinct azimuth columns and the lowest / highest beam of ``(M, 3)`` spoof points
-    by numpy trigonometry, each widened by one column / beam: a superset of their exact
-    (:meth:`LidarModel.bin_index`) columns and beams."""
+def _gather_rel(
+    scene: np.ndarray,
+    idx: np.ndarray,
+    scene_xy: tuple[np.ndarray, ...] | None,
+    origin: np.ndarray,
+) -> list[np.ndarray]:
+    """``float64(scene[idx, d]) - origin[d]`` for ``d = 0, 1, 2``, three ``(C,)`` arrays; ``x``
+    and ``y`` are gathered from the contiguous :func:`scene_columns` when given (1-D gathers
+    instead of a row gather from a strided view; the values are the same floats)."""
+    if scene_xy is None:
+        rel = scene[idx].astype(np.float64) - origin
+        return [rel[:, 0], rel[:, 1], rel[:, 2]]
+    cols = (scene_xy[0], scene_xy[1], scene[:, 2])
+    return [np.subtract(col[idx], origin[d], dtype=np.float64) for d, col in enumerate(cols)]
+
+
+def _spoof_extent(lidar: LidarModel, rel: np.ndarray) -> tuple[np.ndarray, int, int]:
+    """Sorted distinct azimuth columns and the lowest / highest beam of spoof points, given as
+    ``(M, 3)`` float64 offsets from the sensor origin, by numpy trigonometry, each widened by
+    one column / beam: a superset of their exact (:meth:`LidarModel.bin_index`) columns and
+    beams."""
     num_columns = lidar.azimuth_bins
-    rel = spoof.astype(np.float64) - lidar.origin.numpy()
     horiz = np.sqrt(rel[:, 0] ** 2 + rel[:, 1] ** 2)
     width = 2 * math.pi / num_columns
     col = np.floor((np.arctan2(rel[:, 1], rel[:, 0]) + math.pi) / width).astype(np.int64)
-    cols = np.concatenate([col - 1, col, col + 1]) % num_columns
-    cols.sort()
-    cols = cols[np.concatenate([[True], cols[1:] != cols[:-1]])]
+    occupied = np.zeros(num_columns, dtype=bool)
+    occupied[col % num_columns] = True  # col is in [0, M]: +pi wraps to column 0
+    widened = occupied.copy()  # each column and its two circular neighbours
+    widened[1:] |= occupied[:-1]
+    widened[0] |= occupied[-1]
+    widened[:-1] |= occupied[1:]
+    widened[-1] |= occupied[0]
     mids = lidar._constants(torch.device("cpu"))[1].numpy()
-    beam = np.searchsorted(mids, np.arctan2(rel[:, 2], horiz), side="left")
-    return cols, max(int(beam.min()) - 1, 0), min(int(beam.max()) + 1, lidar.num_beams - 1)
+    elevation = np.arctan2(rel[:, 2], horiz)
+    # searchsorted is monotonic: the extreme beams are those of the extreme elevations
+    beam_lo, beam_hi = np.searchsorted(mids, [elevation.min(), elevation.max()], side="left")
+    return (
+        widened.nonzero()[0],
+        max(int(beam_lo) - 1, 0),
+        min(int(beam_hi) + 1, lidar.num_beams - 1),
+    )
 
 
-def _elevation_band(xyz: np.ndarray, b_lo: int, b_hi: int, lidar: LidarModel) -> np.ndarray | None:
-    """Indices of the ``(C, 3)`` points whose elevation may fall in the beams ``[b_lo, b_hi]``
+def _elevation_band(
+    rel: list[np.ndarray], b_lo: int, b_hi: int, lidar: LidarModel
+) -> np.ndarray | None:
+    """Indices of the points (their float64 offsets from the sensor origin, three ``(C,)``
+    arrays) whose elevation may fall in the beams ``[b_lo, b_hi]``
     (a superset: the beam boundaries are widened by ``_WEDGE_MARGIN_RAD``), by
     ``z >= h tan(lo)`` and ``z <= h tan(hi)`` in float64 -- no trigonometry per point. ``None``
     when the beams span the whole fan (every point passes)."""
     if b_lo == 0 and b_hi == lidar.num_beams - 1:
         return None
     mids = lidar._constants(torch.device("cpu"))[1].numpy()
-    rel = xyz.astype(np.float64) - lidar.origin.numpy()
-    horiz = np.sqrt(rel[:, 0] ** 2 + rel[:, 1] ** 2)
+    horiz = np.sqrt(rel[0] ** 2 + rel[1] ** 2)
     ok = None
     if b_lo > 0:
-        ok = rel[:, 2] >= horiz * math.tan(float(mids[b_lo - 1]) - _WEDGE_MARGIN_RAD)
+        ok = rel[2] >= horiz * math.tan(float(mids[b_lo - 1]) - _WEDGE_MARGIN_RAD)
     if b_hi < lidar.num_beams - 1:
-        below = rel[:, 2] <= horiz * math.tan(float(mids[b_hi]) + _WEDGE_MARGIN_RAD)
+        below = rel[2] <= horiz * math.tan(float(mids[b_hi]) + _WEDGE_MARGIN_RAD)
         ok = below if ok is None else ok & below
     return ok.nonzero()[0]
