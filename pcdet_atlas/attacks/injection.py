@@ -311,10 +311,10 @@ class InjectionAttack(BaseAttack):
         rot_t, shift = t[:3, :3].T, t[:3, 3]
         xyz = (torch.from_numpy(run.xyz) @ rot_t + shift).numpy()
         b = torch.from_numpy(run.box[None])
-        box = b.clone()
-        box[:, 0:3] = b[:, 0:3] @ rot_t + shift
-        box[:, 6] = limit_period(b[:, 6] + torch.atan2(t[1, 0], t[0, 0]))
-        return xyz, box[0].numpy()
+        box = run.box.copy()  # the size columns are unchanged
+        box[0:3] = (b[:, 0:3] @ rot_t + shift)[0].numpy()
+        box[6] = limit_period(b[:, 6] + torch.atan2(t[1, 0], t[0, 0])).item()
+        return xyz, box
 
     def phantom_id(self, run: PhantomRun) -> str:
         return f"phantom_run{run.run_id}"
