@@ -549,7 +549,8 @@ def _raycast_numpy(
         return no_index, keep_spoof
     spoof_ray_bin = spoof_bin[spoof_idx]
     spoof_r = spoof_rng[spoof_idx]
-    order = np.lexsort((spoof_idx, spoof_r, spoof_ray_bin))  # by ray, range, index
+    # by ray, then range; lexsort is stable and spoof_idx ascending, so ties keep the lower index
+    order = np.lexsort((spoof_r, spoof_ray_bin))
     sorted_bin = spoof_ray_bin[order]
     head = np.ones(order.size, dtype=bool)
     head[1:] = sorted_bin[1:] != sorted_bin[:-1]
