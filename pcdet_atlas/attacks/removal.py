@@ -32,6 +32,7 @@ from pcdet_atlas.attacks.raycast import ColumnScratch, _half_plane_numpy, scene_
 from pcdet_atlas.attacks.tracking import TargetPolicy, TrackedFrame, Tracker, choose_target
 from pcdet_atlas.config import ConfigError, check_known_keys
 from pcdet_atlas.registry import ATTACKS
+from pcdet_atlas.utils.common import limit_period
 from pcdet_atlas.utils.seeding import numpy_generator
 
 __all__ = ["PDistTable", "RemovalAttack", "sector_mask"]
@@ -82,11 +83,6 @@ class PDistTable:
 
 def _is_probability(p: float) -> bool:
     return 0.0 <= p <= 1.0
-
-
-def wrap_angle(a: np.ndarray) -> np.ndarray:
-    """Wrap radians into ``[-pi, pi)``."""
-    return (a + np.pi) % (2 * np.pi) - np.pi
 
 
 def _azimuth_elevation(xyz: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -143,7 +139,7 @@ def sector_mask(
     if cand.size == 0:
         return cand.astype(np.int64), 0
     theta, phi = _azimuth_elevation(xyz[cand, :3], origin)
-    dtheta = np.abs(wrap_angle(theta - theta_c))
+    dtheta = np.abs(limit_period(theta - theta_c))  # wrapped into [-pi, pi)
     inside = (dtheta <= alpha / 2) & (np.abs(phi - phi_c) <= beta / 2)
     return cand[inside].astype(np.int64), int(cand.size)
 
