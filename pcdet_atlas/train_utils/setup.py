@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 import torch
@@ -13,13 +14,19 @@ from pcdet_atlas.train_utils.dist import init_dist_pytorch
 __all__ = ["add_common_args", "load_cfg", "exp_group_and_tag", "output_dir_for", "setup_runtime"]
 
 DEFAULT_SEED = 666  # OpenPCDet's fixed seed
+#: OpenPCDet's default of 4 loader workers, capped at this machine's CPU count
+DEFAULT_WORKERS = min(4, os.cpu_count() or 1)
 
 
 def add_common_args(parser: argparse.ArgumentParser) -> None:
     """The arguments ``train.py`` and ``test.py`` share (OpenPCDet's names)."""
     parser.add_argument("--cfg_file", "--cfg", dest="cfg_file", required=True, help="model YAML")
     parser.add_argument("--batch_size", type=int, default=None, help="total over processes")
-    parser.add_argument("--workers", type=int, default=4, help="dataloader workers per process")
+    parser.add_argument(
+        "--workers", type=int, default=DEFAULT_WORKERS,
+        help=f"dataloader workers per process (default: {DEFAULT_WORKERS}, OpenPCDet's 4 capped "
+        "at the CPU count)",
+    )  # fmt: skip
     parser.add_argument("--extra_tag", type=str, default="default")
     parser.add_argument("--ckpt", type=str, default=None)
     parser.add_argument("--launcher", choices=["none", "pytorch"], default="none")
