@@ -8,9 +8,10 @@
    what each frame's attack did (phantom points injected / visible, removal target tracked /
    fired / points removed) and the attack engine's work counters, and draw before/after pictures
    of one attacked frame per family under ``output/demo/``.
-4. If the CP4F checkpoint named by ``cfgs/atlas/synthetic/cp4f.yaml`` exists, evaluate it on
-   the same three variants with ``tools/test.py`` (L2 mAP/mAPH and ASR table, results.json).
-   No checkpoint ships yet (docs/model_zoo.md); the demo says so instead of inventing numbers.
+4. Evaluate the shipped CP4F checkpoint named by ``cfgs/atlas/synthetic/cp4f.yaml``
+   (``checkpoints/cp4f_synthetic.pth``, docs/model_zoo.md) on the same three variants over the
+   whole val sequence with ``tools/test.py``: the L2 mAP/mAPH and ASR table, and results.json.
+   Should the checkpoint be missing, the demo says so instead of inventing numbers.
 """
 
 from __future__ import annotations
