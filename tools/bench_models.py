@@ -13,7 +13,8 @@ model reuses memory another freed): CUDA ``max_memory_allocated``, or on CPU the
 process's peak resident set (``VmHWM``, reset through ``/proc/self/clear_refs``).
 With ``--eval``, a model whose ``ATLAS.CHECKPOINT`` exists is evaluated (Waymo L2 mAP) on the
 val split of ``--data_path``; without a checkpoint the model runs with random weights and the
-column says "not yet trained".
+column says "not yet trained" (configs without ``ATLAS.CHECKPOINT``, the real-Waymo ones: "no
+checkpoint").
 
 ``--train_step`` instead times training steps (batch ``--batch_size``, the configs' own train
 pipeline with GT sampling and augmentation, AdamW + one-cycle, gradient clipping: what
@@ -342,7 +343,7 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
         n_points = statistics.mean(int(b["points"].shape[0]) for b in batches)
         runs.append(
             {"cfg": cfg_file, "cfg_obj": cfg, "model": model, "batches": batches,
-             "trained": trained, "times": [], "points": n_points,
+             "trained": trained, "ships_ckpt": bool(ckpt), "times": [], "points": n_points,
              "params": sum(p.numel() for p in model.parameters())}
         )  # fmt: skip
 
@@ -386,7 +387,9 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
     for run in runs:
         med = statistics.median(run["times"])
         name = str(Path(run["cfg"]).resolve().relative_to(REPO_ROOT / "cfgs"))
-        if not run["trained"]:
+        if not run["ships_ckpt"]:
+            mAP = "no checkpoint (train on real data)"
+        elif not run["trained"]:
             mAP = "not yet trained"
         elif "l2_map" in run:
             mAP = f"{run['l2_map']:.4f} ({run['eval_frames']} val frames)"
