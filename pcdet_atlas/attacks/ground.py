@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pcdet_atlas.attacks.config_values import config_files, config_value
+from pcdet_atlas.attacks.raycast import scene_columns
 from pcdet_atlas.config import ConfigError, check_known_keys
 
 __all__ = ["GroundEstimator"]
@@ -100,40 +101,32 @@ class GroundEstimator:
     ) -> GroundEstimate:
         """Ground height at ``center_xy`` (2,) from ``(N, 3+)`` scene points (vehicle frame).
 
-        ``scene_xy``: contiguous ``x`` and ``y`` columns of ``scene_xyz`` (first two entries)
-        (:func:`~pcdet_atlas.attacks.raycast.scene_columns`) when the caller has them already.
+        ``scene_xy``: :func:`~pcdet_atlas.attacks.raycast.scene_columns` of ``scene_xyz`` (its
+        contiguous ``x`` and ``y`` columns first) when the caller has them already.
         """
         cx, cy = float(center_xy[0]), float(center_xy[1])
         xyz = np.asarray(scene_xyz)
-        x, y = scene_xy[:2] if scene_xy is not None else _columns(xyz)
-        # cheap pre-filter on the small disc's bounding square (widened by 1 mm, far above the
-        # float32 rounding of the bounds), then z and exact float64 distances on the survivors;
-        # the wide disc's square is scanned only when the small disc is too sparse
-        r = self.radius + _SQUARE_SLACK_M
-        cx_, cy_, cz_ = _disc_candidates(xyz, x, y, cx, cy, r, self.max_abs_z)
-        d2 = (cx_ - cx) ** 2 + (cy_ - cy) ** 2
-        z = cz_[d2 <= self.radius * self.radius]
-        if z.size >= self.min_points:
-            return GroundEstimate(_lower_percentile(z, self.percentile), "disc", int(z.size))
-        cx_, cy_, cz_ = _disc_candidates(xyz, x, y, cx, cy, self.fallback_radius, self.max_abs_z)
-        d2 = (cx_ - cx) ** 2 + (cy_ - cy) ** 2
-        z = cz_[d2 <= self.fallback_radius * self.fallback_radius]
-        if z.size >= self.min_points:
-            return GroundEstimate(_lower_percentile(z, self.percentile), "wide_disc", int(z.size))
-        return GroundEstimate(self.fallback_z, "fallback", int(cz_.size))
+        x, y = (scene_xy if scene_xy is not None else scene_columns(xyz))[:2]
+        # cheap pre-filter on the disc's bounding square (widened by 1 mm, far above the float32
+        # rounding of the bounds), then z and exact float64 distances on the survivors; the wide
+        # disc's square is scanned only when the small disc is too sparse
+        for radius, source in ((self.radius, "disc"), (self.fallback_radius, "wide_disc")):
+            px, py, pz = _disc_candidates(
+                xyz, x, y, cx, cy, radius + _SQUARE_SLACK_M, self.max_abs_z
+            )
+            z = pz[(px - cx) ** 2 + (py - cy) ** 2 <= radius * radius]
+            if z.size >= self.min_points:
+                return GroundEstimate(_lower_percentile(z, self.percentile), source, int(z.size))
+        return GroundEstimate(self.fallback_z, "fallback", int(pz.size))
 
 
-#: Widening of the small disc's bounding square, metres.
+#: Widening of the discs' bounding squares, metres.
 _SQUARE_SLACK_M = 1e-3
-
-
-def _columns(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return np.ascontiguousarray(xyz[:, 0]), np.ascontiguousarray(xyz[:, 1])
 
 
 def _disc_candidates(
     xyz: np.ndarray, x: np.ndarray, y: np.ndarray, cx: float, cy: float, r: float, max_abs_z: float
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``x``, ``y``, ``z`` (float64, ``(C,)`` each) of the points inside the square
     ``|x - cx|, |y - cy| <= r`` with ``|z| <= max_abs_z``, in ascending point order (1-D
     gathers from the contiguous columns; the values are those of ``xyz``)."""
