@@ -101,6 +101,16 @@ class FrameAttack:
     meta: dict
     removed: np.ndarray | None = field(default=None, repr=False)
 
+    @classmethod
+    def from_removed(
+        cls, num_points: int, removed: np.ndarray, added: np.ndarray, meta: dict
+    ) -> FrameAttack:
+        """The attack that drops the ascending row indices ``removed`` of a ``num_points``-row
+        scene (``keep`` derived from them) and adds ``added``."""
+        keep = np.ones(num_points, dtype=bool)
+        keep[removed] = False
+        return cls(keep, added, meta, removed=removed)
+
     def apply(
         self,
         points: np.ndarray,

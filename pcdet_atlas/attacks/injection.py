@@ -349,15 +349,12 @@ class InjectionAttack(BaseAttack):
             removed, keep_spoof = raycast_numpy_indices(
                 scene_xyz, spoof, self.lidar, self.p_dual, gen, scene_xy=scene_xy
             )
-            keep_scene = np.ones(scene_xyz.shape[0], dtype=bool)
-            keep_scene[removed] = False
         else:
             scene_t = torch.from_numpy(scene_xyz[:, :3]).to(self.device)  # strided, no copy
             spoof_t = torch.from_numpy(spoof).to(self.device)
             keep_scene, keep_spoof = raycast_merge(scene_t, spoof_t, self.lidar, self.p_dual, gen)
-            keep_scene = keep_scene.cpu().numpy()
+            removed = torch.nonzero(~keep_scene).squeeze(1).cpu().numpy()  # ascending
             keep_spoof = keep_spoof.cpu().numpy()
-            removed = None
         added = np.concatenate(
             [spoof[keep_spoof], inten[keep_spoof, None], elong[keep_spoof, None]], axis=1
         )
@@ -367,13 +364,11 @@ class InjectionAttack(BaseAttack):
             target_obj_id=self.phantom_id(run),
             num_spoof_points=run.budget,
             num_visible=int(keep_spoof.sum()),
-            num_removed=int(keep_scene.size - keep_scene.sum())
-            if removed is None
-            else int(removed.size),
+            num_removed=int(removed.size),
             tracked=True,
             fired=True,
         )
-        return FrameAttack(keep_scene, added.astype(np.float32), meta, removed=removed)
+        return FrameAttack.from_removed(scene_xyz.shape[0], removed, added.astype(np.float32), meta)
 
     def shadow_meta(
         self, seq: SequenceData, frame_idx: int, run: PhantomRun, state: ScheduleState

@@ -299,8 +299,6 @@ class RemovalAttack(BaseAttack):
         COUNTERS.add(removal_points_examined=examined)
         gen = numpy_generator(self.seed, self.family, seq.name, frame_idx, "points")
         removed = idx[gen.random(idx.size) < self.p_remove]  # ascending
-        keep = np.ones(scene_xyz.shape[0], dtype=bool)
-        keep[removed] = False
         meta = self.meta(
             state,
             target_box=tracked.box,
@@ -309,7 +307,7 @@ class RemovalAttack(BaseAttack):
             tracked=True,
             fired=True,
         )
-        return FrameAttack(keep, _EMPTY, meta, removed=removed)
+        return FrameAttack.from_removed(scene_xyz.shape[0], removed, _EMPTY, meta)
 
     def shadow_meta(
         self, seq: SequenceData, frame_idx: int, run: RemovalRun, state: ScheduleState
