@@ -13,8 +13,8 @@ model reuses memory another freed): CUDA ``max_memory_allocated``, or on CPU the
 process's peak resident set (``VmHWM``, reset through ``/proc/self/clear_refs``).
 With ``--eval``, a model whose ``ATLAS.CHECKPOINT`` exists is evaluated (Waymo L2 mAP) on the
 val split of ``--data_path``; without a checkpoint the model runs with random weights and the
-column says "not yet trained" (configs without ``ATLAS.CHECKPOINT``, the real-Waymo ones: "no
-checkpoint").
+column says so ("checkpoint missing", or "no checkpoint" for configs without
+``ATLAS.CHECKPOINT``, the real-Waymo ones).
 
 ``--train_step`` instead times training steps (batch ``--batch_size``, the configs' own train
 pipeline with GT sampling and augmentation, AdamW + one-cycle, gradient clipping: what
@@ -390,7 +390,7 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
         if not run["ships_ckpt"]:
             mAP = "no checkpoint (train on real data)"
         elif not run["trained"]:
-            mAP = "not yet trained"
+            mAP = "checkpoint missing (random weights)"
         elif "l2_map" in run:
             mAP = f"{run['l2_map']:.4f} ({run['eval_frames']} val frames)"
         else:
