@@ -149,6 +149,5 @@ def test_shipped_checkpoint_loads_strictly(path: Path):
     ckpt = cfg.get("ATLAS", {}).get("CHECKPOINT")
     if ckpt is None:
         pytest.skip("this config ships no checkpoint (ATLAS.CHECKPOINT: null)")
-    if not (REPO_ROOT / ckpt).is_file():
-        pytest.skip(f"{ckpt} is not trained yet (docs/model_zoo.md)")
+    assert (REPO_ROOT / ckpt).is_file(), f"{ckpt} named by {path.name} does not ship"
     build_network_from_config(cfg).load_params_from_file(REPO_ROOT / ckpt, strict=True)
