@@ -297,7 +297,16 @@ def bench_getitem(args) -> None:
     print(f"getitem: data {root}, torch threads {torch.get_num_threads()}, repeats {args.repeats}")
     print(f"  {'input':<8}{'variant':<18}{'frames':<9}{'clean ms':>10}{'attacked ms':>13}"
           f"{'extra ms':>10}{'ratio':>8}{'target':>9}")  # fmt: skip
-    for name, target in (("synthetic_waymo.yaml", 1.25), ("synthetic_waymo_multiframe.yaml", 1.35)):
+    inputs = {
+        "1": ("synthetic_waymo.yaml", 1.25),
+        "4": ("synthetic_waymo_multiframe.yaml", 1.35),
+    }
+    unknown = set(args.inputs.split(",")) - set(inputs)
+    if unknown:
+        raise SystemExit(f"--inputs: expected 1, 4 or 1,4, got {args.inputs!r}")
+    for key, (name, target) in inputs.items():
+        if key not in args.inputs.split(","):
+            continue
         data_cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "dataset_configs" / name)
         data_cfg.DATA_PATH = str(root)
         clean = WaymoDataset(data_cfg, classes, training=False)
@@ -350,6 +359,9 @@ def main() -> None:
     parser.add_argument("--data_path", default="data/synthetic_waymo", help="getitem part")
     parser.add_argument(
         "--warmup_s", type=float, default=8.0, help="getitem part: process warm-up per input"
+    )
+    parser.add_argument(
+        "--inputs", default="1,4", help="getitem part: frames per input to time (1, 4 or 1,4)"
     )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

@@ -12,10 +12,11 @@ Output under ``--out_dir`` (a dataset root that ``WaymoDataset`` reads unchanged
     atlas_attack_metadata.pkl     # {'variant', 'attack_cfg', 'frames': {frame_id: meta}}
     atlas_attack.yaml                              # the merged attack config
 
-Rows of an attacked frame: the kept source rows in their order (rows the loader drops, e.g. NLZ
-points, are kept untouched), then the phantom's rows ``[x, y, z, intensity, elongation, -1]`` with
-raw features. Loading the written frame with the same ``DATA_CONFIG`` therefore gives exactly the
-points ``AtlasWaymoDataset`` serves on the fly. ``num_points_of_each_lidar`` counts the real rows
+Rows of an attacked frame: the kept source rows in their order (the attack acts on every row of
+the file, NLZ rows included, as ``AtlasWaymoDataset`` does), then the phantom's rows
+``[x, y, z, intensity, elongation, -1]`` with raw features. Loading the written frame with any
+``DATA_CONFIG`` therefore gives exactly the points ``AtlasWaymoDataset`` serves on the fly with
+that config. ``num_points_of_each_lidar`` counts the real rows
 kept per LiDAR; ``info['atlas']['num_injected_rows']`` the appended phantom rows. Labels are the
 source labels (attack targets are in the metadata, apart from the ground truth).
 
@@ -92,19 +93,13 @@ def write_sequence(
         raw = wf.load_frame_points(src)
         info = copy.deepcopy(seq.infos[idx])
         if attack.needs_simulation(idx, seq.num_frames):
-            loaded = np.ones(len(raw), bool) if dataset.disable_nlz_flag else raw[:, 5] == -1
-            result = attack.simulate(raw[loaded, :3], seq, idx)
-            keep_rows = np.ones(len(raw), dtype=bool)
-            if result.keep is not None:
-                keep_rows[np.flatnonzero(loaded)[~result.keep]] = False
-            added = np.zeros((len(result.added), wf.NUM_POINT_COLUMNS), dtype=np.float32)
-            added[:, :5] = result.added
-            added[:, 5] = -1  # not in a no-label zone
-            out = np.concatenate([raw[keep_rows], added]).astype(np.float32)
+            result = attack.simulate(raw, seq, idx)  # every row of the file, as the loader does
+            out = result.apply(raw, fill_value=-1.0)  # added rows: not in a no-label zone
+            keep_rows = np.ones(len(raw), dtype=bool) if result.keep is None else result.keep
             info["num_points_of_each_lidar"] = _lidar_counts(
                 keep_rows, info["num_points_of_each_lidar"]
             )
-            info["atlas"] = {"variant": attack.variant, "num_injected_rows": len(added)}
+            info["atlas"] = {"variant": attack.variant, "num_injected_rows": len(result.added)}
             meta = result.meta
         else:
             out = raw

@@ -7,6 +7,13 @@ spoofed gets the same run's phantom / removal as when it is the current frame; a
 frame is read untouched), so frame ``t`` of a variant is bitwise identical whether it is loaded
 as the current frame or as history, in any order, with any number of workers (SPEC §3.6).
 
+The attack acts on the returns of the frame file as the sensor recorded them, rows of no-label
+zones (NLZ) included (they are surfaces the sensor sees: they occlude a phantom and can be
+occluded by it); the loader's own row filter applies afterwards, so an attacked frame does not
+depend on ``DISABLE_NLZ_FLAG_ON_POINTS``. The file is read with room for the attack's added rows
+(:meth:`~pcdet_atlas.attacks.base.BaseAttack.max_added_points`), so the attacked points cost one
+row selection, the same as a clean frame's.
+
 Clean frames do no attack work (no raycast, no sector, no ground estimate); the counters of
 :mod:`pcdet_atlas.attacks.counters` prove it. ``__getitem__`` returns the clean dataset's dict,
 points attacked before any voxelization, plus ``attack``: the metadata record of the current
@@ -25,6 +32,7 @@ from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, SequenceData, buil
 from pcdet_atlas.attacks.counters import COUNTERS
 from pcdet_atlas.config import cfg_from_yaml_file
 from pcdet_atlas.datasets.waymo_dataset import WaymoDataset
+from pcdet_atlas.datasets.waymo_format import NUM_POINT_COLUMNS, load_frame_points
 from pcdet_atlas.registry import DATASETS
 
 __all__ = ["AtlasWaymoDataset"]
@@ -72,35 +80,44 @@ class AtlasWaymoDataset(WaymoDataset):
             seq = self._sequences[sequence_name] = SequenceData(sequence_name, infos)
         return seq
 
-    def raw_to_loaded_features(self, raw: np.ndarray) -> np.ndarray:
-        """``(K, 5)`` raw ``[x, y, z, intensity, elongation]`` -> the loader's feature space
-        (tanh on the ``POINTS_TANH_DIM`` columns, exactly as :meth:`WaymoDataset.get_lidar`)."""
-        out = np.array(raw, dtype=np.float32)
-        for dim in self.tanh_dims:
-            out[:, dim] = np.tanh(out[:, dim])
-        return out
-
     def simulate_frame(
-        self, sequence_name: str, sample_idx: int
+        self, sequence_name: str, sample_idx: int, spare_rows: int = 0
     ) -> tuple[np.ndarray, FrameAttack | None]:
-        """Clean points of a frame and, if the frame is spoofed, its :class:`FrameAttack`
-        (``None`` for a clean frame: nothing was simulated)."""
-        points = super().get_lidar(sequence_name, sample_idx)
+        """The raw rows of a frame file and, if the frame is spoofed, its
+        :class:`FrameAttack` (``None`` for a clean frame: nothing was simulated).
+
+        The attack acts on every return of the file, as the sensor records them; the loader's
+        own row filter (NLZ) applies afterwards. The rows come back in an array of
+        ``spare_rows`` more rows than the file holds (uninitialised; see
+        :func:`~pcdet_atlas.datasets.waymo_format.load_frame_points`).
+        """
+        rows = load_frame_points(self.frame_path(sequence_name, sample_idx), spare_rows)
         seq = self.sequence_data(sequence_name)
         if not self.attack.needs_simulation(sample_idx, seq.num_frames):
-            return points, None
-        return points, self.attack.simulate(points, seq, sample_idx)
+            return rows, None
+        num_rows = len(rows) - spare_rows
+        return rows, self.attack.simulate(rows[:num_rows], seq, sample_idx)
 
     def get_lidar(self, sequence_name: str, sample_idx: int) -> np.ndarray:
         """Attacked points of one frame, ``(N', 5)`` float32 in the loader's feature space."""
-        points, result = self.simulate_frame(sequence_name, sample_idx)
-        if result is None:
-            return points
+        seq = self.sequence_data(sequence_name)
+        if not self.attack.needs_simulation(sample_idx, seq.num_frames):
+            return super().get_lidar(sequence_name, sample_idx)
+        spare = self.attack.max_added_points(seq, sample_idx)
+        buffer, result = self.simulate_frame(sequence_name, sample_idx, spare)
         if (sequence_name, int(sample_idx)) == self._current:
             self._current_meta = result.meta
         else:
             COUNTERS.add(history_frames_resimulated=1)
-        return result.apply(points, self.raw_to_loaded_features)
+        num_rows, added = len(buffer) - spare, result.added
+        if len(added) <= spare:  # the phantom's rows go into the room read with the frame
+            rows = buffer[: num_rows + len(added)]
+        else:  # a family whose bound was too low: one copy
+            rows = np.empty((num_rows + len(added), NUM_POINT_COLUMNS), dtype=np.float32)
+            rows[:num_rows] = buffer[:num_rows]
+        rows[num_rows:, :5] = added
+        rows[num_rows:, 5:] = -1.0  # not in a no-label zone
+        return self.loaded_points(rows, drop=result.removed_rows())
 
     def frame_attack_meta(self, sequence_name: str, sample_idx: int) -> dict:
         """The metadata record of a frame; for a spoofed frame this simulates it."""

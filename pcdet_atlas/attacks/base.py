@@ -32,6 +32,7 @@ from pcdet_atlas.attacks.config_values import config_value
 from pcdet_atlas.attacks.metadata import make_meta
 from pcdet_atlas.attacks.tracking import FrameLabels
 from pcdet_atlas.config import ConfigError, cfg_from_yaml_file, check_known_keys, key_source
+from pcdet_atlas.datasets.multiframe import copy_rows_except
 from pcdet_atlas.registry import ATTACKS
 
 __all__ = [
@@ -62,12 +63,13 @@ class ScheduleState:
 class SequenceData:
     """What attacks need of a sequence besides points: poses and labels, by frame index.
 
-    Labels are converted lazily, frame by frame, so building this is cheap.
+    Labels and inverse poses are computed lazily, frame by frame, so building this is cheap.
     """
 
     name: str
     infos: Sequence[Mapping]
     _labels: dict[int, FrameLabels] = field(default_factory=dict, repr=False)
+    _inverse_poses: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
 
     @property
     def num_frames(self) -> int:
@@ -77,18 +79,29 @@ class SequenceData:
         """``(4, 4)`` float64 vehicle -> world pose of a frame."""
         return np.asarray(self.infos[frame_idx]["pose"], dtype=np.float64).reshape(4, 4)
 
+    def world_to_vehicle(self, frame_idx: int) -> np.ndarray:
+        """``(4, 4)`` float64 inverse of :meth:`pose` (``np.linalg.inv``, cached read-only), so
+        ``world_to_vehicle(k) @ pose(a)`` is :func:`~pcdet_atlas.datasets.multiframe.
+        relative_pose` ``(pose(a), pose(k))`` bit for bit."""
+        inverse = self._inverse_poses.get(frame_idx)
+        if inverse is None:
+            inverse = np.linalg.inv(self.pose(frame_idx))
+            inverse.flags.writeable = False
+            self._inverse_poses[frame_idx] = inverse
+        return inverse
+
     def labels(self, frame_idx: int) -> FrameLabels:
         if frame_idx not in self._labels:
             self._labels[frame_idx] = FrameLabels.from_info(self.infos[frame_idx])
         return self._labels[frame_idx]
 
 
-@dataclass
 class FrameAttack:
     """The result of attacking one frame.
 
     Attributes:
-        keep: ``(N,)`` bool mask of scene points kept, or ``None`` (all kept).
+        keep: ``(N,)`` bool mask of scene points kept, or ``None`` (all kept); built on first
+            access when the attack gave the removed rows instead (:meth:`from_removed`).
         added: ``(K, 5)`` float32 points added: ``x, y, z`` (vehicle frame, m) and **raw**
             intensity and elongation (the dataset applies its feature transform, e.g. tanh).
         meta: the metadata record (:mod:`pcdet_atlas.attacks.metadata`).
@@ -96,20 +109,42 @@ class FrameAttack:
             has them at hand (saves two passes over the mask); derived from ``keep`` otherwise.
     """
 
-    keep: np.ndarray | None
-    added: np.ndarray
-    meta: dict
-    removed: np.ndarray | None = field(default=None, repr=False)
+    def __init__(
+        self,
+        keep: np.ndarray | None,
+        added: np.ndarray,
+        meta: dict,
+        removed: np.ndarray | None = None,
+    ):
+        self._keep, self.added, self.meta, self.removed = keep, added, meta, removed
+        self._num_points: int | None = None
 
     @classmethod
     def from_removed(
         cls, num_points: int, removed: np.ndarray, added: np.ndarray, meta: dict
     ) -> FrameAttack:
         """The attack that drops the ascending row indices ``removed`` of a ``num_points``-row
-        scene (``keep`` derived from them) and adds ``added``."""
-        keep = np.ones(num_points, dtype=bool)
-        keep[removed] = False
-        return cls(keep, added, meta, removed=removed)
+        scene and adds ``added`` (``keep`` is derived from them only if asked for)."""
+        attack = cls(None, added, meta, removed=removed)
+        attack._num_points = int(num_points)
+        return attack
+
+    @property
+    def keep(self) -> np.ndarray | None:
+        if self._keep is None and self._num_points is not None:
+            self._keep = np.ones(self._num_points, dtype=bool)
+            self._keep[self.removed] = False
+        return self._keep
+
+    def removed_rows(self) -> np.ndarray:
+        """``(R,)`` int64 ascending indices of the scene rows the attack drops."""
+        if self.removed is not None:
+            return self.removed
+        return _EMPTY_INDEX if self._keep is None else (~self._keep).nonzero()[0]
+
+    def __repr__(self) -> str:
+        removed = self.removed_rows().size
+        return f"FrameAttack(removed={removed}, added={len(self.added)}, meta={self.meta!r})"
 
     def apply(
         self,
@@ -125,18 +160,13 @@ class FrameAttack:
             fill_value: value of the columns beyond the fifth for added rows.
         """
         num_added = self.added.shape[0]
-        if self.keep is None and num_added == 0:
+        removed = self.removed_rows()
+        if removed.size == 0 and num_added == 0:
             return points
         added = self.added if feature_fn is None else feature_fn(self.added.copy())
-        if self.keep is None:
-            removed = _EMPTY_INDEX
-        elif self.removed is not None:
-            removed = self.removed
-        else:
-            removed = (~self.keep).nonzero()[0]
         num_kept = points.shape[0] - removed.size
         out = np.empty((num_kept + num_added, points.shape[1]), dtype=points.dtype)  # one copy
-        _copy_kept_rows(points, removed, out[:num_kept])
+        copy_rows_except(points, removed, out[:num_kept])
         if num_added:
             out[num_kept:] = fill_value
             out[num_kept:, :5] = added[:, :5]
@@ -144,28 +174,6 @@ class FrameAttack:
 
 
 _EMPTY_INDEX = np.zeros(0, dtype=np.int64)
-#: Above this many runs of removed rows, a masked copy beats copying the blocks between them.
-_MAX_RUN_COPIES = 1024
-
-
-def _copy_kept_rows(points: np.ndarray, removed: np.ndarray, out: np.ndarray) -> None:
-    """``out[:] = points`` without the ascending row indices ``removed``, as block copies of
-    the rows between runs of consecutive removed rows (a phantom occludes a few hundred scattered
-    points; a removal sector is a few dozen runs, one or two per beam)."""
-    if removed.size == 0:
-        out[:] = points
-        return
-    breaks = (np.diff(removed) != 1).nonzero()[0]  # last removed row of each run but the last
-    if breaks.size + 1 > _MAX_RUN_COPIES:
-        keep = np.ones(points.shape[0], dtype=bool)
-        keep[removed] = False
-        np.compress(keep, points, axis=0, out=out)
-        return
-    starts = removed[np.concatenate([[0], breaks + 1])].tolist()  # first row of each run
-    stops = (removed[np.concatenate([breaks, [removed.size - 1]])] + 1).tolist()
-    parts = [points[prev:start] for prev, start in zip([0, *stops[:-1]], starts)]
-    parts.append(points[stops[-1] :])
-    np.concatenate(parts, axis=0, out=out)
 
 
 class BaseAttack(ABC):
@@ -255,6 +263,12 @@ class BaseAttack(ABC):
     def needs_simulation(self, frame_idx: int, num_frames: int) -> bool:
         """Whether a frame's points are changed by this attack (a clean frame never is)."""
         return self.schedule_state(frame_idx, num_frames).spoofed
+
+    def max_added_points(self, seq: SequenceData, frame_idx: int) -> int:
+        """An upper bound of the rows :meth:`simulate` adds to frame ``frame_idx``, so that a
+        loader can read the frame with room for them (0: this family only removes points).
+        A bound that is too low costs a copy, never a wrong frame."""
+        return 0
 
     def meta(self, state: ScheduleState, **kwargs) -> dict:
         """A metadata record of this attack for a frame in ``state``."""

@@ -8,7 +8,8 @@ order — *common random numbers*; the easy phantom's points are a prefix of the
 * a trace of the library, and one permutation of its points;
 * a budget ``n ~ U{lo, hi}`` from one uniform shared by all budgets, capped at the trace size;
   the phantom is the first ``n`` points of the permutation (sampling without replacement);
-* an offset ``x ~ U(15, 20)``, ``y ~ U(-3, 3)`` m and a yaw ``psi ~ U(-0.2, 0.2)`` rad.
+* an offset ``x ~ U(15, 20)``, ``y ~ U(-3, 3)`` m and a yaw ``psi ~ U(-0.2, 0.2)`` rad;
+* the raycaster's dual-return uniforms, one row per frame of the run (``p_dual > 0``).
 
 Position modes: ``relative`` keeps the phantom's ego-relative pose in every frame of the run;
 ``global`` places it in the run's anchor frame (its last frame) and holds it fixed in the world,
@@ -23,6 +24,7 @@ points a real sensor would report and which scene points they occlude.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,7 +48,7 @@ from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary
 from pcdet_atlas.config import REPO_ROOT, ConfigError
 from pcdet_atlas.registry import ATTACKS
 from pcdet_atlas.utils.common import limit_period
-from pcdet_atlas.utils.seeding import numpy_generator, torch_generator
+from pcdet_atlas.utils.seeding import numpy_generator
 
 __all__ = ["InjectionAttack", "PhantomRun", "sample_phantom"]
 
@@ -62,6 +64,9 @@ class PhantomRun:
         intensity, elongation, src_range: ``(n,)`` float32 raw values and recording range (m).
         box: ``(7,)`` float64 phantom box in the same frame.
         anchor_pose: ``(4, 4)`` vehicle -> world pose of the anchor frame (global mode), or None.
+        dual_uniforms: ``(end - start + 1, n)`` float64 uniforms of the raycaster's dual returns,
+            one row per frame of the run (a frame never draws more than ``n``: one per primary
+            ray, and each ray has a phantom point), or None when ``p_dual = 0``.
         trace_index: library index. budget_requested: the drawn ``n`` before capping.
     """
 
@@ -76,6 +81,7 @@ class PhantomRun:
     src_range: np.ndarray
     box: np.ndarray
     anchor_pose: np.ndarray | None
+    dual_uniforms: np.ndarray | None = None
 
     @property
     def budget(self) -> int:
@@ -295,6 +301,13 @@ class InjectionAttack(BaseAttack):
             src_range=trace.src_range[sel],
             box=np.array([x, y, h / 2, l, w, h, yaw]),
             anchor_pose=seq.pose(end) if self.position_mode == "global" else None,
+            dual_uniforms=(
+                numpy_generator(*self.rng_keys(seq.name, start), "dual").random(
+                    (end - start + 1, len(sel))
+                )
+                if self.p_dual > 0
+                else None
+            ),
         )
 
     def phantom_pose(
@@ -304,17 +317,18 @@ class InjectionAttack(BaseAttack):
         before ground anchoring (float64)."""
         if run.anchor_pose is None:
             return run.xyz, run.box
-        rel = np.linalg.inv(seq.pose(frame_idx)) @ run.anchor_pose  # anchor ego -> frame ego
-        # the torch ops of transform_points / transform_boxes, without their per-call
-        # conversions (bit for bit the same; this runs on every spoofed frame)
-        t = torch.from_numpy(rel)
-        rot_t, shift = t[:3, :3].T, t[:3, 3]
-        xyz = (torch.from_numpy(run.xyz) @ rot_t + shift).numpy()
-        b = torch.from_numpy(run.box[None])
+        rel = seq.world_to_vehicle(frame_idx) @ run.anchor_pose  # anchor ego -> frame ego
+        rot, shift = rel[:3, :3], rel[:3, 3]
+        xyz = run.xyz @ rot.T + shift
         box = run.box.copy()  # the size columns are unchanged
-        box[0:3] = (b[:, 0:3] @ rot_t + shift)[0].numpy()
-        box[6] = limit_period(b[:, 6] + torch.atan2(t[1, 0], t[0, 0])).item()
+        box[0:3] = run.box[0:3] @ rot.T + shift
+        box[6] = limit_period(run.box[6] + math.atan2(rel[1, 0], rel[0, 0]))
         return xyz, box
+
+    def max_added_points(self, seq: SequenceData, frame_idx: int) -> int:
+        """The run's budget on a spoofed frame (at most every phantom point is visible)."""
+        state = self.schedule_state(frame_idx, seq.num_frames)
+        return self.run_state(seq, state.run_id).budget if state.spoofed else 0
 
     def phantom_id(self, run: PhantomRun) -> str:
         return f"phantom_run{run.run_id}"
@@ -341,10 +355,7 @@ class InjectionAttack(BaseAttack):
         spoof = (xyz + np.array([0.0, 0.0, dz])).astype(np.float32)  # (n, 3)
         new_range = np.linalg.norm(spoof.astype(np.float64) - self._origin[None], axis=1)
         inten, elong = self.intensity(run.intensity, run.elongation, run.src_range, new_range)
-        gen = None
-        if self.p_dual > 0:
-            keys = (*self.rng_keys(seq.name, run.start), frame_idx, "dual")
-            gen = torch_generator(*keys)
+        gen = None if run.dual_uniforms is None else run.dual_uniforms[frame_idx - run.start]
         if on_cpu:
             removed, keep_spoof = raycast_numpy_indices(
                 scene_xyz, spoof, self.lidar, self.p_dual, gen, scene_xy=scene_xy

@@ -15,7 +15,7 @@ import torch
 from pcdet_atlas.attacks.config_values import config_value
 from pcdet_atlas.config import ConfigError, check_known_keys
 
-__all__ = ["LidarModel", "WAYMO_TOP_FOV_DEG", "waymo_top_inclinations_deg"]
+__all__ = ["LidarModel", "WAYMO_TOP_FOV_DEG", "spherical_offsets", "waymo_top_inclinations_deg"]
 
 #: Vertical field of view of the Waymo TOP LiDAR (published spec), degrees.
 WAYMO_TOP_FOV_DEG = (-17.6, 2.4)
@@ -41,6 +41,24 @@ def waymo_top_inclinations_deg(num_beams: int = 64) -> np.ndarray:
     u = np.linspace(0.0, 1.0, num_beams)
     warp = a * u + (1.0 - a) * (1.0 - (1.0 - u) ** 2)  # g(0)=0, g(1)=1, g'(1)=a, g'(0)=2-a
     return lo + (hi - lo) * warp
+
+
+def spherical_offsets(
+    dx: np.ndarray, dy: np.ndarray, dz: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Azimuth in (-pi, pi], elevation and range (float64) of points given as ``(N,)`` float64
+    offsets from the sensor origin: the numpy arithmetic that defines every CPU binning.
+
+    numpy's ``sqrt`` is IEEE-exact and its ``arctan2`` gives each element the same value whatever
+    its position in the array, so binning a subset of a scene gives every point the bin it gets in
+    the whole scene; every CPU consumer (both raycast backends, the removal sector,
+    :meth:`LidarModel.spherical` on CPU tensors) goes through this one function.
+    """
+    horiz = np.sqrt(dx**2 + dy**2)
+    azimuth = np.arctan2(dy, dx)
+    azimuth[azimuth == -math.pi] = math.pi
+    elevation = np.arctan2(dz, horiz)
+    return azimuth, elevation, np.sqrt(horiz**2 + dz**2)
 
 
 class LidarModel:
@@ -84,6 +102,11 @@ class LidarModel:
         self.fov_max = float(incl[-1] + (incl[-1] - incl[-2]) / 2)
         # per-device copies of (origin, midpoints), so CUDA calls do no host-to-device copy
         self._device_cache: dict[torch.device, tuple[torch.Tensor, torch.Tensor]] = {}
+        # numpy views of the same constants for the CPU paths (read-only float64)
+        self.origin_np = self.origin.numpy()
+        self.midpoints_np = self._midpoints.numpy()
+        self.origin_np.flags.writeable = False
+        self.midpoints_np.flags.writeable = False
 
     def _constants(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
         """``(origin (3,), beam midpoints (B-1,))`` float64 on ``device`` (cached)."""
@@ -190,9 +213,18 @@ class LidarModel:
     def spherical(self, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Azimuth in (-pi, pi], elevation and range of ``(N, 3)`` points relative to the origin.
 
-        Computed in float64 so that bin assignment is identical on CPU and GPU.
+        Computed in float64. CPU tensors go through :func:`spherical_offsets` (numpy), the
+        arithmetic of every CPU path; CUDA tensors through the same formulas in torch, whose
+        ``sqrt`` / ``atan2`` kernels may round the last bit differently, so a point within an
+        ulp of a bin edge can fall in the neighbouring bin on a GPU (each device is
+        deterministic on its own).
         Returns three ``(N,)`` float64 tensors (radians, radians, metres).
         """
+        if xyz.device.type == "cpu":
+            rel = xyz[:, :3].detach().to(torch.float64).numpy() - self.origin_np
+            return tuple(
+                torch.from_numpy(v) for v in spherical_offsets(rel[:, 0], rel[:, 1], rel[:, 2])
+            )
         rel = xyz[:, :3].to(torch.float64) - self._constants(xyz.device)[0]
         horiz = torch.sqrt(rel[:, 0] ** 2 + rel[:, 1] ** 2)
         azimuth = torch.atan2(rel[:, 1], rel[:, 0])

@@ -31,7 +31,10 @@ import numpy as np
 import torch
 
 from pcdet_atlas.attacks.counters import COUNTERS, AttackCounters
-from pcdet_atlas.attacks.lidar_model import LidarModel
+from pcdet_atlas.attacks.lidar_model import LidarModel, spherical_offsets
+
+#: Sources of the dual-return draws (rule 5): a generator, or uniforms drawn beforehand.
+Generator = torch.Generator | np.random.Generator | np.ndarray
 
 __all__ = [
     "raycast_merge",
@@ -262,7 +265,7 @@ def raycast_merge(
     spoof_xyz: torch.Tensor,
     lidar: LidarModel,
     p_dual: float = 0.01,
-    generator: torch.Generator | None = None,
+    generator: Generator | None = None,
     counters: AttackCounters | None = None,
     backend: str = "auto",
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -282,20 +285,23 @@ def raycast_merge(
     points beyond ``max_range`` are returns of their ray like any other.
 
     Randomness: one uniform per primary ray, in ascending ray id order, drawn from
-    ``generator`` on the generator's device (so a CPU generator gives the same result for CPU
-    and CUDA inputs). No draw is made when ``p_dual = 0`` or when no ray is primary.
+    ``generator`` on its own device (a numpy generator on the host; so one generator gives the
+    same draws for CPU and CUDA inputs). No draw is made when ``p_dual = 0`` or when no ray is
+    primary.
 
     Args:
         scene_xyz: ``(N, 3+)`` float scene points, vehicle frame, metres (extra columns ignored).
         spoof_xyz: ``(M, 3+)`` float spoofed points, same frame and device.
         lidar: the sensor model.
         p_dual: dual-return probability in ``[0, 1]``.
-        generator: ``torch.Generator``, required when ``p_dual > 0``.
+        generator: ``torch.Generator``, numpy ``Generator`` or 1-D array of uniforms,
+            required when ``p_dual > 0`` (:func:`dual_uniforms`).
         counters: where to count the work; the per-process ``COUNTERS`` by default.
         backend: ``'auto'`` (numpy for CPU tensors, torch otherwise), ``'torch'`` or
-            ``'numpy'`` (CPU tensors only). Both give identical masks, counters and draws: the
-            float64 ``sqrt`` / ``atan2`` of the binning are the same torch calls in both,
-            everything else is IEEE-exact arithmetic or integer/comparison logic. The numpy
+            ``'numpy'`` (CPU tensors only). On CPU both give identical masks, counters and
+            draws: both bin through :func:`~pcdet_atlas.attacks.lidar_model.spherical_offsets`
+            (numpy ``sqrt`` / ``arctan2``), everything else is IEEE-exact arithmetic or
+            integer/comparison logic. The numpy
             one avoids ~60 small torch ops, whose fixed cost dominates a few thousand candidate
             points on CPU.
 
@@ -379,8 +385,8 @@ def raycast_merge(
         primary = torch.nonzero(ray_keeps & has_scene & (echo_r < near_r)).squeeze(1)  # (P,)
         draws = primary.numel()
         if draws:
-            u = torch.rand(draws, generator=generator, dtype=torch.float64, device=generator.device)
-            dual_rays = primary[(u < p_dual).to(device)]
+            u = dual_uniforms(generator, draws, device)
+            dual_rays = primary[u < p_dual]
             if dual_rays.numel():
                 near_idx = torch.full((num_rays,), num_scene, dtype=torch.long, device=device)
                 near_idx.scatter_reduce_(
@@ -399,16 +405,41 @@ def raycast_merge(
     return keep_scene, keep_spoof
 
 
-def _check_dual(p_dual: float, generator: torch.Generator | None) -> float:
+def _check_dual(p_dual: float, generator: Generator | None) -> float:
     p_dual = float(p_dual)
     if not 0.0 <= p_dual <= 1.0:
         raise ValueError(f"p_dual must be in [0, 1], got {p_dual}")
-    if p_dual > 0 and generator is None:
+    if p_dual > 0 and not isinstance(generator, (torch.Generator, np.random.Generator, np.ndarray)):
         raise ValueError(
-            "raycast_merge: p_dual > 0 needs an explicit torch.Generator (no global RNG); "
-            "pass generator=... or p_dual=0"
+            "raycast_merge: p_dual > 0 needs an explicit torch.Generator, numpy Generator or "
+            f"array of uniforms (no global RNG), got {type(generator).__name__}; pass "
+            "generator=... or p_dual=0"
         )
     return p_dual
+
+
+def dual_uniforms(generator: Generator, count: int, device: torch.device | None = None):
+    """``count`` float64 uniforms in ``[0, 1)`` for the dual-return draws of rule 5.
+
+    A numpy ``Generator`` draws on the host and a ``torch.Generator`` on its own device, so a
+    given generator gives the same uniforms whatever the device of the points; a 1-D numpy array
+    holds uniforms drawn beforehand (its first ``count`` are used; an
+    :class:`~pcdet_atlas.attacks.injection.InjectionAttack` draws one row per frame of a run
+    once). Returns a numpy array when ``device`` is ``None``, else a tensor on ``device``.
+    """
+    if isinstance(generator, np.ndarray):
+        if generator.ndim != 1 or generator.size < count:
+            raise ValueError(
+                f"dual-return uniforms: need a 1-D array of at least {count}, got shape "
+                f"{generator.shape}"
+            )
+        u = generator[:count]
+        return u if device is None else torch.from_numpy(np.ascontiguousarray(u)).to(device)
+    if isinstance(generator, np.random.Generator):
+        u = generator.random(count)
+        return u if device is None else torch.from_numpy(u).to(device)
+    u = torch.rand(count, generator=generator, dtype=torch.float64, device=generator.device)
+    return u.cpu().numpy() if device is None else u.to(device)
 
 
 def raycast_merge_numpy(
@@ -416,7 +447,7 @@ def raycast_merge_numpy(
     spoof_xyz: np.ndarray,
     lidar: LidarModel,
     p_dual: float = 0.01,
-    generator: torch.Generator | None = None,
+    generator: Generator | None = None,
     counters: AttackCounters | None = None,
     scene_xy: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -426,7 +457,7 @@ def raycast_merge_numpy(
         scene_xyz: ``(N, 3+)`` float scene points (a strided view is fine: never copied whole).
         spoof_xyz: ``(M, 3+)`` float spoofed points.
         lidar, p_dual, generator, counters: as :func:`raycast_merge` (the uniforms of rule 5
-            come from the torch ``generator``, so the draws are the same).
+            come from :func:`dual_uniforms`, so the draws are the same).
         scene_xy: :func:`scene_columns` of ``scene_xyz`` if the caller has them already.
 
     Returns:
@@ -445,7 +476,7 @@ def raycast_numpy_indices(
     spoof_xyz: np.ndarray,
     lidar: LidarModel,
     p_dual: float = 0.01,
-    generator: torch.Generator | None = None,
+    generator: Generator | None = None,
     counters: AttackCounters | None = None,
     scene_xy: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -470,34 +501,23 @@ def _as_xyz_numpy(points, name: str) -> np.ndarray:
 
 
 def _bin_index_numpy(lidar: LidarModel, xyz: np.ndarray) -> tuple[np.ndarray, ...]:
-    """:meth:`LidarModel.bin_index` of ``(N, 3)`` numpy points, bit for bit.
-
-    The IEEE-exact float64 steps (conversion, subtraction, squares, sums, division, floor,
-    comparisons) run in numpy; ``sqrt`` and ``atan2``, whose torch CPU kernels round
-    differently from numpy's, are the same torch calls on the same memory layouts as in
-    :meth:`LidarModel.spherical` (both are independent of an element's position in the array,
-    so binning a subset gives each point the bin it gets in the whole scene).
-    """
-    origin = lidar._constants(torch.device("cpu"))[0]
-    return _bin_index_rel(lidar, xyz[:, :3].astype(np.float64) - origin.numpy())
+    """:meth:`LidarModel.bin_index` of ``(N, 3)`` numpy points, bit for bit (the same
+    :func:`~pcdet_atlas.attacks.lidar_model.spherical_offsets` arithmetic)."""
+    rel = xyz[:, :3].astype(np.float64) - lidar.origin_np
+    return _bin_offsets(lidar, rel[:, 0], rel[:, 1], rel[:, 2])
 
 
-def _bin_index_rel(lidar: LidarModel, rel: np.ndarray) -> tuple[np.ndarray, ...]:
-    """:func:`_bin_index_numpy` of points already given as C-contiguous ``(N, 3)`` float64
-    offsets from the sensor origin (``float64(xyz) - origin``, the first step of the binning)."""
-    mids = lidar._constants(torch.device("cpu"))[1]
-    rel_t = torch.from_numpy(rel)
-    horiz = torch.sqrt(torch.from_numpy(rel[:, 0] ** 2 + rel[:, 1] ** 2))
-    azimuth = torch.atan2(rel_t[:, 1], rel_t[:, 0]).numpy()
-    azimuth[azimuth == -math.pi] = math.pi
-    elevation = torch.atan2(rel_t[:, 2], horiz).numpy()
-    horiz = horiz.numpy()
-    rng = torch.sqrt(torch.from_numpy(horiz**2 + rel[:, 2] ** 2)).numpy()
+def _bin_offsets(
+    lidar: LidarModel, dx: np.ndarray, dy: np.ndarray, dz: np.ndarray
+) -> tuple[np.ndarray, ...]:
+    """:func:`_bin_index_numpy` of points given as ``(N,)`` float64 offsets from the sensor
+    origin (``float64(xyz) - origin``, the first step of the binning)."""
+    azimuth, elevation, rng = spherical_offsets(dx, dy, dz)
     width = 2 * math.pi / lidar.azimuth_bins
     with np.errstate(invalid="ignore"):  # non-finite points: any bin, never in the FOV
         col = np.clip(np.floor((azimuth + math.pi) / width), 0, lidar.azimuth_bins - 1)
         col = col.astype(np.int64)
-    beam = np.searchsorted(mids.numpy(), elevation, side="left")
+    beam = np.searchsorted(lidar.midpoints_np, elevation, side="left")
     fov = (elevation >= lidar.fov_min) & (elevation <= lidar.fov_max)
     return beam * lidar.azimuth_bins + col, fov, rng
 
@@ -507,7 +527,7 @@ def _raycast_numpy(
     spoof: np.ndarray,
     lidar: LidarModel,
     p_dual: float,
-    generator: torch.Generator | None,
+    generator: Generator | None,
     counters: AttackCounters,
     scene_xy: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -519,29 +539,12 @@ def _raycast_numpy(
     if num_spoof == 0:
         return no_index, keep_spoof
 
-    # ---- where the spoof can be: its columns and beams by numpy trigonometry, each widened by
-    # one (numpy's atan2 may differ from torch's by an ulp at a bin edge), so the candidates are
-    # a superset of the exact ones; then ONE exact binning pass over spoof and candidates
-    origin = lidar.origin.numpy()
-    spoof_rel = spoof.astype(np.float64) - origin  # (M, 3) offsets from the sensor
-    columns, beam_lo, beam_hi = _spoof_extent(lidar, spoof_rel)
-    cand = azimuth_sector_candidates_numpy(scene, columns, lidar, scene_xy)  # (C,)
-    num_cand = cand.size
-    cand_rel = _gather_rel(scene, cand, scene_xy, origin)  # 3 x (C,)
-    sub = _elevation_band(cand_rel, beam_lo, beam_hi, lidar)
-    if sub is not None:  # only the candidates in the spoof's beams get trigonometry
-        cand, cand_rel = cand[sub], [v[sub] for v in cand_rel]
-    # float64(xyz) - origin of spoof and candidates stacked, element by element the same as
-    # binning the concatenated float64 points (and in the same C-contiguous layout)
-    rel = np.empty((num_spoof + cand.size, 3), dtype=np.float64)
-    rel[:num_spoof] = spoof_rel
-    for dim in range(3):
-        rel[num_spoof:, dim] = cand_rel[dim]
-    bins, fov, rng = _bin_index_rel(lidar, rel)
-    spoof_bin, spoof_fov, spoof_rng = bins[:num_spoof], fov[:num_spoof], rng[:num_spoof]
-    cand_bin, cand_fov, cand_rng = bins[num_spoof:], fov[num_spoof:], rng[num_spoof:]
-
     # ---- spoof rays (rules 1, 2): nearest per ray, ties to the lower index
+    origin = lidar.origin_np
+    spoof_rel = spoof.astype(np.float64) - origin  # (M, 3) offsets from the sensor
+    spoof_bin, spoof_fov, spoof_rng = _bin_offsets(
+        lidar, spoof_rel[:, 0], spoof_rel[:, 1], spoof_rel[:, 2]
+    )
     valid = spoof_fov & (spoof_rng > 0) & (spoof_rng <= lidar.max_range)
     spoof_idx = valid.nonzero()[0]  # (V,)
     if spoof_idx.size == 0:
@@ -559,6 +562,21 @@ def _raycast_numpy(
     echo_r = spoof_r[first]
     echo_idx = spoof_idx[first]
     num_rays = rays.size
+
+    # ---- the scene points that can be returns of those rays: the sector of the rays' columns
+    # (wedge pre-filter), then the band of their beams (rays are sorted by beam first), and
+    # only those are binned -- each point's bin is a function of its own coordinates alone
+    num_columns = lidar.azimuth_bins
+    columns = np.flatnonzero(np.bincount(rays % num_columns, minlength=num_columns))
+    cand = azimuth_sector_candidates_numpy(scene, columns, lidar, scene_xy)  # (C,)
+    num_cand = cand.size
+    cand_rel = _gather_rel(scene, cand, scene_xy, origin)  # 3 x (C,)
+    sub = _elevation_band(
+        cand_rel, int(rays[0]) // num_columns, int(rays[-1]) // num_columns, lidar
+    )
+    if sub is not None:  # only the candidates in the rays' beams get trigonometry
+        cand, cand_rel = cand[sub], [v[sub] for v in cand_rel]
+    cand_bin, cand_fov, cand_rng = _bin_offsets(lidar, *cand_rel)
 
     # ---- scene returns of those rays
     pos = np.minimum(np.searchsorted(rays, cand_bin), num_rays - 1)
@@ -583,8 +601,7 @@ def _raycast_numpy(
         primary = (ray_keeps & has_scene & (echo_r < near_r)).nonzero()[0]
         draws = primary.size
         if draws:
-            u = torch.rand(draws, generator=generator, dtype=torch.float64, device=generator.device)
-            dual_rays = primary[u.cpu().numpy() < p_dual]
+            dual_rays = primary[dual_uniforms(generator, draws) < p_dual]
             if dual_rays.size:
                 nearest = ret_r == near_r[ret_ray]
                 near_idx = np.full(num_rays, num_scene, dtype=np.int64)
@@ -617,33 +634,6 @@ def _gather_rel(
     return [np.subtract(col[idx], origin[d], dtype=np.float64) for d, col in enumerate(cols)]
 
 
-def _spoof_extent(lidar: LidarModel, rel: np.ndarray) -> tuple[np.ndarray, int, int]:
-    """Sorted distinct azimuth columns and the lowest / highest beam of spoof points, given as
-    ``(M, 3)`` float64 offsets from the sensor origin, by numpy trigonometry, each widened by
-    one column / beam: a superset of their exact (:meth:`LidarModel.bin_index`) columns and
-    beams."""
-    num_columns = lidar.azimuth_bins
-    horiz = np.sqrt(rel[:, 0] ** 2 + rel[:, 1] ** 2)
-    width = 2 * math.pi / num_columns
-    col = np.floor((np.arctan2(rel[:, 1], rel[:, 0]) + math.pi) / width).astype(np.int64)
-    occupied = np.zeros(num_columns, dtype=bool)
-    occupied[col % num_columns] = True  # col is in [0, M]: +pi wraps to column 0
-    widened = occupied.copy()  # each column and its two circular neighbours
-    widened[1:] |= occupied[:-1]
-    widened[0] |= occupied[-1]
-    widened[:-1] |= occupied[1:]
-    widened[-1] |= occupied[0]
-    mids = lidar._constants(torch.device("cpu"))[1].numpy()
-    elevation = np.arctan2(rel[:, 2], horiz)
-    # searchsorted is monotonic: the extreme beams are those of the extreme elevations
-    beam_lo, beam_hi = np.searchsorted(mids, [elevation.min(), elevation.max()], side="left")
-    return (
-        widened.nonzero()[0],
-        max(int(beam_lo) - 1, 0),
-        min(int(beam_hi) + 1, lidar.num_beams - 1),
-    )
-
-
 def _elevation_band(
     rel: list[np.ndarray], b_lo: int, b_hi: int, lidar: LidarModel
 ) -> np.ndarray | None:
@@ -654,7 +644,7 @@ def _elevation_band(
     when the beams span the whole fan (every point passes)."""
     if b_lo == 0 and b_hi == lidar.num_beams - 1:
         return None
-    mids = lidar._constants(torch.device("cpu"))[1].numpy()
+    mids = lidar.midpoints_np
     horiz = np.sqrt(rel[0] ** 2 + rel[1] ** 2)
     ok = None
     if b_lo > 0:

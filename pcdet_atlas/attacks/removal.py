@@ -118,7 +118,7 @@ def sector_mask(
     """
     if not 0 < alpha < math.pi or not 0 < beta < math.pi:
         raise ValueError(f"sector widths must be in (0, pi), got alpha={alpha}, beta={beta}")
-    origin = lidar.origin.numpy()
+    origin = lidar.origin_np
     theta_c, phi_c = (
         float(v[0]) for v in _azimuth_elevation(np.reshape(center_xyz, (1, 3)), origin)
     )

@@ -22,6 +22,7 @@ __all__ = [
     "transform_points_to_frame",
     "transform_points_into",
     "compress_rows",
+    "copy_rows_except",
 ]
 
 SECONDS_PER_FRAME = 0.1
@@ -129,3 +130,28 @@ def compress_rows(mask: np.ndarray, array: np.ndarray) -> np.ndarray:
         return array[mask]
     rows = array.view(np.dtype((np.void, array.shape[1] * array.itemsize))).reshape(-1)
     return rows[mask].view(array.dtype).reshape(-1, array.shape[1])
+
+
+#: Above this many runs of dropped rows, a masked copy beats copying the blocks between them.
+_MAX_RUN_COPIES = 1024
+
+
+def copy_rows_except(points: np.ndarray, drop: np.ndarray, out: np.ndarray) -> None:
+    """``out[:] = points`` without the ascending row indices ``drop``, as block copies of the
+    rows between runs of consecutive dropped rows (a phantom occludes a few hundred scattered
+    points; a removal sector is a few dozen runs, one or two per beam). ``points`` may be a
+    strided view (e.g. the first columns of a frame file's rows)."""
+    if drop.size == 0:
+        out[:] = points
+        return
+    breaks = (np.diff(drop) != 1).nonzero()[0]  # last dropped row of each run but the last
+    if breaks.size + 1 > _MAX_RUN_COPIES:
+        keep = np.ones(points.shape[0], dtype=bool)
+        keep[drop] = False
+        np.compress(keep, points, axis=0, out=out)
+        return
+    starts = drop[np.concatenate([[0], breaks + 1])].tolist()  # first row of each run
+    stops = (drop[np.concatenate([breaks, [drop.size - 1]])] + 1).tolist()
+    parts = [points[prev:start] for prev, start in zip([0, *stops[:-1]], starts)]
+    parts.append(points[stops[-1] :])
+    np.concatenate(parts, axis=0, out=out)

@@ -23,6 +23,7 @@ from pcdet_atlas.datasets.multiframe import (
     SECONDS_PER_FRAME,
     SequenceConfig,
     compress_rows,
+    copy_rows_except,
     history_sample_indices,
     relative_pose,
     transform_points_into,
@@ -158,13 +159,29 @@ class WaymoDataset(DatasetTemplate):
         """Points of one frame, float32 ``(N, 5)`` ``[x, y, z, tanh(intensity), elongation]``
         in its own vehicle frame (NLZ points dropped unless ``DISABLE_NLZ_FLAG_ON_POINTS``;
         tanh on the ``POINTS_TANH_DIM`` columns, default intensity only)."""
-        path = frame_npy_path(self.root_path, sequence_name, sample_idx, self.processed_data_tag)
-        point_features = load_frame_points(path)
-        if self.disable_nlz_flag:
-            points = np.array(point_features[:, :NUM_LOADED_FEATURES], dtype=np.float32)
-        else:  # the row selection already makes a new array: no second copy
-            keep = point_features[:, 5] == -1
-            points = np.ascontiguousarray(point_features[keep, :NUM_LOADED_FEATURES])
+        return self.loaded_points(load_frame_points(self.frame_path(sequence_name, sample_idx)))
+
+    def frame_path(self, sequence_name: str, sample_idx: int) -> Path:
+        """The ``%04d.npy`` file of a frame."""
+        return frame_npy_path(self.root_path, sequence_name, sample_idx, self.processed_data_tag)
+
+    def loaded_points(self, rows: np.ndarray, drop: np.ndarray | None = None) -> np.ndarray:
+        """Raw ``(N, 6)`` rows of a frame file -> the loader's ``(N', 5)`` points: the rows
+        kept in their order (NLZ rows dropped unless ``DISABLE_NLZ_FLAG_ON_POINTS``, and the
+        ascending row indices ``drop``), tanh on the ``POINTS_TANH_DIM`` columns."""
+        features = rows[:, :NUM_LOADED_FEATURES]
+        keep = None if self.disable_nlz_flag else rows[:, 5] == -1
+        if drop is None or drop.size == 0:
+            if keep is None:
+                points = np.array(features, dtype=np.float32)
+            else:  # the row selection already makes a new array: no second copy
+                points = np.ascontiguousarray(features[keep])
+        elif keep is None or keep.all():  # a few dropped rows: copy the blocks between them
+            points = np.empty((len(rows) - drop.size, NUM_LOADED_FEATURES), dtype=np.float32)
+            copy_rows_except(features, drop, points)
+        else:
+            keep[drop] = False
+            points = np.ascontiguousarray(features[keep])
         for dim in self.tanh_dims:
             points[:, dim] = np.tanh(points[:, dim])
         return points

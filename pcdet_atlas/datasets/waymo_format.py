@@ -263,16 +263,24 @@ def validate_sequence_infos(infos: list, pkl_path: str | Path) -> None:
 
 
 # ---------------------------------------------------------------------------- reading
-def load_frame_points(path: str | Path) -> np.ndarray:
+def load_frame_points(path: str | Path, spare_rows: int = 0) -> np.ndarray:
     """Read and check one ``%04d.npy`` frame: float32 ``(N, 6)`` ``[x, y, z, intensity,
     elongation, NLZ_flag]``, raw intensity/elongation, finite.
+
+    Args:
+        spare_rows: extra rows allocated after the ``N`` read ones and left **uninitialised**
+            (the returned array is ``(N + spare_rows, 6)``): room for rows a caller appends
+            without copying the frame (an injection attack's phantom).
 
     Any read failure (missing, truncated, not an ``.npy``, object array) is re-raised as
     :class:`WaymoFormatError` naming the file, chained to numpy's error.
     """
     path = Path(path)
     try:
-        points = np.load(path, allow_pickle=False)
+        if spare_rows:
+            points = _read_npy_with_spare_rows(path, int(spare_rows))
+        else:
+            points = np.load(path, allow_pickle=False)
     except FileNotFoundError as err:
         raise WaymoFormatError(f"{path}: frame file not found") from err
     except (OSError, ValueError, EOFError) as err:
@@ -280,8 +288,32 @@ def load_frame_points(path: str | Path) -> np.ndarray:
             f"{path}: cannot read frame points (truncated or not a float32 (N, "
             f"{NUM_POINT_COLUMNS}) .npy file): {err}"
         ) from err
-    validate_points(points, path)
+    validate_points(points[: len(points) - spare_rows], path)
     return points
+
+
+def _read_npy_with_spare_rows(path: Path, spare_rows: int) -> np.ndarray:
+    """``np.load`` of a 2-D C-ordered ``.npy`` file into a fresh array with ``spare_rows``
+    uninitialised rows after the data (one read, no copy); any other layout or dtype is loaded
+    by ``np.load`` and copied (so the checks and errors are those of a plain load)."""
+    with open(path, "rb") as f:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, fortran_order, dtype = np.lib.format.read_array_header_1_0(f)
+        else:
+            shape, fortran_order, dtype = np.lib.format.read_array_header_2_0(f)
+        if len(shape) != 2 or fortran_order or dtype != np.float32:
+            loaded = np.load(path, allow_pickle=False)
+            if loaded.ndim != 2:
+                return loaded  # rejected by validate_points
+            out = np.empty((loaded.shape[0] + spare_rows, loaded.shape[1]), loaded.dtype)
+            out[: loaded.shape[0]] = loaded
+            return out
+        out = np.empty((shape[0] + spare_rows, shape[1]), dtype=np.float32)
+        data = memoryview(out[: shape[0]]).cast("B")
+        if f.readinto(data) != data.nbytes:
+            raise EOFError(f"file holds fewer than the {shape[0]} rows its header declares")
+    return out
 
 
 def load_sequence_infos(path: str | Path) -> list[dict]:

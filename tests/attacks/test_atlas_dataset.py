@@ -162,10 +162,22 @@ def test_generate_atlas_roundtrip_and_resume(tmp_path, keep_nlz):
     seq = live.infos[0]["point_cloud"]["lidar_sequence"]
     for k in (10, 31, 32, 50, 63, 65):
         np.testing.assert_array_equal(written.get_lidar(seq, k), live.get_lidar(seq, k))
+    # the attack acts on every row of the file, NLZ rows included: the written frame and the
+    # metadata do not depend on the loader's NLZ setting
     src_rows = np.load(root / "waymo_processed_data_v0_5_0" / seq / "0050.npy")
     out_rows = np.load(out / "waymo_processed_data_v0_5_0" / seq / "0050.npy")
-    if not keep_nlz:  # rows the loader drops are written back untouched
-        np.testing.assert_array_equal(src_rows[src_rows[:, 5] == 1], out_rows[out_rows[:, 5] == 1])
+    meta_50 = live.frame_attack_meta(seq, 50)
+    visible, removed = meta_50["num_visible"], meta_50["num_removed"]
+    assert visible > 0 and removed > 0
+    assert len(out_rows) == len(src_rows) - removed + visible
+    assert (out_rows[-visible:, 5] == -1).all()
+    other_cfg = cfg_from_yaml_file(cfg_path)
+    other_cfg.DISABLE_NLZ_FLAG_ON_POINTS = not keep_nlz
+    other = AtlasWaymoDataset(other_cfg, CLASSES, cfg, root_path=root)
+    assert str(other.frame_attack_meta(seq, 50)) == str(meta_50)
+    # NLZ rows are returns like any other: the phantom occludes some (1 in 7 rows is NLZ)
+    src_nlz = {r.tobytes() for r in src_rows[src_rows[:, 5] == 1]}
+    assert 0 < sum(r.tobytes() in src_nlz for r in out_rows) < len(src_nlz)
     meta = __import__("pickle").load(open(out / "atlas_attack_metadata.pkl", "rb"))
     assert meta["variant"] == "inj_rel_hard" and len(meta["frames"]) == 66
     frame_40 = written.infos[40]["frame_id"]

@@ -11,6 +11,7 @@ from pcdet_atlas.attacks.injection import InjectionAttack, sample_phantom
 from pcdet_atlas.attacks.intensity import RangeIntensityModel
 from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
+from pcdet_atlas.datasets.multiframe import relative_pose
 from pcdet_atlas.datasets.waymo_format import (
     load_frame_points,
     load_sequence_infos,
@@ -193,6 +194,25 @@ def test_dual_returns_deterministic_per_frame(tiny):
     c = run_frames(make_attack(lib, "global", p_dual=0.0), seq, root, [41])[41][1]
     assert a.meta["num_removed"] < c.meta["num_removed"]  # second echoes survive
     assert math.isfinite(float(a.added[:, 3].sum()))
+
+
+def test_dual_uniforms_one_row_per_frame_of_the_run(tiny):
+    """The dual-return uniforms are drawn once per run, one row per frame: a frame's draws do
+    not depend on which frames were simulated before it; the phantom pose uses the cached
+    inverse pose, bit for bit ``relative_pose``."""
+    root, lib, seq = tiny
+    attack = make_attack(lib, "global", p_dual=0.5)
+    run = attack.run_state(seq, 0)
+    start, end = attack.run_bounds(seq, 0)
+    assert run.dual_uniforms.shape == (end - start + 1, run.budget)
+    assert make_attack(lib, "global").run_state(seq, 0).dual_uniforms is None
+    alone = run_frames(make_attack(lib, "global", p_dual=0.5), seq, root, [44])[44][1]
+    after = run_frames(make_attack(lib, "global", p_dual=0.5), seq, root, [50, 38, 44])[44][1]
+    np.testing.assert_array_equal(alone.keep, after.keep)
+    np.testing.assert_array_equal(alone.added, after.added)
+    for k in (start, 44, end):
+        want = relative_pose(seq.pose(end), seq.pose(k))
+        assert np.array_equal(seq.world_to_vehicle(k) @ run.anchor_pose, want)
 
 
 def test_on_synthetic_data_phantom_sits_on_ground_and_stays_in_world(synthetic_root, tmp_path):

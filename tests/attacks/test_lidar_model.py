@@ -5,7 +5,11 @@ import pytest
 import torch
 from device_params import DEVICES
 
-from pcdet_atlas.attacks.lidar_model import LidarModel, waymo_top_inclinations_deg
+from pcdet_atlas.attacks.lidar_model import (
+    LidarModel,
+    spherical_offsets,
+    waymo_top_inclinations_deg,
+)
 from pcdet_atlas.config import ConfigError
 
 
@@ -94,3 +98,31 @@ def test_pickle_roundtrip_drops_device_cache():
     xyz = torch.tensor([[10.0, 5.0, 1.0], [-20.0, -0.0, 2.0]])
     for a, b in zip(again.bin_index(xyz), lidar.bin_index(xyz)):
         assert torch.equal(a, b)
+
+
+def test_spherical_on_cpu_is_the_shared_numpy_arithmetic():
+    """CPU binning goes through ``spherical_offsets`` (numpy), the arithmetic both raycast
+    backends and the removal sector use: same values for float32 and float64 input, azimuth in
+    (-pi, pi] (a point straight behind the sensor with y = -0.0 folds to +pi)."""
+    lidar = LidarModel.waymo_top()
+    g = np.random.default_rng(1)
+    xyz = (g.normal(size=(4000, 3)) * 30).astype(np.float32)
+    xyz[0] = [lidar.origin_np[0] - 10.0, -0.0, 1.0]
+    for pts in (xyz, xyz.astype(np.float64)):
+        got = lidar.spherical(torch.from_numpy(pts))
+        rel = pts.astype(np.float64) - lidar.origin_np
+        want = spherical_offsets(rel[:, 0], rel[:, 1], rel[:, 2])
+        for a, b in zip(got, want):
+            assert a.dtype == torch.float64 and np.array_equal(a.numpy(), b)
+    # the raycaster bins spoof points from strided columns and scene candidates from contiguous
+    # gathers: numpy must give the same values for both layouts
+    strided = spherical_offsets(rel[:, 0], rel[:, 1], rel[:, 2])
+    contiguous = spherical_offsets(*(np.ascontiguousarray(rel[:, d]) for d in range(3)))
+    assert all(np.array_equal(a, b) for a, b in zip(strided, contiguous))
+    azimuth = got[0].numpy()
+    assert azimuth[0] == math.pi and (azimuth > -math.pi).all() and (azimuth <= math.pi).all()
+    np.testing.assert_allclose(
+        got[2].numpy(), np.linalg.norm(xyz - lidar.origin_np, axis=1), rtol=1e-6
+    )
+    with pytest.raises(ValueError, match="read-only"):
+        lidar.origin_np[0] = 0.0

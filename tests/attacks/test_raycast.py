@@ -528,6 +528,32 @@ def test_raycast_merge_numpy_api_and_errors():
     assert torch.equal(ks_grad, ks_auto) and torch.equal(kp_grad, kp_auto)
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_dual_draws_from_numpy_generator_or_predrawn_uniforms(device):
+    """A numpy Generator draws on the host, so the numpy backend and the torch backend on any
+    device consume the same uniforms; an array of uniforms drawn beforehand gives the result
+    of the generator it came from, and a too short one is an error."""
+    lidar = LidarModel.waymo_top()
+    scene, spoof = random_case(5, lidar, 3000, 300)
+    ref = raycast_merge(scene, spoof, lidar, 0.5, np.random.default_rng(7), backend="numpy")
+    table = np.random.default_rng(7).random(spoof.shape[0])
+    for source in (lambda: np.random.default_rng(7), lambda: table):
+        for backend in ("auto", "torch"):
+            ks, kp = raycast_merge(
+                scene.to(device), spoof.to(device), lidar, 0.5, source(), backend=backend
+            )
+            assert torch.equal(ks.cpu(), ref[0]) and torch.equal(kp.cpu(), ref[1])
+    occluded, kp = raycast_numpy_indices(scene.numpy(), spoof.numpy(), lidar, 0.5, table)
+    assert np.array_equal(occluded, np.flatnonzero(~ref[0].numpy()))
+    # the draws decide: other uniforms keep other second echoes
+    other = raycast_merge(scene, spoof, lidar, 0.5, np.random.default_rng(8))
+    assert not torch.equal(other[0], ref[0])
+    with pytest.raises(ValueError, match="at least"):
+        raycast_merge(scene, spoof, lidar, 0.5, table[:3])
+    with pytest.raises(ValueError, match="explicit torch.Generator"):
+        raycast_merge(scene, spoof, lidar, 0.5, generator=0.3)
+
+
 def test_sector_wedges_merge_small_gaps_only():
     width = 2 * math.pi / 2651
     one = _sector_wedges([100, 101, 105, 120, 130], 2651)  # gaps of a few columns: one wedge

@@ -112,6 +112,35 @@ def test_get_lidar_nlz_and_tanh(tiny_root):
     np.testing.assert_allclose(pts[:, 4], np.tanh(kept[:, 4]), rtol=1e-6)
 
 
+@pytest.mark.parametrize("disable_nlz", [False, True])
+@pytest.mark.parametrize("num_runs", [0, 1, 37, 400])
+def test_loaded_points_drops_rows_like_a_mask(tiny_root, disable_nlz, num_runs):
+    """``loaded_points(rows, drop)`` (the attacked frames' path: block copies between dropped
+    runs, or one masked gather when NLZ rows are dropped too) equals the plain mask reference;
+    a file read with spare rows gives the same points."""
+    ds = WaymoDataset(
+        dataset_cfg(DISABLE_NLZ_FLAG_ON_POINTS=disable_nlz), CLASS_NAMES, root_path=tiny_root
+    )
+    path = wf.frame_npy_path(tiny_root, SEQ_A, 1)
+    raw = wf.load_frame_points(path)
+    spare = wf.load_frame_points(path, spare_rows=64)
+    assert spare.shape == (len(raw) + 64, 6) and np.array_equal(spare[: len(raw)], raw)
+    for rows in (raw, np.where(raw[:, 5:] == 1, -1.0, raw).astype(np.float32)):  # +- NLZ rows
+        rng = np.random.default_rng(num_runs)
+        count = min(num_runs, (len(rows) - 4) // 4)  # the masked copy: test_removal.py
+        starts = np.sort(rng.choice(len(rows) - 4, count, replace=False))
+        drop = np.unique(
+            np.concatenate([s + np.arange(rng.integers(1, 4)) for s in starts] or [[]])
+        )
+        keep = np.ones(len(rows), bool) if disable_nlz else rows[:, 5] == -1
+        keep[drop.astype(np.int64)] = False
+        want = rows[keep, :5].copy()
+        want[:, 3] = np.tanh(want[:, 3])
+        got = ds.loaded_points(rows, drop.astype(np.int64))
+        assert got.flags.c_contiguous and np.array_equal(got, want)
+    assert np.array_equal(ds.loaded_points(raw), ds.get_lidar(SEQ_A, 1))
+
+
 @pytest.mark.parametrize("multiframe", [False, True])
 def test_samples_do_not_alias_the_infos(tiny_root, multiframe):
     """As OpenPCDet (which deep-copies the info), editing a sample in place never changes the
