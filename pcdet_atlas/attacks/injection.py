@@ -353,8 +353,6 @@ class InjectionAttack(BaseAttack):
         box = box.copy()
         box[2] += dz
         spoof = (xyz + np.array([0.0, 0.0, dz])).astype(np.float32)  # (n, 3)
-        new_range = np.linalg.norm(spoof.astype(np.float64) - self._origin[None], axis=1)
-        inten, elong = self.intensity(run.intensity, run.elongation, run.src_range, new_range)
         gen = None if run.dual_uniforms is None else run.dual_uniforms[frame_idx - run.start]
         if on_cpu:
             removed, keep_spoof = raycast_numpy_indices(
@@ -366,15 +364,19 @@ class InjectionAttack(BaseAttack):
             keep_scene, keep_spoof = raycast_merge(scene_t, spoof_t, self.lidar, self.p_dual, gen)
             removed = torch.nonzero(~keep_scene).squeeze(1).cpu().numpy()  # ascending
             keep_spoof = keep_spoof.cpu().numpy()
-        added = np.concatenate(
-            [spoof[keep_spoof], inten[keep_spoof, None], elong[keep_spoof, None]], axis=1
+        # range-corrected features of the visible phantom points only
+        visible = keep_spoof.nonzero()[0]
+        new_range = np.linalg.norm(spoof[visible].astype(np.float64) - self._origin, axis=1)
+        inten, elong = self.intensity(
+            run.intensity[visible], run.elongation[visible], run.src_range[visible], new_range
         )
+        added = np.concatenate([spoof[visible], inten[:, None], elong[:, None]], axis=1)
         meta = self.meta(
             state,
             target_box=box,
             target_obj_id=self.phantom_id(run),
             num_spoof_points=run.budget,
-            num_visible=int(keep_spoof.sum()),
+            num_visible=int(visible.size),
             num_removed=int(removed.size),
             tracked=True,
             fired=True,
