@@ -152,7 +152,8 @@ class FrameAttack:
         feature_fn: Callable[[np.ndarray], np.ndarray] | None = None,
         fill_value: float = 0.0,
     ) -> np.ndarray:
-        """``points[keep]`` followed by the added points as rows of the same width.
+        """``points[keep]`` followed by the added points as rows of the same width (``points``
+        itself when the attack removes and adds nothing).
 
         Args:
             points: ``(N, C)`` scene points, ``C >= 5``.
