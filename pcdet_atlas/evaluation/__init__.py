@@ -21,6 +21,7 @@ from pcdet_atlas.evaluation.iou3d import (
     boxes_overlap_bev,
     nms_bev,
 )
+from pcdet_atlas.evaluation.localization import ap_by_iou, localization_errors
 from pcdet_atlas.evaluation.results import (
     ResultsError,
     build_results,
@@ -50,6 +51,7 @@ __all__ = [
     "TargetMatches",
     "WAYMO_IOU_THRESHOLDS",
     "WAYMO_SCORE_CUTOFFS",
+    "ap_by_iou",
     "asr_from_matches",
     "attack_success_rate",
     "boxes_aligned_iou3d",
@@ -67,6 +69,7 @@ __all__ = [
     "injection_confidence",
     "lifecycle_asr",
     "linear_fit",
+    "localization_errors",
     "load_results",
     "load_results_dir",
     "match_targets",

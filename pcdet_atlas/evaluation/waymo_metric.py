@@ -30,7 +30,7 @@ problems); a component with one prediction and one GT needs no solver at all.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -475,6 +475,7 @@ def compute_waymo_curves(
     det_annos: Sequence[dict],
     class_names: Sequence[str],
     matcher: str = "hungarian",
+    iou_thresholds: Mapping[str, float] | None = None,
 ) -> dict[str, dict[str, np.ndarray | float]]:
     """Per-cutoff counts, PR curves and AP/APH of every class and difficulty level.
 
@@ -486,6 +487,9 @@ def compute_waymo_curves(
         class_names: evaluated classes, a subset of Vehicle, Pedestrian, Sign, Cyclist.
         matcher: ``'hungarian'`` (official) or ``'score_first'`` (greedy, COCO-style; for
             comparison only).
+        iou_thresholds: per-class IoU thresholds replacing the official ones
+            (:data:`WAYMO_IOU_THRESHOLDS`) for the classes it names, each in ``(0, 1]``: for
+            diagnosis (e.g. Vehicle AP at 0.5 / 0.6 / 0.7), not for reporting.
 
     Returns:
         ``{'<Class>/L1': curve, '<Class>/L2': curve, ...}`` where each curve holds
@@ -508,7 +512,15 @@ def compute_waymo_curves(
     gt = _collect_gt(gt_annos, class_names)
     det = _collect_det(det_annos, class_names)
     cutoffs = WAYMO_SCORE_CUTOFFS
-    thr = np.array([WAYMO_IOU_THRESHOLDS[c] for c in class_names], dtype=np.float32)
+    thresholds = dict(WAYMO_IOU_THRESHOLDS)
+    for name, value in (iou_thresholds or {}).items():
+        if name not in class_names or not 0.0 < float(value) <= 1.0:
+            raise ValueError(
+                f"iou_thresholds: {name!r}: {value!r}; expected a class of {class_names} and a "
+                "threshold in (0, 1]"
+            )
+        thresholds[name] = float(value)
+    thr = np.array([thresholds[c] for c in class_names], dtype=np.float32)
     acc = _accumulate(gt, det, thr, cutoffs, matcher)
     tp, tp_l1, sum_ha = acc.totals()  # (C, K)
     n_pred = np.searchsorted(cutoffs, det.score, side="right")
