@@ -8,7 +8,9 @@ ground truth comes from the config's dataset (the split of ``DATA_SPLIT.test``),
 ``frame_id``. Prints the class's L2 AP / APH at each ``--iou`` threshold (the official Vehicle
 threshold is 0.7) and, for predictions matched one to one to ground-truth boxes by 3D IoU, the
 bias, median and 90th percentile of each box parameter's error in the ground-truth box frame
-(:mod:`pcdet_atlas.evaluation.localization`).
+(:mod:`pcdet_atlas.evaluation.localization`). ``--project`` adds the AP at the official
+threshold with the matched boxes' error halved, one parameter at a time, all together, and
+removed (:func:`~pcdet_atlas.evaluation.localization.projected_ap`).
 """
 
 from __future__ import annotations
@@ -19,7 +21,15 @@ from pathlib import Path
 
 from pcdet_atlas.config import cfg_from_list, cfg_from_yaml_file
 from pcdet_atlas.datasets import WaymoDataset
-from pcdet_atlas.evaluation.localization import ERROR_COMPONENTS, ap_by_iou, localization_errors
+from pcdet_atlas.evaluation.localization import (
+    ERROR_COMPONENTS,
+    ap_by_iou,
+    localization_errors,
+    projected_ap,
+)
+
+#: Components scaled by ``--project`` (the centre's along / across errors move together).
+PROJECTED = ("center", "z", "length", "width", "height", "heading")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -30,6 +40,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--iou", default="0.3,0.5,0.6,0.7,0.8", help="IoU thresholds for AP")
     parser.add_argument("--min_points", type=int, default=1, help="GT boxes with fewer: left out")
     parser.add_argument("--score", type=float, default=0.3, help="predictions below: left out")
+    parser.add_argument(
+        "--project", action="store_true", help="AP with the matched boxes' errors scaled"
+    )
     parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None)
     return parser.parse_args(argv)
 
@@ -74,7 +87,20 @@ def main(argv=None) -> dict:
         unit = "rad" if name == "heading" else "m"
         print(f"{name:>8}  {row['bias']:>+7.3f}  {row['median_abs']:>9.3f}  "
               f"{row['p90_abs']:>7.3f}  {unit}")  # fmt: skip
-    return {"ap_by_iou": ap, "localization": report}
+    out = {"ap_by_iou": ap, "localization": report}
+    if args.project:
+        cases = {f"{name} x0.5": {name: 0.5} for name in PROJECTED}
+        cases["all x0.5"] = dict.fromkeys(PROJECTED, 0.5)
+        cases["all x0"] = dict.fromkeys(PROJECTED, 0.0)
+        out["projected"] = {
+            label: projected_ap(gt_annos, det_annos, args.class_name, factors)
+            for label, factors in cases.items()
+        }
+        print("L2 AP at the official threshold with the matched boxes' errors scaled "
+              "(score-first matching at 3D IoU >= 0.3):")  # fmt: skip
+        for label, value in out["projected"].items():
+            print(f"{label:>14}  {value:.3f}")
+    return out
 
 
 if __name__ == "__main__":

@@ -15,6 +15,8 @@ from pcdet_atlas.evaluation.localization import (
     box_errors,
     localization_errors,
     match_by_iou,
+    match_score_first,
+    projected_ap,
 )
 from pcdet_atlas.evaluation.waymo_metric import compute_waymo_curves
 
@@ -91,6 +93,45 @@ def test_ap_by_iou_falls_where_the_boxes_stop_overlapping_enough():
         compute_waymo_curves(gt_annos, det_annos, ["Vehicle"], iou_thresholds={"Cyclist": 0.5})
 
 
+def test_match_score_first_follows_the_ranking():
+    gt = np.array([[0, 0, 0, 4, 2, 1.5, 0.0]])
+    loose = shifted(gt, np.array([1.0]))  # IoU 0.6, high score
+    tight = shifted(gt, np.array([0.1]))  # IoU 0.95, low score
+    g, p = match_score_first(gt, np.concatenate([tight, loose]), np.array([0.2, 0.9]))
+    assert g.tolist() == [0] and p.tolist() == [1]
+    g, p = match_by_iou(gt, np.concatenate([tight, loose]))[:2]
+    assert p.tolist() == [0]  # by IoU the tight one
+
+
+def test_projected_ap_scales_the_chosen_errors():
+    """Vehicles predicted 0.7 m too far along their heading and 0.2 rad off (IoU < 0.7): the
+    AP at 0.7 is 0; with no centre error only the heading remains; with neither, 1."""
+    rng = np.random.default_rng(1)
+    n = 8
+    boxes = np.column_stack([
+        100.0 * np.arange(n), rng.uniform(-5, 5, n), np.full(n, 0.8), np.full(n, 4.5),
+        np.full(n, 2.0), np.full(n, 1.6), rng.uniform(-3, 3, n),
+    ])  # fmt: skip
+    pred = shifted(boxes, np.full(n, 0.7))
+    pred[:, 6] += 0.2
+    gt_annos = [{
+        "name": np.array(["Vehicle"] * n), "gt_boxes_lidar": boxes,
+        "num_points_in_gt": np.full(n, 50), "difficulty": np.zeros(n, np.int64),
+    }]  # fmt: skip
+    det = {"name": np.array(["Vehicle"] * n), "boxes_lidar": pred, "score": np.full(n, 0.9)}
+    before = pred.copy()
+    assert projected_ap(gt_annos, [det], "Vehicle", {}) == pytest.approx(0.0)
+    assert projected_ap(gt_annos, [det], "Vehicle", {"center": 0.0, "heading": 0.0}) == (
+        pytest.approx(1.0)
+    )
+    only_heading = projected_ap(gt_annos, [det], "Vehicle", {"center": 0.0})
+    iou = match_by_iou(boxes, np.column_stack([boxes[:, :6], boxes[:, 6] + 0.2]))[2]
+    assert only_heading == pytest.approx(1.0 if iou.min() >= 0.7 else 0.0)
+    assert np.array_equal(pred, before)  # the predictions are not modified
+    with pytest.raises(ValueError, match="unknown component"):
+        projected_ap(gt_annos, [det], "Vehicle", {"yaw": 0.5})
+
+
 def test_analyze_boxes_tool_on_a_test_result(synthetic_root, tmp_path, capsys):
     """``tools/analyze_boxes.py`` on a result.pkl of the synthetic val split: predictions that
     are the ground-truth vehicles lengthened by 0.4 m."""
@@ -116,12 +157,16 @@ def test_analyze_boxes_tool_on_a_test_result(synthetic_root, tmp_path, capsys):
     result = tmp_path / "result.pkl"
     result.write_bytes(pickle.dumps(det))
     cfg = str(REPO_ROOT / "cfgs/atlas/synthetic/centerpoint.yaml")
-    out = tool.main(["--cfg", cfg, "--result", str(result), "--set",
+    out = tool.main(["--cfg", cfg, "--result", str(result), "--project", "--set",
                      "DATA_CONFIG.DATA_PATH", str(synthetic_root)])  # fmt: skip
     report = out["localization"]
     assert report["num_matched"] == report["num_gt"] > 20
     assert report["length"]["bias"] == pytest.approx(0.4) and report["flipped_fraction"] == 0.0
     assert out["ap_by_iou"][0.5][0] > 0.9
+    # the only error is the length: halving it or removing it helps, the others change nothing
+    proj = out["projected"]
+    assert proj["center x0.5"] == pytest.approx(out["ap_by_iou"][0.7][0])
+    assert proj["all x0"] >= proj["length x0.5"] >= proj["center x0.5"]
     assert "length" in capsys.readouterr().out
     det[0] = dict(det[0], frame_id="segment-unknown_000")
     result.write_bytes(pickle.dumps(det))
