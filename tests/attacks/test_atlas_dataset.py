@@ -103,6 +103,25 @@ def _batches(dataset, workers):
 
 
 @pytest.mark.slow
+def test_attacked_points_are_the_file_rows_minus_removed_plus_added(synthetic_root, library_path):
+    """The one-selection path (phantom rows written into the room read with the frame) equals
+    applying the attack to the frame file's rows and loading the result; an attack family
+    whose ``max_added_points`` is too low takes the copying path with the same result."""
+    from pcdet_atlas.datasets.waymo_format import load_frame_points
+
+    ds = make(synthetic_root, "inj_rel_hard", library_path)
+    seq = ds.infos[0]["point_cloud"]["lidar_sequence"]
+    frame = 45
+    rows = load_frame_points(ds.frame_path(seq, frame))
+    result = ds.attack.simulate(rows, ds.sequence_data(seq), frame)
+    assert result.removed_rows().size > 0 and len(result.added) > 0
+    want = ds.loaded_points(result.apply(rows, fill_value=-1.0))
+    assert 0 < len(result.added) <= ds.attack.max_added_points(ds.sequence_data(seq), frame)
+    np.testing.assert_array_equal(ds.get_lidar(seq, frame), want)
+    ds.attack.max_added_points = lambda seq, frame_idx: 0  # a bound that is too low
+    np.testing.assert_array_equal(ds.get_lidar(seq, frame), want)
+
+
 def test_same_output_with_zero_or_two_workers(synthetic_root, library_path):
     out = {}
     for workers in (0, 2):
