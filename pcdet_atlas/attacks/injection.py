@@ -200,7 +200,6 @@ class InjectionAttack(BaseAttack):
         self.lidar = lidar or LidarModel.waymo_top()
         self.device = torch.device(device)
         self.trace_filter = trace_filter
-        self._origin = self.lidar.origin.numpy()
         self._scratch = ColumnScratch()
 
     @classmethod
@@ -366,7 +365,7 @@ class InjectionAttack(BaseAttack):
             keep_spoof = keep_spoof.cpu().numpy()
         # range-corrected features of the visible phantom points only
         visible = keep_spoof.nonzero()[0]
-        new_range = np.linalg.norm(spoof[visible].astype(np.float64) - self._origin, axis=1)
+        new_range = np.linalg.norm(spoof[visible].astype(np.float64) - self.lidar.origin_np, axis=1)
         inten, elong = self.intensity(
             run.intensity[visible], run.elongation[visible], run.src_range[visible], new_range
         )

@@ -44,10 +44,11 @@ def waymo_top_inclinations_deg(num_beams: int = 64) -> np.ndarray:
 
 
 def spherical_offsets(
-    dx: np.ndarray, dy: np.ndarray, dz: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    dx: np.ndarray, dy: np.ndarray, dz: np.ndarray, with_range: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Azimuth in (-pi, pi], elevation and range (float64) of points given as ``(N,)`` float64
-    offsets from the sensor origin: the numpy arithmetic that defines every CPU binning.
+    offsets from the sensor origin: the numpy arithmetic that defines every CPU binning
+    (``with_range=False``: the range is not computed and comes back as ``None``).
 
     numpy's ``sqrt`` is IEEE-exact and its ``arctan2`` gives each element the same value whatever
     its position in the array, so binning a subset of a scene gives every point the bin it gets in
@@ -58,7 +59,7 @@ def spherical_offsets(
     azimuth = np.arctan2(dy, dx)
     azimuth[azimuth == -math.pi] = math.pi
     elevation = np.arctan2(dz, horiz)
-    return azimuth, elevation, np.sqrt(horiz**2 + dz**2)
+    return azimuth, elevation, np.sqrt(horiz**2 + dz**2) if with_range else None
 
 
 class LidarModel:

@@ -27,7 +27,7 @@ import numpy as np
 from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, ScheduleState, SequenceData
 from pcdet_atlas.attacks.config_values import config_files, config_value
 from pcdet_atlas.attacks.counters import COUNTERS
-from pcdet_atlas.attacks.lidar_model import LidarModel
+from pcdet_atlas.attacks.lidar_model import LidarModel, spherical_offsets
 from pcdet_atlas.attacks.raycast import ColumnScratch, _half_plane_numpy, scene_columns
 from pcdet_atlas.attacks.tracking import TargetPolicy, TrackedFrame, Tracker, choose_target
 from pcdet_atlas.config import ConfigError, check_known_keys
@@ -86,11 +86,11 @@ def _is_probability(p: float) -> bool:
 
 
 def _azimuth_elevation(xyz: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Azimuth and elevation (float64, rad) relative to ``origin``: the formulas of
-    :meth:`LidarModel.spherical`, in numpy (no torch thread pool for a few thousand points)."""
+    """Azimuth and elevation (float64, rad) relative to ``origin``: the CPU arithmetic of
+    :meth:`LidarModel.spherical` (:func:`~pcdet_atlas.attacks.lidar_model.spherical_offsets`)."""
     rel = xyz.astype(np.float64) - origin[None]
-    horiz = np.sqrt(rel[:, 0] ** 2 + rel[:, 1] ** 2)
-    return np.arctan2(rel[:, 1], rel[:, 0]), np.arctan2(rel[:, 2], horiz)
+    azimuth, elevation, _ = spherical_offsets(rel[:, 0], rel[:, 1], rel[:, 2], with_range=False)
+    return azimuth, elevation
 
 
 def sector_mask(
@@ -212,7 +212,6 @@ class RemovalAttack(BaseAttack):
         self.target_policy = target_policy or TargetPolicy()
         self.tracker = tracker or Tracker()
         self.lidar = lidar or LidarModel.waymo_top()
-        self._origin = self.lidar.origin.numpy()
         self._scratch = ColumnScratch()
 
     @classmethod
@@ -257,7 +256,7 @@ class RemovalAttack(BaseAttack):
         target = choose_target(
             labels0,
             self.target_policy,
-            self._origin,
+            self.lidar.origin_np,
             seed_keys=(self.seed, self.family, seq.name, start),
         )
         if target is None:
@@ -287,7 +286,7 @@ class RemovalAttack(BaseAttack):
         if not tracked.tracked:
             return FrameAttack(None, _EMPTY, self.meta(state, target_obj_id=run.target_obj_id))
         center = tracked.box[:3]
-        range_m = float(np.linalg.norm(center - self._origin))
+        range_m = float(np.linalg.norm(center - self.lidar.origin_np))
         fired = self.gate_uniform(seq.name, frame_idx) < self.p_dist(range_m)
         if not fired:
             return FrameAttack(
