@@ -60,10 +60,7 @@ def match_by_iou(
     empty = np.zeros(0, dtype=np.int64)
     if len(gt_boxes) == 0 or len(pred_boxes) == 0:
         return empty, empty, np.zeros(0)
-    iou = boxes_iou3d(
-        torch.as_tensor(np.asarray(gt_boxes)[:, :7], dtype=torch.float64),
-        torch.as_tensor(np.asarray(pred_boxes)[:, :7], dtype=torch.float64),
-    ).numpy()
+    iou = _iou3d_matrix(gt_boxes, pred_boxes)
     gi, pi = np.nonzero(iou >= min_iou)
     order = np.lexsort((pi, gi, -iou[gi, pi]))
     used_g, used_p, pairs = set(), set(), []
@@ -86,10 +83,7 @@ def match_score_first(
     empty = np.zeros(0, dtype=np.int64)
     if len(gt_boxes) == 0 or len(pred_boxes) == 0:
         return empty, empty
-    iou = boxes_iou3d(
-        torch.as_tensor(np.asarray(gt_boxes)[:, :7], dtype=torch.float64),
-        torch.as_tensor(np.asarray(pred_boxes)[:, :7], dtype=torch.float64),
-    ).numpy()
+    iou = _iou3d_matrix(gt_boxes, pred_boxes)
     free = np.ones(len(gt_boxes), dtype=bool)
     gi, pi = [], []
     for p in np.argsort(-np.asarray(scores), kind="stable").tolist():
@@ -232,6 +226,14 @@ def projected_ap(
     thresholds = None if iou_threshold is None else {class_name: iou_threshold}
     curve = compute_waymo_curves(gt_annos, moved, [class_name], iou_thresholds=thresholds)
     return float(curve[f"{class_name}/L2"]["ap"])
+
+
+def _iou3d_matrix(gt_boxes: np.ndarray, pred_boxes: np.ndarray) -> np.ndarray:
+    """``(M, K)`` float64 3D IoU of ``(M, 7+)`` and ``(K, 7+)`` boxes."""
+    return boxes_iou3d(
+        torch.as_tensor(np.asarray(gt_boxes)[:, :7], dtype=torch.float64),
+        torch.as_tensor(np.asarray(pred_boxes)[:, :7], dtype=torch.float64),
+    ).numpy()
 
 
 def _rows(boxes, count: int) -> np.ndarray:
