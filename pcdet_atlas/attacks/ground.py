@@ -22,7 +22,11 @@ from pcdet_atlas.attacks.config_values import config_files, config_value
 from pcdet_atlas.attacks.raycast import scene_columns
 from pcdet_atlas.config import ConfigError, check_known_keys
 
-__all__ = ["GroundEstimator"]
+__all__ = ["GROUND_SLACK_M", "GroundEstimator", "GroundEstimate"]
+
+#: Widening of the discs' bounding squares, metres (a caller's ``rows`` must hold every point
+#: within ``radius + GROUND_SLACK_M`` of the centre).
+GROUND_SLACK_M = 1e-3
 
 
 @dataclass(frozen=True)
@@ -98,11 +102,18 @@ class GroundEstimator:
         scene_xyz: np.ndarray,
         center_xy,
         scene_xy: tuple[np.ndarray, ...] | None = None,
+        rows: np.ndarray | None = None,
     ) -> GroundEstimate:
         """Ground height at ``center_xy`` (2,) from ``(N, 3+)`` scene points (vehicle frame).
 
-        ``scene_xy``: :func:`~pcdet_atlas.attacks.raycast.scene_columns` of ``scene_xyz`` (its
-        contiguous ``x`` and ``y`` columns first) when the caller has them already.
+        Args:
+            scene_xy: :func:`~pcdet_atlas.attacks.raycast.scene_columns` of ``scene_xyz`` (its
+                contiguous ``x`` and ``y`` columns first) when the caller has them already.
+            rows: ascending indices of scene rows that hold every point within
+                ``radius + 1 mm`` of the centre (e.g. the wedge of
+                :func:`~pcdet_atlas.attacks.raycast.disc_columns`); the first disc then looks at
+                those rows only (the wide fallback disc scans every point). The estimate is the
+                same as without them.
         """
         cx, cy = float(center_xy[0]), float(center_xy[1])
         xyz = np.asarray(scene_xyz)
@@ -110,9 +121,10 @@ class GroundEstimator:
         # cheap pre-filter on the disc's bounding square (widened by 1 mm, far above the float32
         # rounding of the bounds), then z and exact float64 distances on the survivors; the wide
         # disc's square is scanned only when the small disc is too sparse
-        for radius, source in ((self.radius, "disc"), (self.fallback_radius, "wide_disc")):
+        discs = ((self.radius, "disc", rows), (self.fallback_radius, "wide_disc", None))
+        for radius, source, within in discs:
             px, py, pz = _disc_candidates(
-                xyz, x, y, cx, cy, radius + _SQUARE_SLACK_M, self.max_abs_z
+                xyz, x, y, cx, cy, radius + GROUND_SLACK_M, self.max_abs_z, within
             )
             z = pz[(px - cx) ** 2 + (py - cy) ** 2 <= radius * radius]
             if z.size >= self.min_points:
@@ -120,16 +132,26 @@ class GroundEstimator:
         return GroundEstimate(self.fallback_z, "fallback", int(pz.size))
 
 
-#: Widening of the discs' bounding squares, metres.
-_SQUARE_SLACK_M = 1e-3
-
-
 def _disc_candidates(
-    xyz: np.ndarray, x: np.ndarray, y: np.ndarray, cx: float, cy: float, r: float, max_abs_z: float
+    xyz: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    cx: float,
+    cy: float,
+    r: float,
+    max_abs_z: float,
+    rows: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``x``, ``y``, ``z`` (float64, ``(C,)`` each) of the points inside the square
     ``|x - cx|, |y - cy| <= r`` with ``|z| <= max_abs_z``, in ascending point order (1-D
-    gathers from the contiguous columns; the values are those of ``xyz``)."""
+    gathers from the contiguous columns; the values are those of ``xyz``); given ``rows``
+    (ascending indices holding the whole disc), of those rows with ``|z| <= max_abs_z``, the
+    square untested (the caller's disc test gives the same points either way)."""
+    if rows is not None:  # a sector around the disc: few enough rows to skip the square
+        z = xyz[:, 2][rows].astype(np.float64)
+        ok = np.abs(z) <= max_abs_z
+        sel = rows[ok]
+        return x[sel].astype(np.float64), y[sel].astype(np.float64), z[ok]
     sel = ((x >= cx - r) & (x <= cx + r)).nonzero()[0]  # a slab: a few % of the scene
     ys = y[sel]
     sel = sel[(ys >= cy - r) & (ys <= cy + r)]
@@ -141,6 +163,8 @@ def _disc_candidates(
 
 def _lower_percentile(values: np.ndarray, percentile: float) -> float:
     """The ``percentile``-th percentile by the 'lower' rule (an actual sample, no interpolation):
-    element ``floor(p / 100 * (n - 1))`` of the sorted values, found by partial sort."""
+    element ``floor(p / 100 * (n - 1))`` of the sorted values, found by partial sort of
+    ``values`` in place (reordered)."""
     k = int(np.floor(percentile / 100.0 * (values.size - 1)))
-    return float(np.partition(values, k)[k])
+    values.partition(k)  # in place: the caller's array is a fresh selection
+    return float(values[k])

@@ -35,17 +35,20 @@ import torch
 from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, ScheduleState, SequenceData
 from pcdet_atlas.attacks.config_values import config_files, config_value
 from pcdet_atlas.attacks.counters import COUNTERS
-from pcdet_atlas.attacks.ground import GroundEstimator
+from pcdet_atlas.attacks.ground import GROUND_SLACK_M, GroundEstimator
 from pcdet_atlas.attacks.intensity import RangeIntensityModel
 from pcdet_atlas.attacks.lidar_model import LidarModel
 from pcdet_atlas.attacks.raycast import (
     ColumnScratch,
+    disc_wedges,
     raycast_merge,
     raycast_numpy_indices,
     scene_columns,
+    wedge_rows_numpy,
 )
 from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary
 from pcdet_atlas.config import REPO_ROOT, ConfigError
+from pcdet_atlas.datasets.multiframe import transform_points_into
 from pcdet_atlas.registry import ATTACKS
 from pcdet_atlas.utils.common import limit_period
 from pcdet_atlas.utils.seeding import numpy_generator
@@ -67,6 +70,9 @@ class PhantomRun:
         dual_uniforms: ``(end - start + 1, n)`` float64 uniforms of the raycaster's dual returns,
             one row per frame of the run (a frame never draws more than ``n``: one per primary
             ray, and each ray has a phantom point), or None when ``p_dual = 0``.
+        reach: the largest distance of a phantom point from the box centre (m, 3-D, so any
+            rigid pose keeps every point within it of the posed centre, plus 1 mm for the
+            float32 rounding of the points).
         trace_index: library index. budget_requested: the drawn ``n`` before capping.
     """
 
@@ -82,6 +88,7 @@ class PhantomRun:
     box: np.ndarray
     anchor_pose: np.ndarray | None
     dual_uniforms: np.ndarray | None = None
+    reach: float = math.inf
 
     @property
     def budget(self) -> int:
@@ -288,6 +295,8 @@ class InjectionAttack(BaseAttack):
             ],
             axis=1,
         )  # bottom of the box on z = 0 of the reference frame
+        centre = np.array([x, y, h / 2])
+        reach = float(np.sqrt(np.add.reduce((xyz - centre) ** 2, axis=1)).max(initial=0.0))
         return PhantomRun(
             run_id=run_id,
             start=start,
@@ -299,6 +308,7 @@ class InjectionAttack(BaseAttack):
             elongation=trace.elongation[sel],
             src_range=trace.src_range[sel],
             box=np.array([x, y, h / 2, l, w, h, yaw]),
+            reach=reach + 1e-3,
             anchor_pose=seq.pose(end) if self.position_mode == "global" else None,
             dual_uniforms=(
                 numpy_generator(*self.rng_keys(seq.name, start), "dual").random(
@@ -317,10 +327,12 @@ class InjectionAttack(BaseAttack):
         if run.anchor_pose is None:
             return run.xyz, run.box
         rel = seq.world_to_vehicle(frame_idx) @ run.anchor_pose  # anchor ego -> frame ego
-        rot, shift = rel[:3, :3], rel[:3, 3]
-        xyz = run.xyz @ rot.T + shift
+        # column-wise float64 arithmetic, the points and the box centre alike (no BLAS call:
+        # the same bits on every CPU, and no thread pool woken for a few hundred points)
+        xyz = np.empty_like(run.xyz)
+        transform_points_into(run.xyz, rel, xyz)
         box = run.box.copy()  # the size columns are unchanged
-        box[0:3] = run.box[0:3] @ rot.T + shift
+        transform_points_into(run.box[None, 0:3], rel, box[None, 0:3])
         box[6] = limit_period(run.box[6] + math.atan2(rel[1, 0], rel[0, 0]))
         return xyz, box
 
@@ -344,10 +356,14 @@ class InjectionAttack(BaseAttack):
         COUNTERS.add(frames_simulated=1)
         xyz, box = self.phantom_pose(seq, frame_idx, run)
         on_cpu = self.device.type == "cpu"
-        # CPU: the contiguous x / y columns of the scene are made once and shared by the ground
-        # pre-filter and the raycaster's sector pre-filter (the only full-scene passes)
-        scene_xy = scene_columns(scene_xyz, self._scratch) if on_cpu else None
-        ground = self.ground(scene_xyz, box[:2], scene_xy=scene_xy)
+        scene_xy = near = None
+        if on_cpu:
+            # the only full-scene passes: the contiguous x / y columns and one azimuth sector
+            # that holds both the ground disc and the phantom's rays (their azimuths do not
+            # depend on the ground height), shared by the ground estimate and the raycaster
+            scene_xy = scene_columns(scene_xyz, self._scratch)
+            near = self._phantom_sector(scene_xyz, run, box, scene_xy)
+        ground = self.ground(scene_xyz, box[:2], scene_xy=scene_xy, rows=near)
         dz = ground.z + box[5] / 2 - box[2]
         box = box.copy()
         box[2] += dz
@@ -355,7 +371,7 @@ class InjectionAttack(BaseAttack):
         gen = None if run.dual_uniforms is None else run.dual_uniforms[frame_idx - run.start]
         if on_cpu:
             removed, keep_spoof = raycast_numpy_indices(
-                scene_xyz, spoof, self.lidar, self.p_dual, gen, scene_xy=scene_xy
+                scene_xyz, spoof, self.lidar, self.p_dual, gen, scene_xy=scene_xy, candidates=near
             )
         else:
             scene_t = torch.from_numpy(scene_xyz[:, :3]).to(self.device)  # strided, no copy
@@ -365,7 +381,8 @@ class InjectionAttack(BaseAttack):
             keep_spoof = keep_spoof.cpu().numpy()
         # range-corrected features of the visible phantom points only
         visible = keep_spoof.nonzero()[0]
-        new_range = np.linalg.norm(spoof[visible].astype(np.float64) - self.lidar.origin_np, axis=1)
+        rel = spoof[visible].astype(np.float64) - self.lidar.origin_np
+        new_range = np.sqrt(np.add.reduce(rel * rel, axis=1))  # np.linalg.norm's arithmetic
         inten, elong = self.intensity(
             run.intensity[visible], run.elongation[visible], run.src_range[visible], new_range
         )
@@ -381,6 +398,21 @@ class InjectionAttack(BaseAttack):
             fired=True,
         )
         return FrameAttack.from_removed(scene_xyz.shape[0], removed, added.astype(np.float32), meta)
+
+    def _phantom_sector(
+        self,
+        scene_xyz: np.ndarray,
+        run: PhantomRun,
+        box: np.ndarray,
+        scene_xy: tuple[np.ndarray, np.ndarray, np.ndarray],
+    ) -> np.ndarray | None:
+        """Ascending scene rows of one azimuth sector around the phantom: its points (within
+        ``run.reach`` of the box centre, whatever the pose and the ground height) and the
+        ground disc, or ``None`` when that sector is most of the circle. Its rows serve both
+        the ground estimate and the raycaster's sector test, so the scene is scanned once."""
+        radius = max(run.reach, self.ground.radius + GROUND_SLACK_M)
+        wedges = disc_wedges(self.lidar, box[:2], radius)
+        return None if wedges is None else wedge_rows_numpy(scene_xyz, wedges, self.lidar, scene_xy)
 
     def shadow_meta(
         self, seq: SequenceData, frame_idx: int, run: PhantomRun, state: ScheduleState

@@ -26,6 +26,7 @@ measurement; ``max_range`` bounds what the spoofer can inject, not what the scan
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -41,6 +42,8 @@ __all__ = [
     "raycast_merge_numpy",
     "azimuth_sector_candidates",
     "azimuth_sector_candidates_numpy",
+    "disc_wedges",
+    "wedge_rows_numpy",
     "scene_columns",
 ]
 
@@ -74,13 +77,15 @@ def _as_xyz(points, name: str) -> torch.Tensor:
 
 
 def _azimuth_intervals(
-    columns: list[int], num_columns: int, max_gap: int = 0
+    columns: Sequence[int] | np.ndarray, num_columns: int, max_gap: int = 0
 ) -> list[tuple[int, int]]:
     """Circular intervals ``(lo, hi)`` (``hi`` may exceed ``num_columns - 1`` when wrapping)
     covering the sorted distinct occupied columns, at most ``_MAX_INTERVALS`` of them; runs
     separated by at most ``max_gap`` empty columns are one interval."""
     runs: list[list[int]] = []
-    for c in columns:
+    # a Python loop over the few hundred columns at most: cheaper than vectorised run finding
+    # (np.diff & co. are Python-level wrappers, and in a loader their code is cold)
+    for c in columns.tolist() if isinstance(columns, np.ndarray) else columns:
         if runs and c <= runs[-1][1] + 1 + max_gap:
             runs[-1][1] = c
         else:
@@ -105,7 +110,9 @@ def _azimuth_intervals(
     return [(lo, hi) for lo, hi in runs]
 
 
-def _sector_wedges(columns: list[int], num_columns: int) -> list[tuple[float, float]] | None:
+def _sector_wedges(
+    columns: Sequence[int] | np.ndarray, num_columns: int
+) -> list[tuple[float, float]] | None:
     """The candidate wedges ``(a0, a1)`` (radians, each narrower than pi) covering the sorted
     distinct azimuth ``columns`` with their margins, or ``None`` when they cover so much of the
     circle that testing every point is cheaper."""
@@ -150,7 +157,7 @@ def azimuth_sector_candidates(
     dtype = scene_xyz.dtype if scene_xyz.dtype in (torch.float32, torch.float64) else torch.float32
     x = scene_xyz[:, 0].to(dtype)  # (N,)
     y = scene_xyz[:, 1].to(dtype)  # (N,)
-    ox, oy = float(lidar.origin[0]), float(lidar.origin[1])
+    ox, oy = lidar.origin_xyz[:2]
     mask = None
     for a0, a1 in wedges:
         # inside iff cross(u0, p - o) >= 0 and cross(p - o, u1) >= 0 (wedge narrower than pi)
@@ -204,6 +211,7 @@ def azimuth_sector_candidates_numpy(
     columns: np.ndarray,
     lidar: LidarModel,
     scene_xy: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    rows: np.ndarray | None = None,
 ) -> np.ndarray:
     """:func:`azimuth_sector_candidates` on numpy arrays (the same wedges and margins; each
     half-plane test is a multiply, an add and a compare over contiguous columns).
@@ -212,23 +220,81 @@ def azimuth_sector_candidates_numpy(
         scene_xyz: ``(N, 3+)`` float points, vehicle frame, metres.
         columns: ``(K,)`` distinct occupied azimuth columns, sorted.
         scene_xy: :func:`scene_columns` of ``scene_xyz`` when the caller already has them.
+        rows: ascending indices of the only rows to test (a wider sector the caller has already
+            cut out, e.g. with :func:`disc_wedges`); ``None``: every row.
     Returns:
-        ``(C,)`` int64 indices into ``scene_xyz``, ascending.
+        ``(C,)`` int64 indices into ``scene_xyz``, ascending (a subset of ``rows``).
     """
-    cols = np.asarray(columns).tolist()
-    if not cols or scene_xyz.shape[0] == 0:
+    if len(columns) == 0 or scene_xyz.shape[0] == 0:
         return np.zeros(0, dtype=np.int64)
-    wedges = _sector_wedges(cols, lidar.azimuth_bins)
-    if wedges is None:
+    wedges = _sector_wedges(columns, lidar.azimuth_bins)
+    if wedges is not None:
+        return wedge_rows_numpy(scene_xyz, wedges, lidar, scene_xy, rows)
+    if rows is None:  # most of the circle: every finite point
         return np.isfinite(scene_xyz[:, :3]).all(axis=1).nonzero()[0]
-    x, y, buf = scene_columns(scene_xyz) if scene_xy is None else scene_xy
-    ox, oy = float(lidar.origin[0]), float(lidar.origin[1])
+    return rows[np.isfinite(scene_xyz[rows, :3]).all(axis=1)]
+
+
+def wedge_rows_numpy(
+    scene_xyz: np.ndarray,
+    wedges: Sequence[tuple[float, float]],
+    lidar: LidarModel,
+    scene_xy: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    rows: np.ndarray | None = None,
+) -> np.ndarray:
+    """Ascending indices of the scene points inside any of the ``wedges`` ``(a0, a1)`` (radians,
+    each narrower than pi, apex at the sensor origin, with the half-plane tests' slack), among
+    ``rows`` (ascending indices) or every point.
+
+    Args:
+        scene_xyz: ``(N, 3+)`` float points, vehicle frame, metres.
+        scene_xy: :func:`scene_columns` of ``scene_xyz`` when the caller already has them.
+    """
+    if not wedges or scene_xyz.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    if rows is None:
+        x, y, buf = scene_columns(scene_xyz) if scene_xy is None else scene_xy
+    else:
+        x, y = (scene_xyz[:, 0], scene_xyz[:, 1]) if scene_xy is None else scene_xy[:2]
+        x, y = x[rows], y[rows]
+        if x.dtype not in (np.float32, np.float64):  # the dtype of scene_columns
+            x, y = x.astype(np.float32), y.astype(np.float32)
+        buf = np.empty_like(x)
+    ox, oy = lidar.origin_xyz[:2]
     mask = None
     for a0, a1 in wedges:
         inside = _half_plane_numpy(x, y, -math.sin(a0), math.cos(a0), ox, oy, buf)
         inside &= _half_plane_numpy(x, y, math.sin(a1), -math.cos(a1), ox, oy, buf)
         mask = inside if mask is None else mask | inside
-    return mask.nonzero()[0]
+    return mask.nonzero()[0] if rows is None else rows[mask]
+
+
+def disc_wedges(lidar: LidarModel, center_xy, radius: float) -> list[tuple[float, float]] | None:
+    """Wedges (apex at the sensor origin) holding every scene point of every azimuth column
+    that meets the disc of ``radius`` (m) around ``center_xy`` (vehicle frame), or ``None``
+    when the disc reaches the sensor's axis or the wedges would be most of the circle (no
+    pre-filter pays off). Plain float arithmetic: no array work.
+
+    The disc's azimuth interval is widened by one column (a point's column extends at most
+    one column width beyond its azimuth) and twice the candidate margin on each side (one for
+    :func:`azimuth_sector_candidates_numpy`'s margin, one for rounding), so the rows of these
+    wedges are a superset of the sector candidates of any points inside the disc.
+    """
+    dx, dy = (
+        float(center_xy[0]) - lidar.origin_xyz[0],
+        float(center_xy[1]) - lidar.origin_xyz[1],
+    )
+    dist = math.hypot(dx, dy)
+    if not dist > radius:
+        return None
+    theta, half = math.atan2(dy, dx), math.asin(radius / dist)
+    pad = 2 * math.pi / lidar.azimuth_bins + 2 * _WEDGE_MARGIN_RAD
+    a0, a1 = theta - half - pad, theta + half + pad
+    if a1 - a0 >= _FULL_SCAN_FRACTION * 2 * math.pi:
+        return None
+    pieces = max(1, math.ceil((a1 - a0) / _MAX_WEDGE_RAD))
+    step = (a1 - a0) / pieces
+    return [(a0 + p * step, a0 + (p + 1) * step) for p in range(pieces)]
 
 
 def _half_plane_numpy(
@@ -409,7 +475,8 @@ def _check_dual(p_dual: float, generator: Generator | None) -> float:
     p_dual = float(p_dual)
     if not 0.0 <= p_dual <= 1.0:
         raise ValueError(f"p_dual must be in [0, 1], got {p_dual}")
-    if p_dual > 0 and not isinstance(generator, (torch.Generator, np.random.Generator, np.ndarray)):
+    # numpy types first: torch.Generator's isinstance check runs Python code (cold in a loader)
+    if p_dual > 0 and not isinstance(generator, (np.ndarray, np.random.Generator, torch.Generator)):
         raise ValueError(
             "raycast_merge: p_dual > 0 needs an explicit torch.Generator, numpy Generator or "
             f"array of uniforms (no global RNG), got {type(generator).__name__}; pass "
@@ -479,16 +546,22 @@ def raycast_numpy_indices(
     generator: Generator | None = None,
     counters: AttackCounters | None = None,
     scene_xy: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    candidates: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`raycast_merge_numpy` returning the **ascending int64 indices** of the occluded
-    scene points (instead of an ``(N,)`` mask) and the ``(M,)`` bool keep mask of the spoof."""
+    scene points (instead of an ``(N,)`` mask) and the ``(M,)`` bool keep mask of the spoof.
+
+    ``candidates``: ascending indices of scene rows that include every point of the spoof's
+    azimuth sector (a wider sector the caller cut out for its own use, e.g. with
+    :func:`disc_wedges`); the sector test then looks at those rows only.
+    The result is the same as without them."""
     scene = _as_xyz_numpy(scene_xyz, "scene_xyz")
     spoof = _as_xyz_numpy(spoof_xyz, "spoof_xyz")
     p_dual = _check_dual(p_dual, generator)
     if not np.isfinite(spoof).all():
         raise ValueError("spoof_xyz contains non-finite coordinates")
     counters = COUNTERS if counters is None else counters
-    return _raycast_numpy(scene, spoof, lidar, p_dual, generator, counters, scene_xy)
+    return _raycast_numpy(scene, spoof, lidar, p_dual, generator, counters, scene_xy, candidates)
 
 
 def _as_xyz_numpy(points, name: str) -> np.ndarray:
@@ -513,13 +586,19 @@ def _bin_offsets(
     """:func:`_bin_index_numpy` of points given as ``(N,)`` float64 offsets from the sensor
     origin (``float64(xyz) - origin``, the first step of the binning)."""
     azimuth, elevation, rng = spherical_offsets(dx, dy, dz)
-    width = 2 * math.pi / lidar.azimuth_bins
-    with np.errstate(invalid="ignore"):  # non-finite points: any bin, never in the FOV
-        col = np.clip(np.floor((azimuth + math.pi) / width), 0, lidar.azimuth_bins - 1)
-        col = col.astype(np.int64)
     beam = np.searchsorted(lidar.midpoints_np, elevation, side="left")
     fov = (elevation >= lidar.fov_min) & (elevation <= lidar.fov_max)
-    return beam * lidar.azimuth_bins + col, fov, rng
+    return beam * lidar.azimuth_bins + _azimuth_column(lidar, azimuth), fov, rng
+
+
+def _azimuth_column(lidar: LidarModel, azimuth: np.ndarray) -> np.ndarray:
+    """``(N,)`` int64 column of float64 azimuths in ``(-pi, pi]`` (non-finite: any column)."""
+    width = 2 * math.pi / lidar.azimuth_bins
+    with np.errstate(invalid="ignore"):  # non-finite points: any bin, never in the FOV
+        col = np.floor((azimuth + math.pi) / width)
+        np.minimum(col, lidar.azimuth_bins - 1, out=col)  # azimuth pi: the last column
+        np.maximum(col, 0, out=col)
+        return col.astype(np.int64)
 
 
 def _raycast_numpy(
@@ -530,6 +609,7 @@ def _raycast_numpy(
     generator: Generator | None,
     counters: AttackCounters,
     scene_xy: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    candidates: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The merge of :func:`raycast_merge` in numpy; returns (occluded scene indices ascending,
     keep_spoof). Per-ray minima by one stable sort instead of two-pass scatters."""
@@ -568,7 +648,7 @@ def _raycast_numpy(
     # only those are binned -- each point's bin is a function of its own coordinates alone
     num_columns = lidar.azimuth_bins
     columns = np.flatnonzero(np.bincount(rays % num_columns, minlength=num_columns))
-    cand = azimuth_sector_candidates_numpy(scene, columns, lidar, scene_xy)  # (C,)
+    cand = azimuth_sector_candidates_numpy(scene, columns, lidar, scene_xy, candidates)  # (C,)
     num_cand = cand.size
     cand_rel = _gather_rel(scene, cand, scene_xy, origin)  # 3 x (C,)
     sub = _elevation_band(

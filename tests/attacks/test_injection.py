@@ -235,6 +235,33 @@ def test_on_synthetic_data_phantom_sits_on_ground_and_stays_in_world(synthetic_r
     assert np.abs(world[:, :2] - world[0, :2]).max() <= 0.01
 
 
+@pytest.mark.parametrize("mode", ["relative", "global"])
+def test_phantom_sector_prefilter_changes_nothing(tiny, mode, monkeypatch):
+    """On CPU one wedge around the phantom (its points and the ground disc) feeds both the
+    ground estimate and the raycaster; the frames equal those attacked with full-scene scans,
+    and the pre-filter holds a small part of the scene."""
+    root, lib, seq = tiny
+    frames = [32, 40, 47, 55, 63]
+    got = make_attack(lib, mode, p_dual=0.3)
+    sizes = []
+    sector = got._phantom_sector
+
+    def recording(scene_xyz, *args):
+        rows = sector(scene_xyz, *args)
+        sizes.append((len(rows), len(scene_xyz)))
+        return rows
+
+    monkeypatch.setattr(got, "_phantom_sector", recording)
+    ref = make_attack(lib, mode, p_dual=0.3)
+    monkeypatch.setattr(ref, "_phantom_sector", lambda *args: None)
+    out, want = run_frames(got, seq, root, frames), run_frames(ref, seq, root, frames)
+    for k in frames:
+        np.testing.assert_array_equal(out[k][1].removed_rows(), want[k][1].removed_rows())
+        np.testing.assert_array_equal(out[k][1].added, want[k][1].added)
+        assert str(out[k][1].meta) == str(want[k][1].meta)
+    assert len(sizes) == len(frames) and all(0 < n < total / 4 for n, total in sizes)
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_raycast_device_gives_identical_frames(tiny, device):
     root, lib, seq = tiny
@@ -249,7 +276,7 @@ def test_ground_estimator_matches_brute_force_disc_percentile():
     """The small disc's square is scanned first and the wide disc's only when needed; the
     estimate is the brute-force lower percentile of the points within each radius (float64
     distances), including points exactly on the disc boundaries, with or without precomputed
-    columns."""
+    columns, and from given rows that hold the small disc."""
     from pcdet_atlas.attacks.raycast import ColumnScratch, scene_columns
 
     rng = np.random.default_rng(0)
@@ -275,8 +302,10 @@ def test_ground_estimator_matches_brute_force_disc_percentile():
                 k = int(np.floor(0.10 * (sel.size - 1)))
                 expected = (np.sort(sel)[k], source, sel.size)
                 break
-        for cols in (None, scene_columns(xyz, scratch)):
-            got = est(xyz, center, scene_xy=cols)
+        # rows holding the small disc (a wedge's, say): some points beyond it, in order
+        near = np.flatnonzero((d2 <= 3.2**2) | (rng.random(len(xyz)) < 0.1))
+        for cols, rows in ((None, None), (scene_columns(xyz, scratch), None), (None, near)):
+            got = est(xyz, center, scene_xy=cols, rows=rows)
             if expected is None:
                 assert got.source == "fallback" and got.z == est.fallback_z
             else:

@@ -15,9 +15,11 @@ from pcdet_atlas.attacks.raycast import (
     _sector_wedges,
     azimuth_sector_candidates,
     azimuth_sector_candidates_numpy,
+    disc_wedges,
     raycast_merge,
     raycast_merge_numpy,
     raycast_numpy_indices,
+    wedge_rows_numpy,
 )
 
 
@@ -564,3 +566,39 @@ def test_sector_wedges_merge_small_gaps_only():
     seam = _sector_wedges([0, 3, 2645, 2650], 2651)  # small gaps across the +-pi seam
     assert len(seam) == 1 and seam[0][0] < math.pi < seam[0][1]
     assert _sector_wedges(list(range(0, 2651, 10)), 2651) is None  # most of the circle
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_disc_wedge_rows_hold_the_sector_of_any_points_in_the_disc(seed):
+    """The wedge pre-filter an injection shares between its ground estimate and its raycast:
+    its rows hold every point of the disc and every sector candidate of points inside the
+    disc (at any height), so the raycast given them as candidates is unchanged; none when the
+    disc reaches the sensor's axis."""
+    lidar = LidarModel.waymo_top()
+    rng = np.random.default_rng(seed)
+    ox, oy = lidar.origin_xyz[:2]
+    angle = [math.pi - 0.01, -math.pi + 0.02, 0.3, 2.0, -1.2, math.pi][seed]  # seam too
+    dist, radius = [4.5, 8.0, 17.0, 30.0, 60.0, 12.0][seed], [3.0, 3.0, 3.0, 4.5, 6.0, 3.0][seed]
+    center = np.array([ox + dist * math.cos(angle), oy + dist * math.sin(angle)])
+    scene = np.c_[rng.uniform(-75, 75, (40000, 2)), rng.uniform(-3, 4, 40000)]
+    near = center + rng.uniform(-radius - 1, radius + 1, (8000, 2))
+    scene = np.concatenate([scene, np.c_[near, rng.uniform(-2.5, 3, 8000)]]).astype(np.float32)
+    u = rng.uniform(0, 2 * math.pi, 600)
+    rad = radius * np.sqrt(rng.uniform(0, 0.999, 600))
+    spoof = np.c_[center[0] + rad * np.cos(u), center[1] + rad * np.sin(u)]
+    spoof = np.c_[spoof, rng.uniform(-2, 2.5, 600)].astype(np.float32)
+    wedges = disc_wedges(lidar, center, radius)
+    rows = wedge_rows_numpy(scene, wedges, lidar)
+    assert rows.size < len(scene) / 2 and np.all(np.diff(rows) > 0)
+    d2 = ((scene[:, :2].astype(np.float64) - center) ** 2).sum(1)
+    assert np.isin(np.flatnonzero(d2 <= radius * radius), rows).all()
+    columns = np.unique(_bin_index_numpy(lidar, spoof)[0] % lidar.azimuth_bins)
+    assert np.isin(azimuth_sector_candidates_numpy(scene, columns, lidar), rows).all()
+    for p_dual in (0.0, 0.5):
+        uniforms = rng.random(len(spoof))
+        plain = raycast_numpy_indices(scene, spoof, lidar, p_dual, uniforms)
+        given = raycast_numpy_indices(scene, spoof, lidar, p_dual, uniforms, candidates=rows)
+        assert all(np.array_equal(a, b) for a, b in zip(plain, given))
+        assert plain[0].size > 0
+    assert disc_wedges(lidar, (ox + 2.0, oy), 3.0) is None  # the disc holds the sensor
+    assert disc_wedges(lidar, (ox + 3.0, oy), 2.99) is not None
