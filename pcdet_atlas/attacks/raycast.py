@@ -595,9 +595,8 @@ def _azimuth_column(lidar: LidarModel, azimuth: np.ndarray) -> np.ndarray:
     """``(N,)`` int64 column of float64 azimuths in ``(-pi, pi]`` (non-finite: any column)."""
     width = 2 * math.pi / lidar.azimuth_bins
     with np.errstate(invalid="ignore"):  # non-finite points: any bin, never in the FOV
-        col = np.floor((azimuth + math.pi) / width)
+        col = np.floor((azimuth + math.pi) / width)  # >= 0: azimuth > -pi
         np.minimum(col, lidar.azimuth_bins - 1, out=col)  # azimuth pi: the last column
-        np.maximum(col, 0, out=col)
         return col.astype(np.int64)
 
 
@@ -635,8 +634,11 @@ def _raycast_numpy(
     # by ray, then range; lexsort is stable and spoof_idx ascending, so ties keep the lower index
     order = np.lexsort((spoof_r, spoof_ray_bin))
     sorted_bin = spoof_ray_bin[order]
-    head = np.ones(order.size, dtype=bool)
-    head[1:] = sorted_bin[1:] != sorted_bin[:-1]
+    # (C-level calls only here and below: np.ones / np.full / np.flatnonzero are Python
+    # wrappers, each a few more microseconds with the cold caches of a loader)
+    head = np.empty(order.size, dtype=bool)
+    head[0] = True
+    np.not_equal(sorted_bin[1:], sorted_bin[:-1], out=head[1:])
     first = order[head]  # (K,) the echo of each ray, ascending ray id
     rays = spoof_ray_bin[first]
     echo_r = spoof_r[first]
@@ -647,7 +649,7 @@ def _raycast_numpy(
     # (wedge pre-filter), then the band of their beams (rays are sorted by beam first), and
     # only those are binned -- each point's bin is a function of its own coordinates alone
     num_columns = lidar.azimuth_bins
-    columns = np.flatnonzero(np.bincount(rays % num_columns, minlength=num_columns))
+    columns = np.bincount(rays % num_columns, minlength=num_columns).nonzero()[0]
     cand = azimuth_sector_candidates_numpy(scene, columns, lidar, scene_xy, candidates)  # (C,)
     num_cand = cand.size
     cand_rel = _gather_rel(scene, cand, scene_xy, origin)  # 3 x (C,)
@@ -664,9 +666,11 @@ def _raycast_numpy(
     ret_idx = cand[is_ret]  # (R,) ascending scene indices
     ret_ray = pos[is_ret]
     ret_r = cand_rng[is_ret]
-    far_r = np.full(num_rays, -math.inf)
+    far_r = np.empty(num_rays)
+    far_r.fill(-math.inf)
     np.maximum.at(far_r, ret_ray, ret_r)
-    near_r = np.full(num_rays, math.inf)
+    near_r = np.empty(num_rays)
+    near_r.fill(math.inf)
     np.minimum.at(near_r, ret_ray, ret_r)
     has_scene = far_r > -math.inf
 
@@ -684,7 +688,8 @@ def _raycast_numpy(
             dual_rays = primary[dual_uniforms(generator, draws) < p_dual]
             if dual_rays.size:
                 nearest = ret_r == near_r[ret_ray]
-                near_idx = np.full(num_rays, num_scene, dtype=np.int64)
+                near_idx = np.empty(num_rays, dtype=np.int64)
+                near_idx.fill(num_scene)
                 np.minimum.at(near_idx, ret_ray[nearest], ret_idx[nearest])
                 second = np.zeros(num_rays, dtype=bool)
                 second[dual_rays] = True
