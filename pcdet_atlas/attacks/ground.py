@@ -111,7 +111,7 @@ class GroundEstimator:
                 contiguous ``x`` and ``y`` columns first) when the caller has them already.
             rows: ascending indices of scene rows that hold every point within
                 ``radius + 1 mm`` of the centre (e.g. the wedge of
-                :func:`~pcdet_atlas.attacks.raycast.disc_columns`); the first disc then looks at
+                :func:`~pcdet_atlas.attacks.raycast.disc_wedges`); the first disc then looks at
                 those rows only (the wide fallback disc scans every point). The estimate is the
                 same as without them.
         """
