@@ -205,6 +205,8 @@ class BaseAttack(ABC):
             raise ValueError(f"schedule window must be >= 1, got {window}")
         self._run_cache: OrderedDict[tuple[str, int], Any] = OrderedDict()
         self._run_cache_size = int(run_cache_size)
+        # (frame, num_frames) -> state: a few hundred entries per distinct sequence length
+        self._states: dict[tuple[int, int], ScheduleState] = {}
 
     # ------------------------------------------------------------------ config
     @classmethod
@@ -238,12 +240,21 @@ class BaseAttack(ABC):
 
     # ------------------------------------------------------------------ schedule
     def schedule_state(self, frame_idx: int, num_frames: int) -> ScheduleState:
-        """The schedule state of a frame of a ``num_frames`` sequence."""
+        """The schedule state of a frame of a ``num_frames`` sequence (memoised for plain int
+        arguments: a loaded frame asks for it several times)."""
+        key = (frame_idx, num_frames)
+        state = self._states.get(key) if type(frame_idx) is type(num_frames) is int else None
+        if state is not None:
+            return state
         run_id, pos = sched.run_of_frame(frame_idx, num_frames, self.window)
         if run_id >= 0:
-            return ScheduleState(True, run_id, pos, pos + 1)
-        run_id, k = sched.lifecycle_of_frame(frame_idx, num_frames, self.window)
-        return ScheduleState(False, run_id, -1, k)
+            state = ScheduleState(True, run_id, pos, pos + 1)
+        else:
+            run_id, k = sched.lifecycle_of_frame(frame_idx, num_frames, self.window)
+            state = ScheduleState(False, run_id, -1, k)
+        if type(frame_idx) is type(num_frames) is int:
+            self._states[key] = state
+        return state
 
     def run_state(self, seq: SequenceData, run_id: int) -> Any:
         """The prepared state of a run (cached; a pure function of ``(seq, run_id)``)."""

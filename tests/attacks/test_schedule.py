@@ -104,3 +104,24 @@ def test_counters():
     with pytest.raises(ValueError):
         c.add(frames_simulated=-1)
     assert isinstance(COUNTERS, AttackCounters)
+
+
+def test_attack_schedule_state_memo_keeps_the_checks():
+    """``BaseAttack.schedule_state`` is memoised per (frame, num_frames): repeated asks give the
+    same state as the schedule functions, and bad arguments still fail after a valid ask."""
+    from pcdet_atlas.attacks.base import BaseAttack
+
+    class Scheduled(BaseAttack):  # the schedule of every family; no physics
+        prepare_run = attack_frame = shadow_meta = None
+
+    attack = Scheduled("scheduled", window=32)
+    for frame in (0, 31, 32, 63, 64, 197):
+        for _ in range(2):
+            state = attack.schedule_state(frame, 198)
+            assert (state.run_id, state.run_position) == (
+                run_of_frame(frame, 198, 32) if state.spoofed else (state.run_id, -1)
+            )
+            assert state.spoofed == is_spoofed(frame, 32)
+    for bad in (True, 1.5, 198, -1):
+        with pytest.raises(ValueError):
+            attack.schedule_state(bad, 198)
