@@ -242,8 +242,8 @@ class BaseAttack(ABC):
     def schedule_state(self, frame_idx: int, num_frames: int) -> ScheduleState:
         """The schedule state of a frame of a ``num_frames`` sequence (memoised for plain int
         arguments: a loaded frame asks for it several times)."""
-        key = (frame_idx, num_frames)
-        state = self._states.get(key) if type(frame_idx) is type(num_frames) is int else None
+        key = (frame_idx, num_frames) if type(frame_idx) is type(num_frames) is int else None
+        state = None if key is None else self._states.get(key)
         if state is not None:
             return state
         run_id, pos = sched.run_of_frame(frame_idx, num_frames, self.window)
@@ -252,7 +252,7 @@ class BaseAttack(ABC):
         else:
             run_id, k = sched.lifecycle_of_frame(frame_idx, num_frames, self.window)
             state = ScheduleState(False, run_id, -1, k)
-        if type(frame_idx) is type(num_frames) is int:
+        if key is not None:
             self._states[key] = state
         return state
 

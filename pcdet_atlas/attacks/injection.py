@@ -294,8 +294,7 @@ class InjectionAttack(BaseAttack):
             ],
             axis=1,
         )  # bottom of the box on z = 0 of the reference frame
-        centre = np.array([x, y, h / 2])
-        reach = float(np.sqrt(np.add.reduce((xyz - centre) ** 2, axis=1)).max(initial=0.0))
+        reach = float(np.linalg.norm(xyz - [x, y, h / 2], axis=1).max(initial=0.0))
         return PhantomRun(
             run_id=run_id,
             start=start,
