@@ -16,6 +16,13 @@ val split of ``--data_path``; without a checkpoint the model runs with random we
 column says so ("checkpoint missing", or "no checkpoint" for configs without
 ``ATLAS.CHECKPOINT``, the real-Waymo ones).
 
+``--vfe_forms`` times the VFE of each ``--cfgs`` config (random weights with BatchNorm
+statistics from a few training-mode passes, or its checkpoint) in its two eval forms on the same
+frames, alternating: the folded form ``DynamicPillarVFE`` uses in eval mode and the layer-by-layer
+one (``fold_eval = False``), with the largest difference of their outputs:
+
+    python tools/bench_models.py --vfe_forms --cfgs cfgs/atlas/synthetic/cp4f.yaml --frames 8
+
 ``--train_step`` instead times training steps (batch ``--batch_size``, the configs' own train
 pipeline with GT sampling and augmentation, AdamW + one-cycle, gradient clipping: what
 ``tools/train.py`` does per iteration) of each ``--train_cfgs`` config, in a fresh process per
@@ -119,6 +126,10 @@ def parse_args():
         help="also time a tools/test.py step of this model config on clean / injection / removal",
     )  # fmt: skip
     p.add_argument("--share_frames", type=int, default=8, help="frames from 32 on (a spoofed run)")
+    p.add_argument(
+        "--vfe_forms", action="store_true",
+        help="time the VFE's folded eval form against the layer-by-layer one instead",
+    )  # fmt: skip
     t = p.add_argument_group("training step (--train_step)")
     t.add_argument("--train_step", action="store_true", help="time training steps instead")
     t.add_argument("--train_cfgs", nargs="+", default=list(TRAIN_STEP_CFGS))
@@ -320,6 +331,69 @@ def test_step_shares(cfg_file: str, data_path: Path, frames: int, device: torch.
         )
 
 
+def vfe_forms_table(cfg_files: list[str], data_path: Path, args, device: torch.device) -> None:
+    """Print the VFE's eval-mode latency in its folded and its layer-by-layer form."""
+    print(
+        f"\nVFE eval forms, device {device}, torch {torch.__version__}, "
+        f"{torch.get_num_threads()} threads, {args.frames} frames (after 1 warm-up), alternating"
+    )
+    print(
+        "| config | points/frame | pillars/frame | folded ms | layer-by-layer ms | ratio "
+        "| max abs diff |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    for cfg_file in cfg_files:
+        cfg = cfg_from_yaml_file(cfg_file)
+        cfg.DATA_CONFIG.DATA_PATH = str(data_path)
+        _, loader, _ = build_dataloader(
+            cfg.DATA_CONFIG, cfg.CLASS_NAMES, 1, False, workers=0, training=False
+        )
+        batches = []
+        for batch in loader:
+            batches.append(load_data_to_device(batch, device))
+            if len(batches) == args.frames + 1:
+                break
+        torch.manual_seed(0)
+        model = build_network_from_config(cfg).to(device)
+        ckpt = cfg.get("ATLAS", {}).get("CHECKPOINT")
+        if ckpt and (REPO_ROOT / ckpt).is_file():
+            model.load_params_from_file(REPO_ROOT / ckpt)
+        else:  # running statistics of real features (their plain average), not BN's 0 / 1
+            for module in model.vfe.modules():
+                if isinstance(module, torch.nn.BatchNorm1d):
+                    module.reset_running_stats()
+                    module.momentum = None
+            with torch.no_grad():
+                for batch in batches[:3]:
+                    model.vfe(dict(batch))
+        vfe = model.vfe.eval()
+        times = {True: [], False: []}
+        diff, points, pillars = 0.0, [], []
+        with torch.no_grad():
+            for i, batch in enumerate(batches):
+                outs = {}
+                for fold in (True, False):
+                    vfe.fold_eval = fold
+                    if device.type == "cuda":
+                        torch.cuda.synchronize(device)
+                    t0 = time.perf_counter()
+                    outs[fold] = vfe(dict(batch))["pillar_features"]
+                    if device.type == "cuda":
+                        torch.cuda.synchronize(device)
+                    if i:
+                        times[fold].append(time.perf_counter() - t0)
+                diff = max(diff, float((outs[True] - outs[False]).abs().max()))
+                points.append(int(batch["points"].shape[0]))
+                pillars.append(int(outs[True].shape[0]))
+        vfe.fold_eval = True
+        fast, slow = statistics.median(times[True]), statistics.median(times[False])
+        name = str(Path(cfg_file).resolve().relative_to(REPO_ROOT / "cfgs"))
+        print(
+            f"| {name} | {statistics.mean(points):,.0f} | {statistics.mean(pillars):,.0f} "
+            f"| {fast * 1e3:,.1f} | {slow * 1e3:,.1f} | {slow / fast:.2f}x | {diff:.1e} |"
+        )
+
+
 def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.device) -> None:
     """Print latency / peak memory / L2 mAP of each config, models taking turns per frame."""
     runs = []
@@ -428,6 +502,8 @@ def main() -> None:
 
     if args.train_step:
         train_step_table(args, data_path)
+    elif args.vfe_forms:
+        vfe_forms_table(cfg_files, data_path, args, device)
     elif cfg_files:
         latency_table(cfg_files, data_path, args, device)
     if args.share_cfg is not None:

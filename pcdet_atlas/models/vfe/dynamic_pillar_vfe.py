@@ -3,6 +3,12 @@
 The model pillarizes the raw points itself (:func:`voxelize`), decorates every point with its
 offset from the pillar's mean and from the pillar's geometric centre, and runs PointNet layers
 whose per-pillar max is taken with ``scatter_reduce``. No points are dropped inside the range.
+
+In eval mode the PFN layers run in an equivalent, cheaper form (:meth:`DynamicPillarVFE.
+_pfn_eval`): BatchNorm folded into the linear layers, a layer's input ``[h, max[idx]]`` split
+into its per-point and per-pillar parts (the pillar part is multiplied once per pillar, not once
+per point), and the last layer's ReLU and pillar term applied after the max (``max_i relu(a_i +
+g) = relu(max_i a_i + g)`` for a per-pillar ``g``). Same function, other float32 rounding.
 """
 
 from __future__ import annotations
@@ -35,6 +41,16 @@ class PFNLayer(nn.Module):
         if self.last_layer:
             return x_max
         return torch.cat([x, x_max.index_select(0, pillar_idx)], dim=1)
+
+    def folded(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(W, b)`` with ``norm(linear(x)) == x @ W.T + b`` in eval mode (BN's running
+        statistics folded into the weights), ``(width, in)`` and ``(width,)``."""
+        weight = self.linear.weight
+        bias = self.linear.bias if self.linear.bias is not None else weight.new_zeros(len(weight))
+        if isinstance(self.norm, nn.BatchNorm1d):
+            scale = self.norm.weight * torch.rsqrt(self.norm.running_var + self.norm.eps)
+            return weight * scale[:, None], (bias - self.norm.running_mean) * scale + self.norm.bias
+        return weight, bias
 
 
 @MODEL_STAGES.register()
@@ -86,6 +102,8 @@ class DynamicPillarVFE(nn.Module):
             for i in range(len(widths) - 1)
         )
         self.num_output_features = widths[-1]
+        #: eval mode runs the equivalent folded form (:meth:`_pfn_eval`); False: layer by layer
+        self.fold_eval = True
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> DynamicPillarVFE:
@@ -121,9 +139,8 @@ class DynamicPillarVFE(nn.Module):
         num_pillars = vox.voxel_coords.shape[0]
         xyz = pts[:, :3]
         pillar_mean = scatter_mean(xyz, idx, num_pillars, vox.voxel_num_points)  # (P, 3)
-        f_cluster = xyz - pillar_mean.index_select(0, idx)
         vs, pcr = self.grid.voxel_size, self.grid.point_cloud_range
-        coords = vox.voxel_coords.index_select(0, idx)  # (N_in, 4) b, z, y, x
+        coords = vox.voxel_coords  # (P, 4) b, z, y, x
         centre = torch.stack(
             [
                 coords[:, 3].to(xyz.dtype) * vs[0] + (vs[0] / 2 + pcr[0]),
@@ -131,14 +148,58 @@ class DynamicPillarVFE(nn.Module):
                 coords[:, 1].to(xyz.dtype) * vs[2] + (vs[2] / 2 + pcr[2]),
             ],
             dim=1,
-        )
-        f_center = xyz - centre
+        )  # (P, 3) pillar centres
+        # one gather of both per-pillar references to the points
+        ref = torch.cat([pillar_mean, centre], dim=1).index_select(0, idx)  # (N_in, 6)
+        f_cluster = xyz - ref[:, :3]
+        f_center = xyz - ref[:, 3:]
         feats = [pts if self.use_absolute_xyz else pts[:, 3:], f_cluster, f_center]
         if self.with_distance:
             feats.append(torch.linalg.norm(xyz, dim=1, keepdim=True))
         x = torch.cat(feats, dim=1)  # (N_in, in_ch)
-        for layer in self.pfn_layers:
-            x = layer(x, idx, num_pillars)
+        if self.training or not (self.fold_eval and self._foldable):
+            for layer in self.pfn_layers:
+                x = layer(x, idx, num_pillars)
+        else:
+            x = self._pfn_eval(x, idx, num_pillars)
         batch_dict["pillar_features"] = x  # (P, F)
         batch_dict["voxel_coords"] = vox.voxel_coords  # (P, 4)
         return batch_dict
+
+    @property
+    def _foldable(self) -> bool:
+        """BN with running statistics (or no norm) in every layer: the eval form applies."""
+        return all(
+            isinstance(layer.norm, nn.Identity)
+            or (isinstance(layer.norm, nn.BatchNorm1d) and layer.norm.track_running_stats)
+            for layer in self.pfn_layers
+        )
+
+    def _pfn_eval(self, x: torch.Tensor, idx: torch.Tensor, num_pillars: int) -> torch.Tensor:
+        """The PFN layers in eval mode, ``(N, in) -> (P, F)``, without the per-point concat.
+
+        A non-last layer's output ``[h, m[idx]]`` (``m``: per-pillar max of ``h``) enters the
+        next linear as ``h @ Wa.T + (m @ Wb.T)[idx]``; the last layer's
+        ``max_i relu(a_i + g)`` over a pillar (``g`` per pillar) is ``relu(max_i a_i + g)``.
+        """
+        *hidden, last = self.pfn_layers
+        point, pillar = x, None  # per-point input; per-pillar input (the max part) or None
+        for layer in hidden:
+            z, g = _split_linear(layer, point, pillar)
+            z = z.add_(g if pillar is None else g.index_select(0, idx))
+            point = torch.relu_(z)
+            pillar = scatter_max(point, idx, num_pillars)
+        z, g = _split_linear(last, point, pillar)
+        return torch.relu_(scatter_max(z, idx, num_pillars).add_(g))
+
+
+def _split_linear(
+    layer: PFNLayer, point: torch.Tensor, pillar: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``layer``'s folded linear of ``[point, pillar[idx]]`` as its per-point part ``(N, w)``
+    and its per-pillar part with the bias, ``(P, w)`` (``(w,)`` when there is no pillar input)."""
+    weight, bias = layer.folded()
+    if pillar is None:
+        return point @ weight.T, bias
+    split = point.shape[1]
+    return point @ weight[:, :split].T, torch.addmm(bias, pillar, weight[:, split:].T)

@@ -1,0 +1,82 @@
+"""DynamicPillarVFE: the eval-mode PFN form (BatchNorm folded, no per-point concat, ReLU after
+the max) computes the same function as running the layers one by one."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from pcdet_atlas.models.vfe.dynamic_pillar_vfe import DynamicPillarVFE
+
+RANGE = (-8.0, -8.0, -2.0, 8.0, 8.0, 4.0)
+
+
+def _points(n: int, seed: int) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(seed)
+    xyz = (torch.rand(n, 3, generator=gen) * 2 - 1) * torch.tensor([9.0, 9.0, 3.0])  # some out
+    feats = torch.rand(n, 2, generator=gen)
+    batch = torch.randint(0, 2, (n, 1), generator=gen).float()
+    return torch.cat([batch, xyz, feats], dim=1)
+
+
+def _layerwise(vfe: DynamicPillarVFE, batch: dict) -> torch.Tensor:
+    """The reference: the eval form switched off, every layer run as in training."""
+    vfe.fold_eval = False
+    try:
+        return vfe(dict(batch))["pillar_features"]
+    finally:
+        vfe.fold_eval = True
+
+
+@pytest.mark.parametrize(
+    "filters,use_norm,with_distance",
+    [
+        ((32,), True, False),
+        ((16, 32), True, False),
+        ((8, 16, 32), True, True),
+        ((16, 32), False, False),
+    ],
+)
+def test_eval_form_equals_layerwise(filters, use_norm, with_distance):
+    torch.manual_seed(0)
+    vfe = DynamicPillarVFE(
+        num_point_features=5, point_cloud_range=RANGE, voxel_size=(0.5, 0.5, 6.0),
+        num_filters=filters, use_norm=use_norm, with_distance=with_distance,
+    )  # fmt: skip
+    for layer in vfe.pfn_layers:  # non-trivial statistics, a negative scale among them
+        if use_norm:
+            width = layer.norm.num_features
+            layer.norm.running_mean.uniform_(-0.5, 0.5)
+            layer.norm.running_var.uniform_(0.2, 2.0)
+            with torch.no_grad():
+                layer.norm.weight.uniform_(-1.5, 1.5)
+                layer.norm.bias.uniform_(-0.3, 0.3)
+            assert (layer.norm.weight < 0).any() and width == layer.norm.weight.numel()
+    vfe.eval()
+    assert vfe._foldable
+    batch = {"points": _points(3000, 1), "batch_size": 2}
+    with torch.no_grad():
+        fast = vfe(dict(batch))["pillar_features"]
+        ref = _layerwise(vfe, batch)
+    assert fast.shape == ref.shape and ref.shape[1] == filters[-1]
+    assert ref.abs().max() > 0.1  # the comparison is not of zeros
+    torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-5)
+
+
+def test_training_mode_runs_layerwise():
+    """Training uses batch statistics: the eval form must not be taken (its BN fold would use
+    the running ones), and the output differs from eval mode's."""
+    torch.manual_seed(0)
+    vfe = DynamicPillarVFE(
+        num_point_features=5, point_cloud_range=RANGE, voxel_size=(0.5, 0.5, 6.0),
+        num_filters=(16, 32),
+    )  # fmt: skip
+    batch = {"points": _points(2000, 2), "batch_size": 2}
+    vfe.train()
+    train_out = vfe(dict(batch))["pillar_features"]
+    assert train_out.requires_grad
+    train_out.sum().backward()
+    assert all(p.grad is not None for p in vfe.parameters())
+    vfe.eval()
+    with torch.no_grad():
+        assert not torch.allclose(vfe(dict(batch))["pillar_features"], train_out.detach())
