@@ -4,11 +4,12 @@ The model pillarizes the raw points itself (:func:`voxelize`), decorates every p
 offset from the pillar's mean and from the pillar's geometric centre, and runs PointNet layers
 whose per-pillar max is taken with ``scatter_reduce``. No points are dropped inside the range.
 
-In eval mode the PFN layers run in an equivalent, cheaper form (:meth:`DynamicPillarVFE.
-_pfn_eval`): BatchNorm folded into the linear layers, a layer's input ``[h, max[idx]]`` split
-into its per-point and per-pillar parts (the pillar part is multiplied once per pillar, not once
-per point), and the last layer's ReLU and pillar term applied after the max (``max_i relu(a_i +
-g) = relu(max_i a_i + g)`` for a per-pillar ``g``). Same function, other float32 rounding.
+In eval mode the PFN layers run in an equivalent, cheaper form
+(:meth:`DynamicPillarVFE._pfn_eval`): BatchNorm folded into the linear layers, a layer's input
+``[h, max[idx]]`` split into its per-point and per-pillar parts (the pillar part is multiplied
+once per pillar, not once per point), and the last layer's ReLU and pillar term applied after
+the max (``max_i relu(a_i + g) = relu(max_i a_i + g)`` for a per-pillar ``g``). Same function,
+other float32 rounding; ``fold_eval = False`` runs the layers one by one instead.
 """
 
 from __future__ import annotations
