@@ -331,6 +331,22 @@ def test_step_shares(cfg_file: str, data_path: Path, frames: int, device: torch.
         )
 
 
+def _config_frames(cfg_file: str, data_path: Path, count: int, device: torch.device):
+    """A model config (its data path set to ``data_path``) and the first ``count`` val batches of
+    its own test pipeline (batch 1), on ``device``."""
+    cfg = cfg_from_yaml_file(cfg_file)
+    cfg.DATA_CONFIG.DATA_PATH = str(data_path)
+    _, loader, _ = build_dataloader(
+        cfg.DATA_CONFIG, cfg.CLASS_NAMES, 1, False, workers=0, training=False
+    )
+    batches = []
+    for batch in loader:
+        batches.append(load_data_to_device(batch, device))
+        if len(batches) == count:
+            break
+    return cfg, batches
+
+
 def vfe_forms_table(cfg_files: list[str], data_path: Path, args, device: torch.device) -> None:
     """Print the VFE's eval-mode latency in its folded and its layer-by-layer form."""
     print(
@@ -343,16 +359,7 @@ def vfe_forms_table(cfg_files: list[str], data_path: Path, args, device: torch.d
     )
     print("|---|---|---|---|---|---|---|")
     for cfg_file in cfg_files:
-        cfg = cfg_from_yaml_file(cfg_file)
-        cfg.DATA_CONFIG.DATA_PATH = str(data_path)
-        _, loader, _ = build_dataloader(
-            cfg.DATA_CONFIG, cfg.CLASS_NAMES, 1, False, workers=0, training=False
-        )
-        batches = []
-        for batch in loader:
-            batches.append(load_data_to_device(batch, device))
-            if len(batches) == args.frames + 1:
-                break
+        cfg, batches = _config_frames(cfg_file, data_path, args.frames + 1, device)
         torch.manual_seed(0)
         model = build_network_from_config(cfg).to(device)
         ckpt = cfg.get("ATLAS", {}).get("CHECKPOINT")
@@ -398,16 +405,7 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
     """Print latency / peak memory / L2 mAP of each config, models taking turns per frame."""
     runs = []
     for cfg_file in cfg_files:
-        cfg = cfg_from_yaml_file(cfg_file)
-        cfg.DATA_CONFIG.DATA_PATH = str(data_path)
-        _, loader, _ = build_dataloader(
-            cfg.DATA_CONFIG, cfg.CLASS_NAMES, 1, False, workers=0, training=False
-        )
-        batches = []
-        for batch in loader:
-            batches.append(load_data_to_device(batch, device))
-            if len(batches) == args.frames + 1:
-                break
+        cfg, batches = _config_frames(cfg_file, data_path, args.frames + 1, device)
         torch.manual_seed(0)
         model = build_network_from_config(cfg).to(device).eval()
         ckpt = cfg.get("ATLAS", {}).get("CHECKPOINT")
