@@ -21,7 +21,10 @@ __all__ = [
     "outside_ego_mask",
     "transform_points_to_frame",
     "transform_points_into",
+    "row_records",
+    "copy_rows",
     "compress_rows",
+    "rows_except",
     "copy_rows_except",
 ]
 
@@ -123,35 +126,83 @@ def transform_points_into(
     return None if near is None else ~near
 
 
+def row_records(array: np.ndarray) -> np.ndarray | None:
+    """The rows of a 2-D array as a 1-D array of opaque records (a view, no copy), or ``None``
+    when its last axis is not contiguous. Its rows may be strided, e.g. the first columns of a
+    frame file's rows: numpy then moves each row as one block instead of element by element
+    (a (150k, 5) float32 row gather or copy is 1.5-2x faster this way)."""
+    if array.ndim != 2 or array.shape[1] == 0 or array.strides[1] != array.itemsize:
+        return None
+    return array.view(np.dtype((np.void, array.shape[1] * array.itemsize)))[:, 0]
+
+
+def _from_records(records: np.ndarray, like: np.ndarray) -> np.ndarray:
+    return records.view(like.dtype).reshape(-1, like.shape[1])
+
+
+def copy_rows(array: np.ndarray) -> np.ndarray:
+    """A C-contiguous copy of a 2-D array, row by row as records when its last axis is
+    contiguous."""
+    records = row_records(array)
+    if records is None:
+        return np.array(array, order="C")
+    return _from_records(np.array(records), array)
+
+
 def compress_rows(mask: np.ndarray, array: np.ndarray) -> np.ndarray:
-    """``array[mask]`` for a C-contiguous 2-D ``array``, gathering whole rows as opaque
-    records (several times faster than numpy's element-wise 2-D boolean indexing)."""
-    if not array.flags.c_contiguous or array.ndim != 2 or array.shape[1] == 0:
-        return array[mask]
-    rows = array.view(np.dtype((np.void, array.shape[1] * array.itemsize))).reshape(-1)
-    return rows[mask].view(array.dtype).reshape(-1, array.shape[1])
+    """``array[mask]`` for a 2-D ``array``, gathering whole rows as opaque records when its
+    last axis is contiguous (several times faster than numpy's element-wise 2-D boolean
+    indexing); a C-contiguous result."""
+    records = row_records(array)
+    return array[mask] if records is None else _from_records(records[mask], array)
 
 
-#: Above this many runs of dropped rows, a masked copy beats copying the blocks between them.
-_MAX_RUN_COPIES = 1024
+#: Above this many runs of dropped rows, one masked copy beats copying the blocks between them
+#: (each block costs ~0.7 us of call overhead; the mask ~0.06 ms on a 150k-row frame).
+_MAX_RUN_COPIES = 64
+
+
+def rows_except(points: np.ndarray, drop: np.ndarray) -> np.ndarray:
+    """``points`` without the ascending row indices ``drop``, a new C-contiguous array: block
+    copies of the rows between runs of consecutive dropped rows (a removal sector is a few
+    dozen runs, one or two per beam), or one masked copy when there are many runs (a phantom
+    occludes a few hundred scattered points). ``points`` may be a strided view (e.g. the first
+    columns of a frame file's rows); rows move as opaque records (:func:`row_records`)."""
+    blocks = _kept_blocks(points.shape[0], drop)
+    if blocks is None:
+        keep = np.ones(points.shape[0], dtype=bool)
+        keep[drop] = False
+        return compress_rows(keep, points)
+    out = np.empty((points.shape[0] - drop.size, points.shape[1]), dtype=points.dtype)
+    _copy_blocks(points, blocks, out)
+    return out
 
 
 def copy_rows_except(points: np.ndarray, drop: np.ndarray, out: np.ndarray) -> None:
-    """``out[:] = points`` without the ascending row indices ``drop``, as block copies of the
-    rows between runs of consecutive dropped rows (a phantom occludes a few hundred scattered
-    points; a removal sector is a few dozen runs, one or two per beam). ``points`` may be a
-    strided view (e.g. the first columns of a frame file's rows)."""
+    """``out[:] = points`` without the ascending row indices ``drop`` (:func:`rows_except`
+    into a given array)."""
+    blocks = _kept_blocks(points.shape[0], drop)
+    if blocks is None:
+        out[:] = rows_except(points, drop)
+    else:
+        _copy_blocks(points, blocks, out)
+
+
+def _kept_blocks(num_rows: int, drop: np.ndarray) -> list[tuple[int, int]] | None:
+    """``(start, stop)`` of the blocks of rows between the runs of ascending ``drop``, or
+    ``None`` beyond ``_MAX_RUN_COPIES`` runs."""
     if drop.size == 0:
-        out[:] = points
-        return
+        return [(0, num_rows)]
     breaks = (np.diff(drop) != 1).nonzero()[0]  # last dropped row of each run but the last
     if breaks.size + 1 > _MAX_RUN_COPIES:
-        keep = np.ones(points.shape[0], dtype=bool)
-        keep[drop] = False
-        np.compress(keep, points, axis=0, out=out)
-        return
+        return None
     starts = drop[np.concatenate([[0], breaks + 1])].tolist()  # first row of each run
     stops = (drop[np.concatenate([breaks, [drop.size - 1]])] + 1).tolist()
-    parts = [points[prev:start] for prev, start in zip([0, *stops[:-1]], starts)]
-    parts.append(points[stops[-1] :])
-    np.concatenate(parts, axis=0, out=out)
+    return [*zip([0, *stops[:-1]], starts), (stops[-1], num_rows)]
+
+
+def _copy_blocks(points: np.ndarray, blocks: list[tuple[int, int]], out: np.ndarray) -> None:
+    src, dst = row_records(points), row_records(out)
+    if src is None or dst is None:
+        src, dst = points, out
+    np.concatenate([src[a:b] for a, b in blocks], axis=0, out=dst)

@@ -23,9 +23,10 @@ from pcdet_atlas.datasets.multiframe import (
     SECONDS_PER_FRAME,
     SequenceConfig,
     compress_rows,
-    copy_rows_except,
+    copy_rows,
     history_sample_indices,
     relative_pose,
+    rows_except,
     transform_points_into,
 )
 from pcdet_atlas.datasets.waymo_format import (
@@ -171,17 +172,14 @@ class WaymoDataset(DatasetTemplate):
         ascending row indices ``drop``), tanh on the ``POINTS_TANH_DIM`` columns."""
         features = rows[:, :NUM_LOADED_FEATURES]
         keep = None if self.disable_nlz_flag else rows[:, 5] == -1
-        if drop is None or drop.size == 0:
-            if keep is None:
-                points = np.array(features, dtype=np.float32)
-            else:  # the row selection already makes a new array: no second copy
-                points = np.ascontiguousarray(features[keep])
-        elif keep is None or keep.all():  # a few dropped rows: copy the blocks between them
-            points = np.empty((len(rows) - drop.size, NUM_LOADED_FEATURES), dtype=np.float32)
-            copy_rows_except(features, drop, points)
-        else:
-            keep[drop] = False
-            points = np.ascontiguousarray(features[keep])
+        if drop is not None and drop.size and (keep is None or keep.all()):
+            points = rows_except(features, drop)  # a few dropped rows: block copies
+        elif keep is None:
+            points = copy_rows(features)
+        else:  # the row selection makes a new array: no second copy
+            if drop is not None:
+                keep[drop] = False
+            points = compress_rows(keep, features)
         for dim in self.tanh_dims:
             points[:, dim] = np.tanh(points[:, dim])
         return points

@@ -29,7 +29,12 @@ from pcdet_atlas.datasets.augmentor.world_transforms import (
     RandomWorldRotation,
     RandomWorldScaling,
 )
-from pcdet_atlas.datasets.multiframe import compress_rows
+from pcdet_atlas.datasets.multiframe import (
+    compress_rows,
+    copy_rows,
+    row_records,
+    rows_except,
+)
 from pcdet_atlas.datasets.waymo_format import WaymoFormatError
 from pcdet_atlas.registry import TRANSFORMS
 from pcdet_atlas.utils.box_utils import points_in_boxes_mask
@@ -162,6 +167,27 @@ def test_compress_rows_equals_boolean_indexing():
             got = compress_rows(mask, arr)
             assert got.shape == arr[mask].shape and got.dtype == arr.dtype
             np.testing.assert_array_equal(got, arr[mask])
+
+
+@pytest.mark.parametrize("num_runs", [0, 1, 30, 64, 65, 500])
+def test_rows_except_and_copy_rows_equal_plain_indexing(num_runs):
+    """Rows moved as opaque records (strided rows of a frame file's first columns, contiguous
+    and Fortran-ordered arrays) equal numpy's element-wise results (selection, copy),
+    on both sides of the block-copy / masked-copy switch (64 runs of dropped rows)."""
+    rng = np.random.default_rng(num_runs)
+    raw = rng.standard_normal((3000, 6)).astype(np.float32)
+    keep = np.ones(len(raw), bool)
+    for start in np.sort(rng.choice(len(raw) - 4, num_runs, replace=False))[::2]:
+        keep[start : start + rng.integers(1, 4)] = False  # runs, some merging
+    drop = np.flatnonzero(~keep)
+    for arr in (raw[:, :5], raw, np.asfortranarray(raw[:, :5])):
+        assert (row_records(arr) is None) == (not arr.flags.c_contiguous and arr.strides[1] != 4)
+        got = rows_except(arr, drop)
+        assert got.flags.c_contiguous and got.dtype == arr.dtype
+        np.testing.assert_array_equal(got, arr[keep])
+        copied = copy_rows(arr)
+        assert copied.flags.c_contiguous and not np.shares_memory(copied, arr)
+        np.testing.assert_array_equal(copied, arr)
 
 
 def test_shuffle_is_a_permutation():
