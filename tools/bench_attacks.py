@@ -15,7 +15,9 @@ Parts:
         removal variant; clean frames (ratio ~1) alongside.
 
 Times are the median of ``--repeats`` calls after one warm-up call (getitem: after a warm-up
-pass of both datasets over every timed frame; clean and attacked alternate call by call).
+pass of both datasets over every timed frame; clean and attacked alternate call by call;
+``--rounds K`` repeats each row K times and prints the median and the range of its K ratios,
+since on a shared 2-core VM one round's ratio moves by +-0.04).
 """
 
 from __future__ import annotations
@@ -295,8 +297,12 @@ def bench_getitem(args) -> None:
     root, lib_path = _getitem_data(args)
     classes = ["Vehicle", "Pedestrian", "Cyclist"]
     print(f"getitem: data {root}, torch threads {torch.get_num_threads()}, repeats {args.repeats}")
+    print(
+        f"getitem: {args.rounds} round(s) of {args.repeats} alternating calls per row; medians "
+        "over rounds, ratio range over rounds"
+    )
     print(f"  {'input':<8}{'variant':<18}{'frames':<9}{'clean ms':>10}{'attacked ms':>13}"
-          f"{'extra ms':>10}{'ratio':>8}{'target':>9}")  # fmt: skip
+          f"{'extra ms':>10}{'ratio':>8}{'range':>12}{'target':>9}")  # fmt: skip
     inputs = {
         "1": ("synthetic_waymo.yaml", 1.25),
         "4": ("synthetic_waymo_multiframe.yaml", 1.35),
@@ -330,19 +336,25 @@ def bench_getitem(args) -> None:
                 for i in frames[kind]:
                     clean[i], attacked[i]
                 idx_a, idx_c = itertools.cycle(frames[kind]), itertools.cycle(frames[kind])
-                t = time_interleaved(
-                    {
-                        "clean": lambda ds=clean, it=idx_c: ds[next(it)],
-                        "attacked": lambda ds=attacked, it=idx_a: ds[next(it)],
-                    },
-                    args.repeats,
-                    block=1,  # alternate call by call: load spikes hit both alike
-                )
-                ratio = t["attacked"] / t["clean"]
+                rounds = [
+                    time_interleaved(
+                        {
+                            "clean": lambda ds=clean, it=idx_c: ds[next(it)],
+                            "attacked": lambda ds=attacked, it=idx_a: ds[next(it)],
+                        },
+                        args.repeats,
+                        block=1,  # alternate call by call: load spikes hit both alike
+                    )
+                    for _ in range(args.rounds)
+                ]
+                ratios = sorted(t["attacked"] / t["clean"] for t in rounds)
+                c_ms = statistics.median(t["clean"] for t in rounds)
+                a_ms = statistics.median(t["attacked"] for t in rounds)
+                spread = f"{ratios[0]:.2f}-{ratios[-1]:.2f}" if len(ratios) > 1 else ""
                 goal = f"<= {target}" if kind == "spoofed" else "~ 1"
-                print(f"  {mode:<8}{variant:<18}{kind:<9}{t['clean']:>10.2f}"
-                      f"{t['attacked']:>13.2f}{t['attacked'] - t['clean']:>10.2f}"
-                      f"{ratio:>8.2f}{goal:>9}")  # fmt: skip
+                print(f"  {mode:<8}{variant:<18}{kind:<9}{c_ms:>10.2f}{a_ms:>13.2f}"
+                      f"{a_ms - c_ms:>10.2f}{statistics.median(ratios):>8.2f}{spread:>12}"
+                      f"{goal:>9}")  # fmt: skip
 
 
 PARTS = {"raycast": bench_raycast, "getitem": bench_getitem}
@@ -363,6 +375,10 @@ def main() -> None:
     parser.add_argument(
         "--inputs", default="1,4", help="getitem part: frames per input to time (1, 4 or 1,4)"
     )
+    parser.add_argument(
+        "--rounds", type=int, default=1,
+        help="getitem part: timed rounds per row (median and range of their ratios)",
+    )  # fmt: skip
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     for name, fn in PARTS.items():
