@@ -170,9 +170,7 @@ def rows_except(points: np.ndarray, drop: np.ndarray) -> np.ndarray:
     columns of a frame file's rows); rows move as opaque records (:func:`row_records`)."""
     blocks = _kept_blocks(points.shape[0], drop)
     if blocks is None:
-        keep = np.ones(points.shape[0], dtype=bool)
-        keep[drop] = False
-        return compress_rows(keep, points)
+        return _masked_except(points, drop)
     out = np.empty((points.shape[0] - drop.size, points.shape[1]), dtype=points.dtype)
     _copy_blocks(points, blocks, out)
     return out
@@ -183,9 +181,15 @@ def copy_rows_except(points: np.ndarray, drop: np.ndarray, out: np.ndarray) -> N
     into a given array)."""
     blocks = _kept_blocks(points.shape[0], drop)
     if blocks is None:
-        out[:] = rows_except(points, drop)
+        out[:] = _masked_except(points, drop)
     else:
         _copy_blocks(points, blocks, out)
+
+
+def _masked_except(points: np.ndarray, drop: np.ndarray) -> np.ndarray:
+    keep = np.ones(points.shape[0], dtype=bool)
+    keep[drop] = False
+    return compress_rows(keep, points)
 
 
 def _kept_blocks(num_rows: int, drop: np.ndarray) -> list[tuple[int, int]] | None:
