@@ -173,7 +173,7 @@ class WaymoDataset(DatasetTemplate):
         features = rows[:, :NUM_LOADED_FEATURES]
         keep = None if self.disable_nlz_flag else rows[:, 5] == -1
         if drop is not None and drop.size and (keep is None or keep.all()):
-            points = rows_except(features, drop)  # a few dropped rows: block copies
+            points = rows_except(features, drop)  # block copies, or a masked copy
         elif keep is None:
             points = copy_rows(features)
         else:  # the row selection makes a new array: no second copy
