@@ -380,6 +380,8 @@ def main() -> None:
         help="getitem part: timed rounds per row (median and range of their ratios)",
     )  # fmt: skip
     args = parser.parse_args()
+    if args.rounds < 1:
+        parser.error(f"--rounds: expected a positive number of rounds, got {args.rounds}")
     torch.set_num_threads(args.threads)
     for name, fn in PARTS.items():
         if args.part in ("all", name):
