@@ -1,4 +1,4 @@
-"""Write one ATLAS variant of a Waymo-format split to disk, in OpenPCDet's layout (SPEC §3.7).
+"""Write one ATLAS variant of a Waymo-format split to disk, in OpenPCDet's layout (docs/attacks.md).
 
     python tools/generate_atlas.py --data_cfg cfgs/dataset_configs/synthetic_waymo.yaml \
         --attack cfgs/attacks/inj_global_hard.yaml --out_dir data/atlas/inj_global_hard
@@ -22,7 +22,8 @@ source labels (attack targets are in the metadata, apart from the ground truth).
 
 Resumable: a sequence whose ``<seq>.pkl`` and ``<seq>_atlas.pkl`` exist for the same variant and
 the same merged attack config is skipped; another config (e.g. ``--set SEED 1``) is an error naming
-the keys that differ, never a silent mix; a sequence interrupted midway is redone.
+the keys that differ, never a silent mix; a sequence interrupted midway is redone. An ``--out_dir``
+that is, contains or lies inside the source ``DATA_PATH`` (symlinks resolved) is an error.
 """
 
 from __future__ import annotations
@@ -37,8 +38,16 @@ import numpy as np
 from tqdm import tqdm
 
 from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
-from pcdet_atlas.config import REPO_ROOT, cfg_from_list, cfg_from_yaml_file, save_config, to_plain
+from pcdet_atlas.config import (
+    REPO_ROOT,
+    ConfigError,
+    cfg_from_list,
+    cfg_from_yaml_file,
+    save_config,
+    to_plain,
+)
 from pcdet_atlas.datasets import waymo_format as wf
+from pcdet_atlas.datasets.dataset import resolve_data_path
 from pcdet_atlas.utils.common import create_logger
 
 CLASS_NAMES = ["Vehicle", "Pedestrian", "Cyclist"]
@@ -137,10 +146,35 @@ def _done(out_seq: Path, seq_name: str, variant: str, attack_cfg: dict) -> dict 
     return saved["frames"]
 
 
+def check_out_dir(out_root: Path, data_root: Path) -> None:
+    """Refuse an output root that is, contains or lies inside the source dataset root (symlinks
+    resolved): writing there would replace clean frames and sequence infos with attacked ones."""
+    out_real, data_real = out_root.resolve(), data_root.resolve()
+    if out_real == data_real:
+        relation = "is"
+    elif data_real in out_real.parents:
+        relation = "lies inside"
+    elif out_real in data_real.parents:
+        relation = "contains"
+    else:
+        return
+    raise ValueError(
+        f"--out_dir {out_root} (resolved: {out_real}) {relation} the source DATA_PATH "
+        f"{data_root} (resolved: {data_real}); writing there would overwrite the clean data: "
+        "choose an --out_dir outside the source dataset"
+    )
+
+
 def main(argv=None) -> Path:
     args = parse_args(argv)
     logger = create_logger()
     data_cfg = cfg_from_yaml_file(args.data_cfg)
+    out_root = Path(args.out_dir)
+    if not out_root.is_absolute():
+        out_root = REPO_ROOT / out_root
+    if "DATA_PATH" not in data_cfg:
+        raise ConfigError(f"{args.data_cfg}: no DATA_PATH (the source dataset root)")
+    check_out_dir(out_root, resolve_data_path(data_cfg.DATA_PATH))
     attack_cfg = cfg_from_yaml_file(args.attack)
     if args.set_cfgs:
         cfg_from_list(args.set_cfgs, attack_cfg)
@@ -149,9 +183,6 @@ def main(argv=None) -> Path:
     data_cfg.SAMPLED_INTERVAL["test"] = 1
     dataset = AtlasWaymoDataset(data_cfg, CLASS_NAMES, attack_cfg, training=False, logger=logger)
     plain_cfg = to_plain(attack_cfg)
-    out_root = Path(args.out_dir)
-    if not out_root.is_absolute():
-        out_root = REPO_ROOT / out_root
     (out_root / "ImageSets").mkdir(parents=True, exist_ok=True)
     names = list(dataset.seq_name_to_infos)[: args.max_sequences]
     listing = "".join(f"{name}.tfrecord\n" for name in names)
