@@ -4,8 +4,11 @@
     torchrun --nproc_per_node 2 tools/train.py --cfg ... --launcher pytorch
 
 Output: ``output/<group>/<tag>/<extra_tag>/`` with ``ckpt/checkpoint_epoch_N.pth``, ``train_*.log``,
-the merged ``<tag>.yaml`` and ``tensorboard/``. Training resumes from ``--ckpt`` or, if absent,
-from the newest checkpoint in ``ckpt/`` (exactly: optimizer, schedule and RNG state included).
+the merged ``<tag>.yaml`` (with the ``NUM_EPOCHS`` and ``BATCH_SIZE_PER_GPU`` that ``--epochs`` /
+``--batch_size`` put in effect) and ``tensorboard/``. Training resumes from ``--ckpt`` or, if
+absent, from the newest checkpoint in ``ckpt/`` (exactly: optimizer, schedule and RNG state
+included); a checkpoint trained with other ``OPTIMIZATION`` settings, epochs or total batch size
+is refused, naming what changed. Counts below their minimum (``--epochs 0``) are usage errors.
 """
 
 from __future__ import annotations
@@ -16,37 +19,46 @@ import datetime
 import torch
 from tensorboardX import SummaryWriter
 
-from pcdet_atlas.config import log_config_to_file, save_config
+from pcdet_atlas.config import ConfigError, key_source, log_config_to_file, save_config, to_plain
 from pcdet_atlas.datasets import build_dataloader
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.optimization import build_optimizer, build_scheduler
 from pcdet_atlas.train_utils import (
     TrainState,
+    check_resume_settings,
     eval_one_epoch,
     find_latest_checkpoint,
     load_checkpoint,
     retain_freed_cpu_memory,
     train_model,
 )
-from pcdet_atlas.train_utils.setup import add_common_args, load_cfg, output_dir_for, setup_runtime
+from pcdet_atlas.train_utils.setup import (
+    add_common_args,
+    count_arg,
+    load_cfg,
+    output_dir_for,
+    setup_runtime,
+)
 from pcdet_atlas.utils.common import create_logger
 
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_common_args(parser)
-    parser.add_argument("--epochs", type=int, default=None)
+    parser.add_argument("--epochs", type=count_arg(1), default=None)
     parser.add_argument("--pretrained_model", type=str, default=None, help="weights to start from")
     parser.add_argument("--sync_bn", action="store_true", default=False)
-    parser.add_argument("--ckpt_save_interval", type=int, default=1)
-    parser.add_argument("--max_ckpt_save_num", type=int, default=30)
+    parser.add_argument("--ckpt_save_interval", type=count_arg(1), default=1)
+    parser.add_argument("--max_ckpt_save_num", type=count_arg(1), default=30)
     parser.add_argument("--merge_all_iters_to_one_epoch", action="store_true", default=False)
-    parser.add_argument("--num_epochs_to_eval", type=int, default=0, help=">0: evaluate at the end")
-    parser.add_argument("--logger_iter_interval", type=int, default=50)
+    parser.add_argument(
+        "--num_epochs_to_eval", type=count_arg(0), default=0, help=">0: evaluate at the end"
+    )
+    parser.add_argument("--logger_iter_interval", type=count_arg(1), default=50)
     parser.add_argument("--use_amp", action="store_true", default=False)
     parser.add_argument("--no_progress", action="store_true", default=False, help="no tqdm bars")
     parser.add_argument(
-        "--threads", type=int, default=None,
+        "--threads", type=count_arg(1), default=None,
         help="torch CPU threads of the training process (default: torch's, one per core); "
         "1 is faster on a 2-core CPU shared with other jobs or with --workers",
     )  # fmt: skip
@@ -66,10 +78,25 @@ def main(argv=None) -> dict:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     optim_cfg = cfg.OPTIMIZATION
-    batch_size = args.batch_size or optim_cfg.BATCH_SIZE_PER_GPU * world
+    for key in ("BATCH_SIZE_PER_GPU", "NUM_EPOCHS"):
+        value = optim_cfg[key]
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ConfigError(
+                f"OPTIMIZATION.{key} (from {key_source(optim_cfg, key)}): expected an integer "
+                f">= 1, got {value!r}"
+            )
+    batch_size = (
+        args.batch_size if args.batch_size is not None else optim_cfg.BATCH_SIZE_PER_GPU * world
+    )
     if batch_size % world:
         raise ValueError(f"--batch_size {batch_size} is not divisible by {world} processes")
-    epochs = args.epochs or optim_cfg.NUM_EPOCHS
+    epochs = args.epochs if args.epochs is not None else optim_cfg.NUM_EPOCHS
+    # the saved config and the checkpoints state the schedule in effect, flags included
+    optim_cfg.NUM_EPOCHS, optim_cfg.BATCH_SIZE_PER_GPU = epochs, batch_size // world
+    train_settings = {
+        "OPTIMIZATION": {k: v for k, v in to_plain(optim_cfg).items() if k != "BATCH_SIZE_PER_GPU"},
+        "batch_size": batch_size,  # total over processes: the schedule does not see the split
+    }
 
     out_dir = output_dir_for(cfg, args.output_root, args.extra_tag)
     ckpt_dir = out_dir / "ckpt"
@@ -80,10 +107,6 @@ def main(argv=None) -> dict:
         logger.info("CPU: freed memory is kept for reuse (glibc mallopt; --default_malloc: off)")
     if device.type == "cpu":
         logger.info(f"CPU: {torch.get_num_threads()} torch threads")
-    if rank == 0:
-        save_config(cfg, out_dir / f"{cfg.TAG}.yaml")
-        log_config_to_file(cfg, logger)
-    tb_log = SummaryWriter(log_dir=str(out_dir / "tensorboard")) if rank == 0 else None
 
     dataset, loader, sampler = build_dataloader(
         cfg.DATA_CONFIG, cfg.CLASS_NAMES, batch_size // world, dist, workers=args.workers,
@@ -105,17 +128,22 @@ def main(argv=None) -> dict:
     if resume is not None:
         total_steps = getattr(scheduler, "total_steps", None)
         ckpt = load_checkpoint(resume, model, optimizer, scheduler, scaler)
+        check_resume_settings(ckpt, train_settings, resume)
         if total_steps is not None and scheduler.total_steps != total_steps:
             raise ValueError(
                 f"{resume} was trained on a {scheduler.total_steps}-step schedule; this run has "
-                f"{total_steps} steps ({epochs} epochs x {len(loader)} iterations): resume with "
-                "the original --epochs and --batch_size"
+                f"{total_steps} steps ({epochs} epochs x {len(loader)} iterations): the training "
+                "set or its sampling differs from the checkpoint's"
             )
         state = TrainState(epoch=ckpt["epoch"], it=ckpt["it"])
         logger.info(f"resumed from {resume} (epoch {state.epoch}, iteration {state.it})")
     elif args.pretrained_model is not None:
         model.load_params_from_file(args.pretrained_model)
         logger.info(f"initialised from {args.pretrained_model}")
+    if rank == 0:  # only once the resumed checkpoint agrees with it
+        save_config(cfg, out_dir / f"{cfg.TAG}.yaml")
+        log_config_to_file(cfg, logger)
+    tb_log = SummaryWriter(log_dir=str(out_dir / "tensorboard")) if rank == 0 else None
     if dist:
         model = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None
@@ -127,6 +155,7 @@ def main(argv=None) -> dict:
         ckpt_save_interval=args.ckpt_save_interval, max_ckpt_save_num=args.max_ckpt_save_num,
         scaler=scaler, use_amp=args.use_amp, tb_log=tb_log, logger=logger,
         logger_iter_interval=args.logger_iter_interval, show_progress=not args.no_progress,
+        train_settings=train_settings,
     )  # fmt: skip
     result = {"output_dir": out_dir, "state": state}
     if args.num_epochs_to_eval > 0:

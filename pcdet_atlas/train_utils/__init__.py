@@ -1,25 +1,30 @@
 """Training and evaluation loops behind ``tools/train.py`` and ``tools/test.py``."""
 
 from pcdet_atlas.train_utils.checkpoint import (
+    check_resume_settings,
     checkpoint_state,
     export_model_checkpoint,
     find_latest_checkpoint,
+    list_epoch_checkpoints,
     load_checkpoint,
     save_checkpoint,
 )
 from pcdet_atlas.train_utils.cpu_memory import retain_freed_cpu_memory
-from pcdet_atlas.train_utils.dist import get_dist_info, init_dist_pytorch
+from pcdet_atlas.train_utils.dist import get_dist_info, init_dist_pytorch, init_dist_slurm
 from pcdet_atlas.train_utils.eval_utils import eval_one_epoch, predict_dataset
 from pcdet_atlas.train_utils.trainer import TrainState, train_model, train_one_epoch
 
 __all__ = [
     "TrainState",
+    "check_resume_settings",
     "checkpoint_state",
     "eval_one_epoch",
     "export_model_checkpoint",
     "find_latest_checkpoint",
     "get_dist_info",
     "init_dist_pytorch",
+    "init_dist_slurm",
+    "list_epoch_checkpoints",
     "load_checkpoint",
     "predict_dataset",
     "retain_freed_cpu_memory",

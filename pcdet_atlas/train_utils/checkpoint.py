@@ -1,20 +1,25 @@
 """OpenPCDet-style checkpoints with everything needed for an exact resume.
 
 A checkpoint is a dict ``{'epoch', 'it', 'model_state', 'optimizer_state', 'scheduler_state',
-'scaler_state', 'rng_state', 'version'}``; ``epoch`` counts the finished epochs and ``it`` the
-optimizer steps taken. ``model_state`` alone is what ``--pretrained_model`` / ``tools/test.py``
-load (strictly, with a readable error on mismatch).
+'scaler_state', 'rng_state', 'train_settings', 'version'}``; ``epoch`` counts the finished epochs
+and ``it`` the optimizer steps taken; ``train_settings`` holds the optimization settings in effect
+(:func:`check_resume_settings` compares them on resume). ``model_state`` alone is what
+``--pretrained_model`` / ``tools/test.py`` load (strictly, with a readable error on mismatch).
 """
 
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from pathlib import Path
 
 import torch
 from torch import nn
 
-from pcdet_atlas.models.detectors.detector3d_template import load_state_dict_checked
+from pcdet_atlas.models.detectors.detector3d_template import (
+    load_state_dict_checked,
+    read_checkpoint,
+)
 from pcdet_atlas.version import __version__
 
 __all__ = [
@@ -22,8 +27,12 @@ __all__ = [
     "save_checkpoint",
     "load_checkpoint",
     "find_latest_checkpoint",
+    "list_epoch_checkpoints",
+    "check_resume_settings",
     "export_model_checkpoint",
 ]
+
+CHECKPOINT_NAME = re.compile(r"checkpoint_epoch_(\d+)\.pth")
 
 
 def _unwrap(model: nn.Module) -> nn.Module:
@@ -38,6 +47,7 @@ def checkpoint_state(
     *,
     epoch: int,
     it: int,
+    train_settings: Mapping | None = None,
 ) -> dict:
     """The checkpoint dict (tensors moved to CPU)."""
     state = {k: v.detach().cpu() for k, v in _unwrap(model).state_dict().items()}
@@ -49,6 +59,7 @@ def checkpoint_state(
         "scheduler_state": None if scheduler is None else scheduler.state_dict(),
         "scaler_state": None if scaler is None else scaler.state_dict(),
         "rng_state": torch.get_rng_state(),
+        "train_settings": None if train_settings is None else dict(train_settings),
         "version": f"pcdet_atlas+{__version__}",
     }
 
@@ -78,7 +89,7 @@ def load_checkpoint(
         CheckpointMismatchError: the parameters do not fit ``model``.
         KeyError: an optimizer/scheduler is given but the checkpoint has no state for it.
     """
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    ckpt = read_checkpoint(path)
     state = ckpt["model_state"] if "model_state" in ckpt else ckpt
     load_state_dict_checked(_unwrap(model), state, strict=strict, source=str(path))
     for obj, key in ((optimizer, "optimizer_state"), (scheduler, "scheduler_state")):
@@ -93,20 +104,55 @@ def load_checkpoint(
     return ckpt
 
 
-def find_latest_checkpoint(ckpt_dir: str | Path) -> Path | None:
-    """The ``checkpoint_epoch_N.pth`` with the largest N in ``ckpt_dir`` (None if there is none)."""
+def list_epoch_checkpoints(ckpt_dir: str | Path) -> list[tuple[int, Path]]:
+    """``[(N, path)]`` of the ``checkpoint_epoch_N.pth`` files in ``ckpt_dir``, by epoch."""
     found = []
     for p in Path(ckpt_dir).glob("checkpoint_epoch_*.pth"):
-        m = re.fullmatch(r"checkpoint_epoch_(\d+)\.pth", p.name)
+        m = CHECKPOINT_NAME.fullmatch(p.name)
         if m:
             found.append((int(m.group(1)), p))
-    return max(found)[1] if found else None
+    return sorted(found)
+
+
+def find_latest_checkpoint(ckpt_dir: str | Path) -> Path | None:
+    """The ``checkpoint_epoch_N.pth`` with the largest N in ``ckpt_dir`` (None if there is none)."""
+    found = list_epoch_checkpoints(ckpt_dir)
+    return found[-1][1] if found else None
+
+
+def _flatten(node, prefix: str = "") -> dict:
+    if not isinstance(node, Mapping):
+        return {prefix: node}
+    out: dict = {}
+    for key, value in node.items():
+        out.update(_flatten(value, f"{prefix}.{key}" if prefix else str(key)))
+    return out
+
+
+def check_resume_settings(ckpt: Mapping, settings: Mapping, path: str | Path) -> None:
+    """Refuse to resume a checkpoint trained with other optimization settings.
+
+    Raises:
+        ValueError: naming every setting that differs, with the checkpoint's and this run's
+            values (a changed schedule or optimizer would silently mix two trainings).
+    """
+    saved = ckpt.get("train_settings")
+    if saved is None:
+        return  # written before settings were recorded: only the step count can be checked
+    old, new = _flatten(saved), _flatten(settings)
+    differ = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
+    if differ:
+        changes = ", ".join(f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in differ)
+        raise ValueError(
+            f"cannot resume {path}: it was trained with other settings ({changes}); resume with "
+            "the checkpoint's settings, or start a new run (another --extra_tag)"
+        )
 
 
 def export_model_checkpoint(src: str | Path, dst: str | Path) -> Path:
     """Keep only ``epoch``, ``it``, ``model_state`` and ``version`` of a training checkpoint (the
     small file a model zoo ships; ``tools/test.py`` and ``--pretrained_model`` read it)."""
-    ckpt = torch.load(src, map_location="cpu", weights_only=False)
+    ckpt = read_checkpoint(src)
     if "model_state" not in ckpt:
         raise KeyError(f"{src} is not a pcdet_atlas checkpoint (no 'model_state')")
     keep = {k: ckpt[k] for k in ("epoch", "it", "model_state", "version") if k in ckpt}

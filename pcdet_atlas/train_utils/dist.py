@@ -1,14 +1,22 @@
-"""``torchrun`` process groups: gloo on CPU, nccl on GPU."""
+"""Process groups of ``torchrun`` and Slurm (OpenPCDet's launchers): gloo on CPU, nccl on GPU."""
 
 from __future__ import annotations
 
 import os
+import subprocess
+from collections.abc import Callable
 from datetime import timedelta
 
 import torch
 import torch.distributed as dist
 
-__all__ = ["init_dist_pytorch", "get_dist_info", "all_gather_objects"]
+__all__ = [
+    "init_dist_pytorch",
+    "init_dist_slurm",
+    "first_slurm_host",
+    "get_dist_info",
+    "all_gather_objects",
+]
 
 
 def init_dist_pytorch(backend: str | None = None, timeout_min: int = 30) -> tuple[int, int, int]:
@@ -32,6 +40,59 @@ def init_dist_pytorch(backend: str | None = None, timeout_min: int = 30) -> tupl
         torch.cuda.set_device(local_rank % torch.cuda.device_count())
     dist.init_process_group(backend=backend, timeout=timedelta(minutes=timeout_min))
     return dist.get_world_size(), dist.get_rank(), local_rank
+
+
+def first_slurm_host(node_list: str) -> str:
+    """The first host name of a Slurm node list (``scontrol show hostname <list>``, first line)."""
+    try:
+        proc = subprocess.run(
+            ["scontrol", "show", "hostname", node_list], capture_output=True, text=True
+        )
+    except FileNotFoundError as err:
+        raise RuntimeError(
+            "--launcher slurm: `scontrol` is not on PATH (start the job with srun inside a "
+            "Slurm allocation)"
+        ) from err
+    hosts = proc.stdout.split()
+    if proc.returncode != 0 or not hosts:
+        raise RuntimeError(
+            f"--launcher slurm: `scontrol show hostname {node_list}` gave no host (exit "
+            f"{proc.returncode}): {proc.stderr.strip()}"
+        )
+    return hosts[0]
+
+
+def init_dist_slurm(
+    tcp_port: int,
+    backend: str | None = None,
+    timeout_min: int = 30,
+    resolve_host: Callable[[str], str] = first_slurm_host,
+) -> tuple[int, int, int]:
+    """Join the process group of an ``srun`` job, as OpenPCDet's ``init_dist_slurm`` does.
+
+    Reads ``SLURM_PROCID``, ``SLURM_NTASKS`` and ``SLURM_NODELIST``; the first host of the node
+    list (``resolve_host``) is the master, listening on ``tcp_port``. Sets ``MASTER_ADDR``,
+    ``MASTER_PORT``, ``WORLD_SIZE``, ``RANK`` and ``LOCAL_RANK`` (``SLURM_LOCALID``, else the
+    process id) before ``init_process_group``.
+
+    Returns:
+        ``(world_size, rank, local_rank)``; on GPU the process is bound to
+        ``cuda:local_rank % device_count``.
+    """
+    for key in ("SLURM_PROCID", "SLURM_NTASKS", "SLURM_NODELIST"):
+        if key not in os.environ:
+            raise RuntimeError(
+                f"--launcher slurm needs the Slurm environment ({key} is not set); start with "
+                "`srun --ntasks N python tools/train.py --launcher slurm ...`"
+            )
+    proc_id = int(os.environ["SLURM_PROCID"])
+    local_rank = int(os.environ.get("SLURM_LOCALID", proc_id))
+    os.environ["MASTER_ADDR"] = resolve_host(os.environ["SLURM_NODELIST"])
+    os.environ["MASTER_PORT"] = str(tcp_port)
+    os.environ["WORLD_SIZE"] = str(int(os.environ["SLURM_NTASKS"]))
+    os.environ["RANK"] = str(proc_id)
+    os.environ["LOCAL_RANK"] = str(local_rank)
+    return init_dist_pytorch(backend, timeout_min)
 
 
 def get_dist_info() -> tuple[int, int]:

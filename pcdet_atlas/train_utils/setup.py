@@ -9,32 +9,69 @@ from pathlib import Path
 import torch
 
 from pcdet_atlas.config import REPO_ROOT, cfg_from_list, cfg_from_yaml_file
-from pcdet_atlas.train_utils.dist import init_dist_pytorch
+from pcdet_atlas.train_utils.dist import init_dist_pytorch, init_dist_slurm
 
-__all__ = ["add_common_args", "load_cfg", "exp_group_and_tag", "output_dir_for", "setup_runtime"]
+__all__ = [
+    "add_common_args",
+    "count_arg",
+    "device_arg",
+    "load_cfg",
+    "exp_group_and_tag",
+    "output_dir_for",
+    "resolve_device",
+    "setup_runtime",
+]
 
 DEFAULT_SEED = 666  # OpenPCDet's fixed seed
 #: OpenPCDet's default of 4 loader workers, capped at this machine's CPU count
 DEFAULT_WORKERS = min(4, os.cpu_count() or 1)
 
 
+def count_arg(minimum: int):
+    """An argparse ``type`` for an integer flag that must be ``>= minimum``: a smaller value is a
+    usage error naming the flag (``argument --epochs: must be an integer >= 1, got 0``)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"must be an integer >= {minimum}, got {text!r}"
+            ) from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {minimum}, got {value}")
+        return value
+
+    return parse
+
+
 def add_common_args(parser: argparse.ArgumentParser) -> None:
     """The arguments ``train.py`` and ``test.py`` share (OpenPCDet's names)."""
     parser.add_argument("--cfg_file", "--cfg", dest="cfg_file", required=True, help="model YAML")
-    parser.add_argument("--batch_size", type=int, default=None, help="total over processes")
     parser.add_argument(
-        "--workers", type=int, default=DEFAULT_WORKERS,
+        "--batch_size", type=count_arg(1), default=None, help="total over processes"
+    )
+    parser.add_argument(
+        "--workers", type=count_arg(0), default=DEFAULT_WORKERS,
         help=f"dataloader workers per process (default: {DEFAULT_WORKERS}, OpenPCDet's 4 capped "
         "at the CPU count)",
     )  # fmt: skip
     parser.add_argument("--extra_tag", type=str, default="default")
     parser.add_argument("--ckpt", type=str, default=None)
-    parser.add_argument("--launcher", choices=["none", "pytorch"], default="none")
-    parser.add_argument("--tcp_port", type=int, default=18888, help="unused: torchrun sets it")
+    parser.add_argument(
+        "--launcher", choices=["none", "pytorch", "slurm"], default="none",
+        help="pytorch: under torchrun; slurm: under srun (one process per task)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--tcp_port", type=count_arg(1), default=18888,
+        help="master port of --launcher slurm (torchrun sets its own)",
+    )  # fmt: skip
     parser.add_argument("--local_rank", type=int, default=None, help="unused: from LOCAL_RANK")
     parser.add_argument("--fix_random_seed", action="store_true", default=False)
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of every draw")
-    parser.add_argument("--device", type=str, default=None, help="cpu / cuda (default: auto)")
+    parser.add_argument(
+        "--device", type=device_arg, default=None, help="cpu / cuda / cuda:N (default: auto)"
+    )
     parser.add_argument(
         "--output_root", type=str, default=str(REPO_ROOT / "output"),
         help="root of the output/<group>/<tag>/<extra_tag>/ tree",
@@ -72,28 +109,59 @@ def output_dir_for(cfg, output_root: str | Path, extra_tag: str) -> Path:
     return Path(output_root) / cfg.EXP_GROUP_PATH / cfg.TAG / extra_tag
 
 
+def resolve_device(name: str | None, local_rank: int = 0) -> torch.device:
+    """``--device`` as a torch device: ``None`` -> CUDA when available, else CPU; a bare ``cuda``
+    -> ``cuda:local_rank % device_count``. A device that is not there is a ValueError."""
+    if name is None:
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise ValueError(f"{name!r} is not a device here (expected cpu, cuda or cuda:N)")
+    if device.type == "cpu":
+        return device
+    if not torch.cuda.is_available():
+        raise ValueError(
+            f"{name!r}: no CUDA GPU is visible to torch (torch.cuda.is_available() is False); "
+            "use --device cpu"
+        )
+    count = torch.cuda.device_count()
+    index = local_rank % count if device.index is None else device.index
+    if index >= count:
+        raise ValueError(f"{name!r}: only {count} CUDA device(s) are visible")
+    return torch.device("cuda", index)
+
+
+def device_arg(text: str) -> str:
+    """The argparse ``type`` of ``--device``: a device that is not there (``cuda`` without a
+    GPU) is a one-line usage error naming the flag."""
+    try:
+        resolve_device(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return text
+
+
 def setup_runtime(args) -> tuple[bool, int, int, torch.device]:
-    """Process group (if ``--launcher pytorch``), device and seeds.
+    """Device, process group (``--launcher pytorch`` / ``slurm``) and seeds.
 
     Returns:
         ``(dist, rank, world_size, device)``. Model initialisation uses the global torch RNG,
-        which is seeded from ``--seed`` (plus the rank) so that builds are reproducible.
+        which is seeded from ``--seed`` so that builds are reproducible.
     """
+    # a missing GPU is an error before any process group is joined
+    backend = "nccl" if resolve_device(args.device).type == "cuda" else "gloo"
     if args.launcher == "pytorch":
-        world, rank, local_rank = init_dist_pytorch()
-        dist = True
+        world, rank, local_rank = init_dist_pytorch(backend)
+    elif args.launcher == "slurm":
+        world, rank, local_rank = init_dist_slurm(args.tcp_port, backend)
     else:
-        world, rank, local_rank, dist = 1, 0, 0, False
-    if args.device is not None:
-        device = torch.device(args.device)
-    elif torch.cuda.is_available():
-        device = torch.device("cuda", local_rank % torch.cuda.device_count())
-    else:
-        device = torch.device("cpu")
-    if device.type == "cuda" and device.index is None:
-        device = torch.device("cuda", local_rank % torch.cuda.device_count())
+        world, rank, local_rank = 1, 0, 0
+    device = resolve_device(args.device, local_rank)
     torch.manual_seed(args.seed)
     if args.fix_random_seed:
         torch.use_deterministic_algorithms(True, warn_only=True)
         torch.backends.cudnn.benchmark = False
-    return dist, rank, world, device
+    return args.launcher != "none", rank, world, device

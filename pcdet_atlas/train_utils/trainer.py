@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -144,9 +145,11 @@ def train_model(
     logger: logging.Logger | None = None,
     logger_iter_interval: int = 50,
     show_progress: bool = True,
+    train_settings: Mapping | None = None,
 ) -> TrainState:
     """Train from ``state.epoch`` to ``total_epochs``; saves ``checkpoint_epoch_N.pth`` every
-    ``ckpt_save_interval`` epochs (and at the end), keeping the newest ``max_ckpt_save_num``."""
+    ``ckpt_save_interval`` epochs (and at the end), keeping the newest ``max_ckpt_save_num``.
+    ``train_settings`` (the optimization settings in effect) is stored in each checkpoint."""
     rank, _ = get_dist_info()
     ckpt_dir = Path(ckpt_dir)
     epochs = tqdm.trange(
@@ -177,8 +180,14 @@ def train_model(
                 old.unlink()
             path = save_checkpoint(
                 checkpoint_state(
-                    model, optimizer, scheduler, scaler, epoch=state.epoch, it=state.it
-                ),
+                    model,
+                    optimizer,
+                    scheduler,
+                    scaler,
+                    epoch=state.epoch,
+                    it=state.it,
+                    train_settings=train_settings,
+                ),  # fmt: skip
                 ckpt_dir / f"checkpoint_epoch_{state.epoch}.pth",
             )
             if logger is not None:

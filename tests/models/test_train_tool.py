@@ -6,7 +6,8 @@ import pytest
 import torch
 from model_batches import load_tool
 
-from pcdet_atlas.config import REPO_ROOT
+from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+from pcdet_atlas.models import build_network_from_config
 
 CFG = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml"
 
@@ -54,3 +55,83 @@ def test_train_lowers_loss_and_resumes_bit_exactly(synthetic_root, tmp_path):
         assert torch.equal(a["model_state"][k], b["model_state"][k]), k
     assert a["scheduler_state"]["last_epoch"] == b["scheduler_state"]["last_epoch"] == 6
     assert history[-1] == resumed["state"].history[0]
+
+
+@pytest.mark.parametrize(
+    "flag, value",
+    [("--epochs", "0"), ("--epochs", "-3"), ("--batch_size", "0"), ("--batch_size", "-2"),
+     ("--workers", "-1"), ("--max_ckpt_save_num", "0"), ("--ckpt_save_interval", "0"),
+     ("--num_epochs_to_eval", "-1"), ("--logger_iter_interval", "0"), ("--threads", "0"),
+     ("--epochs", "two")],
+)  # fmt: skip
+def test_counts_below_their_minimum_are_usage_errors(flag, value, capsys):
+    train = load_tool("train")
+    with pytest.raises(SystemExit) as exc:
+        train.parse_args(["--cfg", str(CFG), flag, value])
+    assert exc.value.code == 2
+    assert f"argument {flag}: must be an integer >=" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the case of a machine without a GPU")
+def test_device_cuda_without_gpu_is_one_clear_error(synthetic_root, tmp_path, capsys):
+    train = load_tool("train")
+    args = train_args(synthetic_root, tmp_path, 1, "cuda")
+    args[args.index("--device") + 1] = "cuda"
+    with pytest.raises(SystemExit):
+        train.main(args)
+    err = capsys.readouterr().err.splitlines()[-1]
+    assert err.endswith("error: argument --device: 'cuda': no CUDA GPU is visible to torch "
+                        "(torch.cuda.is_available() is False); use --device cpu")  # fmt: skip
+    assert not tmp_path.joinpath("atlas").exists()
+
+
+def one_step_args(root, out, extra_tag, *overrides):
+    """One epoch of one step (2 frames, batch 2)."""
+    args = train_args(root, out, 1, extra_tag)
+    args[args.index("train:5,test:5")] = "train:10,test:10"
+    return args + list(overrides)
+
+
+def test_resume_with_other_settings_is_refused_and_the_config_states_them(synthetic_root, tmp_path):
+    train = load_tool("train")
+    ret = train.main(one_step_args(synthetic_root, tmp_path, "run"))
+    run_dir = ret["output_dir"]
+    assert ret["state"].it == 1
+    saved = cfg_from_yaml_file(run_dir / "centerpoint.yaml")
+    # what --epochs 1 / --batch_size 2 put in effect, not the YAML's 20 epochs of 4
+    assert saved.OPTIMIZATION.NUM_EPOCHS == 1 and saved.OPTIMIZATION.BATCH_SIZE_PER_GPU == 2
+    ckpt = torch.load(run_dir / "ckpt" / "checkpoint_epoch_1.pth", weights_only=False)
+    assert ckpt["train_settings"]["OPTIMIZATION"]["LR"] == 0.01
+    assert ckpt["train_settings"]["batch_size"] == 2
+
+    with pytest.raises(ValueError, match=r"OPTIMIZATION\.LR: 0\.01 -> 0\.02") as exc:
+        train.main(one_step_args(synthetic_root, tmp_path, "run", "OPTIMIZATION.WEIGHT_DECAY",
+                                 "0.02", "OPTIMIZATION.LR", "0.02"))  # fmt: skip
+    assert "OPTIMIZATION.WEIGHT_DECAY" in str(exc.value) and "checkpoint_epoch_1.pth" in str(
+        exc.value
+    )
+    args = one_step_args(synthetic_root, tmp_path, "run")
+    args[args.index("--epochs") + 1] = "2"
+    with pytest.raises(ValueError, match=r"OPTIMIZATION\.NUM_EPOCHS: 1 -> 2"):
+        train.main(args)
+    args[args.index("--batch_size") + 1] = "1"
+    args[args.index("--epochs") + 1] = "1"
+    with pytest.raises(ValueError, match=r"batch_size: 2 -> 1"):
+        train.main(args)
+    # a refused resume leaves the saved config as it was
+    assert cfg_from_yaml_file(run_dir / "centerpoint.yaml") == saved
+
+
+def test_truncated_checkpoint_names_its_path(synthetic_root, tmp_path):
+    train = load_tool("train")
+    ckpt_dir = tmp_path / "atlas" / "synthetic" / "centerpoint" / "cut" / "ckpt"
+    ckpt_dir.mkdir(parents=True)
+    model = build_network_from_config(cfg_from_yaml_file(CFG))
+    whole = tmp_path / "whole.pth"
+    torch.save({"model_state": model.state_dict(), "epoch": 1}, whole)
+    cut = ckpt_dir / "checkpoint_epoch_1.pth"
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    with pytest.raises(ValueError, match=f"checkpoint {cut} cannot be read .*truncated"):
+        train.main(one_step_args(synthetic_root, tmp_path, "cut"))
+    with pytest.raises(ValueError, match=f"checkpoint {cut} cannot be read"):
+        model.load_params_from_file(cut)

@@ -9,6 +9,7 @@ what earlier stages determined (feature widths, grid, strides).
 
 from __future__ import annotations
 
+import pickle
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -33,6 +34,23 @@ STAGE_CFG_KEYS = {
 
 class CheckpointMismatchError(RuntimeError):
     """A checkpoint whose parameters do not fit the model built from the config."""
+
+
+def read_checkpoint(filename: str | Path, map_location: str = "cpu") -> dict:
+    """``torch.load`` a checkpoint file; a truncated or corrupt file is a ValueError naming it."""
+    path = Path(filename)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} not found")
+    try:
+        ckpt = torch.load(path, map_location=map_location, weights_only=False)
+    except (EOFError, OSError, RuntimeError, pickle.UnpicklingError) as err:
+        raise ValueError(
+            f"checkpoint {path} cannot be read ({path.stat().st_size} bytes; truncated or "
+            f"corrupt?): {type(err).__name__}: {err}"
+        ) from err
+    if not isinstance(ckpt, Mapping):
+        raise ValueError(f"checkpoint {path} holds a {type(ckpt).__name__}, not a dict of states")
+    return ckpt
 
 
 def stage_model_info(stage: nn.Module, name: str, info: dict) -> None:
@@ -164,7 +182,7 @@ class Detector3DTemplate(nn.Module):
             CheckpointMismatchError: naming missing, unexpected and wrongly shaped parameters
                 (with ``strict=False`` only the shape mismatches raise).
         """
-        ckpt = torch.load(filename, map_location=map_location, weights_only=False)
+        ckpt = read_checkpoint(filename, map_location)
         state = ckpt["model_state"] if "model_state" in ckpt else ckpt
         load_state_dict_checked(self, state, strict=strict, source=str(filename))
         return ckpt
