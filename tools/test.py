@@ -2,25 +2,50 @@
 
     python tools/test.py --cfg cfgs/atlas/synthetic/cp4f.yaml --attacks clean,inj_global_hard,rem_40
     python tools/test.py --cfg cfgs/atlas/synthetic/cp4f.yaml --attacks all
+    python tools/test.py --cfg cfgs/atlas/synthetic/cp4f.yaml --eval_all --start_epoch 10
     torchrun --nproc_per_node 2 tools/test.py --cfg ... --launcher pytorch
 
-``--ckpt`` defaults to the config's ``ATLAS.CHECKPOINT``. Output:
-``output/<group>/<tag>/<extra_tag>/eval/<ckpt stem>/<split>/<eval_tag>/`` with ``results.json``
-(schema in ``pcdet_atlas.evaluation.results``), ``<variant>/result.pkl``, the merged config and a
-log; the table is printed as the paper lays it out.
+``--ckpt`` defaults to the config's ``ATLAS.CHECKPOINT``; ``--eval_all`` evaluates every
+``checkpoint_epoch_N.pth`` of ``--ckpt_dir`` (default: the run's ``ckpt/``) with
+N >= ``--start_epoch``, in epoch order. Output, per checkpoint:
+``output/<group>/<tag>/<extra_tag>/eval/<name>/<split>/<eval_tag>/`` (``<name>`` is ``epoch_N``
+for ``checkpoint_epoch_N.pth``, the file name without ``.pth`` otherwise) with ``results.json``
+(schema in docs/evaluation.md; rewritten after each variant, so a failure keeps the variants
+done), ``<variant>/result.pkl``, the merged config and a log; the table is printed as the paper
+lays it out.
+
+Every variant YAML (its ``VARIANT`` must be its file name), the test split, the (first)
+checkpoint and the evaluation directories are checked before anything is written: an evaluation
+directory that already holds files is an error unless ``--overwrite`` is given, which deletes it
+first.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import shutil
 from pathlib import Path
+
+import torch.distributed as torch_dist
 
 from pcdet_atlas.config import REPO_ROOT, ConfigError, save_config
 from pcdet_atlas.evaluation import build_results, format_table, save_results
 from pcdet_atlas.models import build_network_from_config
-from pcdet_atlas.train_utils.atlas_eval import evaluate_variant, resolve_variants
-from pcdet_atlas.train_utils.setup import add_common_args, load_cfg, output_dir_for, setup_runtime
+from pcdet_atlas.train_utils.atlas_eval import (
+    build_variant_attacks,
+    check_test_split,
+    evaluate_variant,
+    resolve_variants,
+)
+from pcdet_atlas.train_utils.checkpoint import CHECKPOINT_NAME, list_epoch_checkpoints
+from pcdet_atlas.train_utils.setup import (
+    add_common_args,
+    count_arg,
+    load_cfg,
+    output_dir_for,
+    setup_runtime,
+)
 from pcdet_atlas.utils.common import create_logger
 
 
@@ -29,8 +54,35 @@ def parse_args(argv=None):
     add_common_args(parser)
     parser.add_argument("--attacks", default="clean", help="'all' or a comma list of variants")
     parser.add_argument("--eval_tag", default="default")
+    parser.add_argument(
+        "--eval_all", action="store_true", default=False,
+        help="evaluate every checkpoint_epoch_N.pth of --ckpt_dir (N >= --start_epoch), in order",
+    )  # fmt: skip
+    parser.add_argument(
+        "--ckpt_dir", type=str, default=None,
+        help="checkpoints of --eval_all (default: the run's ckpt/)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--start_epoch", type=count_arg(0), default=0,
+        help="--eval_all: the first epoch evaluated",
+    )  # fmt: skip
+    parser.add_argument(
+        "--save_to_file", action="store_true", default=False,
+        help="also write <variant>/final_result/data/<frame_id>.txt per frame",
+    )  # fmt: skip
+    parser.add_argument(
+        "--overwrite", action="store_true", default=False,
+        help="delete an existing evaluation directory first (default: refuse to run)",
+    )  # fmt: skip
     parser.add_argument("--no_progress", action="store_true", default=False, help="no tqdm bars")
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    if args.eval_all and args.ckpt is not None:
+        parser.error("--eval_all evaluates the checkpoints of --ckpt_dir; drop --ckpt")
+    if not args.eval_all and (args.ckpt_dir is not None or args.start_epoch):
+        parser.error("--ckpt_dir and --start_epoch apply to --eval_all only")
+    if args.eval_tag in ("", ".", "..") or "/" in args.eval_tag or "\\" in args.eval_tag:
+        parser.error(f"--eval_tag {args.eval_tag!r}: expected a folder name")
+    return args
 
 
 def resolve_checkpoint(arg: str | None, atlas_cfg) -> Path:
@@ -47,57 +99,117 @@ def resolve_checkpoint(arg: str | None, atlas_cfg) -> Path:
     return path
 
 
+def eval_name(ckpt: Path) -> str:
+    """The ``eval/`` folder of a checkpoint: ``epoch_N`` for ``checkpoint_epoch_N.pth`` (as
+    OpenPCDet names it), the file name without ``.pth`` otherwise."""
+    m = CHECKPOINT_NAME.fullmatch(ckpt.name)
+    return f"epoch_{m.group(1)}" if m else ckpt.stem
+
+
+def checkpoints_to_evaluate(args, cfg, atlas_cfg) -> list[Path]:
+    """The one checkpoint of ``--ckpt``, or those of ``--eval_all`` in epoch order."""
+    if not args.eval_all:
+        return [resolve_checkpoint(args.ckpt, atlas_cfg)]
+    ckpt_dir = Path(args.ckpt_dir or output_dir_for(cfg, args.output_root, args.extra_tag) / "ckpt")
+    found = [path for epoch, path in list_epoch_checkpoints(ckpt_dir) if epoch >= args.start_epoch]
+    if not found:
+        raise FileNotFoundError(
+            f"--eval_all: no checkpoint_epoch_N.pth with N >= {args.start_epoch} in {ckpt_dir}"
+        )
+    return found
+
+
+def check_eval_dir(out_dir: Path, overwrite: bool) -> None:
+    """Refuse an evaluation directory that already holds files, unless ``--overwrite``."""
+    if overwrite or not out_dir.is_dir() or not any(out_dir.iterdir()):
+        return
+    held = sorted(p.name for p in out_dir.iterdir())
+    raise FileExistsError(
+        f"evaluation directory {out_dir} already holds {', '.join(held[:5])}"
+        + (" ..." if len(held) > 5 else "")
+        + ": pass --overwrite to replace it, or another --eval_tag / --extra_tag"
+    )
+
+
 def main(argv=None) -> dict:
     args = parse_args(argv)
     cfg = load_cfg(args.cfg_file, args.set_cfgs)
     atlas_cfg = cfg.get("ATLAS", {})
     variants = resolve_variants(args.attacks, atlas_cfg)
-    ckpt = resolve_checkpoint(args.ckpt, atlas_cfg)
+    checkpoints = checkpoints_to_evaluate(args, cfg, atlas_cfg)
     dist, rank, world, device = setup_runtime(args)
+    logger = create_logger(rank=rank)
+    data_root = check_test_split(cfg.DATA_CONFIG, cfg.CLASS_NAMES, logger)
+    attacks = build_variant_attacks(variants, data_root)
     batch_size = args.batch_size or world
     if batch_size % world:
         raise ValueError(f"--batch_size {batch_size} is not divisible by {world} processes")
 
-    split = cfg.DATA_CONFIG.DATA_SPLIT["test"]
-    out_dir = output_dir_for(cfg, args.output_root, args.extra_tag) / "eval" / ckpt.stem
-    out_dir = out_dir / str(split) / args.eval_tag
-    stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
-    logger = create_logger(out_dir / f"log_eval_{stamp}.txt", rank=rank)
-    logger.info(f"{args.cfg_file}  checkpoint {ckpt}  variants {[v for v, _ in variants]}")
-    logger.info(f"processes: {world}  device: {device}  batch: {batch_size}  output: {out_dir}")
-    if rank == 0:
-        save_config(cfg, out_dir / f"{cfg.TAG}.yaml")
-
+    split = str(cfg.DATA_CONFIG.DATA_SPLIT["test"])
+    eval_root = output_dir_for(cfg, args.output_root, args.extra_tag) / "eval"
+    out_dirs = [eval_root / eval_name(ckpt) / split / args.eval_tag for ckpt in checkpoints]
+    for out_dir in out_dirs:
+        check_eval_dir(out_dir, args.overwrite)
+    if dist:  # every rank has checked before rank 0 writes
+        torch_dist.barrier()
     model = build_network_from_config(cfg)
-    model.load_params_from_file(ckpt)  # strict: CheckpointMismatchError names what differs
-    model.to(device).eval()
+    runs = []
+    for ckpt, out_dir in zip(checkpoints, out_dirs):
+        model.load_params_from_file(ckpt)  # strict: CheckpointMismatchError names what differs
+        model.to(device).eval()
+        if rank == 0:
+            if out_dir.exists():  # --overwrite: no stale per-variant file survives
+                shutil.rmtree(out_dir)
+            save_config(cfg, out_dir / f"{cfg.TAG}.yaml")
+        stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+        log_file = out_dir / f"log_eval_{stamp}.txt" if rank == 0 else None
+        logger = create_logger(log_file, rank=rank)
+        logger.info(f"{args.cfg_file}  checkpoint {ckpt}  variants {[v for v, _ in variants]}")
+        logger.info(f"processes: {world}  device: {device}  batch: {batch_size}  output: {out_dir}")
+        runs.append(
+            evaluate_checkpoint(
+                model, ckpt, out_dir, args, cfg, attacks, dist=dist, rank=rank, world=world,
+                device=device, batch_size=batch_size, logger=logger,
+            )
+        )  # fmt: skip
+    if rank != 0:
+        return {}
+    return {**runs[-1], "runs": runs}
 
+
+def evaluate_checkpoint(
+    model, ckpt, out_dir, args, cfg, attacks, *, dist, rank, world, device, batch_size, logger
+) -> dict:
+    """Every variant of one checkpoint; ``results.json`` is rewritten after each variant."""
+    atlas_cfg = cfg.get("ATLAS", {})
     entries: dict = {}
     clean_annos = None
-    for variant, yaml_path in variants:
+    path = None
+    for variant, attack in attacks.items():
         entry, det_annos = evaluate_variant(
-            model, variant, yaml_path, data_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES,
+            model, variant, attack, data_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES,
             device=device, batch_size=batch_size // world, dist=dist, workers=args.workers,
             seed=args.seed, temporal_window=atlas_cfg.get("TEMPORAL_WINDOW"),
             clean_det_annos=clean_annos, out_dir=out_dir / variant, logger=logger,
-            show_progress=not args.no_progress,
+            show_progress=not args.no_progress, save_to_file=args.save_to_file,
         )  # fmt: skip
         if variant == "clean":
             clean_annos = det_annos
-        if rank == 0:
-            entries[variant] = entry
-
+        if rank != 0:
+            continue
+        entries[variant] = entry
+        results = build_results(
+            model=atlas_cfg.get("MODEL_NAME", cfg.TAG), config=str(args.cfg_file),
+            checkpoint=str(ckpt), class_names=cfg.CLASS_NAMES, variants=entries,
+            extra={"processes": world, "device": str(device), "batch_size": batch_size,
+                   "variants_requested": list(attacks)},
+        )  # fmt: skip
+        path = save_results(results, out_dir / "results.json")  # atomic: temp file + rename
     if rank != 0:
         return {}
-    results = build_results(
-        model=atlas_cfg.get("MODEL_NAME", cfg.TAG), config=str(args.cfg_file),
-        checkpoint=str(ckpt), class_names=cfg.CLASS_NAMES, variants=entries,
-        extra={"processes": world, "device": str(device), "batch_size": batch_size},
-    )  # fmt: skip
-    path = save_results(results, out_dir / "results.json")
     print("\n" + format_table(results))
     logger.info(f"results: {path}")
-    return {"results": results, "output_dir": out_dir}
+    return {"results": results, "output_dir": out_dir, "checkpoint": ckpt}
 
 
 if __name__ == "__main__":

@@ -18,14 +18,28 @@ import torch
 import torch.distributed as torch_dist
 from torch.utils.data import DataLoader, DistributedSampler
 
-from pcdet_atlas.config import REPO_ROOT, ConfigError, check_known_keys, key_source
+from pcdet_atlas.attacks.base import BaseAttack, build_attack
+from pcdet_atlas.config import (
+    REPO_ROOT,
+    ConfigError,
+    cfg_from_yaml_file,
+    check_known_keys,
+    key_source,
+)
 from pcdet_atlas.datasets.loader import worker_init_fn
 from pcdet_atlas.evaluation import build_variant_result, evaluate_attack
 from pcdet_atlas.registry import DATASETS
 from pcdet_atlas.train_utils.dist import get_dist_info
-from pcdet_atlas.train_utils.eval_utils import predict_dataset
+from pcdet_atlas.train_utils.eval_utils import predict_dataset, write_prediction_files
 
-__all__ = ["ATLAS_KEYS", "resolve_variants", "build_attack_loader", "evaluate_variant"]
+__all__ = [
+    "ATLAS_KEYS",
+    "resolve_variants",
+    "build_variant_attacks",
+    "check_test_split",
+    "build_attack_loader",
+    "evaluate_variant",
+]
 
 ATLAS_KEYS = ("MODEL_NAME", "ATTACKS", "CHECKPOINT", "TEMPORAL_WINDOW")
 ATTACK_DIR = REPO_ROOT / "cfgs" / "attacks"
@@ -62,10 +76,47 @@ def resolve_variants(spec: str, atlas_cfg: Mapping) -> list[tuple[str, Path]]:
     return sorted(out, key=lambda item: item[0] != "clean")
 
 
+def check_test_split(
+    data_cfg: Mapping, class_names: Sequence[str], logger: logging.Logger | None = None
+) -> Path:
+    """Load the test split once, so that a missing dataset or split fails before an evaluation
+    writes anything; returns the dataset root (relative trace-library paths resolve under it)."""
+    if "DATASET" not in data_cfg:
+        raise ConfigError("DATA_CONFIG has no DATASET name")
+    dataset = DATASETS.get(data_cfg["DATASET"])(
+        dataset_cfg=data_cfg, class_names=class_names, training=False, logger=logger
+    )
+    return Path(dataset.root_path)
+
+
+def build_variant_attacks(
+    variants: Sequence[tuple[str, Path]], data_root: str | Path
+) -> dict[str, BaseAttack]:
+    """Load and build every variant's attack, before any inference.
+
+    A variant is named by its file: the YAML's ``VARIANT`` must equal the file name without
+    ``.yaml`` (it is the key of ``results.json`` and of the per-frame attack records).
+
+    Raises:
+        ConfigError: naming the file of the first variant whose YAML is invalid or whose
+            ``VARIANT`` differs from its file name.
+    """
+    attacks = {}
+    for name, path in variants:
+        cfg = cfg_from_yaml_file(path)
+        if "VARIANT" in cfg and str(cfg["VARIANT"]) != name:
+            raise ConfigError(
+                f"{path}: VARIANT {cfg['VARIANT']!r} (from {key_source(cfg, 'VARIANT')}) does not "
+                f"match the file name; a variant is named by its file: set VARIANT: {name}"
+            )
+        attacks[name] = build_attack(cfg, data_root=data_root)
+    return attacks
+
+
 def build_attack_loader(
     data_cfg: Mapping,
     class_names: Sequence[str],
-    attack_yaml: Path,
+    attack: Path | BaseAttack,
     *,
     batch_size: int,
     dist: bool,
@@ -73,9 +124,10 @@ def build_attack_loader(
     seed: int,
     logger: logging.Logger | None = None,
 ):
-    """``(dataset, loader)`` of the test split under one attack variant (in order, no shuffle)."""
+    """``(dataset, loader)`` of the test split under one attack variant (in order, no shuffle);
+    ``attack`` is a built attack or the path of its YAML."""
     dataset = DATASETS.get("AtlasWaymoDataset")(
-        dataset_cfg=data_cfg, class_names=class_names, attack_cfg=attack_yaml, training=False,
+        dataset_cfg=data_cfg, class_names=class_names, attack_cfg=attack, training=False,
         logger=logger,
     )  # fmt: skip
     sampler = None
@@ -95,7 +147,7 @@ def build_attack_loader(
 def evaluate_variant(
     model: torch.nn.Module,
     variant: str,
-    attack_yaml: Path,
+    attack: Path | BaseAttack,
     *,
     data_cfg: Mapping,
     class_names: Sequence[str],
@@ -109,17 +161,19 @@ def evaluate_variant(
     out_dir: Path | None,
     logger: logging.Logger | None = None,
     show_progress: bool = True,
+    save_to_file: bool = False,
 ) -> tuple[dict | None, list[dict]]:
     """Predict one variant and score it.
 
     Returns:
         ``(entry, det_annos)``: the ``results.json`` variant entry (None on ranks > 0) and the
         detections (every rank). ``out_dir/result.pkl`` holds the detections with each frame's
-        ``attack`` record (rank 0).
+        ``attack`` record (rank 0); with ``save_to_file`` also one text file per frame in
+        ``out_dir/final_result/data/`` (:func:`write_prediction_files`).
     """
     rank, _ = get_dist_info()
     dataset, loader = build_attack_loader(
-        data_cfg, class_names, attack_yaml, batch_size=batch_size, dist=dist, workers=workers,
+        data_cfg, class_names, attack, batch_size=batch_size, dist=dist, workers=workers,
         seed=seed, logger=logger,
     )  # fmt: skip
     timings: dict = {}
@@ -154,6 +208,8 @@ def evaluate_variant(
         out_dir.mkdir(parents=True, exist_ok=True)
         with open(out_dir / "result.pkl", "wb") as f:
             pickle.dump(det_annos, f)
+        if save_to_file:
+            write_prediction_files(det_annos, out_dir / "final_result" / "data")
     if logger is not None:
         asr, l2 = entry["asr"], entry["L2/mAP"]
         logger.info(

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
+from pathlib import Path
 
 import torch
 import tqdm
@@ -12,7 +14,7 @@ from torch import nn
 from pcdet_atlas.models.batch import load_data_to_device
 from pcdet_atlas.train_utils.dist import all_gather_objects, get_dist_info
 
-__all__ = ["predict_dataset", "eval_one_epoch"]
+__all__ = ["predict_dataset", "eval_one_epoch", "write_prediction_files"]
 
 
 @torch.no_grad()
@@ -93,3 +95,18 @@ def eval_one_epoch(
             "Waymo: " + ", ".join(f"{k} {float(v):.4f}" for k, v in ap_dict.items() if "/" in k)
         )
     return ap_dict, det_annos
+
+
+def write_prediction_files(det_annos: Sequence[dict], out_dir: str | Path) -> Path:
+    """``--save_to_file``: one ``<frame_id>.txt`` per frame in ``out_dir``, one line per box:
+    ``name x y z dx dy dz heading [vx vy] score`` (LiDAR frame, metres and radians, the
+    columns of ``boxes_lidar``; ``%.4f``). A frame without detections gets an empty file."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for anno in det_annos:
+        lines = [
+            " ".join([str(name), *(f"{v:.4f}" for v in box), f"{score:.4f}"])
+            for name, box, score in zip(anno["name"], anno["boxes_lidar"], anno["score"])
+        ]
+        (out_dir / f"{anno['frame_id']}.txt").write_text("".join(f"{line}\n" for line in lines))
+    return out_dir

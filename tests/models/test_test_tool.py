@@ -4,6 +4,8 @@ processes) gives the same numbers as one process."""
 import copy
 import json
 import os
+import pickle
+import socket
 import subprocess
 import sys
 
@@ -104,3 +106,145 @@ def test_bad_inputs_are_clear_errors(eval_setup, tmp_path):
     torch.save({"model_state": cp4f.state_dict()}, wrong)
     with pytest.raises(CheckpointMismatchError, match="does not match CenterPoint"):
         test.main([*args[:2], "--ckpt", str(wrong), *args[4:]])
+    assert not (tmp_path / "atlas").exists()  # a failed start-up writes nothing
+
+
+def with_attacks(args, attacks):
+    out = list(args)
+    out[out.index("--attacks") + 1] = attacks
+    return out
+
+
+def with_flags(args, *flags):
+    """``args`` with ``flags`` before ``--set`` (which takes the rest of the line)."""
+    at = args.index("--set")
+    return [*args[:at], *flags, *args[at:]]
+
+
+def test_startup_failures_write_nothing(eval_setup, tmp_path, capsys):
+    test = load_tool("test")
+    args = tool_args(eval_setup, tmp_path / "out", "startup")
+    # VARIANT must be the file's name: checked before the model is built or anything written
+    renamed = tmp_path / "my_injection.yaml"
+    renamed.write_text(eval_setup["variant"].read_text())  # inherits VARIANT: inj_global_hard
+    with pytest.raises(ConfigError, match="VARIANT 'inj_global_hard' .*set VARIANT: my_injection"):
+        test.main(with_attacks(args, f"clean,{renamed}"))
+    truncated = tmp_path / "cut.pth"
+    truncated.write_bytes(eval_setup["ckpt"].read_bytes()[:1000])
+    with pytest.raises(ValueError, match=f"checkpoint {truncated} cannot be read"):
+        test.main([*args[:2], "--ckpt", str(truncated), *args[4:]])
+    if not torch.cuda.is_available():
+        cuda = list(args)
+        cuda[cuda.index("--device") + 1] = "cuda"
+        with pytest.raises(SystemExit):
+            test.main(cuda)
+        assert "argument --device: 'cuda': no CUDA GPU is visible" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_results_survive_a_failing_variant_and_reruns_need_overwrite(
+    eval_setup, tmp_path, monkeypatch
+):
+    test = load_tool("test")
+    args = tool_args(eval_setup, tmp_path, "rerun")
+    eval_dir = tmp_path / "atlas/synthetic/centerpoint/rerun/eval/random/val/default"
+    real = test.evaluate_variant
+
+    def fail_on_injection(model, variant, *a, **kw):
+        if variant == "inj_global_hard":
+            raise RuntimeError("variant failed")
+        return real(model, variant, *a, **kw)
+
+    monkeypatch.setattr(test, "evaluate_variant", fail_on_injection)
+    with pytest.raises(RuntimeError, match="variant failed"):
+        test.main(args)
+    kept = load_results(eval_dir / "results.json")  # the clean variant done before the failure
+    assert list(kept["variants"]) == ["clean"]
+    assert kept["extra"]["variants_requested"] == ["clean", "inj_global_hard"]
+    assert not list(eval_dir.glob("*.tmp"))
+    monkeypatch.setattr(test, "evaluate_variant", real)
+
+    before = (eval_dir / "results.json").read_bytes()
+    with pytest.raises(FileExistsError, match=f"{eval_dir} already holds .*--overwrite"):
+        test.main(with_attacks(args, str(eval_setup["variant"])))
+    assert (eval_dir / "results.json").read_bytes() == before
+
+    ret = test.main(with_flags(with_attacks(args, str(eval_setup["variant"])), "--overwrite"))
+    assert ret["output_dir"] == eval_dir
+    assert list(load_results(eval_dir / "results.json")["variants"]) == ["inj_global_hard"]
+    assert not (eval_dir / "clean").exists()  # no stale variant of the earlier run
+    assert len(list(eval_dir.glob("log_eval_*.txt"))) == 1
+
+
+def test_eval_all_from_start_epoch_and_save_to_file(eval_setup, tmp_path):
+    test = load_tool("test")
+    ckpt_dir = tmp_path / "ckpts"
+    ckpt_dir.mkdir()
+    for epoch in (1, 2, 10):
+        (ckpt_dir / f"checkpoint_epoch_{epoch}.pth").write_bytes(eval_setup["ckpt"].read_bytes())
+    args = tool_args(eval_setup, tmp_path, "all")
+    args = [*args[:2], *args[4:]]  # no --ckpt
+    args = with_attacks(args, "clean")
+    args[args.index("train:1,test:14")] = "train:1,test:35"  # 2 frames
+    ret = test.main(
+        with_flags(args, "--eval_all", "--ckpt_dir", str(ckpt_dir), "--start_epoch", "2",
+                   "--save_to_file")
+    )  # fmt: skip
+    eval_root = tmp_path / "atlas/synthetic/centerpoint/all/eval"
+    assert [r["output_dir"] for r in ret["runs"]] == [
+        eval_root / "epoch_2/val/default", eval_root / "epoch_10/val/default"
+    ]  # fmt: skip
+    assert sorted(p.name for p in eval_root.iterdir()) == ["epoch_10", "epoch_2"]
+    for run in ret["runs"]:
+        results = load_results(run["output_dir"] / "results.json")
+        assert results["checkpoint"] == str(run["checkpoint"])
+        det_annos = pickle.loads((run["output_dir"] / "clean" / "result.pkl").read_bytes())
+        files = run["output_dir"] / "clean" / "final_result" / "data"
+        assert sorted(p.stem for p in files.iterdir()) == sorted(a["frame_id"] for a in det_annos)
+        for anno in det_annos:
+            lines = (files / f"{anno['frame_id']}.txt").read_text().splitlines()
+            assert len(lines) == len(anno["name"])
+            for line, name, box, score in zip(
+                lines, anno["name"], anno["boxes_lidar"], anno["score"]
+            ):
+                fields = line.split()
+                assert fields[0] == name and len(fields) == 2 + box.shape[0]
+                assert [float(v) for v in fields[1:]] == pytest.approx(
+                    [*box.tolist(), float(score)], abs=1e-4
+                )
+    with pytest.raises(FileNotFoundError, match="N >= 11 in"):
+        test.main(
+            with_flags(args, "--eval_all", "--ckpt_dir", str(ckpt_dir), "--start_epoch", "11")
+        )
+    with pytest.raises(SystemExit):
+        test.main(with_flags(args, "--start_epoch", "2"))  # --start_epoch without --eval_all
+
+
+def test_slurm_launcher_one_process(eval_setup, tmp_path):
+    """``--launcher slurm`` as OpenPCDet's: the Slurm environment of a 1-task job and a
+    ``scontrol`` on PATH that resolves the node list."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    calls = tmp_path / "scontrol_calls.txt"
+    scontrol = bin_dir / "scontrol"
+    scontrol.write_text(f'#!/bin/sh\necho "$@" >> {calls}\necho localhost\necho otherhost\n')
+    scontrol.chmod(0o755)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = dict(
+        os.environ, OMP_NUM_THREADS="1", PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
+        SLURM_PROCID="0", SLURM_NTASKS="1", SLURM_NODELIST="node[01-02]",
+    )  # fmt: skip
+    for key in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
+        env.pop(key, None)
+    args = with_attacks(tool_args(eval_setup, tmp_path, "slurm"), "clean")
+    args[args.index("train:1,test:14")] = "train:1,test:35"
+    cmd = [sys.executable, str(REPO_ROOT / "tools" / "test.py"), "--launcher", "slurm",
+           "--tcp_port", str(port), *args]  # fmt: skip
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert calls.read_text().split() == ["show", "hostname", "node[01-02]"]
+    eval_dir = tmp_path / "atlas/synthetic/centerpoint/slurm/eval/random/val/default"
+    results = load_results(eval_dir / "results.json")
+    assert results["extra"]["processes"] == 1 and results["variants"]["clean"]["num_frames"] == 2
