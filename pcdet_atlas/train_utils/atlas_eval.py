@@ -116,7 +116,7 @@ def build_variant_attacks(
 def build_attack_loader(
     data_cfg: Mapping,
     class_names: Sequence[str],
-    attack: Path | BaseAttack,
+    attack: Mapping | Path | BaseAttack,
     *,
     batch_size: int,
     dist: bool,
@@ -125,7 +125,7 @@ def build_attack_loader(
     logger: logging.Logger | None = None,
 ):
     """``(dataset, loader)`` of the test split under one attack variant (in order, no shuffle);
-    ``attack`` is a built attack or the path of its YAML."""
+    ``attack`` is a built attack, a loaded attack YAML or the path of one."""
     dataset = DATASETS.get("AtlasWaymoDataset")(
         dataset_cfg=data_cfg, class_names=class_names, attack_cfg=attack, training=False,
         logger=logger,
@@ -147,7 +147,7 @@ def build_attack_loader(
 def evaluate_variant(
     model: torch.nn.Module,
     variant: str,
-    attack: Path | BaseAttack,
+    attack: Mapping | Path | BaseAttack,
     *,
     data_cfg: Mapping,
     class_names: Sequence[str],

@@ -1,5 +1,6 @@
 """tools/test.py end to end: two ATLAS variants -> complete results.json; torchrun (gloo, 2
-processes) gives the same numbers as one process."""
+processes) gives the same numbers as one process; bad input fails before anything is written;
+results survive a failing variant; reruns; --eval_all, --save_to_file and --launcher slurm."""
 
 import copy
 import json

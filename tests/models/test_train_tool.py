@@ -1,4 +1,5 @@
-"""tools/train.py end to end on the tiny synthetic dataset: the loss falls, resume is exact."""
+"""tools/train.py end to end on the tiny synthetic dataset: the loss falls, resume is exact, a
+resume with other settings is refused; bad counts, devices and checkpoints are clear errors."""
 
 import shutil
 
