@@ -55,6 +55,7 @@ from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import build_dataloader
 from pcdet_atlas.models import build_network_from_config, load_data_to_device
 from pcdet_atlas.train_utils import eval_one_epoch
+from pcdet_atlas.train_utils.setup import device_arg
 
 
 def _read_hwm_kib() -> int | None:
@@ -118,7 +119,7 @@ def parse_args():
     )
     p.add_argument("--data_path", default=str(REPO_ROOT / "data" / "synthetic_waymo"))
     p.add_argument("--frames", type=int, default=5, help="timed frames per model")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", type=device_arg, default="cpu")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.add_argument("--eval", action="store_true", help="L2 mAP of trained models on the val split")
     p.add_argument(

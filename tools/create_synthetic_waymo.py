@@ -22,6 +22,7 @@ from pcdet_atlas.datasets.synthetic import (
     create_synthetic_waymo,
     format_summary,
 )
+from pcdet_atlas.train_utils.setup import device_arg
 from pcdet_atlas.utils.common import create_logger
 
 DEFAULT_ROOT = REPO_ROOT / "data" / "synthetic_waymo"
@@ -35,7 +36,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--train-frames", type=int, default=DEFAULT_FRAMES_PER_SEQUENCE["train"])
     parser.add_argument("--val-frames", type=int, default=DEFAULT_FRAMES_PER_SEQUENCE["val"])
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--device", default="cpu", help="torch device for ray casting")
+    parser.add_argument(
+        "--device", type=device_arg, default="cpu", help="torch device for ray casting"
+    )
     parser.add_argument(
         "--workers",
         type=int,

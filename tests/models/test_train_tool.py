@@ -74,16 +74,16 @@ def test_counts_below_their_minimum_are_usage_errors(flag, value, capsys):
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="the case of a machine without a GPU")
-def test_device_cuda_without_gpu_is_one_clear_error(synthetic_root, tmp_path, capsys):
-    train = load_tool("train")
-    args = train_args(synthetic_root, tmp_path, 1, "cuda")
-    args[args.index("--device") + 1] = "cuda"
+@pytest.mark.parametrize(
+    "tool, args",
+    [("train", ["--cfg", str(CFG)]), ("test", ["--cfg", str(CFG)]), ("create_synthetic_waymo", [])],
+)
+def test_device_cuda_without_gpu_is_one_clear_error(tool, args, capsys):
     with pytest.raises(SystemExit):
-        train.main(args)
+        load_tool(tool).parse_args([*args, "--device", "cuda"])
     err = capsys.readouterr().err.splitlines()[-1]
     assert err.endswith("error: argument --device: 'cuda': no CUDA GPU is visible to torch "
                         "(torch.cuda.is_available() is False); use --device cpu")  # fmt: skip
-    assert not tmp_path.joinpath("atlas").exists()
 
 
 def one_step_args(root, out, extra_tag, *overrides):
