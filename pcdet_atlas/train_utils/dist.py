@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import atexit
 import os
 import subprocess
 from collections.abc import Callable
@@ -39,7 +40,15 @@ def init_dist_pytorch(backend: str | None = None, timeout_min: int = 30) -> tupl
     if backend == "nccl":
         torch.cuda.set_device(local_rank % torch.cuda.device_count())
     dist.init_process_group(backend=backend, timeout=timedelta(minutes=timeout_min))
+    # A gloo group left to interpreter teardown can abort the process ("terminate called without
+    # an active exception") after its work is done, failing a finished torchrun job.
+    atexit.register(_destroy_process_group)
     return dist.get_world_size(), dist.get_rank(), local_rank
+
+
+def _destroy_process_group() -> None:
+    if dist.is_initialized():
+        dist.destroy_process_group()
 
 
 def first_slurm_host(node_list: str) -> str:
