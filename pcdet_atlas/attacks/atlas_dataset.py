@@ -22,6 +22,7 @@ frame (:mod:`pcdet_atlas.attacks.metadata`), with the shadow target on clean lif
 
 from __future__ import annotations
 
+import copy
 import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -38,6 +39,13 @@ from pcdet_atlas.registry import DATASETS
 __all__ = ["AtlasWaymoDataset"]
 
 
+def _key_distance(key: tuple[str, int]):
+    """Sort key of frame-cache entries by their distance in time from ``key``'s frame (frames
+    of other sequences are the farthest)."""
+    sequence, frame = key
+    return lambda other: (other[0] != sequence, abs(other[1] - frame))
+
+
 @DATASETS.register()
 class AtlasWaymoDataset(WaymoDataset):
     """A Waymo-format split with an ATLAS attack applied per frame.
@@ -47,6 +55,11 @@ class AtlasWaymoDataset(WaymoDataset):
         attack_cfg: a loaded attack YAML (``EasyDict``), the path of one, or a built
             :class:`~pcdet_atlas.attacks.base.BaseAttack`. Relative trace-library paths resolve
             under the dataset root.
+        frame_cache_size: how many attacked frames this process keeps; a full cache drops the
+            frame farthest in time from the one being stored (another sequence's first).
+            ``None``: the input's frame count for a multi-frame input (what reading samples in
+            order, forward or backward, needs: each new sample simulates one new frame), 0 for a
+            single-frame one (no frame is read twice).
     """
 
     def __init__(
@@ -57,8 +70,19 @@ class AtlasWaymoDataset(WaymoDataset):
         training: bool = False,
         root_path: str | Path | None = None,
         logger: logging.Logger | None = None,
+        frame_cache_size: int | None = None,
     ):
         super().__init__(dataset_cfg, class_names, training, root_path, logger)
+        if frame_cache_size is None:
+            num_frames = self.sequence_cfg.num_frames if self.sequence_cfg is not None else 1
+            frame_cache_size = num_frames if num_frames > 1 else 0
+        if isinstance(frame_cache_size, bool) or not isinstance(frame_cache_size, int):
+            raise TypeError(f"frame_cache_size must be an int >= 0, got {frame_cache_size!r}")
+        if frame_cache_size < 0:
+            raise ValueError(f"frame_cache_size must be >= 0, got {frame_cache_size}")
+        self.frame_cache_size = frame_cache_size
+        # (sequence, frame) -> (read-only attacked points, metadata record) of spoofed frames
+        self._frame_cache: dict[tuple[str, int], tuple[np.ndarray, dict]] = {}
         if isinstance(attack_cfg, BaseAttack):
             self.attack = attack_cfg
         else:
@@ -99,16 +123,43 @@ class AtlasWaymoDataset(WaymoDataset):
         return rows, self.attack.simulate(rows[:num_rows], seq, sample_idx)
 
     def get_lidar(self, sequence_name: str, sample_idx: int) -> np.ndarray:
-        """Attacked points of one frame, ``(N', 5)`` float32 in the loader's feature space."""
+        """Attacked points of one frame, ``(N', 5)`` float32 in the loader's feature space.
+
+        A spoofed frame is simulated once and kept in the frame cache, so the windows of a
+        multi-frame input read in order reuse it as history; history frames come back
+        read-only, the current frame as a copy the sample owns.
+        """
         seq = self.sequence_data(sequence_name)
         if not self.attack.needs_simulation(sample_idx, seq.num_frames):
             return super().get_lidar(sequence_name, sample_idx)
+        key = (sequence_name, int(sample_idx))
+        cached = self._frame_cache.get(key)
+        if cached is not None:
+            COUNTERS.add(frame_cache_hits=1)
+            points, meta = cached
+        else:
+            points, meta = self._simulate_points(sequence_name, sample_idx, seq)
+            if key != self._current:
+                COUNTERS.add(history_frames_resimulated=1)
+            if self.frame_cache_size:
+                COUNTERS.add(frame_cache_misses=1)
+                points.flags.writeable = False
+                if len(self._frame_cache) >= self.frame_cache_size:
+                    # least recently used would evict the next window's frames: history is
+                    # read newest first, after the current frame
+                    del self._frame_cache[max(self._frame_cache, key=_key_distance(key))]
+                self._frame_cache[key] = (points, meta)
+        if key != self._current:
+            return points
+        self._current_meta = copy.deepcopy(meta) if self.frame_cache_size else meta
+        return points.copy() if self.frame_cache_size else points
+
+    def _simulate_points(
+        self, sequence_name: str, sample_idx: int, seq: SequenceData
+    ) -> tuple[np.ndarray, dict]:
+        """Simulate a spoofed frame: its loaded points and its metadata record."""
         spare = self.attack.max_added_points(seq, sample_idx)
         buffer, result = self.simulate_frame(sequence_name, sample_idx, spare)
-        if (sequence_name, int(sample_idx)) == self._current:
-            self._current_meta = result.meta
-        else:
-            COUNTERS.add(history_frames_resimulated=1)
         num_rows, added = len(buffer) - spare, result.added
         if len(added) <= spare:  # the phantom's rows go into the room read with the frame
             rows = buffer[: num_rows + len(added)]
@@ -117,12 +168,16 @@ class AtlasWaymoDataset(WaymoDataset):
             rows[:num_rows] = buffer[:num_rows]
         rows[num_rows:, :5] = added
         rows[num_rows:, 5:] = -1.0  # not in a no-label zone
-        return self.loaded_points(rows, drop=result.removed_rows())
+        return self.loaded_points(rows, drop=result.removed_rows()), result.meta
 
     def frame_attack_meta(self, sequence_name: str, sample_idx: int) -> dict:
-        """The metadata record of a frame; for a spoofed frame this simulates it."""
+        """The metadata record of a frame; for a spoofed frame not in the frame cache this
+        simulates it."""
         seq = self.sequence_data(sequence_name)
         if self.attack.needs_simulation(sample_idx, seq.num_frames):
+            cached = self._frame_cache.get((sequence_name, int(sample_idx)))
+            if cached is not None:
+                return copy.deepcopy(cached[1])
             return self.simulate_frame(sequence_name, sample_idx)[1].meta
         return self.attack.frame_meta(seq, sample_idx)
 

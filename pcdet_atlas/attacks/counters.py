@@ -25,6 +25,9 @@ Fields (all non-negative ints):
     history_frames_resimulated: history frames of a multi-frame input that were simulated
         (a subset of ``frames_simulated``).
     removal_points_examined: scene points a removal attack looked at (near its sector).
+    frame_cache_hits: spoofed frames served from ``AtlasWaymoDataset``'s attacked-frame cache.
+    frame_cache_misses: spoofed frames simulated and stored in that cache (with the cache off,
+        neither counts).
 """
 
 from __future__ import annotations
@@ -47,6 +50,8 @@ class AttackCounters:
     frames_simulated: int = 0
     history_frames_resimulated: int = 0
     removal_points_examined: int = 0
+    frame_cache_hits: int = 0
+    frame_cache_misses: int = 0
 
     def reset(self) -> None:
         """Set every counter to zero."""

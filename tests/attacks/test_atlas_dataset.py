@@ -245,3 +245,68 @@ def test_metadata_feeds_the_attack_metrics(synthetic_root, library_path, variant
     out = evaluate_attack(dets, metas, window=32)
     expected = 1.0 if variant.startswith("inj") else 0.0
     assert out["family"] == metas[2]["family"] and out["asr"] == expected
+
+
+def _assert_same_sample(a, b):
+    np.testing.assert_array_equal(a["points"], b["points"])
+    assert a["attack"].keys() == b["attack"].keys()
+    for key, value in a["attack"].items():
+        np.testing.assert_array_equal(value, b["attack"][key], err_msg=key)
+
+
+@pytest.mark.parametrize("variant", ["inj_global_hard", "rem_30"])
+def test_frame_cache_changes_no_bit_in_any_order(synthetic_root, library_path, variant):
+    """Attacked 4-frame samples are bitwise the same with the attacked-frame cache and without
+    it, read in order, in reverse and in a shuffled order."""
+    cached = make(synthetic_root, variant, library_path, multiframe=True)
+    plain = AtlasWaymoDataset(
+        data_cfg(synthetic_root, True), CLASSES, attack_cfg(variant, library_path),
+        root_path=synthetic_root, frame_cache_size=0,
+    )  # fmt: skip
+    assert cached.frame_cache_size == 4 and plain.frame_cache_size == 0
+    indices = list(range(30, 40)) + [66, 64, 62, 35, 34, 33] + [50, 31, 60, 44, 52]
+    for index in indices:
+        _assert_same_sample(cached[index], plain[index])
+
+
+def test_frame_cache_simulates_each_spoofed_frame_once_in_order(synthetic_root):
+    """Read in order, a 4-frame input simulates one new frame per sample; without the cache
+    every spoofed frame of the window is simulated again."""
+    indices = range(30, 46)  # spoofed frames 32..45 are read 1 to 4 times each
+    reads = sum(sum(32 <= f <= 63 for f in range(max(i - 3, 0), i + 1)) for i in indices)
+    for size, simulated, hits in [(None, 14, reads - 14), (0, reads, 0)]:
+        ds = AtlasWaymoDataset(
+            data_cfg(synthetic_root, True), CLASSES, attack_cfg("rem_30"),
+            root_path=synthetic_root, frame_cache_size=size,
+        )  # fmt: skip
+        with COUNTERS.measure() as work:
+            for index in indices:
+                ds[index]
+        assert work["frames_simulated"] == simulated, (size, work)
+        assert work["frame_cache_hits"] == hits
+        assert work["frame_cache_misses"] == (14 if size is None else 0)
+
+
+def test_frame_cache_gives_history_read_only_and_the_current_frame_a_copy(synthetic_root):
+    ds = make(synthetic_root, "rem_30", multiframe=True)
+    seq = ds.infos[0]["point_cloud"]["lidar_sequence"]
+    first = ds[40]["points"].copy()
+    ds._current = (seq, 40)  # as __getitem__ reads the current frame
+    current = ds.get_lidar(seq, 40)
+    ds._current = None
+    current[:] = 0.0  # the sample's own array: writing it leaves the cache untouched
+    history = ds.get_lidar(seq, 40)
+    assert not history.flags.writeable
+    with pytest.raises(ValueError):
+        history[0, 0] = 1.0
+    np.testing.assert_array_equal(ds[40]["points"], first)
+    assert len(ds._frame_cache) <= ds.frame_cache_size
+
+
+@pytest.mark.parametrize("size,error", [(-1, ValueError), (1.5, TypeError), (True, TypeError)])
+def test_frame_cache_size_is_checked(synthetic_root, size, error):
+    with pytest.raises(error, match="frame_cache_size"):
+        AtlasWaymoDataset(
+            data_cfg(synthetic_root), CLASSES, attack_cfg("rem_30"), root_path=synthetic_root,
+            frame_cache_size=size,
+        )  # fmt: skip
