@@ -53,6 +53,10 @@ __all__ = [
 
 #: IoU threshold per Waymo class (official config ``iou_thresholds: 0.0 0.7 0.5 0.5 0.5``).
 WAYMO_IOU_THRESHOLDS = {"Vehicle": 0.7, "Pedestrian": 0.5, "Sign": 0.5, "Cyclist": 0.5}
+#: Names an anno may hold: the evaluable classes and Waymo's type 0. A box of one of these that
+#: is not in ``class_names`` is left out; any other name is an error (a typo such as 'Car' would
+#: otherwise drop every box of the class silently).
+WAYMO_OBJECT_NAMES = frozenset(WAYMO_IOU_THRESHOLDS) | {"unknown"}
 #: The 101 official score cutoffs, float32.
 WAYMO_SCORE_CUTOFFS = np.array([i * 0.01 for i in range(100)] + [1.0], dtype=np.float32)
 LEVELS = (1, 2)
@@ -98,9 +102,19 @@ def _boxes(anno: dict, key: str, where: str, n: int) -> np.ndarray:
     return boxes
 
 
-def _class_index(names: np.ndarray, class_names: Sequence[str]) -> np.ndarray:
+def _class_index(names: np.ndarray, class_names: Sequence[str], where: str) -> np.ndarray:
+    """``(M,)`` int64 index into ``class_names``, -1 for a Waymo class not evaluated."""
     lookup = {name: i for i, name in enumerate(class_names)}
-    return np.array([lookup.get(str(n), -1) for n in names], dtype=np.int64)
+    out = np.empty(len(names), dtype=np.int64)
+    for i, name in enumerate(names):
+        name = str(name)
+        if name not in lookup and name not in WAYMO_OBJECT_NAMES:
+            raise ValueError(
+                f"{where}: 'name' {name!r} (box {i}) is not a Waymo class; expected one of "
+                f"{sorted(WAYMO_OBJECT_NAMES)} (evaluated: {list(class_names)})"
+            )
+        out[i] = lookup.get(name, -1)
+    return out
 
 
 def _in_range(boxes: np.ndarray) -> np.ndarray:
@@ -129,7 +143,7 @@ def _collect_gt(gt_annos: Sequence[dict], class_names: Sequence[str]) -> _Object
         level = difficulty.copy()
         level[(difficulty == 0) & (num_points > 5)] = 1
         level[(difficulty == 0) & (num_points <= 5)] = 2
-        cls = _class_index(names, class_names)
+        cls = _class_index(names, class_names, where)
         keep = (cls >= 0) & (num_points > 0) & _in_range(box)
         frames.append(np.full(int(keep.sum()), i, dtype=np.int64))
         classes.append(cls[keep])
@@ -156,7 +170,7 @@ def _collect_det(det_annos: Sequence[dict], class_names: Sequence[str]) -> _Obje
             raise ValueError(f"{where}: 'score' has {len(score)} entries for {n} boxes")
         if not np.isfinite(score).all():
             raise ValueError(f"{where}: 'score' contains non-finite values")
-        cls = _class_index(names, class_names)
+        cls = _class_index(names, class_names, where)
         keep = (cls >= 0) & _in_range(box)
         frames.append(np.full(int(keep.sum()), i, dtype=np.int64))
         classes.append(cls[keep])
@@ -497,6 +511,11 @@ def compute_waymo_curves(
         float64, ``precision``, ``recall``, ``precision_ha`` (101,) float32, and ``ap``, ``aph``
         (floats). ``precision`` already has the official ``P = 1 where R = 0`` rule applied.
     """
+    if isinstance(class_names, str):
+        raise TypeError(
+            f"class_names must be a list of class names, got the string {class_names!r} "
+            f"(write [{class_names!r}])"
+        )
     class_names = list(class_names)
     unknown = [c for c in class_names if c not in WAYMO_IOU_THRESHOLDS]
     if unknown or not class_names:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -300,6 +301,29 @@ def test_zero_point_gt_dropped_and_classes_filtered():
     # a pedestrian prediction never matches a vehicle GT
     m = waymo_evaluate([_gt([CAR])], [_det([CAR], [0.9], names=["Pedestrian"])], CLASSES)
     assert m["Vehicle/L1/AP"] == 0.0 and m["Pedestrian/L1/AP"] == 0.0
+
+
+@pytest.mark.parametrize("side", ["gt", "det"])
+def test_names_outside_the_waymo_classes_are_errors(side):
+    """'Car' is no Waymo class: an error naming it and the frame, not a silent Vehicle AP 0."""
+    gts = [_gt([CAR]), _gt([CAR2])]
+    dets = [_det([CAR], [0.9]), _det([CAR2], [0.8])]
+    if side == "gt":
+        gts[1] = _gt([CAR2], names=["Car"])
+    else:
+        dets[1] = _det([CAR2], [0.8], names=["Car"])
+    where = "gt_annos[1]" if side == "gt" else "det_annos[1]"
+    with pytest.raises(ValueError, match=rf"{re.escape(where)}: 'name' 'Car' \(box 0\)"):
+        waymo_evaluate(gts, dets, ["Vehicle"])
+    # a Waymo class that is not evaluated (and GT of type 'unknown') is left out, as before
+    gts[1] = _gt([CAR2, CAR], names=["Vehicle", "Sign"])
+    dets[1] = _det([CAR2, CAR], [0.8, 0.7], names=["Vehicle", "unknown"])
+    assert waymo_evaluate(gts, dets, ["Vehicle"])["Vehicle/L2/AP"] == 1.0
+
+
+def test_class_names_as_a_string_is_an_error():
+    with pytest.raises(TypeError, match="class_names must be a list.*'Vehicle'"):
+        waymo_evaluate([_gt([CAR])], [_det([CAR], [0.9])], "Vehicle")
 
 
 def test_iou_threshold_and_degenerate_boxes():
