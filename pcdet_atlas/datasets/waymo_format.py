@@ -235,6 +235,18 @@ def validate_frame_info(info: dict, where: str, index: int | None = None) -> Non
             raise WaymoFormatError(
                 f"{at}: 'annos.gt_boxes_lidar' must be ({n}, 9) for {n} objects, got {boxes.shape}"
             )
+        if not np.isfinite(boxes).all():
+            row = int(np.nonzero(~np.isfinite(boxes).all(axis=1))[0][0])
+            raise WaymoFormatError(
+                f"{at}: 'annos.gt_boxes_lidar' has NaN/inf values (first at object {row}: "
+                f"{boxes[row].tolist()})"
+            )
+        if n and not (boxes[:, 3:6] > 0).all():
+            row = int(np.nonzero(~(boxes[:, 3:6] > 0).all(axis=1))[0][0])
+            raise WaymoFormatError(
+                f"{at}: 'annos.gt_boxes_lidar' object {row} has size (dx, dy, dz) "
+                f"{boxes[row, 3:6].tolist()}; every size must be > 0"
+            )
         for key in ("difficulty", "num_points_in_gt", "obj_ids"):
             if len(annos[key]) != n:
                 raise WaymoFormatError(

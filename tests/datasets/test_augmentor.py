@@ -423,6 +423,29 @@ def test_gt_sampling_rejects_mismatched_point_file(tmp_path):
         sampler(data, np.random.default_rng(0))
 
 
+@pytest.mark.parametrize("use_shared_memory", [False, True])
+@pytest.mark.parametrize("column", [0, 3, 4])  # x, intensity, elongation
+def test_gt_sampling_rejects_non_finite_object_points(tmp_path, use_shared_memory, column):
+    box = [0, 0, 0, 4, 2, 1.6, 0, 0, 0]
+    pts = _obj_points(box, 10, np.random.default_rng(0))
+    pts[7, column] = np.nan
+    _write_db(tmp_path, [("Vehicle", box, pts)])
+    sampler = GTSampling(
+        tmp_path, CLASS_NAMES, ["dbinfos.pkl"], {"Vehicle": 1}, 5,
+        use_shared_memory=use_shared_memory, db_data_paths=["global.npy"],
+    )  # fmt: skip
+    data = {
+        "points": np.zeros((0, 5), np.float32),
+        "gt_boxes": np.zeros((0, 7)),
+        "gt_boxes_mask": np.zeros(0, bool),
+        "gt_names": np.array([], dtype=str),
+    }
+    where = r"global\.npy\[0:10\]" if use_shared_memory else r"obj_0\.bin"
+    with pytest.raises(WaymoFormatError, match=rf"{where}: 1 point\(s\) with NaN/inf .*row 7, "
+                       rf"column {column}"):  # fmt: skip
+        sampler(data, np.random.default_rng(0))
+
+
 # ---------------------------------------------------------------------------- determinism
 @pytest.fixture(scope="module")
 def tiny_root(tmp_path_factory):

@@ -94,10 +94,11 @@ def test_wrong_dtype(root):
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
-def test_nan_inf_points(root, bad):
+@pytest.mark.parametrize("column", [1, 3, 4])  # y, intensity, elongation
+def test_nan_inf_points(root, bad, column):
     npy = wf.frame_npy_path(root, SEQ, 3)
     pts = np.load(npy)
-    pts[5, 1] = bad
+    pts[5, column] = bad
     np.save(npy, pts)
     with pytest.raises(wf.WaymoFormatError, match=r"0003\.npy: 1 point\(s\) with NaN/inf .*row 5"):
         _dataset(root)[3]
@@ -125,6 +126,22 @@ def test_pkl_point_cloud_missing_key(root):
         wf.WaymoFormatError, match=r"\[frame 0\]: missing key 'point_cloud.sample_idx'"
     ):
         _dataset(root)
+
+
+@pytest.mark.parametrize(
+    "column,value,message",
+    [(0, np.nan, "has NaN/inf values"), (6, np.inf, "has NaN/inf values"),
+     (3, 0.0, "size .* every size must be > 0"), (5, -1.5, "size .* every size must be > 0")],
+)  # fmt: skip
+def test_pkl_gt_boxes_non_finite_or_not_positive(root, column, value, message):
+    def edit(infos):
+        infos[2]["annos"]["gt_boxes_lidar"][0, column] = value
+
+    path = _edit_infos(root, edit)
+    with pytest.raises(wf.WaymoFormatError, match=rf"\[frame 2\]: 'annos.gt_boxes_lidar'.*{message}"
+                       ) as info:  # fmt: skip
+        _dataset(root)
+    assert str(path) in str(info.value)
 
 
 def test_frame_index_gap(root):

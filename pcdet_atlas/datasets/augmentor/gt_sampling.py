@@ -273,6 +273,13 @@ class GTSampling:
                 f"{where}: {points.shape[0]} points, but its db_info says num_points_in_gt="
                 f"{info['num_points_in_gt']}"
             )
+        bad = ~np.isfinite(points)
+        if bad.any():
+            row, col = (int(v[0]) for v in np.nonzero(bad))
+            raise WaymoFormatError(
+                f"{where}: {int(bad.any(axis=1).sum())} point(s) with NaN/inf values (first at "
+                f"row {row}, column {col}: {points[row].tolist()})"
+            )
         return points
 
     # ------------------------------------------------------------------ sampling
