@@ -16,7 +16,8 @@ dicts merge recursively, every other value (lists included) replaces the old one
 from __future__ import annotations
 
 import ast
-from collections.abc import Iterable, Mapping
+import math
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -178,6 +179,62 @@ def check_known_keys(node: Mapping, allowed: Iterable[str], section: str) -> Non
             raise ConfigError(
                 f"unknown key {key!r} in {section} (from {key_source(node, key)}); "
                 f"allowed keys: {', '.join(sorted(allowed))}"
+            )
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _is_str_list(v: Any) -> bool:
+    return isinstance(v, (list, tuple)) and len(v) > 0 and all(isinstance(x, str) for x in v)
+
+
+#: The sections of a detector config (``tools/train.py`` / ``tools/test.py``); the nested keys of
+#: each are checked by the code that reads the section.
+EXPERIMENT_SECTIONS = ("CLASS_NAMES", "DATA_CONFIG", "MODEL", "OPTIMIZATION", "ATLAS")
+#: ``(dotted key, check, what a valid value is)`` of the values whose type is checked at load time.
+EXPERIMENT_VALUES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
+    ("CLASS_NAMES", _is_str_list, "a non-empty list of class names, e.g. [Vehicle]"),
+    ("DATA_CONFIG", lambda v: isinstance(v, Mapping), "a section (a mapping of keys)"),
+    ("MODEL", lambda v: isinstance(v, Mapping), "a section (a mapping of keys)"),
+    ("OPTIMIZATION", lambda v: isinstance(v, Mapping), "a section (a mapping of keys)"),
+    ("ATLAS", lambda v: isinstance(v, Mapping), "a section (a mapping of keys)"),
+    (
+        "DATA_CONFIG.POINT_CLOUD_RANGE",
+        lambda v: (
+            isinstance(v, (list, tuple))
+            and len(v) == 6
+            and all(map(_is_number, v))
+            and all(v[i] < v[i + 3] for i in range(3))
+        ),
+        "6 finite numbers [x_min, y_min, z_min, x_max, y_max, z_max] with min < max (m)",
+    ),
+    ("OPTIMIZATION.BATCH_SIZE_PER_GPU", lambda v: _is_int(v) and v >= 1, "an integer >= 1"),
+    ("OPTIMIZATION.NUM_EPOCHS", lambda v: _is_int(v) and v >= 1, "an integer >= 1"),
+    ("OPTIMIZATION.LR", lambda v: _is_number(v) and v > 0, "a finite number > 0"),
+)
+
+
+def check_experiment_config(cfg: Mapping) -> None:
+    """Raise :class:`ConfigError` for an unknown top-level section of a detector config (e.g. a
+    misspelt ``OPTIMISATION``) or a value of the wrong type in :data:`EXPERIMENT_VALUES`,
+    naming the key, the value and the file it came from."""
+    check_known_keys(cfg, EXPERIMENT_SECTIONS, "the detector config")
+    for dotted, valid, expected in EXPERIMENT_VALUES:
+        *parents, key = dotted.split(".")
+        node = cfg
+        for name in parents:
+            node = node.get(name) if isinstance(node, Mapping) else None
+        if not isinstance(node, Mapping) or key not in node:
+            continue  # a missing key is reported by the code that needs it
+        if not valid(node[key]):
+            raise ConfigError(
+                f"{dotted} = {node[key]!r} (from {key_source(node, key)}): expected {expected}"
             )
 
 

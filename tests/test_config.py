@@ -1,9 +1,11 @@
+import re
 from pathlib import Path
 
 import pytest
 import yaml
 
 from pcdet_atlas.config import (
+    REPO_ROOT,
     ConfigError,
     cfg_from_list,
     cfg_from_yaml_file,
@@ -149,3 +151,33 @@ def test_repo_configs_load():
     for f in sorted(root.rglob("*.yaml")):
         cfg = cfg_from_yaml_file(f)
         assert isinstance(cfg, dict) and cfg, f
+
+
+EXPERIMENT_BASE = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml"
+
+
+@pytest.mark.parametrize(
+    "body,key",
+    [
+        ("OPTIMISATION:\n  LR: 0.001\n", "unknown key 'OPTIMISATION' in the detector config"),
+        ("DATA_CONFIG:\n  POINT_CLOUD_RANGE: big\n", "DATA_CONFIG.POINT_CLOUD_RANGE = 'big'"),
+        ("DATA_CONFIG:\n  POINT_CLOUD_RANGE: bigbig\n", "DATA_CONFIG.POINT_CLOUD_RANGE = 'bigbig'"),
+        ("DATA_CONFIG:\n  POINT_CLOUD_RANGE: [0, 0, 0, 10, 10, .nan]\n", "POINT_CLOUD_RANGE"),
+        ("DATA_CONFIG:\n  POINT_CLOUD_RANGE: [10, 0, 0, 0, 10, 4]\n", "POINT_CLOUD_RANGE"),
+        ("OPTIMIZATION:\n  BATCH_SIZE_PER_GPU: four\n", "BATCH_SIZE_PER_GPU = 'four'"),
+        ("OPTIMIZATION:\n  NUM_EPOCHS: 2.5\n", "NUM_EPOCHS = 2.5"),
+        ("OPTIMIZATION:\n  LR: .inf\n", "OPTIMIZATION.LR = inf"),
+        ("CLASS_NAMES: Vehicle\n", "CLASS_NAMES = 'Vehicle'"),
+        ("MODEL: centerpoint\n", "MODEL = 'centerpoint'"),
+    ],
+)
+def test_detector_config_sections_and_value_types(tmp_path, body, key):
+    """An unknown top-level section or a value of the wrong type is an error naming the key and
+    the file, before anything is built."""
+    from pcdet_atlas.train_utils.setup import load_cfg
+
+    path = tmp_path / "mine.yaml"
+    path.write_text(f"_BASE_CONFIG_: {EXPERIMENT_BASE}\n{body}")
+    with pytest.raises(ConfigError, match=re.escape(key)) as info:
+        load_cfg(str(path), None)
+    assert "mine.yaml" in str(info.value)

@@ -19,7 +19,12 @@ import datetime
 import torch
 from tensorboardX import SummaryWriter
 
-from pcdet_atlas.config import ConfigError, key_source, log_config_to_file, save_config, to_plain
+from pcdet_atlas.config import (
+    log_config_to_file,
+    require_keys,
+    save_config,
+    to_plain,
+)
 from pcdet_atlas.datasets import build_dataloader
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.optimization import build_optimizer, build_scheduler
@@ -78,13 +83,7 @@ def main(argv=None) -> dict:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     optim_cfg = cfg.OPTIMIZATION
-    for key in ("BATCH_SIZE_PER_GPU", "NUM_EPOCHS"):
-        value = optim_cfg[key]
-        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-            raise ConfigError(
-                f"OPTIMIZATION.{key} (from {key_source(optim_cfg, key)}): expected an integer "
-                f">= 1, got {value!r}"
-            )
+    require_keys(optim_cfg, ["BATCH_SIZE_PER_GPU", "NUM_EPOCHS"], "OPTIMIZATION")  # types: load_cfg
     batch_size = (
         args.batch_size if args.batch_size is not None else optim_cfg.BATCH_SIZE_PER_GPU * world
     )

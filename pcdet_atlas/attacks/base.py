@@ -28,7 +28,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pcdet_atlas.attacks import schedule as sched
-from pcdet_atlas.attacks.config_values import config_value
+from pcdet_atlas.attacks.config_values import check_finite, config_device, config_value
 from pcdet_atlas.attacks.metadata import make_meta
 from pcdet_atlas.attacks.tracking import FrameLabels
 from pcdet_atlas.config import ConfigError, cfg_from_yaml_file, check_known_keys, key_source
@@ -217,6 +217,8 @@ class BaseAttack(ABC):
     @classmethod
     def _common_kwargs(cls, cfg: Mapping) -> dict:
         check_known_keys(cfg, COMMON_KEYS | cls.config_keys, f"attack config {cls.__name__}")
+        check_finite(cfg)
+        config_device(cfg)
         schedule_cfg = cfg.get("SCHEDULE", {}) or {}
         check_known_keys(schedule_cfg, {"WINDOW"}, "SCHEDULE")
         variant = cfg.get("VARIANT")

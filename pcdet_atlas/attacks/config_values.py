@@ -8,12 +8,15 @@ a bare ``ValueError`` from deep inside a constructor.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
+import torch
+
 from pcdet_atlas.config import ConfigError, key_source
 
-__all__ = ["config_value", "config_error", "config_files"]
+__all__ = ["config_value", "config_error", "config_files", "check_finite", "config_device"]
 
 _REQUIRED = object()
 
@@ -60,10 +63,48 @@ def config_value(
     raw = node[key]
     if isinstance(raw, bool) and cast in (int, float):
         raise config_error(node, key, section, expected)
+    if cast is int and isinstance(raw, float):  # SEED: 1.7 is no seed, and 2.0 is a typo too
+        raise config_error(node, key, section, f"{expected} (an integer, not a float)")
     try:
         value = cast(raw)
     except (TypeError, ValueError) as err:
         raise config_error(node, key, section, expected) from err
+    if isinstance(value, float) and not math.isfinite(value):
+        raise config_error(node, key, section, f"{expected} (a finite number)")
     if valid is not None and not valid(value):
         raise config_error(node, key, section, expected)
     return value
+
+
+def check_finite(node: Mapping, section: str = "") -> None:
+    """Raise :class:`ConfigError` at the first NaN or infinite float anywhere under ``node``
+    (nested sections and lists included), naming its dotted key and file."""
+    for key, value in node.items():
+        where = f"{section}.{key}" if section else str(key)
+        _check_finite_value(value, node, key, where)
+
+
+def _check_finite_value(value: Any, node: Mapping, key: str, where: str) -> None:
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ConfigError(
+            f"{where} = {value!r} (from {key_source(node, key)}): expected a finite number"
+        )
+    if isinstance(value, Mapping):
+        check_finite(value, where)
+    elif isinstance(value, (list, tuple)):
+        for i, item in enumerate(value):
+            _check_finite_value(item, node, key, f"{where}[{i}]")
+
+
+def config_device(node: Mapping, key: str = "DEVICE", default: str = "cpu") -> str:
+    """The torch device named by ``node[key]``, checked to exist on this machine."""
+    name = config_value(node, key, str, default=default, expected="a torch device such as 'cpu'")
+    try:
+        device = torch.device(name)
+    except RuntimeError as err:
+        raise config_error(node, key, "", "a torch device such as 'cpu' or 'cuda'") from err
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise config_error(node, key, "", "'cpu' (no CUDA GPU is visible to torch)")
+    if device.type not in ("cpu", "cuda"):
+        raise config_error(node, key, "", "'cpu' or 'cuda'")
+    return name

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, ScheduleState, SequenceData
-from pcdet_atlas.attacks.config_values import config_files, config_value
+from pcdet_atlas.attacks.config_values import config_device, config_files, config_value
 from pcdet_atlas.attacks.counters import COUNTERS
 from pcdet_atlas.attacks.ground import GROUND_SLACK_M, GroundEstimator
 from pcdet_atlas.attacks.intensity import RangeIntensityModel
@@ -245,7 +245,7 @@ class InjectionAttack(BaseAttack):
                     expected="a probability in [0, 1]",
                 ),  # fmt: skip
                 lidar=LidarModel.from_config(cfg.get("LIDAR")),
-                device=str(cfg.get("DEVICE", "cpu")),
+                device=config_device(cfg),
                 trace_filter=trace_filter,
                 **kwargs,
             )

@@ -8,7 +8,12 @@ from pathlib import Path
 
 import torch
 
-from pcdet_atlas.config import REPO_ROOT, cfg_from_list, cfg_from_yaml_file
+from pcdet_atlas.config import (
+    REPO_ROOT,
+    cfg_from_list,
+    cfg_from_yaml_file,
+    check_experiment_config,
+)
 from pcdet_atlas.train_utils.dist import init_dist_pytorch, init_dist_slurm
 
 __all__ = [
@@ -87,6 +92,7 @@ def load_cfg(cfg_file: str, set_cfgs: list[str] | None):
     cfg = cfg_from_yaml_file(cfg_file)
     if set_cfgs:
         cfg_from_list(set_cfgs, cfg)
+    check_experiment_config(cfg)
     group, tag = exp_group_and_tag(cfg_file)
     cfg.TAG, cfg.EXP_GROUP_PATH = tag, group
     return cfg

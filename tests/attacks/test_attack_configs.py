@@ -4,6 +4,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from atlas_helpers import synthetic_library
 
 from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, SequenceData, build_attack
@@ -119,6 +120,44 @@ def test_bad_values_fail_naming_key_value_and_file(tmp_path, base, body, key):
     message = str(info.value)
     assert key in message and "bad_value.yaml" in message, message
     assert value in message, message
+
+
+NON_FINITE = [  # (base variant, YAML body, the dotted key the error must name)
+    ("inj_rel_easy", "INTENSITY:\n  INTENSITY_EXPONENT: .nan\n", "INTENSITY.INTENSITY_EXPONENT"),
+    ("inj_rel_easy", "LIDAR:\n  ORIGIN: [.nan, 0.0, 2.0]\n", "LIDAR.ORIGIN[0]"),
+    ("inj_rel_easy", "LIDAR:\n  INCLINATIONS_DEG: [-10.0, .inf]\n", "LIDAR.INCLINATIONS_DEG[1]"),
+    ("inj_rel_easy", "OFFSET_X: [15.0, .inf]\n", "OFFSET_X[1]"),
+    ("rem_10", "P_DIST:\n  PROB: [0.5, .nan, 0.5, 0.5, 0.5]\n", "P_DIST.PROB[1]"),
+    ("rem_10", "TRACKING:\n  D_MAX: -.inf\n", "TRACKING.D_MAX"),
+    ("clean", "SEED: 1.7\n", "SEED"),
+    ("clean", "SEED: 2.0\n", "SEED"),
+    ("rem_10", "SCHEDULE:\n  WINDOW: 32.5\n", "WINDOW"),
+]
+
+
+@pytest.mark.parametrize("base,body,key", NON_FINITE)
+def test_non_finite_floats_and_float_integers_are_errors(tmp_path, base, body, key):
+    bad = _write(tmp_path / "bad_value.yaml", f"_BASE_CONFIG_: {ATTACK_DIR / base}.yaml\n{body}")
+    with pytest.raises(ConfigError) as info:
+        build_attack(cfg_from_yaml_file(bad))
+    message = str(info.value)
+    assert key in message and "bad_value.yaml" in message, message
+    assert "finite" in message or "integer" in message, message
+
+
+def test_device_cuda_without_a_gpu_is_one_clear_error(tmp_path, monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for base in ("inj_rel_easy", "rem_10", "clean"):
+        bad = _write(
+            tmp_path / "gpu.yaml", f"_BASE_CONFIG_: {ATTACK_DIR / base}.yaml\nDEVICE: cuda\n"
+        )
+        with pytest.raises(ConfigError, match=r"DEVICE = 'cuda' \(from .*gpu\.yaml\).*no CUDA GPU"):
+            build_attack(cfg_from_yaml_file(bad))
+    bad = _write(
+        tmp_path / "tpu.yaml", f"_BASE_CONFIG_: {ATTACK_DIR / 'clean'}.yaml\nDEVICE: tpu\n"
+    )
+    with pytest.raises(ConfigError, match=r"DEVICE = 'tpu' \(from .*tpu\.yaml\)"):
+        build_attack(cfg_from_yaml_file(bad))
 
 
 def test_new_variant_is_yaml_only(tmp_path, frame):
