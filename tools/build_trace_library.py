@@ -4,7 +4,9 @@
         --data_path data/synthetic_waymo [--out <file>] [--set TRACE_LIBRARY.MIN_POINTS 100]
 
 Filters come from the ``TRACE_LIBRARY`` section of the injection YAML; the file is written to
-``TRACE_LIBRARY.PATH`` (relative: under ``--data_path``) unless ``--out`` is given.
+``TRACE_LIBRARY.PATH`` (relative: under ``--data_path``) unless ``--out`` is given. Every injection
+variant naming that file shares it, so an existing library built with other filters (or another
+split) is not replaced unless ``--overwrite`` is given: write it to another file instead.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pcdet_atlas.attacks.lidar_model import LidarModel
-from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
+from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_list, cfg_from_yaml_file
 from pcdet_atlas.utils.common import create_logger
 
@@ -26,6 +28,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--cfg", "--cfg_file", dest="cfg", required=True, help="injection YAML")
     parser.add_argument("--data_path", default="data/synthetic_waymo", help="dataset root")
     parser.add_argument("--out", default=None, help="output .npz (default TRACE_LIBRARY.PATH)")
+    parser.add_argument(
+        "--overwrite", action="store_true", help="replace a library built with other filters"
+    )
     parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None)
     return parser.parse_args(argv)
 
@@ -45,6 +50,8 @@ def main(argv=None) -> Path:
     out = Path(args.out) if args.out else Path(filters.path)
     if not out.is_absolute():
         out = (Path.cwd() / out) if args.out else (root / out)
+    if out.is_file() and not args.overwrite:
+        check_same_build(out, filters)
     lidar = LidarModel.from_config(cfg.get("LIDAR"))
     library = build_trace_library(
         root,
@@ -61,6 +68,21 @@ def main(argv=None) -> Path:
         f"{sizes.min()}/{int(np.median(sizes))}/{sizes.max()}"
     )
     return out
+
+
+def check_same_build(path: Path, filters: TraceFilter) -> None:
+    """Refuse to replace the library at ``path`` when it was built with other filters or split:
+    the injection variants that share it would stop loading (or, read by an older copy of their
+    YAML, run on other traces)."""
+    built = TraceLibrary.load(path).build_info
+    want = {"filters": filters.to_dict(), "split": filters.split}
+    have = {"filters": built.get("filters"), "split": built.get("split")}
+    if have != want:
+        raise FileExistsError(
+            f"{path} holds a trace library built with {have}, not {want}; every injection variant "
+            "whose TRACE_LIBRARY.PATH names this file shares it. Write this one elsewhere (--out, "
+            "or another TRACE_LIBRARY.PATH in its YAML) or pass --overwrite to replace it"
+        )
 
 
 if __name__ == "__main__":

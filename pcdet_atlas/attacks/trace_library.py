@@ -28,6 +28,7 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import zipfile
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -252,15 +253,23 @@ class TraceLibrary:
                 f"trace library not found: {path}. Build it with "
                 "`python tools/build_trace_library.py --cfg <injection yaml> --data_path <root>`"
             )
-        with np.load(path, allow_pickle=False) as data:
-            missing = [
-                k
-                for k in (*cls.ARRAYS, "sequence", "obj_id", "num_frames", "build_info")
-                if k not in data
-            ]
-            if missing:
-                raise ValueError(f"{path}: not a trace library (missing arrays {missing})")
-            arrays = {k: data[k] for k in data.files}
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                missing = [
+                    k
+                    for k in (*cls.ARRAYS, "sequence", "obj_id", "num_frames", "build_info")
+                    if k not in data
+                ]
+                if missing:
+                    raise ValueError(f"{path}: not a trace library (missing arrays {missing})")
+                arrays = {k: data[k] for k in data.files}
+        except (OSError, EOFError, zipfile.BadZipFile, ValueError) as err:
+            if str(path) in str(err):
+                raise
+            raise ValueError(
+                f"{path}: cannot read the trace library (truncated or not a .npz written by "
+                f"tools/build_trace_library.py; rebuild it): {type(err).__name__}: {err}"
+            ) from err
         info = json.loads(str(arrays.pop("build_info")))
         return cls(**arrays, build_info=info, path=path)
 
@@ -273,15 +282,6 @@ def _canonical(points_xyz: np.ndarray, box: np.ndarray) -> np.ndarray:
     x = rel[:, 0] * c + rel[:, 1] * s
     y = -rel[:, 0] * s + rel[:, 1] * c
     return np.stack([x, y, rel[:, 2]], axis=1)
-
-
-def _read_split(root: Path, split: str) -> list[str]:
-    path = root / "ImageSets" / f"{split}.txt"
-    if not path.is_file():
-        raise FileNotFoundError(f"split file not found: {path}")
-    return [
-        wf.sequence_name_from_line(line) for line in path.read_text().splitlines() if line.strip()
-    ]
 
 
 def build_trace_library(
@@ -301,7 +301,10 @@ def build_trace_library(
     """
     root = Path(root_path)
     origin = np.asarray(list(sensor_origin), dtype=np.float64)
-    sequences = _read_split(root, split)
+    split_file = root / "ImageSets" / f"{split}.txt"
+    sequences = wf.read_image_set(split_file)
+    if not sequences:
+        raise ValueError(f"{split_file}: split {split!r} lists no sequence")
     iterator = progress(sequences) if progress is not None else sequences
     lo_r, hi_r = filters.range_m
     tracks: dict[tuple[str, str], dict] = {}

@@ -123,7 +123,10 @@ class WaymoDataset(DatasetTemplate):
     def set_split(self, split: str) -> None:
         """Load the sequences of ``ImageSets/<split>.txt`` (OpenPCDet's ``set_split``)."""
         self.split = split
-        self.sample_sequence_list = read_image_set(self.root_path / "ImageSets" / f"{split}.txt")
+        split_file = self.root_path / "ImageSets" / f"{split}.txt"
+        self.sample_sequence_list = read_image_set(split_file)
+        if not self.sample_sequence_list:
+            raise WaymoFormatError(f"{split_file}: split {split!r} lists no sequence")
         self.all_infos, self.seq_name_to_infos = self.include_waymo_data()
         self.infos = self.all_infos[:: self.sampled_interval]
         self.logger.info(

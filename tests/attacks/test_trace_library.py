@@ -87,3 +87,39 @@ def test_library_of_the_synthetic_dataset(synthetic_root, tmp_path):
         tr = lib.trace(k)
         assert len(tr) >= 200 and np.all(np.abs(tr.xyz) <= tr.box_size / 2 + 1e-3)
         assert (tr.src_range > 1.0).all() and (tr.src_range <= 60.0).all()  # band [5, 50] + box
+
+
+def test_truncated_library_names_its_path(tiny_root, tmp_path):
+    path = build_trace_library(tiny_root, TraceFilter(min_points=50)).save(tmp_path / "lib.npz")
+    data = path.read_bytes()
+    for size in (len(data) // 2, 10, 0):
+        path.write_bytes(data[:size])
+        with pytest.raises(ValueError, match=rf"{path}: cannot read the trace library"):
+            TraceLibrary.load(path)
+
+
+def test_build_from_an_empty_split_names_the_split(tiny_root, tmp_path):
+    import shutil
+
+    root = tmp_path / "root"
+    shutil.copytree(tiny_root, root)
+    (root / "ImageSets" / "train.txt").write_text("\n")
+    with pytest.raises(ValueError, match=r"train\.txt: split 'train' lists no sequence"):
+        build_trace_library(root, TraceFilter(min_points=50))
+
+
+def test_rebuild_with_other_filters_does_not_replace_the_shared_file(tiny_root, tmp_path):
+    tool = load_tool("build_trace_library")
+    yaml = str(REPO_ROOT / "cfgs/attacks/inj_rel_easy.yaml")
+    out = tmp_path / "shared.npz"
+    base = ["--cfg", yaml, "--data_path", str(tiny_root), "--out", str(out)]
+    tool.main(base)
+    before = out.read_bytes()
+    tool.main(base)  # the same filters: rebuilt in place, the same library
+    assert TraceLibrary.load(out).build_info["filters"]["min_points"] == 200
+    other = [*base, "--set", "TRACE_LIBRARY.MIN_POINTS", "100"]
+    with pytest.raises(FileExistsError, match=r"shared\.npz holds a trace library built with"):
+        tool.main(other)
+    assert out.read_bytes() == before
+    tool.main([*other[:-3], "--overwrite", *other[-3:]])
+    assert TraceLibrary.load(out).build_info["filters"]["min_points"] == 100

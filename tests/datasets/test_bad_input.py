@@ -295,3 +295,9 @@ def test_missing_required_augmentation_key(root):
     del rotation["WORLD_ROT_ANGLE"]
     with pytest.raises(ConfigError, match="missing required key 'WORLD_ROT_ANGLE'"):
         WaymoDataset(cfg, CLASS_NAMES, training=True, root_path=root)
+
+
+def test_empty_split_names_split_and_path(root):
+    (root / "ImageSets" / "val.txt").write_text("")
+    with pytest.raises(wf.WaymoFormatError, match=r"ImageSets/val\.txt: split 'val' lists no seq"):
+        _dataset(root)
