@@ -29,14 +29,17 @@ def build_network(
     class_names: Sequence[str],
     point_cloud_range: Sequence[float],
     num_point_features: int,
+    voxel_size: Sequence[float] | None = None,
 ) -> Detector3DTemplate:
-    """The detector ``DETECTORS[model_cfg.NAME]`` built from a ``MODEL`` section."""
+    """The detector ``DETECTORS[model_cfg.NAME]`` built from a ``MODEL`` section (``voxel_size``:
+    the data config's, for a VFE whose section does not state one)."""
     require_keys(model_cfg, ["NAME"], "MODEL")
     return DETECTORS.get(model_cfg["NAME"]).from_config(
         model_cfg,
         class_names=class_names,
         point_cloud_range=point_cloud_range,
         num_point_features=num_point_features,
+        voxel_size=voxel_size,
     )
 
 
@@ -53,9 +56,12 @@ def build_network_from_config(cfg: Mapping) -> Detector3DTemplate:
     """Build the model of a full config (``CLASS_NAMES``, ``DATA_CONFIG``, ``MODEL``)."""
     require_keys(cfg, ["CLASS_NAMES", "DATA_CONFIG", "MODEL"], "config")
     require_keys(cfg["DATA_CONFIG"], ["POINT_CLOUD_RANGE"], "DATA_CONFIG")
+    from pcdet_atlas.datasets.augmentor.processors import processor_voxel_size
+
     return build_network(
         cfg["MODEL"],
         class_names=cfg["CLASS_NAMES"],
         point_cloud_range=cfg["DATA_CONFIG"]["POINT_CLOUD_RANGE"],
         num_point_features=num_point_features_of(cfg["DATA_CONFIG"]),
+        voxel_size=processor_voxel_size(cfg["DATA_CONFIG"]),
     )

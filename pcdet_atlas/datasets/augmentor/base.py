@@ -31,7 +31,8 @@ __all__ = ["DataAugmentor", "DataProcessor", "build_transform", "check_transform
 
 _VOXEL_HINT = (
     "voxelization is part of the model in pcdet_atlas (a torch op in the VFE), not of the data "
-    "loader: remove this item from DATA_PROCESSOR and give the voxel settings to the model config"
+    "loader: replace this item by transform_points_to_voxels_placeholder (the model reads its "
+    "VOXEL_SIZE) or give the voxel settings to the model config"
 )
 
 
@@ -39,7 +40,7 @@ def _transform_class(item: Mapping, section: str):
     if not isinstance(item, Mapping) or "NAME" not in item:
         raise ConfigError(f"{section}: each item must be a mapping with a NAME, got {item!r}")
     name = item["NAME"]
-    if name in ("transform_points_to_voxels", "transform_points_to_voxels_placeholder"):
+    if name == "transform_points_to_voxels":
         raise ConfigError(f"{section}: {name!r} (from {key_source(item, 'NAME')}): {_VOXEL_HINT}")
     try:
         return TRANSFORMS.get(name)

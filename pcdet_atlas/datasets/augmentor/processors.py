@@ -3,16 +3,23 @@ voxelization, which is a torch op inside the model here."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config import ConfigError, key_source
 from pcdet_atlas.datasets.multiframe import compress_rows
 from pcdet_atlas.registry import TRANSFORMS
 from pcdet_atlas.utils.box_utils import boxes_to_corners_3d
 
-__all__ = ["MaskPointsAndBoxesOutsideRange", "ShufflePoints", "mask_points_by_range"]
+__all__ = [
+    "MaskPointsAndBoxesOutsideRange",
+    "ShufflePoints",
+    "VoxelSizePlaceholder",
+    "mask_points_by_range",
+    "processor_voxel_size",
+]
 
 
 def mask_points_by_range(points: np.ndarray, limit_range, filter_z: bool = False) -> np.ndarray:
@@ -123,3 +130,44 @@ class ShufflePoints:
             points = data_dict["points"]
             data_dict["points"] = np.take(points, rng.permutation(points.shape[0]), axis=0)
         return data_dict
+
+
+@TRANSFORMS.register("transform_points_to_voxels_placeholder")
+class VoxelSizePlaceholder:
+    """OpenPCDet's processor of dynamic-voxel models: it states the ``VOXEL_SIZE`` (m) the model
+    voxelizes with and leaves the points as they are (the model reads the size through
+    :func:`processor_voxel_size`)."""
+
+    CONFIG_KEYS = ("VOXEL_SIZE",)
+
+    def __init__(self, voxel_size: Sequence[float]):
+        self.voxel_size = tuple(float(v) for v in voxel_size)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping, **context) -> VoxelSizePlaceholder:
+        value = cfg.get("VOXEL_SIZE")
+        ok = (
+            isinstance(value, (list, tuple))
+            and len(value) == 3
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+            and all(math.isfinite(v) and v > 0 for v in value)
+        )
+        if not ok:
+            raise ConfigError(
+                f"transform_points_to_voxels_placeholder.VOXEL_SIZE = {value!r} (from "
+                f"{key_source(cfg, 'VOXEL_SIZE')}): expected 3 finite sizes > 0 [vx, vy, vz] (m)"
+            )
+        return cls(value)
+
+    def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
+        return data_dict
+
+
+def processor_voxel_size(data_cfg: Mapping) -> tuple[float, float, float] | None:
+    """The ``VOXEL_SIZE`` of a ``transform_points_to_voxels_placeholder`` in ``DATA_PROCESSOR``
+    (checked), or ``None`` when there is none."""
+    name = "transform_points_to_voxels_placeholder"
+    for item in data_cfg.get("DATA_PROCESSOR", []) or []:
+        if isinstance(item, Mapping) and item.get("NAME") == name:
+            return VoxelSizePlaceholder.from_config(item).voxel_size
+    return None

@@ -106,6 +106,7 @@ class Detector3DTemplate(nn.Module):
         class_names: Sequence[str],
         point_cloud_range: Sequence[float],
         num_point_features: int,
+        voxel_size: Sequence[float] | None = None,
     ) -> Detector3DTemplate:
         """Build the detector from a ``MODEL`` config section.
 
@@ -130,6 +131,8 @@ class Detector3DTemplate(nn.Module):
             "num_point_features": int(num_point_features),
             "point_cloud_range": tuple(float(v) for v in point_cloud_range),
         }
+        if voxel_size is not None:  # OpenPCDet's DATA_PROCESSOR placeholder states it
+            info["voxel_size"] = tuple(float(v) for v in voxel_size)
         stages: dict[str, nn.Module] = {}
         for name in cls.module_topology:
             section = model_cfg.get(STAGE_CFG_KEYS[name])

@@ -19,7 +19,7 @@ from collections.abc import Mapping, Sequence
 import torch
 from torch import nn
 
-from pcdet_atlas.config import check_known_keys, require_keys
+from pcdet_atlas.config import ConfigError, check_known_keys, key_source
 from pcdet_atlas.models.model_utils.scatter import scatter_max, scatter_mean
 from pcdet_atlas.models.model_utils.voxelize import VoxelGrid, voxelize
 from pcdet_atlas.registry import MODEL_STAGES
@@ -54,6 +54,7 @@ class PFNLayer(nn.Module):
         return weight, bias
 
 
+@MODEL_STAGES.register("DynPillarVFE")  # OpenPCDet's name of this stage
 @MODEL_STAGES.register()
 class DynamicPillarVFE(nn.Module):
     """Points -> one feature vector per non-empty pillar.
@@ -113,11 +114,22 @@ class DynamicPillarVFE(nn.Module):
             ["NAME", "VOXEL_SIZE", "NUM_FILTERS", "USE_NORM", "WITH_DISTANCE", "USE_ABSLOTE_XYZ"],
             "MODEL.VFE",
         )
-        require_keys(cfg, ["VOXEL_SIZE"], "MODEL.VFE")
+        voxel_size = cfg.get("VOXEL_SIZE", model_info.get("voxel_size"))
+        if voxel_size is None:
+            raise ConfigError(
+                "MODEL.VFE needs VOXEL_SIZE, or DATA_CONFIG.DATA_PROCESSOR a "
+                "transform_points_to_voxels_placeholder stating it (as OpenPCDet's configs do)"
+            )
+        data_size = model_info.get("voxel_size")
+        if data_size is not None and tuple(float(v) for v in voxel_size) != tuple(data_size):
+            raise ConfigError(
+                f"MODEL.VFE.VOXEL_SIZE {list(voxel_size)} (from {key_source(cfg, 'VOXEL_SIZE')}) "
+                f"differs from the DATA_PROCESSOR placeholder's VOXEL_SIZE {list(data_size)}"
+            )
         return cls(
             num_point_features=model_info["num_point_features"],
             point_cloud_range=model_info["point_cloud_range"],
-            voxel_size=cfg["VOXEL_SIZE"],
+            voxel_size=voxel_size,
             num_filters=cfg.get("NUM_FILTERS", (64, 64)),
             use_norm=cfg.get("USE_NORM", True),
             with_distance=cfg.get("WITH_DISTANCE", False),
