@@ -110,7 +110,7 @@ def phantom_points(num_points: int = 1000, seed: int = 1) -> np.ndarray:
 
 
 def numpy_zbuffer(scene, spoof, lidar: LidarModel, p_dual: float = 0.0, generator=None):
-    """SPEC §3.3 as a plain dense range image: bin every point, ``np.minimum.at`` z-buffers."""
+    """The raycast rules as a dense range image: bin every point, ``np.minimum.at`` z-buffers."""
     M, B = lidar.azimuth_bins, lidar.num_beams
     origin = lidar.origin.numpy()
     mids = ((lidar.inclinations[1:] + lidar.inclinations[:-1]) / 2).numpy()

@@ -1,4 +1,4 @@
-"""Build the ATLAS trace library (SPEC §3.4) of a Waymo-format dataset from its train split.
+"""Build the ATLAS trace library (docs/attacks.md) of a Waymo-format dataset from its train split.
 
     python tools/build_trace_library.py --cfg cfgs/attacks/inj_rel_easy.yaml \
         --data_path data/synthetic_waymo [--out <file>] [--set TRACE_LIBRARY.MIN_POINTS 100]

@@ -1,11 +1,13 @@
-"""``AtlasWaymoDataset``: any ATLAS variant of a Waymo-format split, served on the fly (SPEC §3.7).
+"""``AtlasWaymoDataset``: any ATLAS variant of a Waymo-format split, served on the fly.
+
+The attack physics and determinism rules are in docs/attacks.md.
 
 It is :class:`~pcdet_atlas.datasets.waymo_dataset.WaymoDataset` with one hook overridden:
 :meth:`get_lidar`, through which every frame's points are read, current or history. Each frame
 is attacked there by **its own** schedule state (a history frame of a multi-frame input that is
 spoofed gets the same run's phantom / removal as when it is the current frame; a clean history
 frame is read untouched), so frame ``t`` of a variant is bitwise identical whether it is loaded
-as the current frame or as history, in any order, with any number of workers (SPEC §3.6).
+as the current frame or as history, in any order, with any number of workers.
 
 The attack acts on the returns of the frame file as the sensor recorded them, rows of no-label
 zones (NLZ) included (they are surfaces the sensor sees: they occlude a phantom and can be

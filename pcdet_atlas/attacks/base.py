@@ -9,7 +9,8 @@ implements three things:
 * ``attack_frame(scene_xyz, seq, frame_idx, run_state, schedule) -> FrameAttack``: the physics of
   one spoofed frame, from the scene's xyz only (features are carried, never read).
 * ``shadow_meta(seq, frame_idx, run_state, schedule) -> dict``: the metadata of a clean lifecycle
-  frame (the frame before a run and the W frames after it; SPEC §4), without touching points.
+  frame (the frame before a run and the W frames after it; docs/evaluation.md, "Lifecycle"),
+  without touching points.
 
 :meth:`BaseAttack.simulate` is the one entry point: it looks the frame up in the schedule and
 does **no** work for a clean frame. A new variant is a YAML file; a new family is a registered
@@ -51,7 +52,7 @@ COMMON_KEYS = {"NAME", "VARIANT", "SEED", "SCHEDULE", "LIDAR", "DEVICE"}
 
 @dataclass(frozen=True)
 class ScheduleState:
-    """Where a frame sits in the schedule (SPEC §3.2, §4)."""
+    """Where a frame sits in the schedule (docs/attacks.md; lifecycle: docs/evaluation.md)."""
 
     spoofed: bool
     run_id: int  # spoofing run, or the run whose lifecycle holds this clean frame; -1 if none

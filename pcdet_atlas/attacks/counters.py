@@ -1,4 +1,4 @@
-"""Work counters of the attack engine, so that laziness is provable (SPEC §6).
+"""Work counters of the attack engine, so that laziness is provable (docs/attacks.md).
 
 One :class:`AttackCounters` object per process, :data:`COUNTERS`, is the only module-level
 mutable state of the engine. It is deliberately global: the raycaster and the dataset increment
@@ -12,7 +12,7 @@ it without threading a handle through every call, and tests read it around a blo
 
 Each DataLoader worker is a separate process with its own copy, so measure in the main process
 (``num_workers=0``) when a test needs exact figures. Counters only count; they never influence
-results, so determinism (SPEC §3.6) does not depend on them.
+results, so determinism (docs/attacks.md) does not depend on them.
 
 Fields (all non-negative ints):
     raycast_calls: calls of :func:`~pcdet_atlas.attacks.raycast.raycast_merge` that had at

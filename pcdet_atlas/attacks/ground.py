@@ -1,4 +1,4 @@
-"""Local ground height under a phantom, from the frame's own scene points (SPEC §3.4).
+"""Local ground height under a phantom, from the frame's own scene points (docs/attacks.md).
 
 The estimate is a robust low percentile (the 'lower' rule: an actual sample, no interpolation) of
 the z of the scene points inside a small disc around the phantom centre: low, because cars, walls

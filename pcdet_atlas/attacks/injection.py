@@ -1,4 +1,4 @@
-"""Point injection (SPEC §3.4): a recorded vehicle trace replayed as a phantom through the
+"""Point injection (docs/attacks.md): a recorded vehicle trace replayed as a phantom through the
 sensor-level raycaster.
 
 Per run (all draws keyed by ``(seed, 'injection', position_mode, sequence, run_start, purpose)``,

@@ -1,4 +1,4 @@
-"""Range-consistent intensity and elongation for replayed trace points (SPEC §3.4).
+"""Range-consistent intensity and elongation for replayed trace points (docs/attacks.md).
 
 A trace point was recorded at range ``r_src`` from its sensor; replayed into a new scene it lies
 at ``r_new``. Its raw intensity and elongation are corrected by power laws in the range ratio::

@@ -1,4 +1,4 @@
-"""Fit a :class:`LidarModel` beam table from a sequence's TOP-LiDAR points (SPEC §3.1).
+"""Fit a :class:`LidarModel` beam table from a sequence's TOP-LiDAR points (docs/attacks.md).
 
 OpenPCDet's ``.npy`` frames do not keep the per-frame calibration, so the real 64 TOP inclinations
 are estimated from the points themselves: the first ``num_points_of_each_lidar[0]`` rows of each

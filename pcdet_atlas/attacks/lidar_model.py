@@ -1,4 +1,4 @@
-"""The spinning-LiDAR model of SPEC §3.1: beam table, azimuth bins, sensor origin, field of view.
+"""The spinning-LiDAR model (docs/attacks.md): beams, azimuth bins, sensor origin, field of view.
 
 One (azimuth bin, beam) pair is one ray. All spherical coordinates are taken relative to the
 sensor origin, never the vehicle-frame origin.

@@ -7,7 +7,7 @@ One plain dict per frame, consumed by the evaluation (ASR, confidence, lifecycle
      'run_id': int,              # the run this frame is spoofed by, or (clean lifecycle frames)
                                  #   whose shadow it carries; -1 otherwise
      'run_position': int,        # 0-based index within the run, -1 if not in a run
-     'lifecycle_k': int,         # SPEC §4: 0 = last clean frame before onset, 1..W spoofed,
+     'lifecycle_k': int,         # 0 = last clean frame before onset, 1..W spoofed,
                                  #   W+1..2W clean frames after the run, -1 otherwise
      'target_box': np.float32 (7,) or None,  # phantom box (injection) / tracked + fired target
                                  #   (removal); on shadow frames the continued phantom / target

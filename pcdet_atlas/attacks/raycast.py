@@ -1,11 +1,11 @@
-"""The sensor-level raycaster of SPEC §3.3: merge spoofed points into a scan, one echo per ray.
+"""The sensor-level raycaster (docs/attacks.md): merge spoofed points into a scan, one echo per ray.
 
 Each (azimuth bin, beam) pair of a :class:`~pcdet_atlas.attacks.lidar_model.LidarModel` is one
 ray. :func:`raycast_merge` decides, per ray, which spoofed and which scene points a real sensor
 would report, and returns keep masks. It is a sparse z-buffer: only the rays hit by the spoof are
 built, and only the scene points in the spoof's azimuth sector are binned.
 
-How the work stays proportional to the spoof's sector (SPEC §6):
+How the work stays proportional to the spoof's sector:
 
 1. The spoof points are binned exactly (float64, :meth:`LidarModel.bin_index`).
 2. Their occupied azimuth columns are grouped into a few circular intervals (neighbouring runs
@@ -335,7 +335,7 @@ def raycast_merge(
     counters: AttackCounters | None = None,
     backend: str = "auto",
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Merge spoofed points into a scan, one echo per ray (SPEC §3.3, rules 1-6).
+    """Merge spoofed points into a scan, one echo per ray (rules 1-6 of docs/attacks.md).
 
     Per ray (azimuth bin, beam) hit by the spoof:
 

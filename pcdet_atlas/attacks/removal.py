@@ -1,4 +1,4 @@
-"""Point removal, A-HFR (SPEC §3.5): hide a tracked vehicle by deleting an angular sector.
+"""Point removal, A-HFR (docs/attacks.md): hide a tracked vehicle by deleting an angular sector.
 
 Per run: the target is chosen at the run's first frame (:class:`TargetPolicy`) and tracked through
 the run and its lifecycle frames in the world frame (:class:`Tracker`). Per spoofed frame:

@@ -1,11 +1,11 @@
-"""The temporal spoofing schedule of SPEC §3.2 and the lifecycle positions of SPEC §4.
+"""The temporal spoofing schedule and the lifecycle positions (docs/attacks.md, docs/evaluation.md).
 
 Frame ``i`` of a sequence is spoofed iff ``floor(i / W) mod 2 = 1`` (``s_0 = 0`` always), with the
 window ``W = 32`` by default. A *run* is a maximal block of spoofed frames: frames 32-63, 96-127
 and 160-191 of a 198-frame Waymo sequence. A run that reaches the end of a short sequence is
 truncated there (a 50-frame sequence has the single run 32-49).
 
-Lifecycle positions (SPEC §4), relative to run ``r`` starting at frame ``start``:
+Lifecycle positions (docs/evaluation.md), relative to run ``r`` starting at frame ``start``:
 ``k = i - start + 1``, i.e. ``k = 0`` for the last clean frame before onset, ``k = 1..W`` for
 the spoofed frames and ``k = W+1..2W`` for the W clean frames after a full run. Because the gap
 between two runs is exactly ``W`` frames, frame ``start_{r+1} - 1`` is both ``k = 2W`` of run

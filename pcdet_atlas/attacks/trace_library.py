@@ -1,4 +1,4 @@
-"""The trace library of recorded vehicles replayed by point injection (SPEC §3.4).
+"""The trace library of recorded vehicles replayed by point injection (docs/attacks.md).
 
 For every annotated vehicle track of a split, the points inside its box are gathered over the
 whole sequence in the **canonical box frame** (box centre at the origin, heading along +x, z up),

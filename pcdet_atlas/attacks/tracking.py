@@ -1,4 +1,4 @@
-"""Removal-target choice and velocity-guided tracking through a run (SPEC §3.5).
+"""Removal-target choice and velocity-guided tracking through a run (docs/attacks.md, "Removal").
 
 Pure functions on ground-truth arrays; no points are touched. Tracking runs in the world frame:
 ``c_hat_k = c_{k-1} + dt * [vx, vy, 0]`` with the previous box's global speed, then the nearest
@@ -158,7 +158,7 @@ class TrackedFrame:
 
 
 class Tracker:
-    """Velocity-guided nearest-box association (SPEC §3.5).
+    """Velocity-guided nearest-box association (docs/attacks.md, "Removal").
 
     Args:
         dt: time between consecutive frames, s.

@@ -1,4 +1,4 @@
-"""Attack metrics (SPEC §4): success rate, confidence analysis, lifecycle, robustness ranks.
+"""Attack metrics (docs/evaluation.md): success rate, confidence, lifecycle, robustness ranks.
 
 Inputs are the two per-frame lists every evaluation run produces, aligned by index:
 
@@ -15,7 +15,7 @@ box the best 3D IoU of the predictions (of the target's class, above an optional
 and the best score among the matching ones; ASR, the lenient ASR, the confidence statistics and
 the lifecycle curve are all read off that record, so they always agree with each other.
 
-Definitions (paper §"Evaluation Metric"; SPEC §4):
+Definitions (paper §"Evaluation Metric"; docs/evaluation.md, "Attack metrics"):
 
 * **Target**: a frame whose ``target_box`` is not None. Attacked targets have ``spoofed`` True;
   *shadow* targets (``target_is_shadow`` True: the frame before a run and the frames after it) are
@@ -45,7 +45,7 @@ ASR_IOU_THRESHOLD = 0.7
 HIGH_SCORE_THRESHOLD = 0.7
 NUM_SCORE_BINS = 20  # fixed bins of width 0.05 over [0, 1]
 DEFAULT_TARGET_CLASS = "Vehicle"
-#: The schedule window the attack engine records ``lifecycle_k`` for by default (SPEC §3.2,
+#: The schedule window the attack engine records ``lifecycle_k`` for by default (docs/attacks.md,
 #: ``pcdet_atlas.attacks.schedule.DEFAULT_WINDOW``; a schedule config with another ``WINDOW``
 #: must pass ``recorded_window=`` explicitly).
 SCHEDULE_WINDOW = 32

@@ -1,4 +1,4 @@
-"""Box and rigid-transform geometry in the conventions of SPEC §1.
+"""Box and rigid-transform geometry in the conventions of docs/conventions.md.
 
 Boxes are ``(N, 7)`` ``[x, y, z, dx, dy, dz, heading]`` with z at the box centre, heading CCW from
 +x in radians, or ``(N, 9)`` with ``[vx, vy]`` (m/s) appended. Poses are 4x4 vehicle -> global.

@@ -32,7 +32,7 @@ CANDIDATE_FNS = [azimuth_sector_candidates, numpy_candidates]
 
 
 def reference_merge(scene, spoof, lidar, p_dual=0.0, generator=None):
-    """SPEC §3.3 written plainly: a dict of rays -> lists of (range, index)."""
+    """docs/attacks.md's raycast rules, plainly: a dict of rays -> lists of (range, index)."""
     s_bin, s_fov, s_rng = (t.tolist() for t in lidar.bin_index(scene.cpu().double()))
     p_bin, p_fov, p_rng = (t.tolist() for t in lidar.bin_index(spoof.cpu().double()))
     scene_rays, spoof_rays = defaultdict(list), defaultdict(list)

@@ -1,4 +1,4 @@
-"""Procedural synthetic Waymo-format dataset (SPEC §2.2): the embedded default dataset.
+"""Procedural synthetic Waymo-format dataset (docs/synthetic.md): the embedded default dataset.
 
 ``create_synthetic_waymo(root, {'train': N, 'val': M}, {'train': F, 'val': G}, seed=0)`` writes
 OpenPCDet's processed Waymo layout from ray-cast procedural street scenes. See

@@ -1,4 +1,4 @@
-"""Write a synthetic dataset in OpenPCDet's processed Waymo layout (SPEC §2.2).
+"""Write a synthetic dataset in OpenPCDet's processed Waymo layout (docs/synthetic.md).
 
 :func:`create_synthetic_waymo` builds each sequence's :class:`~.scene.SyntheticScene`, scans
 every frame with the Waymo TOP model (:meth:`LidarModel.waymo_top`) through the torch ray caster,

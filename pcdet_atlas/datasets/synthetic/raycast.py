@@ -3,7 +3,7 @@
 The scene is a set of primitives in the vehicle frame:
 
 - a ground plane ``z = ground_z``;
-- yaw-oriented boxes ``(K, 7)`` ``[x, y, z, dx, dy, dz, yaw]`` (z at the centre, as SPEC §1 boxes);
+- yaw-oriented boxes ``(K, 7)`` ``[x, y, z, dx, dy, dz, yaw]`` (docs/conventions.md);
 - vertical cylinders ``(L, 5)`` ``[x, y, z_min, z_max, radius]``.
 
 One ray leaves the sensor origin per (beam, azimuth column); the nearest hit wins, so occlusion is
