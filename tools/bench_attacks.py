@@ -31,8 +31,8 @@ import numpy as np
 import torch
 
 from pcdet_atlas.attacks.counters import AttackCounters
-from pcdet_atlas.attacks.lidar_model import LidarModel
 from pcdet_atlas.attacks.raycast import raycast_merge
+from pcdet_atlas.ops.lidar_model import LidarModel
 
 
 def time_interleaved(fns: dict, repeats: int, sync=None, block: int = 5) -> dict[str, float]:

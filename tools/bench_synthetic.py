@@ -18,7 +18,6 @@ import time
 
 import torch
 
-from pcdet_atlas.attacks.lidar_model import LidarModel
 from pcdet_atlas.datasets.synthetic.generator import generate_frame, lidar_directions
 from pcdet_atlas.datasets.synthetic.raycast import (
     _box_windows,
@@ -29,6 +28,7 @@ from pcdet_atlas.datasets.synthetic.raycast import (
 )
 from pcdet_atlas.datasets.synthetic.scene import SyntheticScene
 from pcdet_atlas.datasets.synthetic.sensor import SensorModel
+from pcdet_atlas.ops.lidar_model import LidarModel
 
 
 def brute_force(origin, dirs, prims, max_range):

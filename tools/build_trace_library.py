@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from pcdet_atlas.attacks.lidar_model import LidarModel
 from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_list, cfg_from_yaml_file
+from pcdet_atlas.ops.lidar_model import LidarModel
 from pcdet_atlas.utils.common import create_logger
 
 

@@ -14,7 +14,7 @@ import math
 import yaml
 
 from pcdet_atlas.attacks.lidar_fit import fit_lidar_from_sequence
-from pcdet_atlas.attacks.lidar_model import LidarModel
+from pcdet_atlas.ops.lidar_model import LidarModel
 
 
 def main() -> None:

@@ -30,7 +30,7 @@ import torch  # noqa: E402
 from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset  # noqa: E402
 from pcdet_atlas.attacks.removal import RemovalAttack  # noqa: E402
 from pcdet_atlas.config import REPO_ROOT, cfg_from_list, cfg_from_yaml_file  # noqa: E402
-from pcdet_atlas.utils.box_utils import boxes_to_corners_3d  # noqa: E402
+from pcdet_atlas.ops.boxes import boxes_to_corners_3d  # noqa: E402
 
 CLASS_NAMES = ["Vehicle", "Pedestrian", "Cyclist"]
 
@@ -78,7 +78,7 @@ def render(dataset: AtlasWaymoDataset, index: int, out: Path, bev_range) -> Path
     after = np.concatenate([before[keep, :3], added[:, :3]])
     lidar = getattr(attack, "lidar", None)
     if lidar is None:
-        from pcdet_atlas.attacks.lidar_model import LidarModel
+        from pcdet_atlas.ops.lidar_model import LidarModel
 
         lidar = LidarModel.waymo_top()
 

@@ -16,12 +16,12 @@ from pcdet_atlas.attacks.base import (
 from pcdet_atlas.attacks.clean import CleanAttack
 from pcdet_atlas.attacks.counters import COUNTERS, AttackCounters
 from pcdet_atlas.attacks.injection import InjectionAttack
-from pcdet_atlas.attacks.lidar_model import LidarModel
 from pcdet_atlas.attacks.metadata import META_KEYS, make_meta, validate_meta
 from pcdet_atlas.attacks.raycast import raycast_merge
 from pcdet_atlas.attacks.removal import RemovalAttack
 from pcdet_atlas.attacks.schedule import schedule_runs, spoof_schedule
 from pcdet_atlas.attacks.trace_library import TraceLibrary, build_trace_library
+from pcdet_atlas.ops.lidar_model import LidarModel
 
 __all__ = [
     "AtlasWaymoDataset",

@@ -29,10 +29,10 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pcdet_atlas.attacks import schedule as sched
-from pcdet_atlas.attacks.config_values import check_finite, config_device, config_value
 from pcdet_atlas.attacks.metadata import make_meta
 from pcdet_atlas.attacks.tracking import FrameLabels
 from pcdet_atlas.config import ConfigError, cfg_from_yaml_file, check_known_keys, key_source
+from pcdet_atlas.config_values import check_finite, config_device, config_value
 from pcdet_atlas.datasets.multiframe import copy_rows_except
 from pcdet_atlas.registry import ATTACKS
 

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pcdet_atlas.attacks.config_values import config_files, config_value
 from pcdet_atlas.attacks.raycast import scene_columns
 from pcdet_atlas.config import ConfigError, check_known_keys
+from pcdet_atlas.config_values import config_files, config_value
 
 __all__ = ["GROUND_SLACK_M", "GroundEstimator", "GroundEstimate"]
 

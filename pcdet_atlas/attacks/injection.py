@@ -33,11 +33,9 @@ import numpy as np
 import torch
 
 from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, ScheduleState, SequenceData
-from pcdet_atlas.attacks.config_values import config_device, config_files, config_value
 from pcdet_atlas.attacks.counters import COUNTERS
 from pcdet_atlas.attacks.ground import GROUND_SLACK_M, GroundEstimator
 from pcdet_atlas.attacks.intensity import RangeIntensityModel
-from pcdet_atlas.attacks.lidar_model import LidarModel
 from pcdet_atlas.attacks.raycast import (
     ColumnScratch,
     disc_wedges,
@@ -48,6 +46,8 @@ from pcdet_atlas.attacks.raycast import (
 )
 from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary
 from pcdet_atlas.config import REPO_ROOT, ConfigError
+from pcdet_atlas.config_values import config_device, config_files, config_value
+from pcdet_atlas.ops.lidar_model import LidarModel
 from pcdet_atlas.registry import ATTACKS
 from pcdet_atlas.utils.common import limit_period
 from pcdet_atlas.utils.seeding import numpy_generator

@@ -24,8 +24,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from pcdet_atlas.attacks.config_values import config_files, config_value
 from pcdet_atlas.config import ConfigError, check_known_keys
+from pcdet_atlas.config_values import config_files, config_value
 
 __all__ = ["RangeIntensityModel"]
 

@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 
-from pcdet_atlas.attacks.lidar_model import WAYMO_TOP_ORIGIN, LidarModel
 from pcdet_atlas.datasets.waymo_format import (
     PROCESSED_DATA_TAG,
     frame_npy_path,
@@ -20,6 +19,7 @@ from pcdet_atlas.datasets.waymo_format import (
     load_sequence_infos,
     sequence_pkl_path,
 )
+from pcdet_atlas.ops.lidar_model import WAYMO_TOP_ORIGIN, LidarModel
 
 __all__ = ["top_lidar_points", "fit_lidar_from_sequence"]
 

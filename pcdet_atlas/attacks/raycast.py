@@ -1,6 +1,6 @@
 """The sensor-level raycaster (docs/attacks.md): merge spoofed points into a scan, one echo per ray.
 
-Each (azimuth bin, beam) pair of a :class:`~pcdet_atlas.attacks.lidar_model.LidarModel` is one
+Each (azimuth bin, beam) pair of a :class:`~pcdet_atlas.ops.lidar_model.LidarModel` is one
 ray. :func:`raycast_merge` decides, per ray, which spoofed and which scene points a real sensor
 would report, and returns keep masks. It is a sparse z-buffer: only the rays hit by the spoof are
 built, and only the scene points in the spoof's azimuth sector are binned.
@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from pcdet_atlas.attacks.counters import COUNTERS, AttackCounters
-from pcdet_atlas.attacks.lidar_model import LidarModel, spherical_offsets
+from pcdet_atlas.ops.lidar_model import LidarModel, spherical_offsets
 
 #: Sources of the dual-return draws (rule 5): a generator, or uniforms drawn beforehand.
 Generator = torch.Generator | np.random.Generator | np.ndarray
@@ -365,7 +365,7 @@ def raycast_merge(
         counters: where to count the work; the per-process ``COUNTERS`` by default.
         backend: ``'auto'`` (numpy for CPU tensors, torch otherwise), ``'torch'`` or
             ``'numpy'`` (CPU tensors only). On CPU both give identical masks, counters and
-            draws: both bin through :func:`~pcdet_atlas.attacks.lidar_model.spherical_offsets`
+            draws: both bin through :func:`~pcdet_atlas.ops.lidar_model.spherical_offsets`
             (numpy ``sqrt`` / ``arctan2``), everything else is IEEE-exact arithmetic or
             integer/comparison logic. The numpy
             one avoids ~60 small torch ops, whose fixed cost dominates a few thousand candidate
@@ -575,7 +575,7 @@ def _as_xyz_numpy(points, name: str) -> np.ndarray:
 
 def _bin_index_numpy(lidar: LidarModel, xyz: np.ndarray) -> tuple[np.ndarray, ...]:
     """:meth:`LidarModel.bin_index` of ``(N, 3)`` numpy points, bit for bit (the same
-    :func:`~pcdet_atlas.attacks.lidar_model.spherical_offsets` arithmetic)."""
+    :func:`~pcdet_atlas.ops.lidar_model.spherical_offsets` arithmetic)."""
     rel = xyz[:, :3].astype(np.float64) - lidar.origin_np
     return _bin_offsets(lidar, rel[:, 0], rel[:, 1], rel[:, 2])
 

@@ -25,12 +25,12 @@ from pathlib import Path
 import numpy as np
 
 from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, ScheduleState, SequenceData
-from pcdet_atlas.attacks.config_values import config_files, config_value
 from pcdet_atlas.attacks.counters import COUNTERS
-from pcdet_atlas.attacks.lidar_model import LidarModel, spherical_offsets
 from pcdet_atlas.attacks.raycast import ColumnScratch, _half_plane_numpy, scene_columns
 from pcdet_atlas.attacks.tracking import TargetPolicy, TrackedFrame, Tracker, choose_target
 from pcdet_atlas.config import ConfigError, check_known_keys
+from pcdet_atlas.config_values import config_files, config_value
+from pcdet_atlas.ops.lidar_model import LidarModel, spherical_offsets
 from pcdet_atlas.registry import ATTACKS
 from pcdet_atlas.utils.common import limit_period
 from pcdet_atlas.utils.seeding import numpy_generator
@@ -87,7 +87,7 @@ def _is_probability(p: float) -> bool:
 
 def _azimuth_elevation(xyz: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Azimuth and elevation (float64, rad) relative to ``origin``: the CPU arithmetic of
-    :meth:`LidarModel.spherical` (:func:`~pcdet_atlas.attacks.lidar_model.spherical_offsets`)."""
+    :meth:`LidarModel.spherical` (:func:`~pcdet_atlas.ops.lidar_model.spherical_offsets`)."""
     rel = xyz.astype(np.float64) - origin[None]
     azimuth, elevation, _ = spherical_offsets(rel[:, 0], rel[:, 1], rel[:, 2], with_range=False)
     return azimuth, elevation

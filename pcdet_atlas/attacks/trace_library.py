@@ -35,10 +35,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pcdet_atlas.attacks.config_values import config_value
 from pcdet_atlas.config import ConfigError, check_known_keys
+from pcdet_atlas.config_values import config_value
 from pcdet_atlas.datasets import waymo_format as wf
-from pcdet_atlas.utils.box_utils import points_in_boxes_mask
+from pcdet_atlas.ops.boxes import points_in_boxes_mask
 from pcdet_atlas.utils.seeding import numpy_generator
 
 __all__ = ["Trace", "TraceLibrary", "TraceFilter", "build_trace_library", "TRACE_LIBRARY_KEYS"]

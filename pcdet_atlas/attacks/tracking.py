@@ -15,10 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pcdet_atlas.attacks.config_values import config_value
 from pcdet_atlas.config import check_known_keys
+from pcdet_atlas.config_values import config_value
 from pcdet_atlas.datasets import waymo_format as wf
-from pcdet_atlas.utils.box_utils import transform_boxes
+from pcdet_atlas.ops.boxes import transform_boxes
 from pcdet_atlas.utils.seeding import numpy_generator
 
 __all__ = ["FrameLabels", "TargetPolicy", "Tracker", "TrackedFrame", "choose_target"]

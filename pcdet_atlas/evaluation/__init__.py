@@ -1,4 +1,5 @@
-"""Evaluation: exact 3D IoU, the Waymo L1/L2 AP/APH metric, attack success rate and analyses."""
+"""Evaluation: the Waymo L1/L2 AP/APH metric, attack success rate and analyses (the box IoU
+and NMS they use are in :mod:`pcdet_atlas.ops`)."""
 
 from pcdet_atlas.evaluation.attack_metrics import (
     AttackMetricError,
@@ -12,14 +13,6 @@ from pcdet_atlas.evaluation.attack_metrics import (
     match_targets,
     removal_confidence,
     robustness_ranks,
-)
-from pcdet_atlas.evaluation.iou3d import (
-    boxes_aligned_iou3d,
-    boxes_aligned_iou_bev,
-    boxes_iou3d,
-    boxes_iou_bev,
-    boxes_overlap_bev,
-    nms_bev,
 )
 from pcdet_atlas.evaluation.localization import ap_by_iou, localization_errors
 from pcdet_atlas.evaluation.results import (
@@ -54,11 +47,6 @@ __all__ = [
     "ap_by_iou",
     "asr_from_matches",
     "attack_success_rate",
-    "boxes_aligned_iou3d",
-    "boxes_aligned_iou_bev",
-    "boxes_iou3d",
-    "boxes_iou_bev",
-    "boxes_overlap_bev",
     "build_results",
     "build_variant_result",
     "compute_waymo_curves",
@@ -73,7 +61,6 @@ __all__ = [
     "load_results",
     "load_results_dir",
     "match_targets",
-    "nms_bev",
     "ranks_from_results",
     "removal_confidence",
     "robustness_ranks",

@@ -39,7 +39,7 @@ from typing import ClassVar
 import numpy as np
 import torch
 
-from pcdet_atlas.evaluation.iou3d import boxes_aligned_iou3d
+from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d
 
 ASR_IOU_THRESHOLD = 0.7
 HIGH_SCORE_THRESHOLD = 0.7
@@ -292,7 +292,7 @@ def match_targets(
             paper's target box carries the class); None = class-agnostic.
         success_if_detected: family -> bool table, default :data:`SUCCESS_IF_DETECTED`.
         iou_fn: row-aligned torch IoU ``(P, 7), (P, 7) -> (P,)``; default the exact
-            :func:`pcdet_atlas.evaluation.iou3d.boxes_aligned_iou3d`, called once for all the
+            :func:`pcdet_atlas.ops.iou3d_nms.boxes_aligned_iou3d`, called once for all the
             (target, prediction) pairs that can overlap.
 
     Raises:

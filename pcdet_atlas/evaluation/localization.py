@@ -19,8 +19,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from pcdet_atlas.evaluation.iou3d import boxes_iou3d
 from pcdet_atlas.evaluation.waymo_metric import compute_waymo_curves
+from pcdet_atlas.ops.iou3d_nms import boxes_iou3d
 
 __all__ = [
     "ERROR_COMPONENTS",

@@ -38,7 +38,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from pcdet_atlas.evaluation.iou3d import boxes_aligned_iou3d
+from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d
 from pcdet_atlas.utils.common import limit_period
 
 __all__ = [

@@ -17,7 +17,7 @@ from pcdet_atlas.datasets.waymo_format import (
     load_sequence_infos,
     sequence_pkl_path,
 )
-from pcdet_atlas.utils.box_utils import transform_boxes
+from pcdet_atlas.ops.boxes import transform_boxes
 
 SEQ = "segment-tinyval_with_camera_labels"
 BUDGETS = {"easy": (100, 200), "medium": (300, 500), "hard": (500, 1000)}

@@ -3,7 +3,6 @@ import pytest
 import torch
 
 from pcdet_atlas.attacks.lidar_fit import fit_lidar_from_sequence, top_lidar_points
-from pcdet_atlas.attacks.lidar_model import LidarModel
 from pcdet_atlas.datasets.waymo_format import (
     data_dir,
     frame_npy_path,
@@ -11,6 +10,7 @@ from pcdet_atlas.datasets.waymo_format import (
     load_sequence_infos,
     sequence_pkl_path,
 )
+from pcdet_atlas.ops.lidar_model import LidarModel
 
 
 def first_sequence(root):

@@ -9,7 +9,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pcdet_atlas.attacks.counters import AttackCounters
-from pcdet_atlas.attacks.lidar_model import LidarModel
 from pcdet_atlas.attacks.raycast import (
     _bin_index_numpy,
     _sector_wedges,
@@ -21,6 +20,7 @@ from pcdet_atlas.attacks.raycast import (
     raycast_numpy_indices,
     wedge_rows_numpy,
 )
+from pcdet_atlas.ops.lidar_model import LidarModel
 
 
 def numpy_candidates(scene, columns, lidar):

@@ -5,10 +5,10 @@ import pytest
 from atlas_helpers import write_tiny_waymo
 
 from pcdet_atlas.attacks.base import ScheduleState, SequenceData, attack_from_file
-from pcdet_atlas.attacks.lidar_model import LidarModel
 from pcdet_atlas.attacks.removal import PDistTable, RemovalAttack, RemovalRun, sector_mask
 from pcdet_atlas.attacks.tracking import FrameLabels, TargetPolicy, TrackedFrame, Tracker
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
+from pcdet_atlas.ops.lidar_model import LidarModel
 
 LIDAR = LidarModel.waymo_top()
 ORIGIN = LIDAR.origin.numpy()

@@ -6,18 +6,12 @@ import pickle
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 from shapely.geometry import Polygon
 from waymo_tiny_data import CLASS_NAMES, dataset_cfg, write_tiny_waymo
 
 from pcdet_atlas.datasets import WaymoDataset
 from pcdet_atlas.datasets.augmentor import DataAugmentor
-from pcdet_atlas.datasets.augmentor.box_ops import (
-    bev_corners,
-    box_index_of_points,
-    boxes_bev_overlap,
-)
+from pcdet_atlas.datasets.augmentor.box_ops import box_index_of_points
 from pcdet_atlas.datasets.augmentor.gt_sampling import GTSampling
 from pcdet_atlas.datasets.augmentor.processors import (
     ShufflePoints,
@@ -36,8 +30,8 @@ from pcdet_atlas.datasets.multiframe import (
     rows_except,
 )
 from pcdet_atlas.datasets.waymo_format import WaymoFormatError
+from pcdet_atlas.ops.boxes import boxes_to_corners_bev, points_in_boxes_mask
 from pcdet_atlas.registry import TRANSFORMS
-from pcdet_atlas.utils.box_utils import points_in_boxes_mask
 
 
 def _scene(seed=0, n_boxes=6, n_points=3000):
@@ -213,43 +207,7 @@ def test_registered_transforms():
 
 # ---------------------------------------------------------------------------- box ops
 def _polygon(box):
-    return Polygon(bev_corners(np.asarray(box)[None])[0])
-
-
-_box = st.tuples(
-    st.floats(-20, 20),
-    st.floats(-20, 20),
-    st.floats(0.1, 8),
-    st.floats(0.1, 8),
-    st.floats(-np.pi, np.pi),
-).map(lambda t: [t[0], t[1], 0.0, t[2], t[3], 1.0, t[4]])
-
-
-@settings(max_examples=200, deadline=None)
-@given(a=st.lists(_box, min_size=1, max_size=4), b=st.lists(_box, min_size=1, max_size=4))
-def test_bev_overlap_matches_polygon_clipping(a, b):
-    got = boxes_bev_overlap(np.array(a), np.array(b))
-    for i, ba in enumerate(a):
-        for j, bb in enumerate(b):
-            area = _polygon(ba).intersection(_polygon(bb)).area
-            if area > 1e-6:
-                assert got[i, j]
-            elif area == 0:
-                assert not got[i, j]
-
-
-def test_bev_overlap_edge_cases():
-    box = np.array([[0, 0, 0, 2, 2, 1, 0.0]])
-    touching = np.array([[2, 0, 5, 2, 2, 1, 0.0]])  # shares an edge, z ignored
-    rotated_inside = np.array([[0, 0, 0, 0.5, 0.5, 1, 0.7]])
-    far = np.array([[100, 0, 0, 2, 2, 1, 0.0]])
-    degenerate = np.array([[0, 0, 0, 0, 2, 1, 0.0]])
-    assert not boxes_bev_overlap(box, touching)[0, 0]
-    assert boxes_bev_overlap(box, rotated_inside)[0, 0]
-    assert boxes_bev_overlap(box, box)[0, 0]
-    assert not boxes_bev_overlap(box, far)[0, 0]
-    assert not boxes_bev_overlap(box, degenerate)[0, 0]
-    assert boxes_bev_overlap(np.zeros((0, 7)), box).shape == (0, 1)
+    return Polygon(boxes_to_corners_bev(np.asarray(box, dtype=np.float64)[None, :7])[0])
 
 
 def test_box_index_of_points_matches_mask():

@@ -14,8 +14,8 @@ from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import WaymoDataset
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.datasets.gt_database import gt_database_paths
+from pcdet_atlas.ops.boxes import points_in_boxes_mask
 from pcdet_atlas.registry import DATASETS
-from pcdet_atlas.utils.box_utils import points_in_boxes_mask
 
 CFG_DIR = REPO_ROOT / "cfgs" / "dataset_configs"
 TAG = wf.PROCESSED_DATA_TAG

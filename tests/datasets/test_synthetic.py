@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 import torch
 
-from pcdet_atlas.attacks.lidar_model import LidarModel
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.datasets.synthetic import (
     META_FILE,
@@ -33,7 +32,8 @@ from pcdet_atlas.datasets.synthetic.raycast import (
     raycast_scan,
 )
 from pcdet_atlas.datasets.synthetic.sensor import SensorModel
-from pcdet_atlas.utils.box_utils import points_in_boxes_mask, transform_boxes
+from pcdet_atlas.ops.boxes import points_in_boxes_mask, transform_boxes
+from pcdet_atlas.ops.lidar_model import LidarModel
 
 DEVICES = [
     "cpu",

@@ -28,8 +28,8 @@ from pcdet_atlas.datasets.multiframe import (
     outside_ego_mask,
     transform_points_to_frame,
 )
+from pcdet_atlas.ops.boxes import points_in_boxes_mask, transform_points
 from pcdet_atlas.registry import DATASETS
-from pcdet_atlas.utils.box_utils import points_in_boxes_mask, transform_points
 
 SEQ_A = "segment-111_with_camera_labels"
 SEQ_B = "segment-222_with_camera_labels"

@@ -13,7 +13,7 @@ import numpy as np
 
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import waymo_format as wf
-from pcdet_atlas.utils.box_utils import points_in_boxes_mask, transform_boxes, transform_points
+from pcdet_atlas.ops.boxes import points_in_boxes_mask, transform_boxes, transform_points
 
 DATASET_CFG = REPO_ROOT / "cfgs" / "dataset_configs" / "waymo_dataset.yaml"
 MULTIFRAME_CFG = REPO_ROOT / "cfgs" / "dataset_configs" / "waymo_dataset_multiframe.yaml"

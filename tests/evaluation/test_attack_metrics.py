@@ -22,7 +22,7 @@ from pcdet_atlas.evaluation.attack_metrics import (
     robustness_ranks,
     score_histogram,
 )
-from pcdet_atlas.evaluation.iou3d import boxes_iou3d
+from pcdet_atlas.ops.iou3d_nms import boxes_iou3d
 
 TARGET = np.array([20.0, 2.0, 1.0, 4.0, 2.0, 2.0, 0.3], dtype=np.float32)
 
@@ -410,7 +410,7 @@ def test_linear_fit_reproduces_the_paper_figure():
 
 
 def test_iou_fn_can_be_swapped_for_bev():
-    from pcdet_atlas.evaluation.iou3d import boxes_aligned_iou_bev
+    from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou_bev
 
     lifted = TARGET.copy()
     lifted[2] += 1.0  # same footprint, half the height overlapping: 3D IoU 1/3, BEV IoU 1

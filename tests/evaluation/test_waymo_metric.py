@@ -11,7 +11,6 @@ import pytest
 import torch
 from scipy.optimize import linear_sum_assignment
 
-from pcdet_atlas.evaluation.iou3d import boxes_iou3d
 from pcdet_atlas.evaluation.waymo_metric import (
     WAYMO_SCORE_CUTOFFS,
     compute_waymo_curves,
@@ -19,6 +18,7 @@ from pcdet_atlas.evaluation.waymo_metric import (
     waymo_evaluate,
     waymo_heading_accuracy,
 )
+from pcdet_atlas.ops.iou3d_nms import boxes_iou3d
 
 FIXTURE = Path(__file__).parent / "fixtures" / "official_waymo_metric.npz"
 CLASSES = ["Vehicle", "Pedestrian", "Cyclist"]

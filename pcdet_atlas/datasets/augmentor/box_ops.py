@@ -1,11 +1,8 @@
-"""Small exact box geometry used by the augmentations and the GT database (numpy, CPU).
+"""Box helpers of the augmentations and the GT database (numpy, CPU); the box geometry they
+build on is :mod:`pcdet_atlas.ops.boxes`.
 
-* :func:`boxes_bev_overlap`: do two rotated BEV rectangles share a positive area? This is the
-  ``BEV IoU > 0`` test of OpenPCDet's GT sampler, done exactly with the separating-axis theorem
-  (two convex polygons are disjoint iff their projections are disjoint on one of their edge
-  normals), so touching boxes do not collide and no IoU has to be computed.
 * :func:`box_index_of_points`: the first box that contains each point (closed faces, as
-  :func:`pcdet_atlas.utils.box_utils.points_in_boxes_mask`), scanning only the points near each
+  :func:`pcdet_atlas.ops.boxes.points_in_boxes_mask`), scanning only the points near each
   box so it stays cheap for 10^5-10^6 points.
 """
 
@@ -13,61 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from pcdet_atlas.utils.box_utils import points_in_boxes_mask
+from pcdet_atlas.ops.boxes import points_in_boxes_mask
 
-__all__ = ["bev_corners", "boxes_bev_overlap", "box_index_of_points", "enlarge_boxes"]
-
-# Overlap depth (m) below which two projections count as touching, not overlapping.
-_TOUCH_TOL_M = 1e-6
-
-
-def bev_corners(boxes: np.ndarray) -> np.ndarray:
-    """``(N, 7+)`` boxes -> ``(N, 4, 2)`` BEV corners (float64), counter-clockwise."""
-    boxes = np.asarray(boxes, dtype=np.float64)
-    half = boxes[:, 3:5] / 2  # (N, 2)
-    signs = np.array([[1, 1], [-1, 1], [-1, -1], [1, -1]], dtype=np.float64)  # (4, 2)
-    local = signs[None] * half[:, None]  # (N, 4, 2)
-    cos, sin = np.cos(boxes[:, 6])[:, None], np.sin(boxes[:, 6])[:, None]
-    x = local[..., 0] * cos - local[..., 1] * sin
-    y = local[..., 0] * sin + local[..., 1] * cos
-    return np.stack([x, y], axis=-1) + boxes[:, None, 0:2]
-
-
-def boxes_bev_overlap(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
-    """``(N, M)`` bool: box ``a[n]`` and box ``b[m]`` overlap with positive BEV area.
-
-    Equivalent to ``boxes_iou_bev(a, b) > 0`` (z is ignored). Boxes of zero length or width
-    have no area and never overlap.
-
-    Args:
-        boxes_a: ``(N, 7+)`` ``[x, y, z, dx, dy, dz, heading, ...]``.
-        boxes_b: ``(M, 7+)``.
-    """
-    boxes_a = np.asarray(boxes_a, dtype=np.float64).reshape(-1, np.shape(boxes_a)[-1])
-    boxes_b = np.asarray(boxes_b, dtype=np.float64).reshape(-1, np.shape(boxes_b)[-1])
-    n, m = boxes_a.shape[0], boxes_b.shape[0]
-    if n == 0 or m == 0:
-        return np.zeros((n, m), dtype=bool)
-    ca, cb = bev_corners(boxes_a), bev_corners(boxes_b)  # (N, 4, 2), (M, 4, 2)
-
-    def axes(boxes: np.ndarray) -> np.ndarray:  # (K, 2, 2): the two edge directions
-        cos, sin = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
-        return np.stack([np.stack([cos, sin], -1), np.stack([-sin, cos], -1)], axis=1)
-
-    all_axes = np.concatenate(
-        [
-            np.broadcast_to(axes(boxes_a)[:, None], (n, m, 2, 2)),
-            np.broadcast_to(axes(boxes_b)[None], (n, m, 2, 2)),
-        ],
-        axis=2,
-    )  # (N, M, 4, 2)
-    proj_a = np.einsum("nmkd,ncd->nmkc", all_axes, ca)  # (N, M, 4 axes, 4 corners)
-    proj_b = np.einsum("nmkd,mcd->nmkc", all_axes, cb)
-    depth = np.minimum(proj_a.max(-1), proj_b.max(-1)) - np.maximum(proj_a.min(-1), proj_b.min(-1))
-    overlap = (depth > _TOUCH_TOL_M).all(axis=-1)  # (N, M)
-    area_a = boxes_a[:, 3] * boxes_a[:, 4] > 0
-    area_b = boxes_b[:, 3] * boxes_b[:, 4] > 0
-    return overlap & area_a[:, None] & area_b[None, :]
+__all__ = ["box_index_of_points", "enlarge_boxes"]
 
 
 def enlarge_boxes(boxes: np.ndarray, extra_width) -> np.ndarray:

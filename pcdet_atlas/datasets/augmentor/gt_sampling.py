@@ -32,13 +32,10 @@ from pathlib import Path
 import numpy as np
 
 from pcdet_atlas.config import ConfigError, check_known_keys, require_keys
-from pcdet_atlas.datasets.augmentor.box_ops import (
-    box_index_of_points,
-    boxes_bev_overlap,
-    enlarge_boxes,
-)
+from pcdet_atlas.datasets.augmentor.box_ops import box_index_of_points, enlarge_boxes
 from pcdet_atlas.datasets.multiframe import compress_rows
 from pcdet_atlas.datasets.waymo_format import WaymoFormatError
+from pcdet_atlas.ops.boxes import boxes_bev_overlap
 from pcdet_atlas.registry import TRANSFORMS
 
 __all__ = ["GTSampling", "parse_class_counts"]

@@ -10,8 +10,8 @@ import numpy as np
 
 from pcdet_atlas.config import ConfigError, key_source
 from pcdet_atlas.datasets.multiframe import compress_rows
+from pcdet_atlas.ops.boxes import boxes_to_corners_3d
 from pcdet_atlas.registry import TRANSFORMS
-from pcdet_atlas.utils.box_utils import boxes_to_corners_3d
 
 __all__ = [
     "MaskPointsAndBoxesOutsideRange",

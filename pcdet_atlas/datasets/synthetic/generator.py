@@ -23,7 +23,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pcdet_atlas.attacks.lidar_model import LidarModel
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.datasets.synthetic.actors import SURFACE_SOLID
 from pcdet_atlas.datasets.synthetic.raycast import (
@@ -34,7 +33,8 @@ from pcdet_atlas.datasets.synthetic.raycast import (
 )
 from pcdet_atlas.datasets.synthetic.scene import FRAME_DT, SyntheticScene
 from pcdet_atlas.datasets.synthetic.sensor import SensorModel
-from pcdet_atlas.utils.box_utils import points_in_boxes_mask
+from pcdet_atlas.ops.boxes import points_in_boxes_mask
+from pcdet_atlas.ops.lidar_model import LidarModel
 from pcdet_atlas.utils.seeding import derive_seed
 
 __all__ = [

@@ -92,7 +92,7 @@ class RayHits:
 def column_azimuths(num_columns: int, device=None, dtype=torch.float64) -> torch.Tensor:
     """Azimuth of each column centre, ``-pi + (c + 0.5) * 2 pi / M``: ``(M,)`` radians.
 
-    These are the centres of :class:`~pcdet_atlas.attacks.lidar_model.LidarModel`'s azimuth bins,
+    These are the centres of :class:`~pcdet_atlas.ops.lidar_model.LidarModel`'s azimuth bins,
     so every ray falls in its own (beam, azimuth) bin.
     """
     width = 2 * math.pi / num_columns

@@ -33,6 +33,7 @@ from pcdet_atlas.datasets.synthetic.actors import (
 )
 from pcdet_atlas.datasets.synthetic.raycast import Primitives
 from pcdet_atlas.datasets.synthetic.roads import CrossSection, Path, Road, RoadMap, simulate_motion
+from pcdet_atlas.ops.boxes import boxes_bev_overlap, boxes_to_corners_bev
 from pcdet_atlas.utils.common import limit_period
 from pcdet_atlas.utils.seeding import derive_seed, numpy_generator
 
@@ -93,34 +94,19 @@ def _obj_id(*keys) -> str:
     return base64.urlsafe_b64encode(raw).decode()[:22]
 
 
-def _rect_corners(cx, cy, yaw, hx, hy) -> np.ndarray:
-    """``(..., 4, 2)`` corners of rectangles (broadcast over leading dims)."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    sx = np.array([1, 1, -1, -1])
-    sy = np.array([1, -1, -1, 1])
-    lx = np.multiply.outer(np.asarray(hx), sx)
-    ly = np.multiply.outer(np.asarray(hy), sy)
-    x = np.asarray(cx)[..., None] + np.asarray(c)[..., None] * lx - np.asarray(s)[..., None] * ly
-    y = np.asarray(cy)[..., None] + np.asarray(s)[..., None] * lx + np.asarray(c)[..., None] * ly
-    return np.stack([x, y], axis=-1)
-
-
-def _rects_overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Separating-axis test of convex quads ``(..., 4, 2)`` vs ``(..., 4, 2)``: ``(...)`` bool."""
-    overlap = np.ones(np.broadcast_shapes(a.shape[:-2], b.shape[:-2]), dtype=bool)
-    for quad in (a, b):
-        for i in range(2):
-            edge = quad[..., i + 1, :] - quad[..., i, :]
-            axis = np.stack([-edge[..., 1], edge[..., 0]], axis=-1)[..., None, :]
-            pa = (a * axis).sum(-1)
-            pb = (b * axis).sum(-1)
-            overlap &= (pa.max(-1) >= pb.min(-1)) & (pb.max(-1) >= pa.min(-1))
-    return overlap
+def _rect_boxes(cx, cy, yaw, hx, hy) -> np.ndarray:
+    """``(K, 7)`` float64 boxes of rectangles given by centre, yaw and half extents (broadcast;
+    z and height 0): the BEV footprints :mod:`pcdet_atlas.ops.boxes` works on."""
+    cx, cy, yaw, hx, hy = np.broadcast_arrays(
+        *(np.asarray(v, np.float64) for v in (cx, cy, yaw, hx, hy))
+    )
+    zero = np.zeros(cx.shape)
+    return np.stack([cx, cy, zero, 2 * hx, 2 * hy, zero, yaw], axis=-1).reshape(-1, 7)
 
 
 def _sample_rect(cx, cy, yaw, hx, hy) -> np.ndarray:
     """Corners, edge midpoints and centre of a rectangle: ``(9, 2)``."""
-    c = _rect_corners(cx, cy, yaw, hx, hy)
+    c = boxes_to_corners_bev(_rect_boxes(cx, cy, yaw, hx, hy))[0]
     mids = (c + np.roll(c, -1, axis=0)) / 2
     return np.concatenate([c, mids, [[cx, cy]]])
 
@@ -278,7 +264,7 @@ class SyntheticScene:
         cross = self.cross
         hw = cross.half_width
         box_list, cyl_list = [], []  # (params, albedo, surface)
-        footprints = []  # placed building / wall rectangles (4, 2)
+        footprints = []  # placed building / wall footprints, (1, 7) boxes
         self.sign_specs = []  # (x, y, yaw, width, height, z_centre)
         for road in self.roads:
             if road.kind == "fill":
@@ -366,10 +352,10 @@ class SyntheticScene:
                 if not self._near_ego(np.array([[x, y]]), length / 2 + depth)[0]:
                     break
                 pts = _sample_rect(x, y, h, length / 2, depth / 2)
-                rect = _rect_corners(x, y, h, length / 2, depth / 2)
+                rect = _rect_boxes(x, y, h, length / 2, depth / 2)
                 clear = self._clear_of_roads(pts, cross.sidewalk_outer + 0.25)
                 if clear and footprints:
-                    clear = not _rects_overlap(rect[None], np.stack(footprints)).any()
+                    clear = not boxes_bev_overlap(rect, np.concatenate(footprints)).any()
                 if clear:
                     if kind == "building":
                         u = rng.uniform()
@@ -724,12 +710,12 @@ class SyntheticScene:
             hit = False
             if near.any():
                 ki, fi = np.nonzero(near)
-                a = _rect_corners(centre[fi, 0], centre[fi, 1], yaw[fi], half[0], half[1])
+                a = _rect_boxes(centre[fi, 0], centre[fi, 1], yaw[fi], half[0], half[1])
                 kyaw = np.stack(kept_yaw)[ki, fi]
-                b = _rect_corners(
+                b = _rect_boxes(
                     all_c[ki, fi, 0], all_c[ki, fi, 1], kyaw, all_half[ki, 0], all_half[ki, 1]
                 )
-                hit = bool(_rects_overlap(a, b).any())
+                hit = bool(np.diagonal(boxes_bev_overlap(a, b)).any())
             if not hit:
                 kept.append(actor)
                 kept_c.append(centre)

@@ -4,7 +4,7 @@ One head for all classes (OpenPCDet's Waymo setting): a shared 3x3 conv, then on
 branch per output (``center`` 2, ``center_z`` 1, ``dim`` 3, ``rot`` 2, optionally ``vel`` 2, and
 ``hm`` one channel per class). Training targets, losses and decoding are in
 :mod:`pcdet_atlas.models.model_utils.centernet_utils`; boxes are de-duplicated by rotated BEV NMS
-from :mod:`pcdet_atlas.evaluation.iou3d`.
+from :mod:`pcdet_atlas.ops.iou3d_nms`.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ import torch
 from torch import nn
 
 from pcdet_atlas.config import check_known_keys
-from pcdet_atlas.evaluation.iou3d import nms_bev
 from pcdet_atlas.models.model_utils import centernet_utils as cu
+from pcdet_atlas.ops.iou3d_nms import nms_bev
 from pcdet_atlas.registry import MODEL_STAGES
 
 REG_HEADS = {"center": 2, "center_z": 1, "dim": 3, "rot": 2, "vel": 2}

@@ -2,9 +2,14 @@ import math
 
 import numpy as np
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from shapely.geometry import Polygon
 
-from pcdet_atlas.utils.box_utils import (
+from pcdet_atlas.ops.boxes import (
+    boxes_bev_overlap,
     boxes_to_corners_3d,
+    boxes_to_corners_bev,
     points_in_boxes_mask,
     transform_boxes,
     transform_points,
@@ -54,3 +59,44 @@ def test_transform_boxes_consistent_with_points():
     np.testing.assert_allclose(back, box, atol=1e-9)
     tb = transform_boxes(torch.as_tensor(box), torch.as_tensor(T))
     assert isinstance(tb, torch.Tensor)
+
+
+# ---------------------------------------------------------------------------- BEV overlap
+def _polygon(box):
+    return Polygon(boxes_to_corners_bev(np.asarray(box, dtype=np.float64)[None])[0])
+
+
+_box = st.tuples(
+    st.floats(-20, 20),
+    st.floats(-20, 20),
+    st.floats(0.1, 8),
+    st.floats(0.1, 8),
+    st.floats(-np.pi, np.pi),
+).map(lambda t: [t[0], t[1], 0.0, t[2], t[3], 1.0, t[4]])
+
+
+@settings(max_examples=200, deadline=None)
+@given(a=st.lists(_box, min_size=1, max_size=4), b=st.lists(_box, min_size=1, max_size=4))
+def test_bev_overlap_matches_polygon_clipping(a, b):
+    got = boxes_bev_overlap(np.array(a), np.array(b))
+    for i, ba in enumerate(a):
+        for j, bb in enumerate(b):
+            area = _polygon(ba).intersection(_polygon(bb)).area
+            if area > 1e-6:
+                assert got[i, j]
+            elif area == 0:
+                assert not got[i, j]
+
+
+def test_bev_overlap_edge_cases():
+    box = np.array([[0, 0, 0, 2, 2, 1, 0.0]])
+    touching = np.array([[2, 0, 5, 2, 2, 1, 0.0]])  # shares an edge, z ignored
+    rotated_inside = np.array([[0, 0, 0, 0.5, 0.5, 1, 0.7]])
+    far = np.array([[100, 0, 0, 2, 2, 1, 0.0]])
+    degenerate = np.array([[0, 0, 0, 0, 2, 1, 0.0]])
+    assert not boxes_bev_overlap(box, touching)[0, 0]
+    assert boxes_bev_overlap(box, rotated_inside)[0, 0]
+    assert boxes_bev_overlap(box, box)[0, 0]
+    assert not boxes_bev_overlap(box, far)[0, 0]
+    assert not boxes_bev_overlap(box, degenerate)[0, 0]
+    assert boxes_bev_overlap(np.zeros((0, 7)), box).shape == (0, 1)

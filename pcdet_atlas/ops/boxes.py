@@ -2,7 +2,9 @@
 
 Boxes are ``(N, 7)`` ``[x, y, z, dx, dy, dz, heading]`` with z at the box centre, heading CCW from
 +x in radians, or ``(N, 9)`` with ``[vx, vy]`` (m/s) appended. Poses are 4x4 vehicle -> global.
-Every function takes numpy arrays or torch tensors and returns the same kind.
+Every function takes numpy arrays or torch tensors and returns the same kind, except
+:func:`boxes_bev_overlap` (numpy). Exact rotated IoU and NMS:
+:mod:`pcdet_atlas.ops.iou3d_nms`.
 """
 
 from __future__ import annotations
@@ -12,8 +14,13 @@ import torch
 
 from pcdet_atlas.utils.common import limit_period
 
+# Overlap depth (m) below which two projections count as touching, not overlapping.
+_TOUCH_TOL_M = 1e-6
+
 __all__ = [
+    "boxes_bev_overlap",
     "boxes_to_corners_3d",
+    "boxes_to_corners_bev",
     "points_in_boxes_mask",
     "transform_points",
     "transform_boxes",
@@ -44,6 +51,49 @@ def boxes_to_corners_3d(boxes):
     y = corners[..., 0] * sin[:, None] + corners[..., 1] * cos[:, None]
     out = torch.stack([x, y, corners[..., 2]], dim=-1) + b[:, None, 0:3]
     return _back(out, was_np)
+
+
+def boxes_to_corners_bev(boxes):
+    """BEV corners of ``(N, 7+)`` boxes as ``(N, 4, 2)`` (the bottom face of
+    :func:`boxes_to_corners_3d`, clockwise from +x+y)."""
+    return boxes_to_corners_3d(boxes)[:, :4, :2]
+
+
+def boxes_bev_overlap(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
+    """``(N, M)`` bool: box ``a[n]`` and box ``b[m]`` overlap with positive BEV area.
+
+    Equivalent to ``boxes_iou_bev(a, b) > 0`` (z is ignored). Boxes of zero length or width
+    have no area and never overlap.
+
+    Args:
+        boxes_a: ``(N, 7+)`` ``[x, y, z, dx, dy, dz, heading, ...]``.
+        boxes_b: ``(M, 7+)``.
+    """
+    boxes_a = np.asarray(boxes_a, dtype=np.float64).reshape(-1, np.shape(boxes_a)[-1])
+    boxes_b = np.asarray(boxes_b, dtype=np.float64).reshape(-1, np.shape(boxes_b)[-1])
+    n, m = boxes_a.shape[0], boxes_b.shape[0]
+    if n == 0 or m == 0:
+        return np.zeros((n, m), dtype=bool)
+    ca, cb = boxes_to_corners_bev(boxes_a), boxes_to_corners_bev(boxes_b)  # (N, 4, 2), (M, 4, 2)
+
+    def axes(boxes: np.ndarray) -> np.ndarray:  # (K, 2, 2): the two edge directions
+        cos, sin = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+        return np.stack([np.stack([cos, sin], -1), np.stack([-sin, cos], -1)], axis=1)
+
+    all_axes = np.concatenate(
+        [
+            np.broadcast_to(axes(boxes_a)[:, None], (n, m, 2, 2)),
+            np.broadcast_to(axes(boxes_b)[None], (n, m, 2, 2)),
+        ],
+        axis=2,
+    )  # (N, M, 4, 2)
+    proj_a = np.einsum("nmkd,ncd->nmkc", all_axes, ca)  # (N, M, 4 axes, 4 corners)
+    proj_b = np.einsum("nmkd,mcd->nmkc", all_axes, cb)
+    depth = np.minimum(proj_a.max(-1), proj_b.max(-1)) - np.maximum(proj_a.min(-1), proj_b.min(-1))
+    overlap = (depth > _TOUCH_TOL_M).all(axis=-1)  # (N, M)
+    area_a = boxes_a[:, 3] * boxes_a[:, 4] > 0
+    area_b = boxes_b[:, 3] * boxes_b[:, 4] > 0
+    return overlap & area_a[:, None] & area_b[None, :]
 
 
 def points_in_boxes_mask(points_xyz, boxes):

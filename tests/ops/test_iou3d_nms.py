@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from shapely.geometry import Polygon
 
-from pcdet_atlas.evaluation.iou3d import (
+from pcdet_atlas.ops.iou3d_nms import (
     boxes_aligned_iou3d,
     boxes_aligned_iou_bev,
     boxes_iou3d,
@@ -211,7 +211,7 @@ def test_identical_boxes_gradient_is_finite():
 
 
 def test_large_inputs_are_chunked(monkeypatch):
-    import pcdet_atlas.evaluation.iou3d as mod
+    import pcdet_atlas.ops.iou3d_nms as mod
 
     a, b = _random_boxes(60, seed=7), _random_boxes(80, seed=8)
     full = boxes_iou3d(a, b)

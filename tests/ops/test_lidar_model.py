@@ -5,12 +5,12 @@ import pytest
 import torch
 from device_params import DEVICES
 
-from pcdet_atlas.attacks.lidar_model import (
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.ops.lidar_model import (
     LidarModel,
     spherical_offsets,
     waymo_top_inclinations_deg,
 )
-from pcdet_atlas.config import ConfigError
 
 
 def test_default_table():

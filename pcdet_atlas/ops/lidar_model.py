@@ -12,8 +12,8 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
-from pcdet_atlas.attacks.config_values import config_value
 from pcdet_atlas.config import ConfigError, check_known_keys
+from pcdet_atlas.config_values import config_value
 
 __all__ = ["LidarModel", "WAYMO_TOP_FOV_DEG", "spherical_offsets", "waymo_top_inclinations_deg"]
 
