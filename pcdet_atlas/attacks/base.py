@@ -189,6 +189,15 @@ class BaseAttack(ABC):
     """
 
     family: ClassVar[str] = "base"
+    #: How the evaluation scores this family (written into every frame's metadata): a target
+    #: is a success when detected (True) or when missed (False); None for a family without
+    #: targets.
+    SUCCESS_IF_DETECTED: ClassVar[bool | None] = None
+    #: The confidence analysis of its targets: 'injection' (scores of the detected targets),
+    #: 'removal' (scores of surviving targets against the clean run) or None.
+    CONFIDENCE: ClassVar[str | None] = None
+    #: Robustness ranks average a model's per-variant ranks within this group (None: not ranked).
+    RANK_GROUP: ClassVar[str | None] = None
     #: Family-specific YAML keys (beyond :data:`COMMON_KEYS`).
     config_keys: ClassVar[set[str]] = set()
 
@@ -294,6 +303,9 @@ class BaseAttack(ABC):
             run_id=state.run_id,
             run_position=state.run_position,
             lifecycle_k=state.lifecycle_k,
+            success_if_detected=self.SUCCESS_IF_DETECTED,
+            confidence=self.CONFIDENCE,
+            rank_group=self.RANK_GROUP,
             **kwargs,
         )
 

@@ -154,6 +154,9 @@ class InjectionAttack(BaseAttack):
     """
 
     family = "injection"
+    SUCCESS_IF_DETECTED = True  # the phantom is detected
+    CONFIDENCE = "injection"
+    RANK_GROUP = "injection"
     config_keys = {
         "TRACE_LIBRARY",
         "POSITION_MODE",

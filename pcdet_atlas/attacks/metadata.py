@@ -17,7 +17,12 @@ One plain dict per frame, consumed by the evaluation (ASR, confidence, lifecycle
      'num_spoof_points': int,    # phantom points fed to the raycaster (injection)
      'num_visible': int,         # phantom points that survived the raycast (injection)
      'num_removed': int,         # scene points removed (occluded by the phantom / A-HFR)
-     'tracked': bool, 'fired': bool}
+     'tracked': bool, 'fired': bool,
+     # how the evaluation scores this family, from the attack class (docs/attacks.md):
+     'success_if_detected': bool or None,  # a target counts as a success when detected (True,
+                                 #   e.g. a phantom) or when missed (False); None: no targets
+     'confidence': 'injection' | 'removal' | None,  # the confidence analysis of its targets
+     'rank_group': str or None}  # robustness-rank group of the variant (None: not ranked)
 
 ``run_id`` / ``lifecycle_k`` come from :mod:`pcdet_atlas.attacks.schedule`; where a frame is in
 two lifecycles (``k = 2W`` of one run and ``k = 0`` of the next) the upcoming run's onset is kept.
@@ -29,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["META_KEYS", "make_meta", "validate_meta"]
+__all__ = ["CONFIDENCE_ANALYSES", "META_KEYS", "make_meta", "validate_meta"]
 
 META_KEYS = (
     "variant",
@@ -46,7 +51,14 @@ META_KEYS = (
     "num_removed",
     "tracked",
     "fired",
+    "success_if_detected",
+    "confidence",
+    "rank_group",
 )
+
+#: Confidence analyses a family can ask for (``attack_metrics.injection_confidence``: scores of
+#: the detected targets; ``attack_metrics.removal_confidence``: surviving targets vs the clean run).
+CONFIDENCE_ANALYSES = ("injection", "removal")
 
 
 def make_meta(
@@ -64,6 +76,9 @@ def make_meta(
     num_removed: int = 0,
     tracked: bool = False,
     fired: bool = False,
+    success_if_detected: bool | None = None,
+    confidence: str | None = None,
+    rank_group: str | None = None,
 ) -> dict[str, Any]:
     """A metadata dict with every key of the schema, values cast to plain Python / float32."""
     box = None
@@ -86,6 +101,9 @@ def make_meta(
         "num_removed": int(num_removed),
         "tracked": bool(tracked),
         "fired": bool(fired),
+        "success_if_detected": None if success_if_detected is None else bool(success_if_detected),
+        "confidence": None if confidence is None else str(confidence),
+        "rank_group": None if rank_group is None else str(rank_group),
     }
 
 
@@ -109,6 +127,16 @@ def validate_meta(meta: dict, where: str = "attack metadata") -> None:
     if meta["spoofed"] != (meta["run_position"] >= 0):
         raise ValueError(
             f"{where}: spoofed={meta['spoofed']} but run_position={meta['run_position']}"
+        )
+    if box is not None and meta["success_if_detected"] is None:
+        raise ValueError(
+            f"{where}: a target_box of family {meta['family']!r} needs success_if_detected "
+            "(the attack class's SUCCESS_IF_DETECTED)"
+        )
+    if meta["confidence"] not in (None, *CONFIDENCE_ANALYSES):
+        raise ValueError(
+            f"{where}: confidence {meta['confidence']!r} is not None or one of "
+            f"{CONFIDENCE_ANALYSES}"
         )
     if meta["run_position"] >= 0 and meta["run_id"] < 0:
         raise ValueError(f"{where}: run_position={meta['run_position']} without a run_id")

@@ -175,6 +175,9 @@ class RemovalAttack(BaseAttack):
     """
 
     family = "removal"
+    SUCCESS_IF_DETECTED = False  # the target is missed
+    CONFIDENCE = "removal"
+    RANK_GROUP = "removal"
     config_keys = {
         "AZIMUTH_WIDTH_DEG",
         "ELEVATION_WIDTH_DEG",

@@ -50,11 +50,9 @@ DEFAULT_TARGET_CLASS = "Vehicle"
 #: must pass ``recorded_window=`` explicitly).
 SCHEDULE_WINDOW = 32
 
-#: Per attack family: does the attack succeed when the target IS detected? A new family that
-#: records targets adds its entry here (or passes ``success_if_detected=`` to the functions).
-SUCCESS_IF_DETECTED: dict[str, bool] = {"injection": True, "removal": False}
-
 IouFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+#: Metadata keys by which the attack class tells the evaluation how to score it.
+SCORING_KEYS = ("success_if_detected", "confidence", "rank_group")
 
 
 class AttackMetricError(ValueError):
@@ -76,6 +74,7 @@ class TargetMatches:
     variant: str
     family: str
     success_if_detected: bool
+    confidence: str | None
     iou_threshold: float
     score_threshold: float | None
     target_class: str | None
@@ -130,6 +129,7 @@ class TargetMatches:
             variant=self.variant,
             family=self.family,
             success_if_detected=self.success_if_detected,
+            confidence=self.confidence,
             iou_threshold=self.iou_threshold,
             score_threshold=self.score_threshold,
             target_class=self.target_class,
@@ -276,7 +276,7 @@ def match_targets(
     iou_threshold: float = ASR_IOU_THRESHOLD,
     score_threshold: float | None = None,
     target_class: str | None = DEFAULT_TARGET_CLASS,
-    success_if_detected: Mapping[str, bool] | None = None,
+    success_if_detected: bool | None = None,
     iou_fn: IouFn | None = None,
 ) -> TargetMatches:
     """Match every recorded target box of one variant against that frame's predictions.
@@ -290,14 +290,15 @@ def match_targets(
             deployed with a score cut-off); None (default) = every prediction, as in the paper.
         target_class: only predictions with this ``name`` count (the targets are Vehicles and the
             paper's target box carries the class); None = class-agnostic.
-        success_if_detected: family -> bool table, default :data:`SUCCESS_IF_DETECTED`.
+        success_if_detected: whether a detected target is a success; default the metadata's
+            ``success_if_detected`` (the attack class's ``SUCCESS_IF_DETECTED``).
         iou_fn: row-aligned torch IoU ``(P, 7), (P, 7) -> (P,)``; default the exact
             :func:`pcdet_atlas.ops.iou3d_nms.boxes_aligned_iou3d`, called once for all the
             (target, prediction) pairs that can overlap.
 
     Raises:
-        AttackMetricError: misaligned inputs, missing keys, bad boxes, several variants or
-            families mixed in one call, or a target in a family without a success rule.
+        AttackMetricError: misaligned inputs, missing keys, bad boxes, several variants,
+            families or scoring rules mixed in one call, or a target without a success rule.
     """
     if attack_infos is None:
         attack_infos = []
@@ -313,21 +314,24 @@ def match_targets(
         )
     if not det_annos:
         raise AttackMetricError("no frames to evaluate (det_annos is empty)")
-    rules = dict(SUCCESS_IF_DETECTED if success_if_detected is None else success_if_detected)
     iou_fn = boxes_aligned_iou3d if iou_fn is None else iou_fn
 
     for i, info in enumerate(attack_infos):
-        for key in ("variant", "family"):
+        for key in ("variant", "family", *SCORING_KEYS):
             if key not in info:
                 raise AttackMetricError(f"frame {i}: attack metadata lacks key '{key}'")
-    variants = {str(info["variant"]) for info in attack_infos}
-    families = {str(info["family"]) for info in attack_infos}
-    if len(variants) != 1 or len(families) != 1:
+    found = {
+        key: {info[key] for info in attack_infos} for key in ("variant", "family", *SCORING_KEYS)
+    }
+    if any(len(values) != 1 for values in found.values()):
         raise AttackMetricError(
-            f"one call evaluates one variant; got variants {sorted(variants)}, "
-            f"families {sorted(families)}"
+            "one call evaluates one variant; got "
+            + ", ".join(f"{key} {sorted(map(str, v))}" for key, v in found.items() if len(v) != 1)
         )
-    variant, family = variants.pop(), families.pop()
+    variant, family = str(found["variant"].pop()), str(found["family"].pop())
+    if success_if_detected is None:
+        success_if_detected = found["success_if_detected"].pop()
+    confidence = found["confidence"].pop()
 
     rows: dict[str, list] = {
         k: [] for k in ("frame_index", "frame_id", "run_id", "lifecycle_k", "is_shadow", "box")
@@ -344,10 +348,10 @@ def match_targets(
         target = _check_attack_info(info, where)
         if target is None:
             continue
-        if family not in rules:
+        if success_if_detected is None:
             raise AttackMetricError(
-                f"{where}: family {family!r} records a target but has no success rule; "
-                f"known: {sorted(rules)} (pass success_if_detected=)"
+                f"{where}: family {family!r} records a target but its metadata has no "
+                "success_if_detected (set the attack class's SUCCESS_IF_DETECTED)"
             )
         keep = _eligible(names, scores, target_class, score_threshold)
         batch.add(target, boxes[keep], scores[keep])
@@ -363,7 +367,8 @@ def match_targets(
     return TargetMatches(
         variant=variant,
         family=family,
-        success_if_detected=rules.get(family, True),
+        success_if_detected=bool(success_if_detected),
+        confidence=None if confidence is None else str(confidence),
         iou_threshold=float(iou_threshold),
         score_threshold=None if score_threshold is None else float(score_threshold),
         target_class=target_class,
@@ -666,15 +671,16 @@ def evaluate_attack(
     target_class: str | None = DEFAULT_TARGET_CLASS,
     high_score: float = HIGH_SCORE_THRESHOLD,
     num_bins: int = NUM_SCORE_BINS,
-    success_if_detected: Mapping[str, bool] | None = None,
+    success_if_detected: bool | None = None,
     iou_fn: IouFn | None = None,
 ) -> dict:
     """All attack metrics of one variant, in the layout of a ``results.json`` variant entry.
 
     Returns ``{'variant', 'family', 'num_frames', **asr_from_matches(...), 'confidence',
-    'lifecycle'}``. ``confidence`` is :func:`injection_confidence` for a success-if-detected family,
-    :func:`removal_confidence` otherwise (None if ``clean_det_annos`` is not given) and None
-    without targets; ``lifecycle`` is :func:`lifecycle_asr` when ``window`` is given, else None.
+    'lifecycle'}``. ``confidence`` is the analysis the family's metadata names:
+    :func:`injection_confidence` ('injection') or :func:`removal_confidence` ('removal', None if
+    ``clean_det_annos`` is not given); None without targets or analysis. ``lifecycle`` is
+    :func:`lifecycle_asr` when ``window`` is given, else None.
     """
     iou_fn = boxes_aligned_iou3d if iou_fn is None else iou_fn
     matches = match_targets(
@@ -690,9 +696,9 @@ def evaluate_attack(
     out.update(asr_from_matches(matches))
     confidence = None
     if len(matches.attacked()) > 0:
-        if matches.success_if_detected:
+        if matches.confidence == "injection":
             confidence = injection_confidence(matches, high_score=high_score, num_bins=num_bins)
-        elif clean_det_annos is not None:
+        elif matches.confidence == "removal" and clean_det_annos is not None:
             confidence = removal_confidence(
                 matches, clean_det_annos, high_score=high_score, num_bins=num_bins, iou_fn=iou_fn
             )
@@ -730,41 +736,44 @@ def linear_fit(x: np.ndarray, y: np.ndarray) -> dict:
 
 def robustness_ranks(
     asr_by_model: Mapping[str, Mapping[str, float]],
-    variant_families: Mapping[str, str],
+    variant_groups: Mapping[str, str | None],
     *,
     tie_method: str = "average",
     min_models_for_fit: int = 3,
+    fit_axes: tuple[str, str] = ("injection", "removal"),
 ) -> dict:
-    """Per-setting ASR ranks of several models, averaged per attack family, and their linear fit.
+    """Per-setting ASR ranks of several models, averaged per rank group, and their linear fit.
 
     In each setting (variant) the models are ranked by ASR, rank 1 = lowest ASR = most robust;
     ties get the mean of the ranks they span (``tie_method`` as ``scipy.stats.rankdata``:
-    'average', 'min', 'max', 'dense', 'ordinal'). A model's injection (removal) rank is the mean of
-    its ranks over all injection (removal) variants. The fit is ordinary least squares of the
-    removal rank on the injection rank (the paper's Fig. "Robustness Correlation").
+    'average', 'min', 'max', 'dense', 'ordinal'). A model's rank in a group is the mean of its
+    ranks over the group's variants. The fit is ordinary least squares of the ``fit_axes[1]``
+    group's rank on the ``fit_axes[0]`` group's (the paper's Fig. "Robustness Correlation":
+    removal on injection).
 
     Args:
         asr_by_model: model -> variant -> ASR in [0, 1]. Every model needs every ranked variant.
-        variant_families: variant -> family; variants of family 'injection' / 'removal' are ranked
-            (variants of other families, e.g. 'clean', are ignored).
+        variant_groups: variant -> rank group (the attack class's ``RANK_GROUP``); variants whose
+            group is None (e.g. clean) are not ranked.
         min_models_for_fit: below this many models the fit is None (two points fit exactly).
 
     Returns:
-        ``{'models': [...], 'per_setting': {variant: {model: rank}}, 'injection_rank': {model: r},
-        'removal_rank': {model: r}, 'fit': {'slope', 'intercept', 'r2', 'pearson_r', 'p_value',
-        'num_models'} or None}``.
+        ``{'models': [...], 'tie_method', 'per_setting': {variant: {model: rank}},
+        'group_ranks': {group: {model: r}}, 'fit_axes': [x group, y group], 'fit': {'slope',
+        'intercept', 'r2', 'pearson_r', 'p_value', 'num_models'} or None}`` (None also when a
+        fit axis has no variant).
     """
     from scipy.stats import rankdata
 
     models = sorted(asr_by_model)
     if len(models) < 2:
         raise AttackMetricError(f"ranking needs at least 2 models, got {models}")
-    ranked = {
-        fam: sorted(v for v, f in variant_families.items() if f == fam)
-        for fam in ("injection", "removal")
-    }
+    ranked: dict[str, list[str]] = {}
+    for variant, group in sorted(variant_groups.items()):
+        if group is not None:
+            ranked.setdefault(str(group), []).append(variant)
     per_setting: dict[str, dict[str, float]] = {}
-    for variant in ranked["injection"] + ranked["removal"]:
+    for variant in (v for variants in ranked.values() for v in variants):
         values = []
         for m in models:
             asr = asr_by_model[m].get(variant)
@@ -773,24 +782,21 @@ def robustness_ranks(
             values.append(float(asr))
         ranks = rankdata(values, method=tie_method)
         per_setting[variant] = {m: float(r) for m, r in zip(models, ranks)}
-    mean_rank = {}
-    for fam, variants in ranked.items():
-        mean_rank[fam] = (
-            {m: float(np.mean([per_setting[v][m] for v in variants])) for m in models}
-            if variants
-            else None
-        )
+    group_ranks = {
+        group: {m: float(np.mean([per_setting[v][m] for v in variants])) for m in models}
+        for group, variants in ranked.items()
+    }
     fit = None
-    inj, rem = mean_rank["injection"], mean_rank["removal"]
-    if inj is not None and rem is not None and len(models) >= min_models_for_fit:
-        x = np.array([inj[m] for m in models])
+    x_group, y_group = fit_axes
+    if x_group in group_ranks and y_group in group_ranks and len(models) >= min_models_for_fit:
+        x = np.array([group_ranks[x_group][m] for m in models])
         if np.ptp(x) > 0:
-            fit = linear_fit(x, np.array([rem[m] for m in models]))
+            fit = linear_fit(x, np.array([group_ranks[y_group][m] for m in models]))
     return {
         "models": models,
         "tie_method": tie_method,
         "per_setting": per_setting,
-        "injection_rank": inj,
-        "removal_rank": rem,
+        "group_ranks": group_ranks,
+        "fit_axes": [x_group, y_group],
         "fit": fit,
     }

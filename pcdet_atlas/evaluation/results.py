@@ -1,9 +1,9 @@
 """``results.json``: one file per evaluated model, its validation, and the paper's tables.
 
-Schema (version 1; every key required unless marked optional; unknown keys are errors)::
+Schema (version 2; every key required unless marked optional; unknown keys are errors)::
 
     {
-      "schema_version": 1,
+      "schema_version": 2,
       "model": str,                      # display name, e.g. "CenterPoint-4f"
       "checkpoint": str | null,          # path of the evaluated weights
       "config": str,                     # path of the model config
@@ -13,6 +13,7 @@ Schema (version 1; every key required unless marked optional; unknown keys are e
       "variants": {                      # variant name -> entry, e.g. "clean", "rem_40"
         <variant>: {
           "family": str,                 # "clean" | "injection" | "removal" | <new family>
+          "rank_group": str | null,      # the attack class's RANK_GROUP (robustness ranks)
           "num_frames": int,
           "L1/mAP", "L1/mAPH", "L2/mAP", "L2/mAPH": float in [0, 1] | null,
           "per_class": {<class>: {"L1/AP", "L1/APH", "L2/AP", "L2/APH": float | null}},
@@ -45,7 +46,7 @@ import numpy as np
 from pcdet_atlas.evaluation.attack_metrics import robustness_ranks
 from pcdet_atlas.version import __version__
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 METRIC_KEYS = ("L1/mAP", "L1/mAPH", "L2/mAP", "L2/mAPH")
 CLASS_METRIC_KEYS = ("L1/AP", "L1/APH", "L2/AP", "L2/APH")
 ATTACK_KEYS = (
@@ -70,7 +71,7 @@ TOP_KEYS = (
     "class_names",
     "variants",
 )
-VARIANT_KEYS = ("family", "num_frames", *METRIC_KEYS, "per_class", *ATTACK_KEYS)
+VARIANT_KEYS = ("family", "rank_group", "num_frames", *METRIC_KEYS, "per_class", *ATTACK_KEYS)
 
 #: The paper's variants in the order its tables print them, with their column labels.
 PAPER_VARIANT_LABELS = {
@@ -122,12 +123,14 @@ def build_variant_result(
     class_names: Sequence[str],
     attack: Mapping | None = None,
     extra: Mapping | None = None,
+    rank_group: str | None = None,
 ) -> dict:
     """One ``variants`` entry from the Waymo metric and the attack metrics of that variant.
 
     Args:
         variant: the variant name (checked against ``attack['variant']``).
         family: the attack family of the variant.
+        rank_group: the family's robustness-rank group (its ``RANK_GROUP``), None if unranked.
         num_frames: number of evaluated frames.
         metrics: :func:`waymo_evaluate` output (``'L2/mAP'`` ..., ``'<Class>/L2/AP'`` ...; other
             keys such as PR curves are not stored); None when the split has no ground truth.
@@ -135,7 +138,7 @@ def build_variant_result(
         attack: :func:`attack_metrics.evaluate_attack` output; None for a variant without targets
             (clean), which stores ASR None and zero counts.
     """
-    entry: dict = {"family": family, "num_frames": int(num_frames)}
+    entry: dict = {"family": family, "rank_group": rank_group, "num_frames": int(num_frames)}
     for key in METRIC_KEYS:
         entry[key] = None if metrics is None else metrics[key]
     entry["per_class"] = {
@@ -379,6 +382,8 @@ def _check_lifecycle(lc, path: str) -> None:
 def _validate_variant(v, path: str, class_names: list[str]) -> None:
     _check_keys(v, path, VARIANT_KEYS, optional=("extra",))
     _check_str(v["family"], f"{path}['family']")
+    if v["rank_group"] is not None:
+        _check_str(v["rank_group"], f"{path}['rank_group']")
     _check_int(v["num_frames"], f"{path}['num_frames']")
     for key in METRIC_KEYS:
         _check_frac(v[key], f"{path}['{key}']")
@@ -389,8 +394,6 @@ def _validate_variant(v, path: str, class_names: list[str]) -> None:
         for key in CLASS_METRIC_KEYS:
             _check_frac(v["per_class"][cls][key], f"{cpath}['{key}']")
     n = _check_int(v["num_targets"], f"{path}['num_targets']")
-    if v["family"] == "clean" and n != 0:
-        _fail(f"{path}['num_targets']", f"a clean variant has no targets, got {n}")
     for num_key, rate_key in (("num_success", "asr"), ("num_success_lenient", "asr_lenient")):
         s = _check_int(v[num_key], f"{path}['{num_key}']")
         if s > n:
@@ -483,31 +486,30 @@ def ranks_from_results(
 ) -> dict:
     """:func:`attack_metrics.robustness_ranks` over several models' results (one per model).
 
-    ``variants`` restricts the settings ranked (default: every injection / removal variant of the
-    first model; every model must have them all).
+    ``variants`` restricts the settings ranked (default: every variant of the first model with a
+    ``rank_group``; every model must have them all, in the same group).
     """
     models = [r["model"] for r in results_list]
     if len(set(models)) != len(models):
         raise ResultsError(f"model names must be unique to rank them, got {models}")
     first = results_list[0]["variants"]
     names = list(first) if variants is None else list(variants)
-    families = {}
+    groups = {}
     for name in names:
         if name not in first:
             raise ResultsError(f"{results_list[0]['model']}: no variant {name!r}")
-        families[name] = first[name]["family"]
+        if first[name]["rank_group"] is not None:
+            groups[name] = first[name]["rank_group"]
     asr = {}
     for r in results_list:
         asr[r["model"]] = {}
-        for name in names:
-            if families[name] not in ("injection", "removal"):
-                continue
+        for name in groups:
             if name not in r["variants"]:
                 raise ResultsError(f"{r['model']}: no variant {name!r} to rank")
-            if r["variants"][name]["family"] != families[name]:
-                raise ResultsError(f"{r['model']}: variant {name!r} has another family")
+            if r["variants"][name]["rank_group"] != groups[name]:
+                raise ResultsError(f"{r['model']}: variant {name!r} has another rank group")
             asr[r["model"]][name] = r["variants"][name]["asr"]
-    return robustness_ranks(asr, families, tie_method=tie_method)
+    return robustness_ranks(asr, groups, tie_method=tie_method)
 
 
 # ---------------------------------------------------------------------------- printing
@@ -677,19 +679,14 @@ def _mark(text: str, mark: str) -> str:
 
 def format_ranks(ranks: Mapping, fmt: str = "text") -> str:
     """The robustness ranks of :func:`ranks_from_results` as a table, with the fit below it."""
-    header = ["Model", "Injection rank", "Removal rank"]
-    rows = []
-    for m in ranks["models"]:
-        inj = ranks["injection_rank"]
-        rem = ranks["removal_rank"]
-        rows.append(
-            [m, "-" if inj is None else f"{inj[m]:.3f}", "-" if rem is None else f"{rem[m]:.3f}"]
-        )
+    groups = list(ranks["group_ranks"])
+    header = ["Model", *(f"{g.capitalize()} rank" for g in groups)]
+    rows = [[m, *(f"{ranks['group_ranks'][g][m]:.3f}" for g in groups)] for m in ranks["models"]]
     table = _render(fmt, None, header, rows)
-    fit = ranks["fit"]
+    fit, (x, y) = ranks["fit"], ranks["fit_axes"]
     if fit is None:
-        return table + "\n\nlinear fit: not enough models"
+        return table + f"\n\nlinear fit of the {y} rank on the {x} rank: not enough models"
     return table + (
-        f"\n\nremoval rank = {fit['slope']:.4f} * injection rank + {fit['intercept']:.4f}"
+        f"\n\n{y} rank = {fit['slope']:.4f} * {x} rank + {fit['intercept']:.4f}"
         f"  (R^2 = {fit['r2']:.3f}, {fit['num_models']} models)"
     )

@@ -188,12 +188,13 @@ def evaluate_variant(
     for anno, info in zip(det_annos, attack_infos):
         anno["attack"] = info
     family = attack_infos[0]["family"] if attack_infos else dataset.attack.family
+    has_targets = dataset.attack.SUCCESS_IF_DETECTED is not None  # the attack class decides
     t1 = time.perf_counter()
     ap_dict = None  # a split without labels (Waymo test) gets attack metrics only
     if dataset.infos and "annos" in dataset.infos[0]:
         _, ap_dict = dataset.evaluation(det_annos, class_names, eval_metric="waymo")
     attack_metrics = None
-    if family != "clean":
+    if has_targets:
         attack_metrics = evaluate_attack(
             det_annos, attack_infos, clean_det_annos=clean_det_annos, window=temporal_window,
             recorded_window=getattr(dataset.attack, "window", None),
@@ -201,7 +202,7 @@ def evaluate_variant(
     timings["metric"] = time.perf_counter() - t1
     entry = build_variant_result(
         variant, family=family, num_frames=len(det_annos), metrics=ap_dict,
-        class_names=class_names, attack=attack_metrics,
+        class_names=class_names, attack=attack_metrics, rank_group=dataset.attack.RANK_GROUP,
         extra={"timing_s": {k: round(v, 3) for k, v in timings.items()}},
     )  # fmt: skip
     if out_dir is not None:

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from pcdet_atlas.attacks import CleanAttack, InjectionAttack, RemovalAttack
 from pcdet_atlas.evaluation.attack_metrics import (
     AttackMetricError,
     attack_success_rate,
@@ -52,6 +53,9 @@ def anno(frame_id, boxes=(), scores=None, names=None, with_velocity=False):
     }
 
 
+FAMILIES = {"injection": InjectionAttack, "removal": RemovalAttack, "clean": CleanAttack}
+
+
 def info(
     target=None,
     spoofed=None,
@@ -62,6 +66,7 @@ def info(
     run_id=0,
 ):
     spoofed = (target is not None and not shadow) if spoofed is None else spoofed
+    cls = FAMILIES.get(family)  # the attack class says how its targets are scored
     return {
         "variant": variant or ("inj_rel_easy" if family == "injection" else "rem_40"),
         "family": family,
@@ -77,6 +82,9 @@ def info(
         "num_removed": 0,
         "tracked": False,
         "fired": False,
+        "success_if_detected": None if cls is None else cls.SUCCESS_IF_DETECTED,
+        "confidence": None if cls is None else cls.CONFIDENCE,
+        "rank_group": None if cls is None else cls.RANK_GROUP,
     }
 
 
@@ -234,12 +242,21 @@ def test_bad_input_raises_naming_the_problem(mutate, match):
         match_targets(dets, infos)
 
 
-def test_unknown_family_needs_a_success_rule():
+def test_a_family_without_a_success_rule_cannot_record_targets():
     infos = [info(TARGET, family="laser_blind", variant="blind_1")]
-    with pytest.raises(AttackMetricError, match="no success rule"):
+    with pytest.raises(AttackMetricError, match="laser_blind.*no success_if_detected"):
         match_targets([anno("a")], infos)
-    out = attack_success_rate([anno("a")], infos, success_if_detected={"laser_blind": False})
+    out = attack_success_rate([anno("a")], infos, success_if_detected=False)
     assert out["num_targets"] == 1 and out["num_success"] == 1
+    # the rule comes from the metadata: the same family scored the other way
+    flipped = [{**infos[0], "success_if_detected": True}]
+    assert attack_success_rate([anno("a")], flipped)["num_success"] == 0
+
+
+def test_one_call_takes_one_scoring_rule():
+    infos = [info(TARGET), {**info(TARGET), "success_if_detected": False}]
+    with pytest.raises(AttackMetricError, match="success_if_detected"):
+        match_targets([anno("a"), anno("b")], infos)
 
 
 # ---------------------------------------------------------------------------- confidence
@@ -380,11 +397,12 @@ def test_robustness_ranks_known_answer():
         "B": {"i1": 0.2, "i2": 0.1, "r1": 0.5, "r2": 0.8, "clean": None},
         "C": {"i1": 0.3, "i2": 0.5, "r1": 0.1, "r2": 0.2, "clean": None},
     }
-    fam = {"i1": "injection", "i2": "injection", "r1": "removal", "r2": "removal", "clean": "clean"}
+    fam = {"i1": "injection", "i2": "injection", "r1": "removal", "r2": "removal", "clean": None}
     out = robustness_ranks(asr, fam)
     assert out["per_setting"]["i2"] == {"A": 1.5, "B": 1.5, "C": 3.0}  # ties share the mean
-    assert out["injection_rank"] == {"A": 1.25, "B": 1.75, "C": 3.0}
-    assert out["removal_rank"] == {"A": 2.75, "B": 2.25, "C": 1.0}
+    assert out["group_ranks"]["injection"] == {"A": 1.25, "B": 1.75, "C": 3.0}
+    assert out["group_ranks"]["removal"] == {"A": 2.75, "B": 2.25, "C": 1.0}
+    assert "clean" not in out["per_setting"] and out["fit_axes"] == ["injection", "removal"]
     # removal = 4 - injection exactly
     assert out["fit"]["slope"] == pytest.approx(-1.0)
     assert out["fit"]["intercept"] == pytest.approx(4.0)
@@ -423,14 +441,19 @@ def test_iou_fn_can_be_swapped_for_bev():
 def test_accepts_the_attack_engine_metadata_records():
     from pcdet_atlas.attacks.metadata import make_meta, validate_meta
 
+    rem = dict(success_if_detected=False, confidence="removal", rank_group="removal")
     infos = [
         make_meta("rem_40", "removal", lifecycle_k=0, run_id=0, target_box=TARGET,
-                  target_is_shadow=True, tracked=True),
+                  target_is_shadow=True, tracked=True, **rem),
         make_meta("rem_40", "removal", spoofed=True, run_id=0, run_position=0, lifecycle_k=1,
-                  target_box=TARGET, tracked=True, fired=True),
-        make_meta("rem_40", "removal", spoofed=True, run_id=0, run_position=1, lifecycle_k=2),
-        make_meta("rem_40", "removal"),
+                  target_box=TARGET, tracked=True, fired=True, **rem),
+        make_meta("rem_40", "removal", spoofed=True, run_id=0, run_position=1, lifecycle_k=2,
+                  **rem),
+        make_meta("rem_40", "removal", **rem),
     ]  # fmt: skip
+    with pytest.raises(ValueError, match="needs success_if_detected"):
+        validate_meta(make_meta("rem_40", "removal", spoofed=True, run_id=0, run_position=0,
+                                target_box=TARGET))  # fmt: skip
     for meta in infos:
         validate_meta(meta)
     dets = [anno("a", [TARGET]), anno("b", [IOU_065]), anno("c", []), anno("d", [])]

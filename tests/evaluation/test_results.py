@@ -41,6 +41,13 @@ def metrics(l2_map: float) -> dict:
     return out
 
 
+INJECTION_SCORING = {
+    "success_if_detected": True,
+    "confidence": "injection",
+    "rank_group": "injection",
+}
+
+
 def attack(variant: str, family: str, asr: float, num_targets: int = 100) -> dict:
     n_ok = round(asr * num_targets)
     return {
@@ -75,6 +82,7 @@ def model_results(model: str, l2_maps: dict, asrs: dict) -> dict:
             metrics=metrics(l2),
             class_names=CLASSES,
             attack=None if fam == "clean" else attack(name, fam, asrs[name]),
+            rank_group=None if fam == "clean" else fam,
         )
     return build_results(
         model=model,
@@ -128,6 +136,7 @@ def test_build_variant_result_from_real_attack_metrics():
                 "lifecycle_k": k,
                 "target_box": TARGET,
                 "target_is_shadow": not 1 <= k <= 4,
+                **INJECTION_SCORING,
             }
         )
     atk = evaluate_attack(dets, infos, window=4, recorded_window=4)
@@ -179,7 +188,9 @@ def _broken(mutate):
     [
         (lambda r: r.pop("checkpoint"), "missing key 'checkpoint'"),
         (lambda r: r.update(seed=3), "unknown key 'seed'"),
-        (lambda r: r.update(schema_version=2), "schema_version"),
+        (lambda r: r.update(schema_version=1), "schema_version"),
+        (lambda r: r["variants"]["rem_10"].update(rank_group=3), "rank_group"),
+        (lambda r: r["variants"]["rem_10"].pop("rank_group"), "rank_group"),
         (lambda r: r.update(created="yesterday"), "created"),
         (lambda r: r.update(class_names=["Vehicle", "Vehicle"]), "duplicate"),
         (lambda r: r["variants"]["rem_10"].update(asr=0.5), r"\['rem_10'\]\['asr'\]"),
@@ -191,10 +202,6 @@ def _broken(mutate):
         (lambda r: r["variants"]["inj_rel_easy"].update({"L2/mAP": 65.5}), "L2/mAP"),
         (lambda r: r["variants"]["clean"]["per_class"].pop("Cyclist"), "Cyclist"),
         (lambda r: r["variants"]["clean"]["per_class"]["Vehicle"].update({"L2/AP": -1}), "L2/AP"),
-        (
-            lambda r: r["variants"]["clean"].update(num_targets=3, num_success=0),
-            "clean variant has no targets",
-        ),
         (
             lambda r: r["variants"]["rem_10"].update(confidence={"kind": "removal"}),
             "missing key",
@@ -214,7 +221,7 @@ def test_validate_checks_nested_confidence_and_lifecycle():
     ]  # fmt: skip
     infos = [
         {"variant": "inj_rel_easy", "family": "injection", "spoofed": k > 0, "lifecycle_k": k,
-         "target_box": TARGET, "target_is_shadow": k == 0, "run_id": 0}
+         "target_box": TARGET, "target_is_shadow": k == 0, "run_id": 0, **INJECTION_SCORING}
         for k in range(3)
     ]  # fmt: skip
     atk = evaluate_attack(dets, infos, window=1, recorded_window=2)
@@ -321,8 +328,9 @@ def test_comparison_table_models_as_columns():
 
 def test_ranks_from_results_and_printer():
     ranks = ranks_from_results([CP, MSF, PTT])
-    assert ranks["injection_rank"] == {"CenterPoint": 1.0, "MSF-4f": 2.0, "PTT": 3.0}
-    assert ranks["removal_rank"] == {"CenterPoint": 3.0, "MSF-4f": 2.0, "PTT": 1.0}
+    assert ranks["group_ranks"]["injection"] == {"CenterPoint": 1.0, "MSF-4f": 2.0, "PTT": 3.0}
+    assert ranks["group_ranks"]["removal"] == {"CenterPoint": 3.0, "MSF-4f": 2.0, "PTT": 1.0}
+    assert set(ranks["group_ranks"]) == {"injection", "removal"}  # clean has no rank group
     assert ranks["fit"]["slope"] == pytest.approx(-1.0) and ranks["fit"]["r2"] == pytest.approx(1)
     text = format_ranks(ranks)
     assert "CenterPoint" in text and "R^2 = 1.000" in text
@@ -349,7 +357,7 @@ def test_end_to_end_with_waymo_evaluate_and_engine_metadata(tmp_path):
     ]
     infos = [
         make_meta("inj_rel_easy", "injection", spoofed=True, run_id=0, run_position=i,
-                  lifecycle_k=i + 1, target_box=phantom)
+                  lifecycle_k=i + 1, target_box=phantom, **INJECTION_SCORING)
         for i in range(2)
     ]  # fmt: skip
     entry = build_variant_result(
