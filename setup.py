@@ -25,6 +25,7 @@ setup(
         "tqdm>=4.60",
         "matplotlib>=3.7",
         "scipy>=1.10",
+        "jsonschema>=4.18",
     ],
     extras_require={
         "test": ["pytest>=7", "hypothesis>=6.80", "shapely>=2.0", "ruff==0.17.5"],

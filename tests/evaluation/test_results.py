@@ -6,12 +6,14 @@ import copy
 import json
 import math
 
+import jsonschema
 import numpy as np
 import pytest
 
 from pcdet_atlas.evaluation.attack_metrics import evaluate_attack
 from pcdet_atlas.evaluation.results import (
     PAPER_VARIANTS,
+    RESULTS_SCHEMA,
     ResultsError,
     build_results,
     build_variant_result,
@@ -175,6 +177,15 @@ def test_save_and_load_round_trip(tmp_path):
         load_results(tmp_path / "bad.json")
     with pytest.raises(ResultsError, match="no file"):
         load_results_dir(tmp_path / "empty")
+
+
+def test_the_schema_is_a_standard_json_schema():
+    """Any JSON Schema tool can check a results.json against RESULTS_SCHEMA (the counts that
+    must add up are the extra checks of validate_results)."""
+    jsonschema.Draft202012Validator.check_schema(RESULTS_SCHEMA)
+    jsonschema.validate(json.loads(json.dumps(CP)), RESULTS_SCHEMA)
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({**CP, "schema_version": 1}, RESULTS_SCHEMA)
 
 
 def _broken(mutate):

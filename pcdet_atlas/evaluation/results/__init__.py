@@ -1,0 +1,79 @@
+"""``results.json``: one file per evaluated model. ``schema`` states and checks it (a JSON Schema
+plus the invariants between fields), ``build`` makes its entries, ``io`` reads and writes it and
+``tables`` prints the paper's tables from it.
+
+Schema (version 2; every key required unless marked optional; unknown keys are errors)::
+
+    {
+      "schema_version": 2,
+      "model": str,                      # display name, e.g. "CenterPoint-4f"
+      "checkpoint": str | null,          # path of the evaluated weights
+      "config": str,                     # path of the model config
+      "pcdet_atlas_version": str,
+      "created": str,                    # ISO 8601 time, e.g. "2026-11-21T08:00:00+00:00"
+      "class_names": [str, ...],         # e.g. ["Vehicle", "Pedestrian", "Cyclist"]
+      "variants": {                      # variant name -> entry, e.g. "clean", "rem_40"
+        <variant>: {
+          "family": str,                 # "clean" | "injection" | "removal" | <new family>
+          "rank_group": str | null,      # the attack class's RANK_GROUP (robustness ranks)
+          "num_frames": int,
+          "L1/mAP", "L1/mAPH", "L2/mAP", "L2/mAPH": float in [0, 1] | null,
+          "per_class": {<class>: {"L1/AP", "L1/APH", "L2/AP", "L2/APH": float | null}},
+          "asr", "asr_lenient": float in [0, 1] | null,    # null when num_targets == 0
+          "num_targets", "num_success", "num_success_lenient": int,
+          "iou_threshold": float, "score_threshold": float | null, "target_class": str | null,
+          "confidence": {...} | null,    # attack_metrics.injection_confidence / removal_confidence
+          "lifecycle": {...} | null,     # attack_metrics.lifecycle_asr
+          "extra": {...}                 # optional, free-form
+        }
+      },
+      "extra": {...}                     # optional, free-form
+    }
+
+mAP values are fractions as :func:`waymo_evaluate` returns them; the printers show them x100 with
+one decimal and ASR with two decimals, as the paper's tables do.
+"""
+
+from pcdet_atlas.evaluation.results.build import (
+    build_results,
+    build_variant_result,
+    plain,
+    ranks_from_results,
+)
+from pcdet_atlas.evaluation.results.io import load_results, load_results_dir, save_results
+from pcdet_atlas.evaluation.results.schema import (
+    RESULTS_SCHEMA,
+    SCHEMA_VERSION,
+    ResultsError,
+    validate_results,
+)
+from pcdet_atlas.evaluation.results.tables import (
+    PAPER_VARIANT_LABELS,
+    PAPER_VARIANTS,
+    format_comparison_table,
+    format_ranks,
+    format_table,
+    ordered_variants,
+    variant_label,
+)
+
+__all__ = [
+    "PAPER_VARIANTS",
+    "PAPER_VARIANT_LABELS",
+    "RESULTS_SCHEMA",
+    "ResultsError",
+    "SCHEMA_VERSION",
+    "build_results",
+    "build_variant_result",
+    "format_comparison_table",
+    "format_ranks",
+    "format_table",
+    "load_results",
+    "load_results_dir",
+    "ordered_variants",
+    "plain",
+    "ranks_from_results",
+    "save_results",
+    "validate_results",
+    "variant_label",
+]

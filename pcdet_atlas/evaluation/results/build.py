@@ -1,0 +1,164 @@
+"""Building ``results.json`` entries from the metrics of an evaluation run, and the robustness
+ranks of several runs."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from datetime import datetime, timezone
+
+import numpy as np
+
+from pcdet_atlas.evaluation.attack_metrics import robustness_ranks
+from pcdet_atlas.evaluation.results.schema import (
+    ATTACK_KEYS,
+    CLASS_METRIC_KEYS,
+    METRIC_KEYS,
+    SCHEMA_VERSION,
+    ResultsError,
+    validate_results,
+    validate_variant,
+)
+from pcdet_atlas.version import __version__
+
+__all__ = ["build_results", "build_variant_result", "plain", "ranks_from_results"]
+
+
+def plain(value):
+    """numpy scalars / arrays -> Python types, recursively (JSON-ready)."""
+    if isinstance(value, Mapping):
+        return {str(k): plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return plain(value.tolist())
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.floating):
+        return float(value)
+    return value
+
+
+def build_variant_result(
+    variant: str,
+    *,
+    family: str,
+    num_frames: int,
+    metrics: Mapping[str, float] | None,
+    class_names: Sequence[str],
+    attack: Mapping | None = None,
+    extra: Mapping | None = None,
+    rank_group: str | None = None,
+) -> dict:
+    """One ``variants`` entry from the Waymo metric and the attack metrics of that variant.
+
+    Args:
+        variant: the variant name (checked against ``attack['variant']``).
+        family: the attack family of the variant.
+        rank_group: the family's robustness-rank group (its ``RANK_GROUP``), None if unranked.
+        num_frames: number of evaluated frames.
+        metrics: :func:`waymo_evaluate` output (``'L2/mAP'`` ..., ``'<Class>/L2/AP'`` ...; other
+            keys such as PR curves are not stored); None when the split has no ground truth.
+        class_names: the evaluated classes (keys of ``per_class``).
+        attack: :func:`attack_metrics.evaluate_attack` output; None for a variant without targets
+            (clean), which stores ASR None and zero counts.
+    """
+    entry: dict = {"family": family, "rank_group": rank_group, "num_frames": int(num_frames)}
+    for key in METRIC_KEYS:
+        entry[key] = None if metrics is None else metrics[key]
+    entry["per_class"] = {
+        cls: {k: None if metrics is None else metrics[f"{cls}/{k}"] for k in CLASS_METRIC_KEYS}
+        for cls in class_names
+    }
+    if attack is None:
+        entry.update(
+            asr=None,
+            asr_lenient=None,
+            num_targets=0,
+            num_success=0,
+            num_success_lenient=0,
+            iou_threshold=0.7,
+            score_threshold=None,
+            target_class=None,
+            confidence=None,
+            lifecycle=None,
+        )
+    else:
+        for key, want in (("variant", variant), ("family", family), ("num_frames", num_frames)):
+            if key in attack and attack[key] != want:
+                raise ResultsError(
+                    f"variant {variant!r}: attack metrics have {key}={attack[key]!r}, expected "
+                    f"{want!r}"
+                )
+        for key in ATTACK_KEYS:
+            if key not in attack:
+                raise ResultsError(f"variant {variant!r}: attack metrics lack key '{key}'")
+            entry[key] = attack[key]
+    if extra is not None:
+        entry["extra"] = dict(extra)
+    entry = plain(entry)
+    validate_variant(entry, f"variants[{variant!r}]", list(class_names))
+    return entry
+
+
+def build_results(
+    *,
+    model: str,
+    config: str,
+    checkpoint: str | None,
+    class_names: Sequence[str],
+    variants: Mapping[str, Mapping],
+    created: str | None = None,
+    extra: Mapping | None = None,
+) -> dict:
+    """A complete, validated results dict (``created`` defaults to now, UTC)."""
+    results = {
+        "schema_version": SCHEMA_VERSION,
+        "model": model,
+        "checkpoint": None if checkpoint is None else str(checkpoint),
+        "config": str(config),
+        "pcdet_atlas_version": __version__,
+        "created": created or datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "class_names": list(class_names),
+        "variants": {name: dict(entry) for name, entry in variants.items()},
+    }
+    if extra is not None:
+        results["extra"] = dict(extra)
+    results = plain(results)
+    validate_results(results)
+    return results
+
+
+def ranks_from_results(
+    results_list: Sequence[Mapping],
+    *,
+    variants: Sequence[str] | None = None,
+    tie_method: str = "average",
+) -> dict:
+    """:func:`attack_metrics.robustness_ranks` over several models' results (one per model).
+
+    ``variants`` restricts the settings ranked (default: every variant of the first model with a
+    ``rank_group``; every model must have them all, in the same group).
+    """
+    models = [r["model"] for r in results_list]
+    if len(set(models)) != len(models):
+        raise ResultsError(f"model names must be unique to rank them, got {models}")
+    first = results_list[0]["variants"]
+    names = list(first) if variants is None else list(variants)
+    groups = {}
+    for name in names:
+        if name not in first:
+            raise ResultsError(f"{results_list[0]['model']}: no variant {name!r}")
+        if first[name]["rank_group"] is not None:
+            groups[name] = first[name]["rank_group"]
+    asr = {}
+    for r in results_list:
+        asr[r["model"]] = {}
+        for name in groups:
+            if name not in r["variants"]:
+                raise ResultsError(f"{r['model']}: no variant {name!r} to rank")
+            if r["variants"][name]["rank_group"] != groups[name]:
+                raise ResultsError(f"{r['model']}: variant {name!r} has another rank group")
+            asr[r["model"]][name] = r["variants"][name]["asr"]
+    return robustness_ranks(asr, groups, tie_method=tie_method)

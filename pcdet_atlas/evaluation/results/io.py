@@ -1,0 +1,46 @@
+"""Reading and writing ``results.json`` (validated both ways; written atomically)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+
+from pcdet_atlas.evaluation.results.build import plain
+from pcdet_atlas.evaluation.results.schema import ResultsError, validate_results
+
+__all__ = ["load_results", "load_results_dir", "save_results"]
+
+
+def save_results(results: Mapping, path: str | Path) -> Path:
+    """Validate and write ``results`` as JSON (NaN is refused: undefined values are null)."""
+    results = plain(results)
+    validate_results(results, where=str(path))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as f:
+        json.dump(results, f, indent=2, allow_nan=False)
+        f.write("\n")
+    tmp.replace(path)
+    return path
+
+
+def load_results(path: str | Path) -> dict:
+    """Read and validate one ``results.json``; errors name the file and the key."""
+    path = Path(path)
+    try:
+        with open(path) as f:
+            results = json.load(f)
+    except json.JSONDecodeError as err:
+        raise ResultsError(f"{path}: not valid JSON ({err})") from err
+    validate_results(results, where=str(path))
+    return results
+
+
+def load_results_dir(root: str | Path, pattern: str = "**/results.json") -> list[dict]:
+    """All results files under ``root`` matching ``pattern``, sorted by path."""
+    paths = sorted(Path(root).glob(pattern))
+    if not paths:
+        raise ResultsError(f"{root}: no file matches {pattern!r}")
+    return [load_results(p) for p in paths]
