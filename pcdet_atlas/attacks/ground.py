@@ -18,7 +18,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pcdet_atlas.attacks.raycast import scene_columns
 from pcdet_atlas.config import ConfigError, check_known_keys
 from pcdet_atlas.config_values import config_files, config_value
 
@@ -101,14 +100,11 @@ class GroundEstimator:
         self,
         scene_xyz: np.ndarray,
         center_xy,
-        scene_xy: tuple[np.ndarray, ...] | None = None,
         rows: np.ndarray | None = None,
     ) -> GroundEstimate:
         """Ground height at ``center_xy`` (2,) from ``(N, 3+)`` scene points (vehicle frame).
 
         Args:
-            scene_xy: :func:`~pcdet_atlas.attacks.raycast.scene_columns` of ``scene_xyz`` (its
-                contiguous ``x`` and ``y`` columns first) when the caller has them already.
             rows: ascending indices of scene rows that hold every point within
                 ``radius + 1 mm`` of the centre (e.g. the wedge of
                 :func:`~pcdet_atlas.attacks.raycast.disc_wedges`); the first disc then looks at
@@ -117,7 +113,7 @@ class GroundEstimator:
         """
         cx, cy = float(center_xy[0]), float(center_xy[1])
         xyz = np.asarray(scene_xyz)
-        x, y = (scene_xy if scene_xy is not None else scene_columns(xyz))[:2]
+        x, y = xyz[:, 0], xyz[:, 1]
         # cheap pre-filter on the disc's bounding square (widened by 1 mm, far above the float32
         # rounding of the bounds), then z and exact float64 distances on the survivors; the wide
         # disc's square is scanned only when the small disc is too sparse
@@ -144,7 +140,7 @@ def _disc_candidates(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``x``, ``y``, ``z`` (float64, ``(C,)`` each) of the points inside the square
     ``|x - cx|, |y - cy| <= r`` with ``|z| <= max_abs_z``, in ascending point order (1-D
-    gathers from the contiguous columns; the values are those of ``xyz``); given ``rows``
+    gathers from the columns; the values are those of ``xyz``); given ``rows``
     (ascending indices holding the whole disc), of those rows with ``|z| <= max_abs_z``, the
     square untested (the caller's disc test gives the same points either way)."""
     if rows is not None:  # a sector around the disc: few enough rows to skip the square

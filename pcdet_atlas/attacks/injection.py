@@ -36,14 +36,7 @@ from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, ScheduleState, Seq
 from pcdet_atlas.attacks.counters import COUNTERS
 from pcdet_atlas.attacks.ground import GROUND_SLACK_M, GroundEstimator
 from pcdet_atlas.attacks.intensity import RangeIntensityModel
-from pcdet_atlas.attacks.raycast import (
-    ColumnScratch,
-    disc_wedges,
-    raycast_merge,
-    raycast_numpy_indices,
-    scene_columns,
-    wedge_rows_numpy,
-)
+from pcdet_atlas.attacks.raycast import disc_wedges, raycast_merge, wedge_rows
 from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary
 from pcdet_atlas.config import REPO_ROOT, ConfigError
 from pcdet_atlas.config_values import config_device, config_files, config_value
@@ -209,7 +202,6 @@ class InjectionAttack(BaseAttack):
         self.lidar = lidar or LidarModel.waymo_top()
         self.device = torch.device(device)
         self.trace_filter = trace_filter
-        self._scratch = ColumnScratch()
 
     @classmethod
     def from_config(cls, cfg: Mapping, data_root: str | Path | None = None) -> InjectionAttack:
@@ -359,30 +351,23 @@ class InjectionAttack(BaseAttack):
     ) -> FrameAttack:
         COUNTERS.add(frames_simulated=1)
         xyz, box = self.phantom_pose(seq, frame_idx, run)
-        on_cpu = self.device.type == "cpu"
-        scene_xy = near = None
-        if on_cpu:
-            # the only full-scene passes: the contiguous x / y columns and one azimuth sector
-            # that holds both the ground disc and the phantom's rays (their azimuths do not
-            # depend on the ground height), shared by the ground estimate and the raycaster
-            scene_xy = scene_columns(scene_xyz, self._scratch)
-            near = self._phantom_sector(scene_xyz, run, box, scene_xy)
-        ground = self.ground(scene_xyz, box[:2], scene_xy=scene_xy, rows=near)
+        scene_t = torch.from_numpy(scene_xyz[:, :3]).to(self.device)  # strided view on CPU
+        # the only full-scene pass: one azimuth sector holding both the ground disc and the
+        # phantom's rays (their azimuths do not depend on the ground height), shared by the
+        # ground estimate and the raycaster
+        near = self._phantom_sector(scene_t, run, box)
+        ground = self.ground(scene_xyz, box[:2], rows=None if near is None else near.cpu().numpy())
         dz = ground.z + box[5] / 2 - box[2]
         box = box.copy()
         box[2] += dz
         spoof = (xyz + np.array([0.0, 0.0, dz])).astype(np.float32)  # (n, 3)
         gen = None if run.dual_uniforms is None else run.dual_uniforms[frame_idx - run.start]
-        if on_cpu:
-            removed, keep_spoof = raycast_numpy_indices(
-                scene_xyz, spoof, self.lidar, self.p_dual, gen, scene_xy=scene_xy, candidates=near
-            )
-        else:
-            scene_t = torch.from_numpy(scene_xyz[:, :3]).to(self.device)  # strided, no copy
-            spoof_t = torch.from_numpy(spoof).to(self.device)
-            keep_scene, keep_spoof = raycast_merge(scene_t, spoof_t, self.lidar, self.p_dual, gen)
-            removed = torch.nonzero(~keep_scene).squeeze(1).cpu().numpy()  # ascending
-            keep_spoof = keep_spoof.cpu().numpy()
+        keep_scene, keep_spoof = raycast_merge(
+            scene_t, torch.from_numpy(spoof).to(self.device), self.lidar, self.p_dual, gen,
+            candidates=near,
+        )  # fmt: skip
+        removed = torch.nonzero(~keep_scene).squeeze(1).cpu().numpy()  # ascending
+        keep_spoof = keep_spoof.cpu().numpy()
         # range-corrected features of the visible phantom points only
         visible = keep_spoof.nonzero()[0]
         rel = spoof[visible].astype(np.float64) - self.lidar.origin_np
@@ -404,19 +389,15 @@ class InjectionAttack(BaseAttack):
         return FrameAttack.from_removed(scene_xyz.shape[0], removed, added.astype(np.float32), meta)
 
     def _phantom_sector(
-        self,
-        scene_xyz: np.ndarray,
-        run: PhantomRun,
-        box: np.ndarray,
-        scene_xy: tuple[np.ndarray, np.ndarray, np.ndarray],
-    ) -> np.ndarray | None:
+        self, scene: torch.Tensor, run: PhantomRun, box: np.ndarray
+    ) -> torch.Tensor | None:
         """Ascending scene rows of one azimuth sector around the phantom: its points (within
         ``run.reach`` of the box centre, whatever the pose and the ground height) and the
         ground disc, or ``None`` when that sector is most of the circle. Its rows serve both
         the ground estimate and the raycaster's sector test, so the scene is scanned once."""
         radius = max(run.reach, self.ground.radius + GROUND_SLACK_M)
         wedges = disc_wedges(self.lidar, box[:2], radius)
-        return None if wedges is None else wedge_rows_numpy(scene_xyz, wedges, self.lidar, scene_xy)
+        return None if wedges is None else wedge_rows(scene, wedges, self.lidar)
 
     def shadow_meta(
         self, seq: SequenceData, frame_idx: int, run: PhantomRun, state: ScheduleState

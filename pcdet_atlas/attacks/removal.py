@@ -23,10 +23,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, ScheduleState, SequenceData
 from pcdet_atlas.attacks.counters import COUNTERS
-from pcdet_atlas.attacks.raycast import ColumnScratch, _half_plane_numpy, scene_columns
+from pcdet_atlas.attacks.raycast import wedge_rows
 from pcdet_atlas.attacks.tracking import TargetPolicy, TrackedFrame, Tracker, choose_target
 from pcdet_atlas.config import ConfigError, check_known_keys
 from pcdet_atlas.config_values import config_files, config_value
@@ -99,7 +100,6 @@ def sector_mask(
     lidar: LidarModel,
     alpha: float,
     beta: float,
-    scratch: ColumnScratch | None = None,
 ) -> tuple[np.ndarray, int]:
     """Indices of the points of the A-HFR sector aimed at ``center_xyz``.
 
@@ -111,7 +111,6 @@ def sector_mask(
         scene_xyz: ``(N, 3+)`` points, vehicle frame, m.
         center_xyz: ``(3,)`` sector aim point, vehicle frame, m.
         alpha, beta: full azimuth and elevation widths, radians (``alpha < pi``).
-        scratch: reusable storage of the pre-filter's column copies (per attack object).
     Returns:
         ``(S,)`` int64 ascending indices of the sector points, and the number of points the
         exact test examined.
@@ -128,14 +127,9 @@ def sector_mask(
         cand = np.arange(xyz.shape[0])
     else:
         # pre-filter: the wedge [theta* - half, theta* + half] as two half-planes through the
-        # sensor origin, each a multiply, an add and a compare over contiguous x / y columns
-        # (1 mm slack at the apex covers the rounding of points near the sensor axis)
-        x, y, buf = scene_columns(xyz, scratch)
-        ox, oy = float(origin[0]), float(origin[1])
-        a0, a1 = theta_c - half, theta_c + half
-        inside = _half_plane_numpy(x, y, -math.sin(a0), math.cos(a0), ox, oy, buf)
-        inside &= _half_plane_numpy(x, y, math.sin(a1), -math.cos(a1), ox, oy, buf)
-        cand = inside.nonzero()[0]
+        # sensor origin (the raycaster's sector test, with its 1 mm slack at the apex)
+        wedge = [(theta_c - half, theta_c + half)]
+        cand = wedge_rows(torch.from_numpy(xyz[:, :3]), wedge, lidar).numpy()
     if cand.size == 0:
         return cand.astype(np.int64), 0
     theta, phi = _azimuth_elevation(xyz[cand, :3], origin)
@@ -215,7 +209,6 @@ class RemovalAttack(BaseAttack):
         self.target_policy = target_policy or TargetPolicy()
         self.tracker = tracker or Tracker()
         self.lidar = lidar or LidarModel.waymo_top()
-        self._scratch = ColumnScratch()
 
     @classmethod
     def from_config(cls, cfg: Mapping, data_root: str | Path | None = None) -> RemovalAttack:
@@ -296,7 +289,7 @@ class RemovalAttack(BaseAttack):
                 None, _EMPTY, self.meta(state, target_obj_id=tracked.obj_id, tracked=True)
             )
         idx, examined = sector_mask(
-            scene_xyz, center, self.lidar, self.azimuth_width, self.elevation_width, self._scratch
+            scene_xyz, center, self.lidar, self.azimuth_width, self.elevation_width
         )
         COUNTERS.add(removal_points_examined=examined)
         gen = numpy_generator(self.seed, self.family, seq.name, frame_idx, "points")

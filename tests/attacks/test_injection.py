@@ -275,13 +275,10 @@ def test_raycast_device_gives_identical_frames(tiny, device):
 def test_ground_estimator_matches_brute_force_disc_percentile():
     """The small disc's square is scanned first and the wide disc's only when needed; the
     estimate is the brute-force lower percentile of the points within each radius (float64
-    distances), including points exactly on the disc boundaries, with or without precomputed
-    columns, and from given rows that hold the small disc."""
-    from pcdet_atlas.attacks.raycast import ColumnScratch, scene_columns
-
+    distances), including points exactly on the disc boundaries, and from given rows that hold
+    the small disc."""
     rng = np.random.default_rng(0)
     est = GroundEstimator(radius=3.0, percentile=10.0, min_points=10, fallback_radius=8.0)
-    scratch = ColumnScratch()
     for trial in range(30):
         n = [5, 40, 400, 4000][trial % 4]
         center = rng.uniform(-20, 20, 2)
@@ -304,8 +301,8 @@ def test_ground_estimator_matches_brute_force_disc_percentile():
                 break
         # rows holding the small disc (a wedge's, say): some points beyond it, in order
         near = np.flatnonzero((d2 <= 3.2**2) | (rng.random(len(xyz)) < 0.1))
-        for cols, rows in ((None, None), (scene_columns(xyz, scratch), None), (None, near)):
-            got = est(xyz, center, scene_xy=cols, rows=rows)
+        for rows in (None, near):
+            got = est(xyz, center, rows=rows)
             if expected is None:
                 assert got.source == "fallback" and got.z == est.fallback_z
             else:

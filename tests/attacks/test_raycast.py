@@ -10,25 +10,22 @@ from hypothesis import strategies as st
 
 from pcdet_atlas.attacks.counters import AttackCounters
 from pcdet_atlas.attacks.raycast import (
-    _bin_index_numpy,
     _sector_wedges,
     azimuth_sector_candidates,
-    azimuth_sector_candidates_numpy,
     disc_wedges,
     raycast_merge,
-    raycast_merge_numpy,
-    raycast_numpy_indices,
-    wedge_rows_numpy,
+    wedge_rows,
 )
 from pcdet_atlas.ops.lidar_model import LidarModel
 
 
-def numpy_candidates(scene, columns, lidar):
-    return torch.from_numpy(azimuth_sector_candidates_numpy(scene.numpy(), columns.numpy(), lidar))
+def candidates_among_all_rows(scene, columns, lidar):
+    rows = torch.arange(scene.shape[0])
+    return azimuth_sector_candidates(scene, columns, lidar, rows)
 
 
-#: Both sector pre-filters (torch: GPU path; numpy: CPU path) must be supersets.
-CANDIDATE_FNS = [azimuth_sector_candidates, numpy_candidates]
+#: The sector pre-filter must be a superset, over the whole scene or among given rows.
+CANDIDATE_FNS = [azimuth_sector_candidates, candidates_among_all_rows]
 
 
 def reference_merge(scene, spoof, lidar, p_dual=0.0, generator=None):
@@ -194,7 +191,6 @@ def test_bin_edges_and_beam_midpoints():
         needed = torch.nonzero(torch.isin(s_bin, p_cols)).squeeze(1)
         for candidates in CANDIDATE_FNS:
             assert torch.isin(needed, candidates(scene, p_cols, lidar)).all()
-        check_backends_agree(scene, spoof, lidar)
 
 
 @settings(max_examples=40, deadline=None)
@@ -409,47 +405,27 @@ def test_bad_arguments():
         raycast_merge(pts, torch.full((1, 3), math.nan), lidar, p_dual=0.0)
 
 
-# ---------------------------------------------------------------- CPU numpy path == torch path
-def check_backends_agree(scene, spoof, lidar, p_dual=0.0, seed=0):
-    """``backend='torch'`` and ``'numpy'`` give the same masks, counters and draws."""
-    results = []
-    for backend in ("torch", "numpy"):
-        gen = torch.Generator().manual_seed(seed)
-        counters = AttackCounters()
-        keep = raycast_merge(scene, spoof, lidar, p_dual, gen, counters, backend=backend)
-        results.append((keep, counters.snapshot(), torch.rand(1, generator=gen).item()))
-    (ks_t, kp_t), c_t, next_t = results[0]
-    (ks_n, kp_n), c_n, next_n = results[1]
-    assert ks_n.dtype == torch.bool and kp_n.dtype == torch.bool
-    assert torch.equal(ks_t, ks_n) and torch.equal(kp_t, kp_n)
-    assert next_t == next_n  # same uniforms consumed
-    # same work counted; both take the sector from the rays' exact columns, but their float32
-    # half-plane tests round differently, so a point on a wedge margin may be examined by one
-    examined_t, examined_n = c_t.pop("points_examined"), c_n.pop("points_examined")
-    assert c_t == c_n and abs(examined_n - examined_t) <= 0.01 * examined_t
-    return ks_n, kp_n
-
-
+# ---------------------------------------------------------------- hard sectors vs the reference
 @pytest.mark.parametrize("seed", range(8))
-def test_numpy_backend_matches_torch_backend(seed):
+def test_matches_reference_narrow_wide_split_and_seam_sectors(seed):
     lidar = small_lidar() if seed % 2 else LidarModel.waymo_top()
     spread = [3.0, 20.0, 120.0, 200.0][seed % 4]  # narrow, wide, split wedges, full scan
     center = [None, 179.0, -179.5, None][seed // 2 % 4]  # incl. sectors across the seam
     scene, spoof = random_case(seed, lidar, 3000, 300, center_deg=center, spread_deg=spread)
+    extra = torch.randn(scene.shape[0], 2)
     for p_dual in (0.0, 0.5):
-        keep_scene, keep_spoof = check_backends_agree(scene, spoof, lidar, p_dual, seed)
         exp_scene, exp_spoof = reference_merge(
             scene, spoof, lidar, p_dual, torch.Generator().manual_seed(seed)
         )
-        assert torch.equal(keep_scene, exp_scene) and torch.equal(keep_spoof, exp_spoof)
-    check_backends_agree(scene.double(), spoof.double(), lidar, 0.3, seed)
-    extra = torch.randn(scene.shape[0], 2)
-    check_backends_agree(torch.cat([scene, extra], 1), spoof, lidar, 0.3, seed)
+        for sc, sp in ((scene, spoof), (scene.double(), spoof.double()),
+                       (torch.cat([scene, extra], 1), spoof)):  # fmt: skip
+            gen = torch.Generator().manual_seed(seed)
+            keep_scene, keep_spoof = raycast_merge(sc, sp, lidar, p_dual, gen)
+            assert torch.equal(keep_scene, exp_scene) and torch.equal(keep_spoof, exp_spoof)
 
 
-def test_numpy_backend_spoof_in_few_beams_on_beam_midpoints():
-    """The CPU path bins only the candidates whose elevation may fall in the spoof's beams;
-    scene points exactly on beam midpoints (and on column edges) around that band are kept."""
+def test_spoof_in_few_beams_on_beam_midpoints():
+    """Scene points exactly on beam midpoints and column edges around the spoof's beams."""
     lidar = LidarModel.waymo_top()
     g = np.random.default_rng(3)
     n = 6000
@@ -474,79 +450,36 @@ def test_numpy_backend_spoof_in_few_beams_on_beam_midpoints():
         lidar, g.integers(22, 29, 400), 1300 + g.integers(-30, 30, 400), g.uniform(4, 60, 400)
     )
     for p_dual in (0.0, 1.0):
-        keep_scene, keep_spoof = check_backends_agree(scene, spoof, lidar, p_dual)
+        keep_scene, keep_spoof = raycast_merge(
+            scene, spoof, lidar, p_dual, torch.Generator().manual_seed(0)
+        )
         exp = reference_merge(scene, spoof, lidar, p_dual, torch.Generator().manual_seed(0))
         assert torch.equal(keep_scene, exp[0]) and torch.equal(keep_spoof, exp[1])
     assert (~keep_scene).sum() > 50 and keep_spoof.sum() > 50
 
 
-def test_bin_index_numpy_is_bitwise_the_torch_one():
-    g = np.random.default_rng(0)
-    for lidar in (small_lidar(48), LidarModel.waymo_top()):
-        for dtype in (np.float32, np.float64):
-            xyz = (g.normal(size=(5001, 3)) * 30).astype(dtype)
-            xyz[:5] = lidar.origin.numpy()  # range 0
-            want = lidar.bin_index(torch.from_numpy(xyz))
-            got = _bin_index_numpy(lidar, xyz)
-            for w, o in zip(want, got):
-                assert w.numpy().dtype == o.dtype and np.array_equal(w.numpy(), o)
-            # a subset gets the same values (no dependence on the position in the array)
-            sub = g.choice(len(xyz), 777, replace=False)
-            got_sub = _bin_index_numpy(lidar, xyz[sub])
-            for w, o in zip(want, got_sub):
-                assert np.array_equal(w.numpy()[sub], o)
-
-
-def test_raycast_merge_numpy_api_and_errors():
+def test_low_precision_and_grad_inputs():
     lidar = LidarModel.waymo_top()
     scene, spoof = random_case(2, lidar, num_scene=2000, num_spoof=200)
-    gen_a, gen_b = torch.Generator().manual_seed(4), torch.Generator().manual_seed(4)
-    ks, kp = raycast_merge(scene, spoof, lidar, 0.5, gen_a, backend="torch")
-    ks_np, kp_np = raycast_merge_numpy(scene.numpy(), spoof.numpy(), lidar, 0.5, gen_b)
-    assert isinstance(ks_np, np.ndarray) and np.array_equal(ks_np, ks.numpy())
-    assert np.array_equal(kp_np, kp.numpy())
-    occluded, kp2 = raycast_numpy_indices(
-        scene.numpy(), spoof.numpy(), lidar, 0.5, torch.Generator().manual_seed(4)
-    )
-    assert np.array_equal(occluded, np.flatnonzero(~ks_np)) and np.array_equal(kp2, kp_np)
-    pts = np.zeros((3, 3), np.float32)
-    with pytest.raises(ValueError, match="explicit torch.Generator"):
-        raycast_merge_numpy(pts, pts, lidar, p_dual=0.01)
-    with pytest.raises(ValueError, match="shape"):
-        raycast_merge_numpy(np.zeros((3, 2)), pts, lidar, p_dual=0.0)
-    with pytest.raises(TypeError, match="floating"):
-        raycast_merge_numpy(np.zeros((3, 3), np.int64), pts, lidar, p_dual=0.0)
-    with pytest.raises(ValueError, match="non-finite"):
-        raycast_merge_numpy(pts, np.full((1, 3), np.nan), lidar, p_dual=0.0)
-    with pytest.raises(ValueError, match="backend"):
-        raycast_merge(scene, spoof, lidar, 0.0, backend="fast")
-    with pytest.raises(ValueError, match="backend 'numpy'"):
-        raycast_merge(scene.bfloat16(), spoof.bfloat16(), lidar, 0.0, backend="numpy")
-    # 'auto' runs bfloat16 and tensors that require grad through torch instead
+    ks, kp = raycast_merge(scene, spoof, lidar, 0.0)
     ks_bf, _ = raycast_merge(scene.bfloat16(), spoof.bfloat16(), lidar, 0.0)
     assert ks_bf.shape == (scene.shape[0],)
     ks_grad, kp_grad = raycast_merge(scene.clone().requires_grad_(), spoof, lidar, 0.0)
-    ks_auto, kp_auto = raycast_merge(scene, spoof, lidar, 0.0)
-    assert torch.equal(ks_grad, ks_auto) and torch.equal(kp_grad, kp_auto)
+    assert torch.equal(ks_grad, ks) and torch.equal(kp_grad, kp)
 
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_dual_draws_from_numpy_generator_or_predrawn_uniforms(device):
-    """A numpy Generator draws on the host, so the numpy backend and the torch backend on any
-    device consume the same uniforms; an array of uniforms drawn beforehand gives the result
-    of the generator it came from, and a too short one is an error."""
+    """A numpy Generator draws on the host, so CPU and CUDA inputs consume the same uniforms;
+    an array of uniforms drawn beforehand gives the result of the generator it came from, and
+    a too short one is an error."""
     lidar = LidarModel.waymo_top()
     scene, spoof = random_case(5, lidar, 3000, 300)
-    ref = raycast_merge(scene, spoof, lidar, 0.5, np.random.default_rng(7), backend="numpy")
+    ref = raycast_merge(scene, spoof, lidar, 0.5, np.random.default_rng(7))
     table = np.random.default_rng(7).random(spoof.shape[0])
     for source in (lambda: np.random.default_rng(7), lambda: table):
-        for backend in ("auto", "torch"):
-            ks, kp = raycast_merge(
-                scene.to(device), spoof.to(device), lidar, 0.5, source(), backend=backend
-            )
-            assert torch.equal(ks.cpu(), ref[0]) and torch.equal(kp.cpu(), ref[1])
-    occluded, kp = raycast_numpy_indices(scene.numpy(), spoof.numpy(), lidar, 0.5, table)
-    assert np.array_equal(occluded, np.flatnonzero(~ref[0].numpy()))
+        ks, kp = raycast_merge(scene.to(device), spoof.to(device), lidar, 0.5, source())
+        assert torch.equal(ks.cpu(), ref[0]) and torch.equal(kp.cpu(), ref[1])
     # the draws decide: other uniforms keep other second echoes
     other = raycast_merge(scene, spoof, lidar, 0.5, np.random.default_rng(8))
     assert not torch.equal(other[0], ref[0])
@@ -588,17 +521,18 @@ def test_disc_wedge_rows_hold_the_sector_of_any_points_in_the_disc(seed):
     spoof = np.c_[center[0] + rad * np.cos(u), center[1] + rad * np.sin(u)]
     spoof = np.c_[spoof, rng.uniform(-2, 2.5, 600)].astype(np.float32)
     wedges = disc_wedges(lidar, center, radius)
-    rows = wedge_rows_numpy(scene, wedges, lidar)
-    assert rows.size < len(scene) / 2 and np.all(np.diff(rows) > 0)
-    d2 = ((scene[:, :2].astype(np.float64) - center) ** 2).sum(1)
-    assert np.isin(np.flatnonzero(d2 <= radius * radius), rows).all()
-    columns = np.unique(_bin_index_numpy(lidar, spoof)[0] % lidar.azimuth_bins)
-    assert np.isin(azimuth_sector_candidates_numpy(scene, columns, lidar), rows).all()
+    scene, spoof = torch.from_numpy(scene), torch.from_numpy(spoof)
+    rows = wedge_rows(scene, wedges, lidar)
+    assert rows.numel() < len(scene) / 2 and bool((rows.diff() > 0).all())
+    d2 = ((scene[:, :2].double() - torch.from_numpy(center)) ** 2).sum(1)
+    assert torch.isin(torch.nonzero(d2 <= radius * radius).squeeze(1), rows).all()
+    columns = torch.unique(lidar.bin_index(spoof)[0] % lidar.azimuth_bins)
+    assert torch.isin(azimuth_sector_candidates(scene, columns, lidar), rows).all()
     for p_dual in (0.0, 0.5):
         uniforms = rng.random(len(spoof))
-        plain = raycast_numpy_indices(scene, spoof, lidar, p_dual, uniforms)
-        given = raycast_numpy_indices(scene, spoof, lidar, p_dual, uniforms, candidates=rows)
-        assert all(np.array_equal(a, b) for a, b in zip(plain, given))
-        assert plain[0].size > 0
+        plain = raycast_merge(scene, spoof, lidar, p_dual, uniforms)
+        given = raycast_merge(scene, spoof, lidar, p_dual, uniforms, candidates=rows)
+        assert all(torch.equal(a, b) for a, b in zip(plain, given))
+        assert (~plain[0]).any()
     assert disc_wedges(lidar, (ox + 2.0, oy), 3.0) is None  # the disc holds the sensor
     assert disc_wedges(lidar, (ox + 3.0, oy), 2.99) is not None
