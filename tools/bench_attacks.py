@@ -23,6 +23,8 @@ since on a shared 2-core VM one round's ratio moves by +-0.04).
 from __future__ import annotations
 
 import argparse
+import functools
+import itertools
 import math
 import statistics
 import time
@@ -30,7 +32,7 @@ import time
 import numpy as np
 import torch
 
-from pcdet_atlas.attacks.counters import AttackCounters
+from pcdet_atlas.attacks.counters import COUNTERS, AttackCounters
 from pcdet_atlas.attacks.raycast import raycast_merge
 from pcdet_atlas.ops.lidar_model import LidarModel
 
@@ -283,7 +285,6 @@ def warm_up_process(dataset, indices: list[int], seconds: float) -> None:
 
 def bench_getitem(args) -> None:
     """Attacked vs clean ``__getitem__`` on the same spoofed frames, 1-frame and 4-frame input."""
-    import itertools
 
     from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
     from pcdet_atlas.attacks.schedule import is_spoofed
@@ -297,8 +298,12 @@ def bench_getitem(args) -> None:
         f"getitem: {args.rounds} round(s) of {args.repeats} alternating calls per row; medians "
         "over rounds, ratio range over rounds"
     )
-    print(f"  {'input':<8}{'variant':<18}{'frames':<9}{'clean ms':>10}{'attacked ms':>13}"
-          f"{'extra ms':>10}{'ratio':>8}{'range':>12}{'target':>9}")  # fmt: skip
+    print(
+        "getitem: sims = attack simulations per sample, read in order (the attacked-frame cache "
+        "serves history frames; 'no cache' = frame_cache_size 0)"
+    )
+    print(f"  {'input':<8}{'variant':<27}{'frames':<9}{'clean ms':>10}{'attacked ms':>13}"
+          f"{'extra ms':>10}{'ratio':>8}{'range':>12}{'sims':>6}{'target':>9}")  # fmt: skip
     inputs = {
         "1": ("synthetic_waymo.yaml", 1.25),
         "4": ("synthetic_waymo_multiframe.yaml", 1.35),
@@ -320,12 +325,23 @@ def bench_getitem(args) -> None:
                       if not is_spoofed(info["point_cloud"]["sample_idx"])],
         }  # fmt: skip
         warm_up_process(clean, frames["spoofed"], args.warmup_s)
-        for variant in GETITEM_VARIANTS:
+        caches = (None, 0) if clean.sequence_cfg is not None else (None,)
+        for variant, cache in itertools.product(GETITEM_VARIANTS, caches):
             attack_cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "attacks" / f"{variant}.yaml")
             if "TRACE_LIBRARY" in attack_cfg:
                 attack_cfg.TRACE_LIBRARY.PATH = str(lib_path)
-            attacked = AtlasWaymoDataset(data_cfg, classes, attack_cfg, root_path=root)
+            make = functools.partial(
+                AtlasWaymoDataset, data_cfg, classes, attack_cfg, root_path=root,
+                frame_cache_size=cache,
+            )  # fmt: skip
+            attacked = make()
+            label = variant if cache is None else f"{variant} (no cache)"
             for kind in ("spoofed", "clean"):
+                with COUNTERS.measure() as work:  # a fresh dataset, its frames read in order
+                    fresh = make()
+                    for i in frames[kind]:
+                        fresh[i]
+                sims = work["frames_simulated"] / len(frames[kind])
                 # warm both datasets on every timed frame first (page cache, lazily loaded
                 # trace library, prepared runs, allocator), so that no variant's first row
                 # pays for it; then alternate call by call on the same frame
@@ -348,9 +364,9 @@ def bench_getitem(args) -> None:
                 a_ms = statistics.median(t["attacked"] for t in rounds)
                 spread = f"{ratios[0]:.2f}-{ratios[-1]:.2f}" if len(ratios) > 1 else ""
                 goal = f"<= {target}" if kind == "spoofed" else "~ 1"
-                print(f"  {mode:<8}{variant:<18}{kind:<9}{c_ms:>10.2f}{a_ms:>13.2f}"
+                print(f"  {mode:<8}{label:<27}{kind:<9}{c_ms:>10.2f}{a_ms:>13.2f}"
                       f"{a_ms - c_ms:>10.2f}{statistics.median(ratios):>8.2f}{spread:>12}"
-                      f"{goal:>9}")  # fmt: skip
+                      f"{sims:>6.2f}{goal:>9}")  # fmt: skip
 
 
 PARTS = {"raycast": bench_raycast, "getitem": bench_getitem}
