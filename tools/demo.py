@@ -145,7 +145,8 @@ def main(argv=None) -> dict:
         run_tool("visualize_attack.py", "--data_cfg", str(DATA_CFG), "--data_path", str(root),
                  "--attack", attack, "--frame", "40", "--out", out)  # fmt: skip
 
-    run_tool("test.py", "--cfg", str(MODEL_CFG), "--attacks", ",".join(VARIANTS),
+    # the demo's own evaluation directory: a rerun replaces it (tools/test.py refuses otherwise)
+    run_tool("test.py", "--cfg", str(MODEL_CFG), "--attacks", ",".join(VARIANTS), "--overwrite",
              "--set", "DATA_CONFIG.DATA_PATH", str(root))  # fmt: skip
     return {"summary": summary, "attacks": rows}
 

@@ -52,7 +52,7 @@ def spherical_offsets(
 
     numpy's ``sqrt`` is IEEE-exact and its ``arctan2`` gives each element the same value whatever
     its position in the array, so binning a subset of a scene gives every point the bin it gets in
-    the whole scene; every CPU consumer (both raycast backends, the removal sector,
+    the whole scene; every CPU consumer (the raycaster, the removal sector,
     :meth:`LidarModel.spherical` on CPU tensors) goes through this one function.
     """
     horiz = np.sqrt(dx**2 + dy**2)

@@ -101,8 +101,8 @@ def test_pickle_roundtrip_drops_device_cache():
 
 
 def test_spherical_on_cpu_is_the_shared_numpy_arithmetic():
-    """CPU binning goes through ``spherical_offsets`` (numpy), the arithmetic both raycast
-    backends and the removal sector use: same values for float32 and float64 input, azimuth in
+    """CPU binning goes through ``spherical_offsets`` (numpy), the arithmetic the raycaster and
+    the removal sector use: same values for float32 and float64 input, azimuth in
     (-pi, pi] (a point straight behind the sensor with y = -0.0 folds to +pi)."""
     lidar = LidarModel.waymo_top()
     g = np.random.default_rng(1)
