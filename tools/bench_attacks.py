@@ -271,10 +271,9 @@ def warm_up_process(dataset, indices: list[int], seconds: float) -> None:
 
     A fresh process reads frames about twice as slowly for its first few hundred samples:
     glibc serves the multi-MB point arrays with fresh ``mmap`` pages (page faults) until its
-    adaptive mmap / trim thresholds have grown past their size (measured here: 1-frame clean
-    ``__getitem__`` 8.8-9.8 ms for the first ~700 calls, then 4.2-4.4 ms; 4.2-4.5 ms from the
-    start with ``MALLOC_MMAP_THRESHOLD_`` fixed). Whichever variant is timed first would pay
-    it, so the process is brought to its steady state before any timing.
+    adaptive mmap / trim thresholds have grown past their size (with ``MALLOC_MMAP_THRESHOLD_``
+    fixed the first calls are as fast as the later ones). Whichever variant is timed first would
+    pay it, so the process is brought to its steady state before any timing.
     """
     end = time.perf_counter() + seconds
     calls = 0

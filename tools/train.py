@@ -70,7 +70,7 @@ def parse_args(argv=None):
     parser.add_argument(
         "--default_malloc", action="store_true", default=False,
         help="on CPU, leave glibc malloc as it is (default: keep freed memory for reuse, "
-        "pcdet_atlas.train_utils.cpu_memory; ~2x faster CPU steps, same results)",
+        "pcdet_atlas.train_utils.cpu_memory; faster CPU steps, same results: docs/benchmarks.md)",
     )  # fmt: skip
     return parser.parse_args(argv)
 

@@ -93,8 +93,8 @@ class AttackCounters:
             delta.update({k: after[k] - before[k] for k in before})
 
 
-#: The counter names (``dataclasses.fields`` costs ~10 us a call; :meth:`AttackCounters.add`
-#: runs a few times per simulated frame).
+#: The counter names, computed once (``dataclasses.fields`` is slow, and
+#: :meth:`AttackCounters.add` runs a few times per simulated frame).
 _COUNTER_NAMES = frozenset(f.name for f in fields(AttackCounters))
 
 #: The per-process counters object of the attack engine.

@@ -130,7 +130,7 @@ def row_records(array: np.ndarray) -> np.ndarray | None:
     """The rows of a 2-D array as a 1-D array of opaque records (a view, no copy), or ``None``
     when its last axis is not contiguous. Its rows may be strided, e.g. the first columns of a
     frame file's rows: numpy then moves each row as one block instead of element by element
-    (a (150k, 5) float32 row gather or copy is 1.5-2x faster this way)."""
+    (docs/benchmarks.md, "Data loading")."""
     if array.ndim != 2 or array.shape[1] == 0 or array.strides[1] != array.itemsize:
         return None
     return array.view(np.dtype((np.void, array.shape[1] * array.itemsize)))[:, 0]
@@ -158,7 +158,7 @@ def compress_rows(mask: np.ndarray, array: np.ndarray) -> np.ndarray:
 
 
 #: Above this many runs of dropped rows, one masked copy beats copying the blocks between them
-#: (each block costs ~0.7 us of call overhead; the mask ~0.06 ms on a 150k-row frame).
+#: (each block copy has a fixed call cost; the mask's cost follows the frame's rows).
 _MAX_RUN_COPIES = 64
 
 

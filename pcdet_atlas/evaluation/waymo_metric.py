@@ -2,7 +2,7 @@
 
 Semantics are those of ``waymo-open-dataset`` 1.6.7 (C++ ``detection_metrics``, ``matcher``,
 ``metrics_utils``, ``iou``) as driven by OpenPCDet's ``waymo_eval.py``; see
-``docs/evaluation.md`` and ``shared/reference/openpcdet_waymo.md`` §5. In short:
+``docs/evaluation.md``. In short:
 
 - GT boxes of the evaluated classes with ``num_points_in_gt > 0`` are kept; an unknown difficulty
   (0) becomes LEVEL_2 if the box has <= 5 points, else LEVEL_1. Boxes farther than 1000.5 m are

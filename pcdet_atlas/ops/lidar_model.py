@@ -95,8 +95,8 @@ class LidarModel:
         self.inclinations = incl  # (B,) float64, radians
         self.azimuth_bins = int(azimuth_bins)
         self.origin = torch.tensor([float(v) for v in origin], dtype=torch.float64)
-        #: the origin as Python floats: the CPU paths read it without a torch call (right after
-        #: a frame is streamed in a loader, the first torch op costs ~0.1 ms of cold code)
+        #: the origin as Python floats, for plain-float arithmetic (wedges, sector angles) that
+        #: needs no tensor
         self.origin_xyz: tuple[float, float, float] = tuple(float(v) for v in origin)
         self.max_range = float(max_range)
         # Beam boundaries: midpoints between neighbours; the FOV extends half a spacing beyond the

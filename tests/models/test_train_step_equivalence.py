@@ -1,4 +1,4 @@
-"""The training-step speed-ups compute what the straightforward code computed.
+"""The training step's row-wise scatter and gathers compute what the straightforward code does.
 
 References: torch's own autograd of ``scatter_reduce_('amax')`` for the per-pillar max, plain
 ``x[idx]`` indexing, and the voxelization by per-point loops in ``test_voxelize``.
@@ -16,7 +16,7 @@ from pcdet_atlas.models.vfe import dynamic_pillar_vfe
 
 
 def torch_autograd_scatter_max(src, index, dim_size):
-    """The former implementation: torch's ``ScatterReduceBackward0``."""
+    """The reference: torch's own ``scatter_reduce_`` autograd (``ScatterReduceBackward0``)."""
     out = src.new_zeros(dim_size, src.shape[1])
     return out.scatter_reduce_(
         0, index[:, None].expand_as(src), src, reduce="amax", include_self=False
@@ -68,9 +68,9 @@ def test_scatter_max_without_grad_and_gradcheck():
 
 
 @pytest.mark.parametrize("cfg_name", ["centerpoint", "cp4f"])
-def test_model_loss_and_gradients_equal_the_former_computation(cfg_name, monkeypatch):
+def test_model_loss_and_gradients_equal_the_reference_computation(cfg_name, monkeypatch):
     """One training step (loss, backward) of the synthetic model on a fixed batch: the loss and
-    every parameter gradient equal those of the former VFE (torch autograd for the per-pillar
+    every parameter gradient equal those of the reference VFE (torch autograd for the per-pillar
     max, ``x[idx]`` gathers)."""
     cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "atlas" / "synthetic" / f"{cfg_name}.yaml")
     multi = cfg_name == "cp4f"

@@ -42,11 +42,12 @@ class _ScatterMax(torch.autograd.Function):
     Forward is ``scatter_reduce_('amax', include_self=False)``. The backward splits each group's
     gradient evenly among the elements equal to the group's max, like torch's own
     ``ScatterReduceBackward0``, but gathers and scatters whole rows with a 1-D index instead of an
-    expanded ``(N, C)`` one and does not clone the output buffer, which makes it ~3x cheaper on
-    CPU for the VFE's millions of points. One difference, on purpose: torch also counts the
-    excluded initial value (0) as a tie when a group's max is exactly 0, halving the gradient of
-    the true maximisers there (pytorch issue "scatter_reduce amax include_self=False gradient");
-    here only the reduced elements count. Behind a ReLU (the VFE) such elements get no gradient
+    expanded ``(N, C)`` one and does not clone the output buffer, which makes it cheaper on CPU
+    for the VFE's millions of points (docs/benchmarks.md, "Training step"). One difference, on
+    purpose: torch also counts the excluded initial value (0) as a tie when a group's max is
+    exactly 0, halving the gradient of the true maximisers there (pytorch issue "scatter_reduce
+    amax include_self=False gradient"); here only the reduced elements count. Behind a ReLU (the
+    VFE) such elements get no gradient
     either way, so the model's gradients are the same.
     """
 
