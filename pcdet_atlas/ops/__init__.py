@@ -1,0 +1,1 @@
+"""Low-level ops shared by datasets, attacks, models and evaluation."""
