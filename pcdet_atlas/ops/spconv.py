@@ -17,9 +17,9 @@ gather-GEMM-scatter per kernel offset. Within one offset every output site recei
 input site, so the scatter has no collisions and the result is deterministic on CPU and GPU.
 
 Output order: a submanifold conv keeps the input's rows. A regular sparse conv lists its output
-sites sorted by their linear index ``((b * D + z) * H + y) * W + x`` (spconv 2.x returns them in
-the order of its hash table, which is not specified; the set of sites and their features are the
-same).
+sites sorted by their linear index ``((b * D + z) * H + y) * W + x``. spconv 2.x's maintainer
+states its regular-conv output order is sorted when its ``direct_table`` option is off and
+unspecified when it is on (traveller59/spconv#592); the sites and their features are the same.
 """
 
 from __future__ import annotations
