@@ -10,7 +10,14 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 from pcdet_atlas.config import require_keys
-from pcdet_atlas.models import backbones_2d, dense_heads, detectors, map_to_bev, vfe  # noqa: F401
+from pcdet_atlas.models import (  # noqa: F401
+    backbones_2d,
+    backbones_3d,
+    dense_heads,
+    detectors,
+    map_to_bev,
+    vfe,
+)
 from pcdet_atlas.models.batch import load_data_to_device
 from pcdet_atlas.models.detectors import Detector3DTemplate
 from pcdet_atlas.registry import DETECTORS

@@ -1,5 +1,6 @@
 """Scatter of pillar features onto the BEV canvas (stage ``map_to_bev_module``)."""
 
+from pcdet_atlas.models.map_to_bev.height_compression import HeightCompression
 from pcdet_atlas.models.map_to_bev.pointpillar_scatter import PointPillarScatter
 
-__all__ = ["PointPillarScatter"]
+__all__ = ["HeightCompression", "PointPillarScatter"]

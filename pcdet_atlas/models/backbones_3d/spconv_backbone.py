@@ -1,0 +1,216 @@
+"""OpenPCDet's sparse voxel backbones on the pure-torch sparse conv (:mod:`pcdet_atlas.ops.spconv`).
+
+Module and parameter names, shapes and ``indice_key`` reuse are OpenPCDet's, so its
+``backbone_3d.*`` checkpoint entries (spconv 2.x layout) load unchanged (docs/model_zoo.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from functools import partial
+
+from torch import nn
+
+from pcdet_atlas.config import check_known_keys
+from pcdet_atlas.ops.spconv import (
+    SparseConv3d,
+    SparseConvTensor,
+    SparseModule,
+    SparseSequential,
+    SubMConv3d,
+)
+from pcdet_atlas.registry import MODEL_STAGES
+
+# OpenPCDet's norm for the sparse backbones
+norm_fn = partial(nn.BatchNorm1d, eps=1e-3, momentum=0.01)
+
+
+def post_act_block(
+    in_channels: int,
+    out_channels: int,
+    kernel_size: int,
+    indice_key: str,
+    stride: int = 1,
+    padding: int | Sequence[int] = 0,
+    conv_type: str = "subm",
+) -> SparseSequential:
+    """conv -> BN -> ReLU (``subm`` or ``spconv``), numbered ``0, 1, 2`` as in OpenPCDet."""
+    if conv_type == "subm":
+        conv = SubMConv3d(in_channels, out_channels, kernel_size, bias=False, indice_key=indice_key)
+    elif conv_type == "spconv":
+        conv = SparseConv3d(
+            in_channels, out_channels, kernel_size, stride=stride, padding=padding, bias=False,
+            indice_key=indice_key,
+        )  # fmt: skip
+    else:
+        raise ValueError(f"post_act_block: conv_type must be 'subm' or 'spconv', got {conv_type!r}")
+    return SparseSequential(conv, norm_fn(out_channels), nn.ReLU())
+
+
+class SparseBasicBlock(SparseModule):
+    """Residual block of two submanifold 3x3x3 convs (with bias, as OpenPCDet) and BN."""
+
+    expansion = 1
+
+    def __init__(self, inplanes: int, planes: int, indice_key: str):
+        super().__init__()
+        self.conv1 = SubMConv3d(inplanes, planes, 3, padding=1, bias=True, indice_key=indice_key)
+        self.bn1 = norm_fn(planes)
+        self.relu = nn.ReLU()
+        self.conv2 = SubMConv3d(planes, planes, 3, padding=1, bias=True, indice_key=indice_key)
+        self.bn2 = norm_fn(planes)
+
+    def forward(self, x: SparseConvTensor) -> SparseConvTensor:
+        out = self.conv1(x)
+        out = out.replace_feature(self.relu(self.bn1(out.features)))
+        out = self.conv2(out)
+        out = out.replace_feature(self.bn2(out.features))
+        return out.replace_feature(self.relu(out.features + x.features))
+
+
+class _VoxelBackBone(nn.Module):
+    """Shared input / output of the 8x backbones; subclasses build ``conv_input`` .. ``conv_out``.
+
+    Reads ``voxel_features`` (V, C) and ``voxel_coords`` (V, 4) ``[b, z, y, x]``; writes
+    ``encoded_spconv_tensor`` (stride 8), ``encoded_spconv_tensor_stride`` and
+    ``multi_scale_3d_features`` / ``multi_scale_3d_strides`` (``x_conv1`` .. ``x_conv4``).
+    """
+
+    def __init__(self, *, input_channels: int, grid_size: Sequence[int]):
+        super().__init__()
+        nx, ny, nz = (int(v) for v in grid_size)
+        # OpenPCDet's sparse shape: grid_size[::-1] + [1, 0, 0] (one extra z layer)
+        self.sparse_shape = [nz + 1, ny, nx]
+        self.input_channels = input_channels
+
+    @classmethod
+    def from_config(cls, cfg: Mapping, model_info: Mapping) -> _VoxelBackBone:
+        check_known_keys(cfg, ["NAME", "last_pad"], "MODEL.BACKBONE_3D")
+        return cls(
+            input_channels=model_info["num_point_features"],
+            grid_size=model_info["grid_size"],
+            last_pad=cfg.get("last_pad", 0),
+        )
+
+    def forward(self, batch_dict: dict) -> dict:
+        features = batch_dict["voxel_features"]  # (V, C)
+        if features.dim() != 2 or features.shape[1] != self.input_channels:
+            raise ValueError(
+                f"{type(self).__name__}: voxel_features must be (V, {self.input_channels}), got "
+                f"{tuple(features.shape)}"
+            )
+        x = SparseConvTensor(
+            features,
+            batch_dict["voxel_coords"].int(),
+            self.sparse_shape,
+            int(batch_dict["batch_size"]),
+        )
+        x = self.conv_input(x)
+        x_conv1 = self.conv1(x)
+        x_conv2 = self.conv2(x_conv1)
+        x_conv3 = self.conv3(x_conv2)
+        x_conv4 = self.conv4(x_conv3)
+        batch_dict["encoded_spconv_tensor"] = self.conv_out(x_conv4)
+        batch_dict["encoded_spconv_tensor_stride"] = 8
+        batch_dict["multi_scale_3d_features"] = {
+            "x_conv1": x_conv1, "x_conv2": x_conv2, "x_conv3": x_conv3, "x_conv4": x_conv4,
+        }  # fmt: skip
+        batch_dict["multi_scale_3d_strides"] = {
+            "x_conv1": 1, "x_conv2": 2, "x_conv3": 4, "x_conv4": 8,
+        }  # fmt: skip
+        return batch_dict
+
+
+@MODEL_STAGES.register()
+class VoxelBackBone8x(_VoxelBackBone):
+    """OpenPCDet's ``VoxelBackBone8x``: submanifold stages at strides 1, 2, 4, 8 and a
+    ``(3, 1, 1)`` / ``(2, 1, 1)`` ``conv_out`` to 128 channels."""
+
+    def __init__(self, *, input_channels: int, grid_size: Sequence[int], last_pad: int = 0):
+        super().__init__(input_channels=input_channels, grid_size=grid_size)
+        self.conv_input = SparseSequential(
+            SubMConv3d(input_channels, 16, 3, padding=1, bias=False, indice_key="subm1"),
+            norm_fn(16),
+            nn.ReLU(),
+        )
+        block = post_act_block
+        self.conv1 = SparseSequential(block(16, 16, 3, padding=1, indice_key="subm1"))
+        self.conv2 = SparseSequential(
+            block(16, 32, 3, stride=2, padding=1, indice_key="spconv2", conv_type="spconv"),
+            block(32, 32, 3, padding=1, indice_key="subm2"),
+            block(32, 32, 3, padding=1, indice_key="subm2"),
+        )
+        self.conv3 = SparseSequential(
+            block(32, 64, 3, stride=2, padding=1, indice_key="spconv3", conv_type="spconv"),
+            block(64, 64, 3, padding=1, indice_key="subm3"),
+            block(64, 64, 3, padding=1, indice_key="subm3"),
+        )
+        self.conv4 = SparseSequential(
+            block(64, 64, 3, stride=2, padding=(0, 1, 1), indice_key="spconv4", conv_type="spconv"),
+            block(64, 64, 3, padding=1, indice_key="subm4"),
+            block(64, 64, 3, padding=1, indice_key="subm4"),
+        )
+        self.conv_out = SparseSequential(
+            SparseConv3d(
+                64,
+                128,
+                (3, 1, 1),
+                stride=(2, 1, 1),
+                padding=last_pad,
+                bias=False,
+                indice_key="spconv_down2",
+            ),  # fmt: skip
+            norm_fn(128),
+            nn.ReLU(),
+        )
+        self.num_point_features = 128
+
+
+@MODEL_STAGES.register()
+class VoxelResBackBone8x(_VoxelBackBone):
+    """OpenPCDet's ``VoxelResBackBone8x`` (CenterPoint's): ``SparseBasicBlock`` pairs at strides
+    1, 2, 4, 8 (16, 32, 64, 128 channels) and the ``(3, 1, 1)`` / ``(2, 1, 1)`` ``conv_out``."""
+
+    def __init__(self, *, input_channels: int, grid_size: Sequence[int], last_pad: int = 0):
+        super().__init__(input_channels=input_channels, grid_size=grid_size)
+        self.conv_input = SparseSequential(
+            SubMConv3d(input_channels, 16, 3, padding=1, bias=False, indice_key="subm1"),
+            norm_fn(16),
+            nn.ReLU(),
+        )
+        block = post_act_block
+        self.conv1 = SparseSequential(
+            SparseBasicBlock(16, 16, indice_key="res1"),
+            SparseBasicBlock(16, 16, indice_key="res1"),
+        )
+        self.conv2 = SparseSequential(
+            block(16, 32, 3, stride=2, padding=1, indice_key="spconv2", conv_type="spconv"),
+            SparseBasicBlock(32, 32, indice_key="res2"),
+            SparseBasicBlock(32, 32, indice_key="res2"),
+        )
+        self.conv3 = SparseSequential(
+            block(32, 64, 3, stride=2, padding=1, indice_key="spconv3", conv_type="spconv"),
+            SparseBasicBlock(64, 64, indice_key="res3"),
+            SparseBasicBlock(64, 64, indice_key="res3"),
+        )
+        self.conv4 = SparseSequential(
+            block(
+                64, 128, 3, stride=2, padding=(0, 1, 1), indice_key="spconv4", conv_type="spconv"
+            ),
+            SparseBasicBlock(128, 128, indice_key="res4"),
+            SparseBasicBlock(128, 128, indice_key="res4"),
+        )
+        self.conv_out = SparseSequential(
+            SparseConv3d(
+                128,
+                128,
+                (3, 1, 1),
+                stride=(2, 1, 1),
+                padding=last_pad,
+                bias=False,
+                indice_key="spconv_down2",
+            ),  # fmt: skip
+            norm_fn(128),
+            nn.ReLU(),
+        )
+        self.num_point_features = 128

@@ -1,0 +1,405 @@
+"""Pure-torch sparse 3D convolution with the interface of spconv 2.x's ``spconv.pytorch``.
+
+OpenPCDet's voxel backbones (``VoxelBackBone8x``, ``VoxelResBackBone8x``) are written against
+``spconv.pytorch``; this module offers the same names and the same parameter layout so that their
+code shape carries over and a spconv 2.x ``state_dict`` loads with ``strict=True`` (see
+docs/model_zoo.md):
+
+- ``SparseConvTensor(features, indices, spatial_shape, batch_size)``: ``features`` ``(N, C)``,
+  ``indices`` ``(N, 4)`` int32 ``[batch, z, y, x]``, ``spatial_shape`` ``[D, H, W]``.
+- ``SubMConv3d`` / ``SparseConv3d``: ``weight`` ``(out, kD, kH, kW, in)`` and optional ``bias``
+  ``(out,)`` are their only state.
+- ``SparseModule`` and ``SparseSequential``.
+
+Rules (which input site feeds which output site through which kernel offset) are built by sorting
+linear site keys and ``torch.searchsorted`` / ``torch.unique``; the convolution is a
+gather-GEMM-scatter per kernel offset. Within one offset every output site receives at most one
+input site, so the scatter has no collisions and the result is deterministic on CPU and GPU.
+
+Output order: a submanifold conv keeps the input's rows. A regular sparse conv lists its output
+sites sorted by their linear index ``((b * D + z) * H + y) * W + x``. spconv 2.x's maintainer
+states its regular-conv output order is sorted when its ``direct_table`` option is off and
+unspecified when it is on (traveller59/spconv#592); the sites and their features are the same.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+__all__ = [
+    "IndicePairs",
+    "SparseConv3d",
+    "SparseConvTensor",
+    "SparseModule",
+    "SparseSequential",
+    "SubMConv3d",
+]
+
+
+def _triple(value: int | Sequence[int], name: str) -> tuple[int, int, int]:
+    if isinstance(value, int):
+        return (value, value, value)
+    out = tuple(int(v) for v in value)
+    if len(out) != 3:
+        raise ValueError(f"{name} must be an int or 3 ints (z, y, x), got {value!r}")
+    return out  # type: ignore[return-value]
+
+
+def _linear_keys(indices: torch.Tensor, spatial_shape: Sequence[int]) -> torch.Tensor:
+    """``(N, 4)`` ``[b, z, y, x]`` -> ``(N,)`` int64 ``((b * D + z) * H + y) * W + x``."""
+    d, h, w = spatial_shape
+    idx = indices.long()
+    return ((idx[:, 0] * d + idx[:, 1]) * h + idx[:, 2]) * w + idx[:, 3]
+
+
+class SparseConvTensor:
+    """Active sites of a ``(B, C, D, H, W)`` grid: ``features`` ``(N, C)`` at ``indices``
+    ``(N, 4)``.
+
+    ``indice_dict`` carries rules between layers by ``indice_key``; tensors derived from this one
+    (``replace_feature``, a conv's output) share it.
+    """
+
+    def __init__(
+        self,
+        features: torch.Tensor,
+        indices: torch.Tensor,
+        spatial_shape: Sequence[int],
+        batch_size: int,
+        indice_dict: dict[str, IndicePairs] | None = None,
+    ) -> None:
+        if features.dim() != 2:
+            raise ValueError(
+                f"SparseConvTensor: features must be (N, C), got {tuple(features.shape)}"
+            )
+        if indices.dim() != 2 or indices.shape[1] != 4:
+            raise ValueError(
+                f"SparseConvTensor: indices must be (N, 4) [batch, z, y, x], got "
+                f"{tuple(indices.shape)}"
+            )
+        if indices.shape[0] != features.shape[0]:
+            raise ValueError(
+                f"SparseConvTensor: {indices.shape[0]} indices for {features.shape[0]} feature rows"
+            )
+        if indices.dtype != torch.int32:
+            raise ValueError(f"SparseConvTensor: indices must be int32, got {indices.dtype}")
+        if len(spatial_shape) != 3:
+            raise ValueError(
+                f"SparseConvTensor: spatial_shape must be [D, H, W], got {spatial_shape}"
+            )
+        self.features = features
+        self.indices = indices
+        self.spatial_shape = [int(s) for s in spatial_shape]
+        self.batch_size = int(batch_size)
+        self.indice_dict: dict[str, IndicePairs] = {} if indice_dict is None else indice_dict
+
+    def replace_feature(self, features: torch.Tensor) -> SparseConvTensor:
+        """The same sites (and shared rules) with new ``(N, C')`` features."""
+        return SparseConvTensor(
+            features, self.indices, self.spatial_shape, self.batch_size, self.indice_dict
+        )
+
+    def dense(self, channels_first: bool = True) -> torch.Tensor:
+        """``(B, C, D, H, W)`` (or ``(B, D, H, W, C)``), zeros at inactive sites."""
+        d, h, w = self.spatial_shape
+        out = self.features.new_zeros((self.batch_size, d, h, w, self.features.shape[1]))
+        idx = self.indices.long()
+        out = out.index_put((idx[:, 0], idx[:, 1], idx[:, 2], idx[:, 3]), self.features)
+        return out.permute(0, 4, 1, 2, 3).contiguous() if channels_first else out
+
+
+@dataclass(frozen=True)
+class IndicePairs:
+    """Rules of one conv layer: ``pairs[k] = (in_rows, out_rows)`` for kernel offset ``k``.
+
+    ``out_indices`` / ``out_spatial_shape`` describe the output sites; a submanifold layer with the
+    same ``indice_key`` reuses the whole object.
+    """
+
+    in_indices: torch.Tensor  # (N_in, 4) int32
+    out_indices: torch.Tensor  # (N_out, 4) int32
+    in_spatial_shape: tuple[int, int, int]
+    out_spatial_shape: tuple[int, int, int]
+    kernel_size: tuple[int, int, int]
+    subm: bool
+    pairs: tuple[tuple[torch.Tensor, torch.Tensor], ...]  # per offset: (n_k,), (n_k,) int64
+
+
+def _kernel_offsets(kernel_size: tuple[int, int, int], device: torch.device) -> torch.Tensor:
+    """``(K, 3)`` kernel positions ``(kz, ky, kx)`` in the weight's ``(kD, kH, kW)`` order."""
+    grids = torch.meshgrid(*(torch.arange(k, device=device) for k in kernel_size), indexing="ij")
+    return torch.stack([g.reshape(-1) for g in grids], dim=1)
+
+
+def _subm_pairs(
+    indices: torch.Tensor,
+    spatial_shape: tuple[int, int, int],
+    kernel_size: tuple[int, int, int],
+    dilation: tuple[int, int, int],
+) -> IndicePairs:
+    """Submanifold rules: output sites are the input sites; kernel centred on each site."""
+    device = indices.device
+    shape = torch.tensor(spatial_shape, device=device)
+    keys = _linear_keys(indices, spatial_shape)
+    sorted_keys, order = torch.sort(keys)
+    centre = torch.tensor([(k - 1) // 2 for k in kernel_size], device=device)
+    dil = torch.tensor(dilation, device=device)
+    idx = indices.long()
+    pairs = []
+    for offset in _kernel_offsets(kernel_size, device):
+        nb = idx.clone()
+        nb[:, 1:] += (offset - centre) * dil  # the input site this offset reads for each output
+        inside = ((nb[:, 1:] >= 0) & (nb[:, 1:] < shape)).all(dim=1)
+        nb_keys = _linear_keys(nb, spatial_shape)
+        pos = torch.searchsorted(sorted_keys, nb_keys).clamp_max(max(len(keys) - 1, 0))
+        found = inside & (sorted_keys[pos] == nb_keys) if len(keys) else inside
+        out_rows = torch.nonzero(found, as_tuple=True)[0]
+        pairs.append((order[pos[out_rows]], out_rows))
+    return IndicePairs(
+        indices, indices, spatial_shape, spatial_shape, kernel_size, True, tuple(pairs)
+    )
+
+
+def conv_output_shape(
+    spatial_shape: Sequence[int],
+    kernel_size: tuple[int, int, int],
+    stride: tuple[int, int, int],
+    padding: tuple[int, int, int],
+    dilation: tuple[int, int, int],
+) -> tuple[int, int, int]:
+    """spconv's (and ``nn.Conv3d``'s) output size: ``floor((in + 2p - d(k-1) - 1) / s) + 1``."""
+    out = tuple(
+        (n + 2 * p - d * (k - 1) - 1) // s + 1
+        for n, k, s, p, d in zip(spatial_shape, kernel_size, stride, padding, dilation)
+    )
+    if min(out) < 1:
+        raise ValueError(
+            f"sparse conv: input spatial shape {list(spatial_shape)} is too small for kernel "
+            f"{kernel_size}, stride {stride}, padding {padding}, dilation {dilation} "
+            f"(output shape {list(out)})"
+        )
+    return out  # type: ignore[return-value]
+
+
+def _regular_pairs(
+    indices: torch.Tensor,
+    spatial_shape: tuple[int, int, int],
+    kernel_size: tuple[int, int, int],
+    stride: tuple[int, int, int],
+    padding: tuple[int, int, int],
+    dilation: tuple[int, int, int],
+) -> IndicePairs:
+    """Regular sparse conv rules: every output site some input reaches, sorted by linear index."""
+    device = indices.device
+    out_shape = conv_output_shape(spatial_shape, kernel_size, stride, padding, dilation)
+    offsets = _kernel_offsets(kernel_size, device)  # (K, 3)
+    s = torch.tensor(stride, device=device)
+    p = torch.tensor(padding, device=device)
+    d = torch.tensor(dilation, device=device)
+    idx = indices.long()
+    # input i feeds output o through offset k when o * s - p + k * d == i
+    num = idx[None, :, 1:] + p - offsets[:, None, :] * d  # (K, N, 3)
+    out_zyx = torch.div(num, s, rounding_mode="floor")
+    valid = ((num % s) == 0).all(-1) & (out_zyx >= 0).all(-1)
+    valid &= (out_zyx < torch.tensor(out_shape, device=device)).all(-1)  # (K, N)
+    k_ids, in_rows = torch.nonzero(valid, as_tuple=True)
+    out_sites = torch.cat([idx[in_rows, :1], out_zyx[k_ids, in_rows]], dim=1)  # (P, 4)
+    out_keys, out_rows = torch.unique(
+        _linear_keys(out_sites, out_shape), sorted=True, return_inverse=True
+    )
+    # decode the sorted keys back into [b, z, y, x]
+    od, oh, ow = out_shape
+    out_indices = torch.stack(
+        [
+            out_keys // (od * oh * ow),
+            out_keys // (oh * ow) % od,
+            out_keys // ow % oh,
+            out_keys % ow,
+        ],
+        dim=1,
+    ).to(torch.int32)
+    pairs = tuple((in_rows[k_ids == k], out_rows[k_ids == k]) for k in range(offsets.shape[0]))
+    return IndicePairs(indices, out_indices, spatial_shape, out_shape, kernel_size, False, pairs)
+
+
+class SparseModule(nn.Module):
+    """Base of modules that take and return a ``SparseConvTensor`` (``SparseSequential`` passes
+    the whole tensor to them, not its features)."""
+
+
+class _SparseConvNd(SparseModule):
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        kernel_size: int | Sequence[int],
+        stride: int | Sequence[int] = 1,
+        padding: int | Sequence[int] = 0,
+        dilation: int | Sequence[int] = 1,
+        bias: bool = False,
+        indice_key: str | None = None,
+        subm: bool = False,
+    ) -> None:
+        super().__init__()
+        self.in_channels = in_channels
+        self.out_channels = out_channels
+        self.kernel_size = _triple(kernel_size, "kernel_size")
+        self.stride = _triple(stride, "stride")
+        self.padding = _triple(padding, "padding")
+        self.dilation = _triple(dilation, "dilation")
+        self.indice_key = indice_key
+        self.subm = subm
+        if min(self.kernel_size) < 1 or min(self.stride) < 1 or min(self.dilation) < 1:
+            raise ValueError(
+                f"{type(self).__name__}: kernel_size, stride and dilation must be >= 1, got "
+                f"{self.kernel_size}, {self.stride}, {self.dilation}"
+            )
+        if subm and self.stride != (1, 1, 1):
+            raise ValueError(f"SubMConv3d: stride must be 1, got {self.stride}")
+        # spconv 2.x layout (KRSC): (out, kD, kH, kW, in)
+        self.weight = nn.Parameter(torch.empty(out_channels, *self.kernel_size, in_channels))
+        self.bias = nn.Parameter(torch.empty(out_channels)) if bias else None
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        # nn.Conv3d's init; fan_in = in_channels * kD * kH * kW whichever axis order
+        nn.init.kaiming_uniform_(self.weight, a=math.sqrt(5))
+        if self.bias is not None:
+            bound = 1.0 / math.sqrt(self.in_channels * math.prod(self.kernel_size))
+            nn.init.uniform_(self.bias, -bound, bound)
+
+    def extra_repr(self) -> str:
+        return (
+            f"{self.in_channels}, {self.out_channels}, kernel_size={self.kernel_size}, "
+            f"stride={self.stride}, padding={self.padding}, dilation={self.dilation}, "
+            f"bias={self.bias is not None}, indice_key={self.indice_key!r}"
+        )
+
+    def _rules(self, x: SparseConvTensor) -> IndicePairs:
+        shape = tuple(x.spatial_shape)
+        cached = x.indice_dict.get(self.indice_key) if self.indice_key is not None else None
+        if cached is not None and self.subm:
+            if (
+                not cached.subm
+                or cached.in_spatial_shape != shape
+                or cached.in_indices.shape != (x.indices.shape)
+            ):
+                raise ValueError(
+                    f"{type(self).__name__}: indice_key {self.indice_key!r} holds rules of another "
+                    f"layout (subm={cached.subm}, shape {list(cached.in_spatial_shape)}, "
+                    f"{cached.in_indices.shape[0]} sites); this input has shape {list(shape)}, "
+                    f"{x.indices.shape[0]} sites"
+                )
+            if cached.kernel_size != self.kernel_size:
+                raise ValueError(
+                    f"SubMConv3d: indice_key {self.indice_key!r} was built for kernel "
+                    f"{cached.kernel_size}, this layer's kernel is {self.kernel_size}"
+                )
+            return cached
+        if self.subm:
+            rules = _subm_pairs(x.indices, shape, self.kernel_size, self.dilation)
+        else:
+            rules = _regular_pairs(
+                x.indices, shape, self.kernel_size, self.stride, self.padding, self.dilation
+            )
+        if self.indice_key is not None and cached is None:
+            x.indice_dict[self.indice_key] = rules
+        return rules
+
+    def forward(self, x: SparseConvTensor) -> SparseConvTensor:
+        if not isinstance(x, SparseConvTensor):
+            raise TypeError(
+                f"{type(self).__name__} takes a SparseConvTensor, got {type(x).__name__}"
+            )
+        if x.features.shape[1] != self.in_channels:
+            raise ValueError(
+                f"{type(self).__name__}: expected {self.in_channels} input channels, got "
+                f"{x.features.shape[1]}"
+            )
+        rules = self._rules(x)
+        weight = self.weight.reshape(self.out_channels, -1, self.in_channels)  # (out, K, in)
+        out = x.features.new_zeros((rules.out_indices.shape[0], self.out_channels))
+        for k, (in_rows, out_rows) in enumerate(rules.pairs):
+            if in_rows.numel() == 0:
+                continue
+            # out_rows has no repeats within one offset, so index_add_ is deterministic
+            out = out.index_add(0, out_rows, x.features[in_rows] @ weight[:, k].t())
+        if self.bias is not None:
+            out = out + self.bias
+        return SparseConvTensor(
+            out, rules.out_indices, rules.out_spatial_shape, x.batch_size, x.indice_dict
+        )
+
+
+class SubMConv3d(_SparseConvNd):
+    """Submanifold conv: outputs at the input sites, in the input's row order, with a kernel
+    centred on each site whatever ``padding`` says (as spconv)."""
+
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        kernel_size: int | Sequence[int],
+        stride: int | Sequence[int] = 1,
+        padding: int | Sequence[int] = 0,
+        dilation: int | Sequence[int] = 1,
+        bias: bool = False,
+        indice_key: str | None = None,
+    ) -> None:
+        super().__init__(
+            in_channels,
+            out_channels,
+            kernel_size,
+            stride,
+            padding,
+            dilation,
+            bias,
+            indice_key,
+            True,
+        )
+
+
+class SparseConv3d(_SparseConvNd):
+    """Regular sparse conv: outputs at every site some input reaches under stride / padding /
+    dilation, sorted by linear index; output shape ``floor((in + 2p - d(k-1) - 1) / s) + 1``."""
+
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        kernel_size: int | Sequence[int],
+        stride: int | Sequence[int] = 1,
+        padding: int | Sequence[int] = 0,
+        dilation: int | Sequence[int] = 1,
+        bias: bool = False,
+        indice_key: str | None = None,
+    ) -> None:
+        super().__init__(
+            in_channels,
+            out_channels,
+            kernel_size,
+            stride,
+            padding,
+            dilation,
+            bias,
+            indice_key,
+            False,
+        )
+
+
+class SparseSequential(nn.Sequential, SparseModule):
+    """``nn.Sequential`` over a ``SparseConvTensor``: sparse modules get the tensor, plain torch
+    modules (``BatchNorm1d``, ``ReLU``, ...) get its ``(N, C)`` features."""
+
+    def forward(self, x):  # type: ignore[override]
+        for module in self:
+            if isinstance(module, SparseModule) or not isinstance(x, SparseConvTensor):
+                x = module(x)
+            else:
+                x = x.replace_feature(module(x.features))
+        return x

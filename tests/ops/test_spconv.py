@@ -1,0 +1,244 @@
+"""Sparse conv vs a dense ``torch.nn.functional.conv3d`` reference on small grids."""
+
+import pytest
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from pcdet_atlas.ops.spconv import (
+    SparseConv3d,
+    SparseConvTensor,
+    SparseModule,
+    SparseSequential,
+    SubMConv3d,
+)
+from tests.device_params import DEVICES
+
+
+def random_sparse(
+    shape, batch_size, channels, n_per_batch, seed=0, dtype=torch.float64, device="cpu"
+):
+    """Distinct random sites per batch, rows shuffled (not sorted) so order matters."""
+    g = torch.Generator().manual_seed(seed)
+    d, h, w = shape
+    rows = []
+    for b in range(batch_size):
+        cells = torch.randperm(d * h * w, generator=g)[:n_per_batch]
+        rows.append(
+            torch.stack([torch.full_like(cells, b), cells // (h * w), cells // w % h, cells % w], 1)
+        )
+    indices = torch.cat(rows)[torch.randperm(batch_size * n_per_batch, generator=g)]
+    features = torch.randn(indices.shape[0], channels, generator=g, dtype=dtype)
+    return SparseConvTensor(
+        features.to(device), indices.to(torch.int32).to(device), shape, batch_size
+    )
+
+
+def dense_weight(conv):
+    return conv.weight.permute(0, 4, 1, 2, 3)  # (out, in, kD, kH, kW)
+
+
+def dense_conv(conv, x, padding):
+    out = F.conv3d(x.dense(), dense_weight(conv), conv.bias, conv.stride, padding, conv.dilation)
+    return out  # (B, C, D', H', W')
+
+
+def at_sites(dense, indices):
+    idx = indices.long()
+    return dense[idx[:, 0], :, idx[:, 1], idx[:, 2], idx[:, 3]]  # (N, C)
+
+
+def reached_sites(conv, x):
+    """Output sites any active input reaches: dense conv of the occupancy with a ones kernel."""
+    occ = torch.zeros((x.batch_size, 1, *x.spatial_shape), dtype=torch.float64)
+    idx = x.indices.long().cpu()
+    occ[idx[:, 0], 0, idx[:, 1], idx[:, 2], idx[:, 3]] = 1.0
+    ones = torch.ones((1, 1, *conv.kernel_size), dtype=torch.float64)
+    hit = F.conv3d(occ, ones, None, conv.stride, conv.padding, conv.dilation)[:, 0] > 0
+    return torch.nonzero(hit).to(torch.int32)  # sorted by (b, z, y, x)
+
+
+SUBM_CASES = [
+    # shape, batch, kernel, padding, dilation
+    ((5, 7, 6), 1, 3, 1, 1),
+    ((5, 7, 6), 3, 3, 0, 1),  # padding is ignored by submanifold convs
+    ((4, 9, 5), 2, (3, 1, 3), 0, 1),
+    ((7, 7, 7), 2, 3, 1, 2),
+    ((6, 5, 7), 2, 5, 2, 1),
+]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("shape,batch,kernel,padding,dilation", SUBM_CASES)
+def test_subm_matches_dense_conv_masked_to_input_sites(
+    device, shape, batch, kernel, padding, dilation
+):
+    x = random_sparse(shape, batch, 3, 25, device=device)
+    conv = SubMConv3d(3, 4, kernel, padding=padding, dilation=dilation, bias=True)
+    conv = conv.double().to(device)
+    out = conv(x)
+    centred = tuple(d * (k - 1) // 2 for k, d in zip(conv.kernel_size, conv.dilation))
+    expected = at_sites(dense_conv(conv, x, centred), x.indices)
+    assert torch.equal(out.indices, x.indices)  # input row order kept
+    assert out.spatial_shape == list(shape)
+    torch.testing.assert_close(out.features, expected)
+
+
+REGULAR_CASES = [
+    # shape, batch, kernel, stride, padding, dilation
+    ((5, 7, 6), 1, 3, 1, 0, 1),
+    ((5, 7, 6), 2, 3, 2, 1, 1),
+    ((9, 8, 7), 2, 3, 2, 0, 1),
+    ((7, 6, 5), 3, 3, 1, 2, 2),
+    ((9, 6, 5), 2, (3, 1, 1), (2, 1, 1), 0, 1),  # OpenPCDet's conv_out
+    ((6, 6, 6), 2, 2, 2, 0, 1),
+    ((8, 7, 9), 1, (3, 2, 3), (1, 2, 3), (1, 0, 2), (2, 1, 1)),
+]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("shape,batch,kernel,stride,padding,dilation", REGULAR_CASES)
+def test_regular_matches_dense_conv_at_reached_sites(
+    device, shape, batch, kernel, stride, padding, dilation
+):
+    x = random_sparse(shape, batch, 3, 30, seed=1, device=device)
+    conv = SparseConv3d(3, 4, kernel, stride, padding, dilation, bias=True).double().to(device)
+    out = conv(x)
+    dense = dense_conv(conv, x, conv.padding)
+    assert out.spatial_shape == list(dense.shape[2:])
+    # exactly the reached sites, in linear-index order
+    assert torch.equal(out.indices.cpu(), reached_sites(conv, x))
+    torch.testing.assert_close(out.features, at_sites(dense, out.indices))
+
+
+def test_output_spatial_shape_formula():
+    x = random_sparse((41, 16, 16), 1, 2, 10, dtype=torch.float32)
+    conv = SparseConv3d(2, 2, (3, 1, 1), (2, 1, 1), padding=0)
+    # floor((41 + 0 - 2 - 1) / 2) + 1 = 20
+    assert conv(x).spatial_shape == [20, 16, 16]
+    conv = SparseConv3d(2, 2, 3, 2, padding=1)
+    assert conv(x).spatial_shape == [21, 8, 8]
+
+
+def test_indice_key_reuses_the_same_rules_object():
+    x = random_sparse((6, 7, 5), 2, 3, 20)
+    first = SubMConv3d(3, 4, 3, indice_key="subm1").double()
+    second = SubMConv3d(4, 4, 3, indice_key="subm1").double()
+    y = first(x)
+    rules = x.indice_dict["subm1"]
+    z = second(y)
+    assert y.indice_dict is x.indice_dict and z.indice_dict is x.indice_dict
+    assert x.indice_dict["subm1"] is rules  # not rebuilt
+    fresh = SubMConv3d(4, 4, 3).double()
+    fresh.load_state_dict(second.state_dict())
+    torch.testing.assert_close(
+        z.features, fresh(SparseConvTensor(y.features, y.indices, y.spatial_shape, 2)).features
+    )
+
+
+def test_indice_key_with_another_kernel_is_an_error():
+    x = random_sparse((6, 7, 5), 1, 3, 20)
+    y = SubMConv3d(3, 3, 3, indice_key="k").double()(x)
+    with pytest.raises(ValueError, match="indice_key 'k'"):
+        SubMConv3d(3, 3, 5, indice_key="k").double()(y)
+
+
+@pytest.mark.parametrize("subm", [True, False])
+def test_gradients_match_dense_reference(subm):
+    x = random_sparse((5, 6, 5), 2, 3, 20, seed=3)
+    feats = x.features.clone().requires_grad_(True)
+    x = x.replace_feature(feats)
+    if subm:
+        conv = SubMConv3d(3, 2, 3, bias=True).double()
+        padding = (1, 1, 1)
+    else:
+        conv = SparseConv3d(3, 2, 3, stride=2, padding=1, bias=True).double()
+        padding = conv.padding
+    out = conv(x)
+    g = torch.Generator().manual_seed(5)
+    upstream = torch.randn(out.features.shape, generator=g, dtype=torch.float64)
+    (out.features * upstream).sum().backward()
+    sparse_grads = (feats.grad.clone(), conv.weight.grad.clone(), conv.bias.grad.clone())
+
+    feats_ref = x.features.detach().clone().requires_grad_(True)
+    weight_ref = conv.weight.detach().clone().requires_grad_(True)
+    bias_ref = conv.bias.detach().clone().requires_grad_(True)
+    dense_in = SparseConvTensor(feats_ref, x.indices, x.spatial_shape, 2).dense()
+    dense_out = F.conv3d(
+        dense_in, weight_ref.permute(0, 4, 1, 2, 3), bias_ref, conv.stride, padding
+    )
+    (at_sites(dense_out, out.indices) * upstream).sum().backward()
+    for got, want in zip(sparse_grads, (feats_ref.grad, weight_ref.grad, bias_ref.grad)):
+        torch.testing.assert_close(got, want)
+
+
+@pytest.mark.parametrize("conv_cls", [SubMConv3d, SparseConv3d])
+def test_gradcheck_features(conv_cls):
+    x = random_sparse((4, 4, 4), 1, 2, 8, seed=7)
+    conv = conv_cls(2, 2, 3, padding=1, bias=True).double()
+    feats = x.features.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda f: conv(x.replace_feature(f)).features, (feats,))
+
+
+@pytest.mark.parametrize("conv_cls", [SubMConv3d, SparseConv3d])
+def test_empty_input(conv_cls):
+    x = SparseConvTensor(torch.zeros(0, 3), torch.zeros(0, 4, dtype=torch.int32), (5, 6, 7), 2)
+    out = conv_cls(3, 4, 3)(x)
+    assert out.features.shape == (0, 4)
+    assert out.indices.shape == (0, 4)
+    assert out.dense().shape[:2] == (2, 4)
+
+
+def test_state_dict_has_spconv_layout_and_loads_strict():
+    block = SparseSequential(
+        SubMConv3d(4, 16, 3, padding=1, bias=False, indice_key="subm1"),
+        nn.BatchNorm1d(16),
+        nn.ReLU(),
+        SparseConv3d(16, 32, (3, 1, 1), (2, 1, 1), bias=True, indice_key="spconv_down2"),
+    )
+    shapes = {k: tuple(v.shape) for k, v in block.state_dict().items()}
+    assert shapes["0.weight"] == (16, 3, 3, 3, 4)
+    assert shapes["3.weight"] == (32, 3, 1, 1, 16)
+    assert shapes["3.bias"] == (32,)
+    assert [k for k in shapes if k.startswith(("0.", "3."))] == ["0.weight", "3.weight", "3.bias"]
+    # a state_dict written by spconv 2.x is plain tensors of these shapes
+    foreign = {k: torch.randn(v) if v else torch.tensor(3) for k, v in shapes.items()}
+    twin = SparseSequential(
+        SubMConv3d(4, 16, 3, padding=1, bias=False, indice_key="subm1"),
+        nn.BatchNorm1d(16),
+        nn.ReLU(),
+        SparseConv3d(16, 32, (3, 1, 1), (2, 1, 1), bias=True, indice_key="spconv_down2"),
+    )
+    twin.load_state_dict(foreign, strict=True)
+    assert torch.equal(twin[3].weight, foreign["3.weight"])
+    with pytest.raises(RuntimeError, match="size mismatch"):
+        bad = dict(foreign, **{"0.weight": foreign["0.weight"].permute(0, 4, 1, 2, 3)})
+        twin.load_state_dict(bad, strict=True)
+
+
+def test_sparse_sequential_numbers_children_and_dispatches():
+    class Double(SparseModule):
+        def forward(self, x):
+            assert isinstance(x, SparseConvTensor)
+            return x.replace_feature(x.features * 2)
+
+    seq = SparseSequential(Double(), nn.ReLU(), nn.Identity())
+    assert [name for name, _ in seq.named_children()] == ["0", "1", "2"]
+    assert isinstance(seq, SparseModule) and isinstance(seq[0], Double)
+    x = random_sparse((4, 4, 4), 1, 2, 6)
+    out = seq(x)
+    assert isinstance(out, SparseConvTensor)
+    assert torch.equal(out.indices, x.indices)
+    torch.testing.assert_close(out.features, torch.relu(x.features * 2))
+
+
+def test_bad_input_is_a_clear_error():
+    with pytest.raises(ValueError, match="int32"):
+        SparseConvTensor(torch.zeros(2, 3), torch.zeros(2, 4, dtype=torch.int64), (4, 4, 4), 1)
+    with pytest.raises(ValueError, match="2 indices for 3 feature rows"):
+        SparseConvTensor(torch.zeros(3, 3), torch.zeros(2, 4, dtype=torch.int32), (4, 4, 4), 1)
+    x = random_sparse((4, 4, 4), 1, 2, 6)
+    with pytest.raises(ValueError, match="expected 3 input channels, got 2"):
+        SubMConv3d(3, 3, 3).double()(x)
+    with pytest.raises(ValueError, match="too small"):
+        SparseConv3d(2, 2, 5).double()(x)
