@@ -17,7 +17,56 @@ from pcdet_atlas.config import ConfigError
 from pcdet_atlas.registry import DATASETS
 from pcdet_atlas.utils.seeding import derive_seed, torch_generator
 
-__all__ = ["build_dataloader", "worker_init_fn"]
+__all__ = ["ContiguousBatchSampler", "build_dataloader", "worker_init_fn"]
+
+
+class ContiguousBatchSampler(torch.utils.data.Sampler):
+    """In-order batches that give each DataLoader worker (and each process) a contiguous run of
+    samples, so per-worker caches of neighbouring frames (the attacked-frame cache of
+    ``AtlasWaymoDataset``) hit when a temporal input is read.
+
+    The ``num_samples`` indices are split into ``world_size`` contiguous shards (this process
+    takes shard ``rank``), each shard into ``num_workers`` contiguous chunks of whole batches,
+    and the chunks' batches are interleaved: a DataLoader hands batch ``i`` to worker
+    ``i % num_workers``, so worker ``k`` reads chunk ``k`` in order (when the chunks differ in
+    length, the last few batches may go to another worker). The yield order is therefore not
+    the index order: consumers put predictions back in frame order (as ``predict_dataset``
+    does). Every index appears exactly once over all processes; no padding.
+
+    Args:
+        num_samples: the dataset's length. batch_size: samples per batch (>= 1).
+        num_workers: the DataLoader's workers (0: one chunk). rank, world_size: the process and
+            the number of processes.
+    """
+
+    def __init__(
+        self,
+        num_samples: int,
+        batch_size: int,
+        num_workers: int = 0,
+        rank: int = 0,
+        world_size: int = 1,
+    ):
+        if batch_size < 1 or num_workers < 0 or world_size < 1 or not 0 <= rank < world_size:
+            raise ValueError(
+                f"ContiguousBatchSampler: batch_size {batch_size} (>= 1), num_workers "
+                f"{num_workers} (>= 0), rank {rank} of world_size {world_size}"
+            )
+        per_rank = -(-num_samples // world_size)  # ceil
+        start, stop = rank * per_rank, min(num_samples, (rank + 1) * per_rank)
+        batches = [
+            list(range(i, min(i + batch_size, stop))) for i in range(start, stop, batch_size)
+        ]
+        chunks = max(1, num_workers)
+        per_chunk = -(-len(batches) // chunks)
+        runs = [batches[k * per_chunk : (k + 1) * per_chunk] for k in range(chunks)]
+        self.batches = [run[j] for j in range(per_chunk) for run in runs if j < len(run)]
+
+    def __iter__(self):
+        return iter(self.batches)
+
+    def __len__(self) -> int:
+        return len(self.batches)
 
 
 def worker_init_fn(worker_id: int, seed: int | None = None) -> None:

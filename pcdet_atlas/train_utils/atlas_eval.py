@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 import torch.distributed as torch_dist
-from torch.utils.data import DataLoader, DistributedSampler
+from torch.utils.data import DataLoader
 
 from pcdet_atlas.attacks.base import BaseAttack, build_attack
 from pcdet_atlas.config import (
@@ -26,7 +26,7 @@ from pcdet_atlas.config import (
     check_known_keys,
     key_source,
 )
-from pcdet_atlas.datasets.loader import worker_init_fn
+from pcdet_atlas.datasets.loader import ContiguousBatchSampler, worker_init_fn
 from pcdet_atlas.evaluation import build_variant_result, evaluate_attack
 from pcdet_atlas.registry import DATASETS
 from pcdet_atlas.train_utils.dist import get_dist_info
@@ -124,22 +124,21 @@ def build_attack_loader(
     seed: int,
     logger: logging.Logger | None = None,
 ):
-    """``(dataset, loader)`` of the test split under one attack variant (in order, no shuffle);
+    """``(dataset, loader)`` of the test split under one attack variant (no shuffle; each worker
+    and process reads a contiguous run of frames, see ``ContiguousBatchSampler``);
     ``attack`` is a built attack, a loaded attack YAML or the path of one."""
     dataset = DATASETS.get("AtlasWaymoDataset")(
         dataset_cfg=data_cfg, class_names=class_names, attack_cfg=attack, training=False,
         logger=logger,
     )  # fmt: skip
-    sampler = None
-    if dist:
-        sampler = DistributedSampler(
-            dataset, num_replicas=torch_dist.get_world_size(), rank=torch_dist.get_rank(),
-            shuffle=False,
-        )  # fmt: skip
+    # each worker (and process) reads a contiguous run of frames: the attacked-frame cache then
+    # serves a temporal input's history; predict_dataset restores the frame order
+    rank, world = (torch_dist.get_rank(), torch_dist.get_world_size()) if dist else (0, 1)
+    batch_sampler = ContiguousBatchSampler(len(dataset), batch_size, workers, rank, world)
     loader = DataLoader(
-        dataset, batch_size=batch_size, shuffle=False, sampler=sampler, num_workers=workers,
+        dataset, batch_sampler=batch_sampler, num_workers=workers,
         collate_fn=dataset.collate_batch, pin_memory=torch.cuda.is_available(),
-        worker_init_fn=partial(worker_init_fn, seed=seed), drop_last=False,
+        worker_init_fn=partial(worker_init_fn, seed=seed),
     )  # fmt: skip
     return dataset, loader
 
