@@ -233,6 +233,9 @@ class SparseModule(nn.Module):
 
 
 class _SparseConvNd(SparseModule):
+    #: submanifold (outputs at the input sites) or regular sparse conv
+    SUBM: bool = False
+
     def __init__(
         self,
         in_channels: int,
@@ -243,7 +246,6 @@ class _SparseConvNd(SparseModule):
         dilation: int | Sequence[int] = 1,
         bias: bool = False,
         indice_key: str | None = None,
-        subm: bool = False,
     ) -> None:
         super().__init__()
         self.in_channels = in_channels
@@ -253,7 +255,7 @@ class _SparseConvNd(SparseModule):
         self.padding = _triple(padding, "padding")
         self.dilation = _triple(dilation, "dilation")
         self.indice_key = indice_key
-        self.subm = subm
+        self.subm = subm = self.SUBM
         if min(self.kernel_size) < 1 or min(self.stride) < 1 or min(self.dilation) < 1:
             raise ValueError(
                 f"{type(self).__name__}: kernel_size, stride and dilation must be >= 1, got "
@@ -338,58 +340,17 @@ class _SparseConvNd(SparseModule):
 
 class SubMConv3d(_SparseConvNd):
     """Submanifold conv: outputs at the input sites, in the input's row order, with a kernel
-    centred on each site whatever ``padding`` says (as spconv)."""
+    centred on each site whatever ``padding`` says (as spconv). Arguments as spconv's:
+    ``(in_channels, out_channels, kernel_size, stride=1, padding=0, dilation=1, bias=False,
+    indice_key=None)``."""
 
-    def __init__(
-        self,
-        in_channels: int,
-        out_channels: int,
-        kernel_size: int | Sequence[int],
-        stride: int | Sequence[int] = 1,
-        padding: int | Sequence[int] = 0,
-        dilation: int | Sequence[int] = 1,
-        bias: bool = False,
-        indice_key: str | None = None,
-    ) -> None:
-        super().__init__(
-            in_channels,
-            out_channels,
-            kernel_size,
-            stride,
-            padding,
-            dilation,
-            bias,
-            indice_key,
-            True,
-        )
+    SUBM = True
 
 
 class SparseConv3d(_SparseConvNd):
     """Regular sparse conv: outputs at every site some input reaches under stride / padding /
-    dilation, sorted by linear index; output shape ``floor((in + 2p - d(k-1) - 1) / s) + 1``."""
-
-    def __init__(
-        self,
-        in_channels: int,
-        out_channels: int,
-        kernel_size: int | Sequence[int],
-        stride: int | Sequence[int] = 1,
-        padding: int | Sequence[int] = 0,
-        dilation: int | Sequence[int] = 1,
-        bias: bool = False,
-        indice_key: str | None = None,
-    ) -> None:
-        super().__init__(
-            in_channels,
-            out_channels,
-            kernel_size,
-            stride,
-            padding,
-            dilation,
-            bias,
-            indice_key,
-            False,
-        )
+    dilation, sorted by linear index; output shape ``floor((in + 2p - d(k-1) - 1) / s) + 1``.
+    Arguments as :class:`SubMConv3d`'s."""
 
 
 class SparseSequential(nn.Sequential, SparseModule):

@@ -121,6 +121,24 @@ class _VoxelBackBone(nn.Module):
         return batch_dict
 
 
+def conv_out(in_channels: int, last_pad: int) -> SparseSequential:
+    """OpenPCDet's ``conv_out``: the ``(3, 1, 1)`` kernel at stride ``(2, 1, 1)`` down to 128
+    channels, BatchNorm, ReLU."""
+    return SparseSequential(
+        SparseConv3d(
+            in_channels,
+            128,
+            (3, 1, 1),
+            stride=(2, 1, 1),
+            padding=last_pad,
+            bias=False,
+            indice_key="spconv_down2",
+        ),  # fmt: skip
+        norm_fn(128),
+        nn.ReLU(),
+    )
+
+
 @MODEL_STAGES.register()
 class VoxelBackBone8x(_VoxelBackBone):
     """OpenPCDet's ``VoxelBackBone8x``: submanifold stages at strides 1, 2, 4, 8 and a
@@ -150,19 +168,7 @@ class VoxelBackBone8x(_VoxelBackBone):
             block(64, 64, 3, padding=1, indice_key="subm4"),
             block(64, 64, 3, padding=1, indice_key="subm4"),
         )
-        self.conv_out = SparseSequential(
-            SparseConv3d(
-                64,
-                128,
-                (3, 1, 1),
-                stride=(2, 1, 1),
-                padding=last_pad,
-                bias=False,
-                indice_key="spconv_down2",
-            ),  # fmt: skip
-            norm_fn(128),
-            nn.ReLU(),
-        )
+        self.conv_out = conv_out(64, last_pad)
         self.num_point_features = 128
 
 
@@ -200,17 +206,5 @@ class VoxelResBackBone8x(_VoxelBackBone):
             SparseBasicBlock(128, 128, indice_key="res4"),
             SparseBasicBlock(128, 128, indice_key="res4"),
         )
-        self.conv_out = SparseSequential(
-            SparseConv3d(
-                128,
-                128,
-                (3, 1, 1),
-                stride=(2, 1, 1),
-                padding=last_pad,
-                bias=False,
-                indice_key="spconv_down2",
-            ),  # fmt: skip
-            norm_fn(128),
-            nn.ReLU(),
-        )
+        self.conv_out = conv_out(128, last_pad)
         self.num_point_features = 128
