@@ -188,6 +188,22 @@ def test_the_schema_is_a_standard_json_schema():
         jsonschema.validate({**CP, "schema_version": 1}, RESULTS_SCHEMA)
 
 
+def test_a_schema_1_file_loads_as_schema_2(tmp_path):
+    """Files written before rank_group existed load, with their families' rank groups."""
+    old = copy.deepcopy(CP)
+    old["schema_version"] = 1
+    for entry in old["variants"].values():
+        entry.pop("rank_group")
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps(old))
+    assert load_results(path) == CP
+    broken = {**old, "variants": {**old["variants"], "rem_10": {**old["variants"]["rem_10"]}}}
+    broken["variants"]["rem_10"].pop("asr")
+    path.write_text(json.dumps(broken))
+    with pytest.raises(ResultsError, match=r"\['rem_10'\].*missing key 'asr'"):
+        load_results(path)
+
+
 def _broken(mutate):
     r = copy.deepcopy(CP)
     mutate(r)

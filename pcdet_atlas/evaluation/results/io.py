@@ -9,7 +9,7 @@ from pathlib import Path
 from pcdet_atlas.evaluation.results.build import plain
 from pcdet_atlas.evaluation.results.schema import ResultsError, validate_results
 
-__all__ = ["load_results", "load_results_dir", "save_results"]
+__all__ = ["load_results", "load_results_dir", "save_results", "upgrade_v1"]
 
 
 def save_results(results: Mapping, path: str | Path) -> Path:
@@ -34,8 +34,29 @@ def load_results(path: str | Path) -> dict:
             results = json.load(f)
     except json.JSONDecodeError as err:
         raise ResultsError(f"{path}: not valid JSON ({err})") from err
+    if isinstance(results, dict) and results.get("schema_version") == 1:
+        results = upgrade_v1(results)
     validate_results(results, where=str(path))
     return results
+
+
+#: Schema 1 predates ``rank_group``; its only ranked families were these, each its own group.
+_V1_RANK_GROUPS = {"injection": "injection", "removal": "removal"}
+
+
+def upgrade_v1(results: dict) -> dict:
+    """A schema-1 results dict as schema 2: each variant gains the ``rank_group`` its family had
+    (the only change between the two)."""
+    variants = results.get("variants")
+    if not isinstance(variants, dict):
+        return results  # validation names what is wrong
+    upgraded = {
+        name: {**entry, "rank_group": _V1_RANK_GROUPS.get(entry.get("family"))}
+        if isinstance(entry, dict)
+        else entry
+        for name, entry in variants.items()
+    }
+    return {**results, "schema_version": 2, "variants": upgraded}
 
 
 def load_results_dir(root: str | Path, pattern: str = "**/results.json") -> list[dict]:
