@@ -12,9 +12,8 @@ import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
-import torch
-
 from pcdet_atlas.config import ConfigError, key_source
+from pcdet_atlas.utils.common import resolve_device
 
 __all__ = ["config_value", "config_error", "config_files", "check_finite", "config_device"]
 
@@ -97,14 +96,11 @@ def _check_finite_value(value: Any, node: Mapping, key: str, where: str) -> None
 
 
 def config_device(node: Mapping, key: str = "DEVICE", default: str = "cpu") -> str:
-    """The torch device named by ``node[key]``, checked to exist on this machine."""
+    """The torch device named by ``node[key]``, checked to exist on this machine
+    (:func:`~pcdet_atlas.utils.common.resolve_device`)."""
     name = config_value(node, key, str, default=default, expected="a torch device such as 'cpu'")
     try:
-        device = torch.device(name)
-    except RuntimeError as err:
-        raise config_error(node, key, "", "a torch device such as 'cpu' or 'cuda'") from err
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise config_error(node, key, "", "'cpu' (no CUDA GPU is visible to torch)")
-    if device.type not in ("cpu", "cuda"):
-        raise config_error(node, key, "", "'cpu' or 'cuda'")
+        resolve_device(name)
+    except ValueError as err:
+        raise config_error(node, key, "", f"a device this machine has ({err})") from None
     return name

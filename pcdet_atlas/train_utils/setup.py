@@ -15,6 +15,7 @@ from pcdet_atlas.config import (
     check_experiment_config,
 )
 from pcdet_atlas.train_utils.dist import init_dist_pytorch, init_dist_slurm
+from pcdet_atlas.utils.common import resolve_device
 
 __all__ = [
     "add_common_args",
@@ -23,7 +24,6 @@ __all__ = [
     "load_cfg",
     "exp_group_and_tag",
     "output_dir_for",
-    "resolve_device",
     "setup_runtime",
 ]
 
@@ -115,38 +115,13 @@ def output_dir_for(cfg, output_root: str | Path, extra_tag: str) -> Path:
     return Path(output_root) / cfg.EXP_GROUP_PATH / cfg.TAG / extra_tag
 
 
-def resolve_device(name: str | None, local_rank: int = 0) -> torch.device:
-    """``--device`` as a torch device: ``None`` -> CUDA when available, else CPU; a bare ``cuda``
-    -> ``cuda:local_rank % device_count``. A device that is not there is a ValueError."""
-    if name is None:
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        device = None
-    if device is None or device.type not in ("cpu", "cuda"):
-        raise ValueError(f"{name!r} is not a device here (expected cpu, cuda or cuda:N)")
-    if device.type == "cpu":
-        return device
-    if not torch.cuda.is_available():
-        raise ValueError(
-            f"{name!r}: no CUDA GPU is visible to torch (torch.cuda.is_available() is False); "
-            "use --device cpu"
-        )
-    count = torch.cuda.device_count()
-    index = local_rank % count if device.index is None else device.index
-    if index >= count:
-        raise ValueError(f"{name!r}: only {count} CUDA device(s) are visible")
-    return torch.device("cuda", index)
-
-
 def device_arg(text: str) -> str:
     """The argparse ``type`` of ``--device``: a device that is not there (``cuda`` without a
     GPU) is a one-line usage error naming the flag."""
     try:
         resolve_device(text)
     except ValueError as err:
-        raise argparse.ArgumentTypeError(str(err)) from None
+        raise argparse.ArgumentTypeError(f"{err}; use --device cpu") from None
     return text
 
 

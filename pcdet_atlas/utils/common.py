@@ -36,3 +36,27 @@ def limit_period(val, offset: float = 0.5, period: float = 2 * math.pi):
     if isinstance(val, torch.Tensor):
         return val - torch.floor(val / period + offset) * period
     return val - np.floor(val / period + offset) * period
+
+
+def resolve_device(name: str | None, local_rank: int = 0) -> torch.device:
+    """``--device`` as a torch device: ``None`` -> CUDA when available, else CPU; a bare ``cuda``
+    -> ``cuda:local_rank % device_count``. A device that is not there is a ValueError."""
+    if name is None:
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise ValueError(f"{name!r} is not a device here (expected cpu, cuda or cuda:N)")
+    if device.type == "cpu":
+        return device
+    if not torch.cuda.is_available():
+        raise ValueError(
+            f"{name!r}: no CUDA GPU is visible to torch (torch.cuda.is_available() is False)"
+        )
+    count = torch.cuda.device_count()
+    index = local_rank % count if device.index is None else device.index
+    if index >= count:
+        raise ValueError(f"{name!r}: only {count} CUDA device(s) are visible")
+    return torch.device("cuda", index)
