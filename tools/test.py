@@ -44,6 +44,7 @@ from pcdet_atlas.train_utils.setup import (
     count_arg,
     load_cfg,
     output_dir_for,
+    require_dataset,
     setup_runtime,
 )
 from pcdet_atlas.utils.common import create_logger
@@ -134,6 +135,7 @@ def check_eval_dir(out_dir: Path, overwrite: bool) -> None:
 def main(argv=None) -> dict:
     args = parse_args(argv)
     cfg = load_cfg(args.cfg_file, args.set_cfgs)
+    require_dataset(cfg, args.cfg_file)  # before anything is built or written
     atlas_cfg = cfg.get("ATLAS", {})
     variants = resolve_variants(args.attacks, atlas_cfg)
     checkpoints = checkpoints_to_evaluate(args, cfg, atlas_cfg)

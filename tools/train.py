@@ -27,6 +27,7 @@ from pcdet_atlas.config import (
 )
 from pcdet_atlas.datasets import build_dataloader
 from pcdet_atlas.models import build_network_from_config
+from pcdet_atlas.models.detectors import TwoStageDetector
 from pcdet_atlas.models.optimization import build_optimizer, build_scheduler
 from pcdet_atlas.train_utils import (
     TrainState,
@@ -37,11 +38,13 @@ from pcdet_atlas.train_utils import (
     retain_freed_cpu_memory,
     train_model,
 )
+from pcdet_atlas.train_utils.proposals import training_proposals
 from pcdet_atlas.train_utils.setup import (
     add_common_args,
     count_arg,
     load_cfg,
     output_dir_for,
+    require_dataset,
     setup_runtime,
 )
 from pcdet_atlas.utils.common import create_logger
@@ -78,6 +81,7 @@ def parse_args(argv=None):
 def main(argv=None) -> dict:
     args = parse_args(argv)
     cfg = load_cfg(args.cfg_file, args.set_cfgs)
+    require_dataset(cfg, args.cfg_file)  # before anything is built or written
     dist, rank, world, device = setup_runtime(args)
     retained = device.type == "cpu" and not args.default_malloc and retain_freed_cpu_memory()
     if args.threads is not None:
@@ -116,6 +120,12 @@ def main(argv=None) -> dict:
     if args.sync_bn:
         model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)
     model.to(device)
+    if isinstance(model, TwoStageDetector):  # the frozen RPN's clean proposals, cached on disk
+        table, source = training_proposals(
+            model, cfg.DATA_CONFIG, cfg.CLASS_NAMES, device=device, workers=args.workers,
+            logger=logger,
+        )  # fmt: skip
+        dataset.set_proposals(table, str(source))
     optimizer = build_optimizer(model, optim_cfg)
     scheduler = build_scheduler(
         optimizer, optim_cfg, iters_per_epoch=len(loader), total_epochs=epochs

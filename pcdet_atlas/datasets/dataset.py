@@ -25,6 +25,7 @@ import torch.utils.data as torch_data
 from pcdet_atlas.config import REPO_ROOT, ConfigError, key_source
 from pcdet_atlas.datasets.augmentor import DataAugmentor, DataProcessor
 from pcdet_atlas.datasets.point_features import PointFeatureEncoder
+from pcdet_atlas.utils.seeding import derive_seed
 
 __all__ = ["DatasetTemplate", "collate_batch", "resolve_data_path"]
 
@@ -139,7 +140,8 @@ class DatasetTemplate(torch_data.Dataset):
         Returns:
             the dict with ``points`` float32 ``(N', C_used)``, ``gt_boxes`` float32
             ``(M', 8|10)`` (last column: 1-based index into ``class_names``), ``gt_names``,
-            ``lidar_aug_matrix`` (4, 4) float32 and, after augmentation, what it drew.
+            ``lidar_aug_matrix`` (4, 4) float32, ``frame_seed`` (the int a model keys its own
+            random draws of this sample by) and, after augmentation, what it drew.
         """
         keys = self.frame_seed_keys(data_dict["sequence_name"], data_dict["sample_idx"], epoch)
         has_boxes = data_dict.get("gt_boxes") is not None
@@ -169,6 +171,7 @@ class DatasetTemplate(torch_data.Dataset):
             data_dict["gt_names"] = names
         data_dict = self.point_feature_encoder.forward(data_dict)
         data_dict = self.data_processor.forward(data_dict, keys)
+        data_dict["frame_seed"] = derive_seed(*keys, "model")
         return data_dict
 
     # ------------------------------------------------------------------ batches
@@ -191,6 +194,7 @@ STACKED_KEYS = (
     "flip_y",
     "noise_rot",
     "noise_scale",
+    "frame_seed",
 )
 
 
@@ -198,7 +202,8 @@ def collate_batch(batch_list: list[dict]) -> dict:
     """Merge samples into a batch, as OpenPCDet's ``collate_batch``.
 
     * ``points`` ``(N_i, C)`` -> ``(sum N_i, 1 + C)`` float32 with the sample index first;
-    * ``gt_boxes`` ``(M_i, B)`` -> ``(batch, max M_i, B)`` float32, zero-padded;
+    * ``gt_boxes`` ``(M_i, B)`` -> ``(batch, max M_i, B)`` float32, zero-padded (the same for
+      the proposals ``roi_boxes`` of two-stage training, whose zero label marks padding);
     * the keys of :data:`STACKED_KEYS` -> ``np.stack`` (``(batch, ...)``);
     * anything else (``gt_names``, ``metadata``, attack metadata, ...) -> a list per key;
     * ``batch_size`` = number of samples.
@@ -224,7 +229,7 @@ def collate_batch(batch_list: list[dict]) -> dict:
                 out[start : start + len(v), 1:] = v
                 start += len(v)
             ret[key] = out
-        elif key == "gt_boxes":
+        elif key in ("gt_boxes", "roi_boxes"):
             max_gt = max(len(v) for v in vals)
             width = vals[0].shape[-1]
             boxes = np.zeros((batch_size, max_gt, width), dtype=np.float32)

@@ -117,6 +117,8 @@ class WaymoDataset(DatasetTemplate):
                 f"entries, but this dataset produces {produced} point columns "
                 f"({'multi' if self.sequence_cfg else 'single'}-frame)"
             )
+        self.proposals: Mapping[str, np.ndarray] | None = None
+        self.proposals_source = ""
         self.set_split(dataset_cfg.DATA_SPLIT[self.mode])
 
     # ------------------------------------------------------------------ infos
@@ -157,6 +159,27 @@ class WaymoDataset(DatasetTemplate):
                 f"sequence {sequence_name!r} has frames 0..{len(infos) - 1}, not {sample_idx}"
             )
         return infos[sample_idx]
+
+    def set_proposals(self, table: Mapping[str, np.ndarray], source: str) -> None:
+        """Serve ``roi_boxes`` with every sample: ``table[frame_id]`` ``(R, 11)`` ``[x, y, z, dx,
+        dy, dz, heading, vx, vy, score, label]`` (the training proposals of a two-stage model,
+        read from ``source``). Every frame of ``self.infos`` must have an entry."""
+        if self.data_augmentor is not None and "gt_sampling" in self.data_augmentor.names:
+            raise ConfigError(
+                "DATA_CONFIG.DATA_AUGMENTOR: gt_sampling pastes objects that have no proposals; "
+                "leave it out of a two-stage model's augmentation"
+            )
+        missing = [info["frame_id"] for info in self.infos if info["frame_id"] not in table]
+        if missing:
+            raise KeyError(
+                f"{source}: no proposals for {len(missing)} of the {len(self.infos)} frames of "
+                f"split {self.split!r} (first: {missing[0]})"
+            )
+        for frame_id, boxes in table.items():
+            if np.ndim(boxes) != 2 or np.shape(boxes)[1] != 11:
+                raise ValueError(f"{source}: proposals of {frame_id} must be (R, 11), got "
+                                 f"{np.shape(boxes)}")  # fmt: skip
+        self.proposals, self.proposals_source = table, source
 
     # ------------------------------------------------------------------ points
     def get_lidar(self, sequence_name: str, sample_idx: int) -> np.ndarray:
@@ -310,6 +333,8 @@ class WaymoDataset(DatasetTemplate):
         input_dict["points"] = points
         if "annos" in info:
             input_dict.update(self.get_annotations(info))
+        if self.proposals is not None:
+            input_dict["roi_boxes"] = np.array(self.proposals[info["frame_id"]], dtype=np.float64)
         return self.prepare_data(input_dict, epoch=epoch)
 
     # ------------------------------------------------------------------ predictions

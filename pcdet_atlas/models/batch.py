@@ -11,7 +11,16 @@ __all__ = ["load_data_to_device"]
 
 # keys that stay on the host as they are (identifiers, metadata, per-frame records)
 HOST_KEYS = frozenset(
-    {"frame_id", "sequence_name", "sample_idx", "metadata", "gt_names", "attack", "pose"}
+    {
+        "frame_id",
+        "sequence_name",
+        "sample_idx",
+        "metadata",
+        "gt_names",
+        "attack",
+        "pose",
+        "frame_seed",
+    }
 )
 
 

@@ -51,10 +51,12 @@ def checkpoint_state(
 ) -> dict:
     """The checkpoint dict (tensors moved to CPU)."""
     state = {k: v.detach().cpu() for k, v in _unwrap(model).state_dict().items()}
+    info = getattr(_unwrap(model), "checkpoint_info", None)
     return {
         "epoch": int(epoch),
         "it": int(it),
         "model_state": state,
+        "model_info": info() if info is not None else {},  # e.g. a two-stage model's RPN
         "optimizer_state": None if optimizer is None else optimizer.state_dict(),
         "scheduler_state": None if scheduler is None else scheduler.state_dict(),
         "scaler_state": None if scaler is None else scaler.state_dict(),
@@ -150,10 +152,13 @@ def check_resume_settings(ckpt: Mapping, settings: Mapping, path: str | Path) ->
 
 
 def export_model_checkpoint(src: str | Path, dst: str | Path) -> Path:
-    """Keep only ``epoch``, ``it``, ``model_state`` and ``version`` of a training checkpoint (the
-    small file a model zoo ships; ``tools/test.py`` and ``--pretrained_model`` read it)."""
+    """Keep only ``epoch``, ``it``, ``model_state``, ``model_info`` and ``version`` of a training
+    checkpoint (the small file a model zoo ships; ``tools/test.py`` and ``--pretrained_model``
+    read it)."""
     ckpt = read_checkpoint(src)
     if "model_state" not in ckpt:
         raise KeyError(f"{src} is not a pcdet_atlas checkpoint (no 'model_state')")
-    keep = {k: ckpt[k] for k in ("epoch", "it", "model_state", "version") if k in ckpt}
+    keep = {
+        k: ckpt[k] for k in ("epoch", "it", "model_state", "model_info", "version") if k in ckpt
+    }
     return save_checkpoint(keep, dst)

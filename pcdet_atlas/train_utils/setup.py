@@ -98,6 +98,29 @@ def load_cfg(cfg_file: str, set_cfgs: list[str] | None):
     return cfg
 
 
+def require_dataset(cfg, cfg_file: str | Path) -> None:
+    """Stop with a one-line message (no traceback) when the config's ``DATA_CONFIG.DATA_PATH``
+    is not there, naming the path and, for a real-Waymo config, its synthetic counterpart."""
+    from pcdet_atlas.datasets.dataset import resolve_data_path
+
+    root = resolve_data_path(cfg.DATA_CONFIG.get("DATA_PATH", ""))
+    if root.is_dir():
+        return
+    hint = "convert Waymo with OpenPCDet into it (docs/data.md)"
+    path = Path(cfg_file).resolve()
+    twin = path.parent / "synthetic" / path.name
+    if twin.is_file():
+        try:
+            shown = twin.relative_to(REPO_ROOT)
+        except ValueError:
+            shown = twin
+        hint += f", or run the synthetic config instead: --cfg {shown}"
+    raise SystemExit(
+        f"{cfg_file}: DATA_CONFIG.DATA_PATH {cfg.DATA_CONFIG.get('DATA_PATH')!r} ({root}) does "
+        f"not exist: {hint}"
+    )
+
+
 def exp_group_and_tag(cfg_file: str | Path) -> tuple[str, str]:
     """``cfgs/atlas/synthetic/cp4f.yaml`` -> ``('atlas/synthetic', 'cp4f')``; a file outside
     ``cfgs/`` gets its parent folder's name as group."""

@@ -14,6 +14,8 @@ from pcdet_atlas.registry import DETECTORS
 from pcdet_atlas.train_utils import export_model_checkpoint
 
 CONFIGS = sorted((REPO_ROOT / "cfgs" / "atlas").rglob("*.yaml"))
+#: single-stage (CenterPoint) configs; two-stage ones are smoke-tested in test_msf.py
+SINGLE_STAGE = [p for p in CONFIGS if cfg_from_yaml_file(p).MODEL.NAME == "CenterPoint"]
 CELLS = 64  # smoke runs use a cropped grid of CELLS x CELLS pillars, same model widths
 
 
@@ -36,7 +38,7 @@ def cropped_model(cfg):
     )
 
 
-@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: str(p.relative_to(REPO_ROOT / "cfgs")))
+@pytest.mark.parametrize("path", SINGLE_STAGE, ids=lambda p: str(p.relative_to(REPO_ROOT / "cfgs")))
 def test_build_forward_loss_gradients(path: Path):
     cfg = cfg_from_yaml_file(path)
     full = build_network_from_config(cfg)  # the config as shipped builds
@@ -160,7 +162,7 @@ def test_device_generic_and_autocast(device):
 def test_shipped_checkpoint_loads_strictly(path: Path):
     cfg = cfg_from_yaml_file(path)
     ckpt = cfg.get("ATLAS", {}).get("CHECKPOINT")
-    if ckpt is None:
-        pytest.skip("this config ships no checkpoint (ATLAS.CHECKPOINT: null)")
+    if ckpt is None or not str(ckpt).startswith("checkpoints/"):
+        pytest.skip("this config ships no checkpoint (null, or a training output path)")
     assert (REPO_ROOT / ckpt).is_file(), f"{ckpt} named by {path.name} does not ship"
     build_network_from_config(cfg).load_params_from_file(REPO_ROOT / ckpt, strict=True)

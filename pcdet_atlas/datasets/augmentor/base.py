@@ -113,6 +113,9 @@ class DataAugmentor(_Pipeline):
         data_dict = self._run(data_dict, seed_keys)
         boxes = data_dict["gt_boxes"]
         boxes[:, 6] = limit_period(boxes[:, 6], offset=0.5, period=2 * np.pi)
+        if data_dict.get("roi_boxes") is not None:  # two-stage training proposals
+            rois = data_dict["roi_boxes"]
+            rois[:, 6] = limit_period(rois[:, 6], offset=0.5, period=2 * np.pi)
         if "gt_boxes_mask" in data_dict:
             mask = data_dict.pop("gt_boxes_mask")
             data_dict["gt_boxes"] = boxes[mask]

@@ -2,7 +2,8 @@
 
 OpenPCDet's ``random_world_flip`` / ``random_world_rotation`` / ``random_world_scaling``: the same
 transform is applied to every point (all frames of a multi-frame input, which share the current
-vehicle frame) and every box, velocities included. Each records what it drew (``flip_x``,
+vehicle frame) and every box, velocities included: the ground truth and, for two-stage models,
+the proposals ``roi_boxes``. Each records what it drew (``flip_x``,
 ``flip_y``, ``noise_rot``, ``noise_scale``) and left-multiplies ``lidar_aug_matrix`` (4x4) so a
 model can map anything from the un-augmented vehicle frame into the augmented one.
 """
@@ -17,6 +18,15 @@ from pcdet_atlas.config import ConfigError, require_keys
 from pcdet_atlas.registry import TRANSFORMS
 
 __all__ = ["RandomWorldFlip", "RandomWorldRotation", "RandomWorldScaling"]
+
+
+def _box_arrays(data_dict: dict) -> list[np.ndarray]:
+    """The box arrays a world transform moves: ``gt_boxes`` and, when present, the first 9
+    columns (box and velocity; not score and label) of the proposals ``roi_boxes``."""
+    arrays = [data_dict["gt_boxes"]]
+    if data_dict.get("roi_boxes") is not None:
+        arrays.append(data_dict["roi_boxes"][:, :9])  # a view: changed in place
+    return arrays
 
 
 def _compose(data_dict: dict, linear_3x3: np.ndarray) -> None:
@@ -54,25 +64,28 @@ class RandomWorldFlip:
         return cls(along_axis_list=list(cfg.get("ALONG_AXIS_LIST", ["x", "y"])))
 
     def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
-        boxes, points = data_dict["gt_boxes"], data_dict["points"]
+        points = data_dict["points"]
         for axis in self.along_axis_list:
             enable = bool(rng.random() < 0.5)
             data_dict[f"flip_{axis}"] = enable
             if not enable:
                 continue
-            if axis == "x":  # mirror across the x axis
-                boxes[:, 1] = -boxes[:, 1]
-                boxes[:, 6] = -boxes[:, 6]
+            for boxes in _box_arrays(data_dict):
+                if axis == "x":  # mirror across the x axis
+                    boxes[:, 1] = -boxes[:, 1]
+                    boxes[:, 6] = -boxes[:, 6]
+                    if boxes.shape[1] > 7:
+                        boxes[:, 8] = -boxes[:, 8]
+                else:  # mirror across the y axis
+                    boxes[:, 0] = -boxes[:, 0]
+                    boxes[:, 6] = -(boxes[:, 6] + np.pi)
+                    if boxes.shape[1] > 7:
+                        boxes[:, 7] = -boxes[:, 7]
+            if axis == "x":
                 points[:, 1] = -points[:, 1]
-                if boxes.shape[1] > 7:
-                    boxes[:, 8] = -boxes[:, 8]
                 _compose(data_dict, np.diag([1.0, -1.0, 1.0]))
-            else:  # mirror across the y axis
-                boxes[:, 0] = -boxes[:, 0]
-                boxes[:, 6] = -(boxes[:, 6] + np.pi)
+            else:
                 points[:, 0] = -points[:, 0]
-                if boxes.shape[1] > 7:
-                    boxes[:, 7] = -boxes[:, 7]
                 _compose(data_dict, np.diag([-1.0, 1.0, 1.0]))
         return data_dict
 
@@ -95,7 +108,7 @@ class RandomWorldRotation:
         angle = float(rng.uniform(*self.rot_range))
         cos, sin = np.cos(angle), np.sin(angle)
         rot = np.array([[cos, -sin], [sin, cos]])  # column-vector convention, CCW
-        points, boxes = data_dict["points"], data_dict["gt_boxes"]
+        points = data_dict["points"]
         # column-wise, float64, reusing two buffers (much faster than an (N, 2) matmul):
         # x' = cos * x - sin * y, y' = sin * x + cos * y
         x, y = points[:, 0].astype(np.float64), points[:, 1].astype(np.float64)
@@ -104,10 +117,11 @@ class RandomWorldRotation:
         np.multiply(x, sin, out=a)
         np.multiply(y, cos, out=b)
         points[:, 1] = np.add(a, b, out=a)
-        boxes[:, 0:2] = boxes[:, 0:2] @ rot.T
-        boxes[:, 6] += angle
-        if boxes.shape[1] > 7:
-            boxes[:, 7:9] = boxes[:, 7:9] @ rot.T
+        for boxes in _box_arrays(data_dict):
+            boxes[:, 0:2] = boxes[:, 0:2] @ rot.T
+            boxes[:, 6] += angle
+            if boxes.shape[1] > 7:
+                boxes[:, 7:9] = boxes[:, 7:9] @ rot.T
         data_dict["noise_rot"] = angle
         rot3 = np.eye(3)
         rot3[:2, :2] = rot
@@ -134,12 +148,13 @@ class RandomWorldScaling:
 
     def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
         scale = float(rng.uniform(*self.scale_range))
-        points, boxes = data_dict["points"], data_dict["gt_boxes"]
+        points = data_dict["points"]
         for column in range(3):  # 1-D strided loops: far faster than an (N, 3) block op
             points[:, column] *= np.float32(scale)
-        boxes[:, 0:6] *= scale
-        if boxes.shape[1] > 7:
-            boxes[:, 7:] *= scale
+        for boxes in _box_arrays(data_dict):
+            boxes[:, 0:6] *= scale
+            if boxes.shape[1] > 7:
+                boxes[:, 7:] *= scale
         data_dict["noise_scale"] = scale
         _compose(data_dict, np.eye(3) * scale)
         return data_dict

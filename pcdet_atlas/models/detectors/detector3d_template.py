@@ -74,6 +74,10 @@ class Detector3DTemplate(nn.Module):
 
     module_topology = list(STAGE_CFG_KEYS)
     required_stages: tuple[str, ...] = ()
+    #: keys ``MODEL.POST_PROCESSING`` may hold for this detector
+    POST_PROCESSING_KEYS: tuple[str, ...] = (
+        "RECALL_THRESH_LIST", "EVAL_METRIC", "SCORE_THRESH", "OUTPUT_RAW_SCORE",
+    )  # fmt: skip
 
     def __init__(self, *, class_names: Sequence[str], **stages: nn.Module | None):
         """
@@ -107,6 +111,7 @@ class Detector3DTemplate(nn.Module):
         point_cloud_range: Sequence[float],
         num_point_features: int,
         voxel_size: Sequence[float] | None = None,
+        **extra,
     ) -> Detector3DTemplate:
         """Build the detector from a ``MODEL`` config section.
 
@@ -115,14 +120,12 @@ class Detector3DTemplate(nn.Module):
             class_names: ``CLASS_NAMES``.
             point_cloud_range: ``DATA_CONFIG.POINT_CLOUD_RANGE`` (6 values, metres).
             num_point_features: point columns after the batch index (5, or 6 with time lag).
+            extra: further keyword arguments of the subclass's constructor.
         """
         stage_keys = {STAGE_CFG_KEYS[n] for n in cls.module_topology}
         check_known_keys(model_cfg, ["NAME", "POST_PROCESSING", *sorted(stage_keys)], "MODEL")
         post = model_cfg.get("POST_PROCESSING", {})
-        check_known_keys(
-            post, ["RECALL_THRESH_LIST", "EVAL_METRIC", "SCORE_THRESH", "OUTPUT_RAW_SCORE"],
-            "MODEL.POST_PROCESSING",
-        )  # fmt: skip
+        check_known_keys(post, cls.POST_PROCESSING_KEYS, "MODEL.POST_PROCESSING")
         for name in cls.required_stages:
             require_keys(model_cfg, [STAGE_CFG_KEYS[name]], "MODEL")
         info: dict = {
@@ -150,7 +153,7 @@ class Detector3DTemplate(nn.Module):
                     f"MODEL.{STAGE_CFG_KEYS[name]} ({', '.join(files) or 'built in code'}): {err}"
                 ) from err
             stage_model_info(stages[name], name, info)
-        return cls(class_names=class_names, **stages)
+        return cls(class_names=class_names, **extra, **stages)
 
     # --------------------------------------------------------------------- running
     def run_stages(self, batch_dict: Mapping) -> dict:

@@ -1,0 +1,87 @@
+"""MSF (He et al., CVPR'23): CP-4f proposals refined by motion-guided sampling over 4 or 8 frames
+of points (:class:`~pcdet_atlas.models.roi_heads.msf_head.MSFHead`; docs/model_zoo.md)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+
+from pcdet_atlas.models.detectors.two_stage import (
+    TwoStageDetector,
+    proposals_to_padded,
+    roi_boxes_to_padded,
+)
+from pcdet_atlas.models.model_utils.motion_sampler import propagate_boxes
+from pcdet_atlas.models.model_utils.roi_utils import fuse_scores, select_detections
+from pcdet_atlas.registry import DETECTORS
+
+__all__ = ["MSF"]
+
+
+@DETECTORS.register()
+class MSF(TwoStageDetector):
+    """Frozen CP-4f RPN + :class:`MSFHead`.
+
+    :meth:`loss` trains on the batch's precomputed clean proposals (``roi_boxes`` ``(B, R, 11)``,
+    label 0 = padding) and ``gt_boxes``; :meth:`predict` always proposes with the RPN on the
+    batch's own (possibly attacked) points. Both need ``frame_seed`` (one per sample).
+    """
+
+    required_stages = ("roi_head",)
+
+    def loss(self, batch_dict: Mapping) -> dict[str, torch.Tensor]:
+        for key in ("roi_boxes", "gt_boxes"):
+            if key not in batch_dict:
+                raise KeyError(
+                    f"MSF.loss needs batch_dict[{key!r}] (training proposals: "
+                    "pcdet_atlas.train_utils.proposals, attached by tools/train.py)"
+                )
+        head = self.roi_head
+        rois, _, labels, valid = roi_boxes_to_padded(batch_dict["roi_boxes"])
+        gens = self.sample_generators(batch_dict, "msf_targets")
+        targets = head.assign_targets(rois, labels, valid, batch_dict["gt_boxes"], gens)
+        out = head({
+            **batch_dict, "rois": targets["rois"], "roi_valid": targets["roi_valid"],
+            "trajectories": targets["trajectories"],
+            "generators": self.sample_generators(batch_dict, "msf_points"),
+        })  # fmt: skip
+        return head.loss(out, targets)
+
+    @torch.no_grad()
+    def predict(self, batch_dict: Mapping) -> list[dict[str, torch.Tensor]]:
+        """Per sample ``pred_boxes (K, 7)``, ``pred_scores``, ``pred_labels`` (1-based), and
+        ``rois`` / ``roi_scores`` / ``roi_labels``: the RPN's proposals it refined."""
+        device = batch_dict["points"].device
+        proposals = self.propose(batch_dict)
+        rois, scores, labels, valid = proposals_to_padded(proposals, device)
+        head = self.roi_head
+        traj = torch.stack([propagate_boxes(r, head.num_frames) for r in rois])
+        out = head({
+            **batch_dict, "rois": rois, "roi_valid": valid, "trajectories": traj,
+            "generators": self.sample_generators(batch_dict, "msf_points"),
+        })  # fmt: skip
+        boxes, logits = head.decode(out, rois)
+        post = self.post_processing
+        nms = post.get("NMS_CONFIG", {})
+        no_nms = [1 + self.class_names.index("Vehicle")] if (
+            post.get("NOT_APPLY_NMS_FOR_VEL", True) and "Vehicle" in self.class_names
+        ) else []  # fmt: skip
+        results = []
+        for b, proposal in enumerate(proposals):
+            n = len(proposal["pred_scores"])
+            fused = fuse_scores(logits[b, :n], scores[b, :n], labels[b, :n], head.iou_weight)
+            keep = select_detections(
+                boxes[b, :n], fused, labels[b, :n],
+                score_thresh=float(post.get("SCORE_THRESH", 0.1)),
+                nms_thresh=float(nms.get("NMS_THRESH", 0.7)),
+                pre_max_size=int(nms.get("NMS_PRE_MAXSIZE", 4096)),
+                post_max_size=int(nms.get("NMS_POST_MAXSIZE", 500)),
+                no_nms_labels=no_nms,
+            )  # fmt: skip
+            results.append({
+                "pred_boxes": boxes[b, keep], "pred_scores": fused[keep],
+                "pred_labels": labels[b, keep], "rois": proposal["pred_boxes"],
+                "roi_scores": proposal["pred_scores"], "roi_labels": proposal["pred_labels"],
+            })  # fmt: skip
+        return results

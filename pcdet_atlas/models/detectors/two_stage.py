@@ -1,0 +1,205 @@
+"""Two-stage temporal detectors (MSF, PTT): a frozen proposal network (RPN) and a refining head.
+
+The RPN is a complete detector of this project (CP-4f), built from its own config file and
+loaded from its checkpoint (``MODEL.RPN: {CFG, CHECKPOINT}``). It is frozen: its parameters
+are not parameters of the two-stage model (no optimizer sees them, ``state_dict`` leaves them
+out), it always runs in eval mode, and it moves with the model (``.to``, ``.cuda``). What a
+two-stage checkpoint was trained with is recorded in it (``model_info``: the RPN checkpoint's
+SHA-256) and checked when it is loaded, so second-stage weights never meet another RPN.
+
+Proposals at test time always come from the RPN run on the batch's own points (attacked points
+under an attack): :meth:`TwoStageDetector.propose`. Training reads proposals precomputed on
+clean data from the batch (``roi_boxes``; :mod:`pcdet_atlas.train_utils.proposals`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Mapping
+from pathlib import Path
+
+import torch
+
+from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file, check_known_keys
+from pcdet_atlas.models.detectors.detector3d_template import (
+    CheckpointMismatchError,
+    Detector3DTemplate,
+)
+from pcdet_atlas.models.model_utils.motion_sampler import frame_of_points
+from pcdet_atlas.utils.seeding import torch_generator
+
+__all__ = ["RPN_KEYS", "TwoStageDetector", "file_sha256", "load_rpn", "resolve_repo_path"]
+
+RPN_KEYS = ("CFG", "CHECKPOINT", "CACHE_DIR")
+
+
+def resolve_repo_path(path: str | Path) -> Path:
+    """A config path: absolute as given, else relative to the repository root."""
+    path = Path(path).expanduser()
+    return path if path.is_absolute() else REPO_ROOT / path
+
+
+def file_sha256(path: str | Path) -> str:
+    """Hex SHA-256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def rpn_window(rpn_cfg: Mapping) -> int:
+    """Frames of points the RPN reads (its ``SEQUENCE_CONFIG.SAMPLE_OFFSET`` span; 1 without)."""
+    seq = rpn_cfg.DATA_CONFIG.get("SEQUENCE_CONFIG") or {}
+    if not seq.get("ENABLED", False):
+        return 1
+    low, high = seq["SAMPLE_OFFSET"]
+    return int(high) - int(low) + 1
+
+
+def load_rpn(rpn_section: Mapping) -> tuple[Detector3DTemplate, dict]:
+    """Build and load the RPN of a ``MODEL.RPN`` section; returns it (eval mode, gradients off)
+    and its identity ``{'cfg', 'checkpoint', 'sha256', 'window', 'cfg_dict'}``."""
+    from pcdet_atlas.models import build_network_from_config, num_point_features_of
+
+    check_known_keys(rpn_section, RPN_KEYS, "MODEL.RPN")
+    for key in ("CFG", "CHECKPOINT"):
+        if not rpn_section.get(key):
+            raise ConfigError(f"MODEL.RPN.{key} is required (the proposal network's {key.lower()})")
+    cfg_path = resolve_repo_path(rpn_section["CFG"])
+    ckpt_path = resolve_repo_path(rpn_section["CHECKPOINT"])
+    if not cfg_path.is_file():
+        raise FileNotFoundError(f"MODEL.RPN.CFG: {cfg_path} not found")
+    if not ckpt_path.is_file():
+        raise FileNotFoundError(
+            f"MODEL.RPN.CHECKPOINT: {ckpt_path} not found (train the RPN with tools/train.py "
+            f"--cfg {rpn_section['CFG']}; docs/getting_started.md, two-stage models)"
+        )
+    rpn_cfg = cfg_from_yaml_file(cfg_path)
+    rpn = build_network_from_config(rpn_cfg)
+    num_point_features = num_point_features_of(rpn_cfg.DATA_CONFIG)
+    rpn.load_params_from_file(ckpt_path)
+    rpn.eval()
+    for param in rpn.parameters():
+        param.requires_grad_(False)
+    info = {
+        "cfg": str(rpn_section["CFG"]),
+        "checkpoint": str(rpn_section["CHECKPOINT"]),
+        "sha256": file_sha256(ckpt_path),
+        "window": rpn_window(rpn_cfg),
+        "num_point_features": num_point_features,
+        "cache_dir": rpn_section.get("CACHE_DIR"),
+        "cfg_dict": rpn_cfg,
+    }
+    return rpn, info
+
+
+class TwoStageDetector(Detector3DTemplate):
+    """A frozen RPN plus stages of its own (module docstring)."""
+
+    POST_PROCESSING_KEYS = Detector3DTemplate.POST_PROCESSING_KEYS + (
+        "NOT_APPLY_NMS_FOR_VEL",
+        "NMS_CONFIG",
+    )
+
+    def __init__(self, *, class_names, rpn: Detector3DTemplate, rpn_info: Mapping,
+                 post_processing: Mapping | None = None, **stages):  # fmt: skip
+        super().__init__(class_names=class_names, **stages)
+        object.__setattr__(self, "rpn", rpn)  # not a submodule: frozen, not in state_dict
+        self.rpn_info = {k: v for k, v in rpn_info.items() if k != "cfg_dict"}
+        self.post_processing = dict(post_processing or {})
+
+    @classmethod
+    def from_config(cls, model_cfg: Mapping, **kwargs) -> TwoStageDetector:
+        if "RPN" not in model_cfg:
+            raise ConfigError(f"MODEL.RPN is required for {cls.__name__} (CFG and CHECKPOINT)")
+        rpn, info = load_rpn(model_cfg["RPN"])
+        rpn_points = info["num_point_features"]
+        if rpn_points != kwargs["num_point_features"]:
+            raise ConfigError(
+                f"MODEL.RPN.CFG {info['cfg']} reads {rpn_points} point columns, this model's "
+                f"data {kwargs['num_point_features']}: both need x, y, z, intensity, "
+                "elongation and the time lag"
+            )
+        own = {k: v for k, v in model_cfg.items() if k != "RPN"}
+        return super().from_config(
+            own, rpn=rpn, rpn_info=info, post_processing=model_cfg.get("POST_PROCESSING", {}),
+            **kwargs,
+        )  # fmt: skip
+
+    # ------------------------------------------------------------------ the frozen RPN
+    def _apply(self, fn, recurse=True):
+        super()._apply(fn, recurse)
+        self.rpn._apply(fn, recurse)
+        return self
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        self.rpn.eval()  # frozen: batch-norm statistics and dropout never change
+        return self
+
+    @torch.no_grad()
+    def propose(self, batch_dict: Mapping) -> list[dict[str, torch.Tensor]]:
+        """The RPN's detections on the batch's own points: the points of its ``window`` newest
+        frames (time lag < 0.1 * window s)."""
+        points = batch_dict["points"]
+        keep = frame_of_points(points[:, -1], self.rpn_info["window"]) >= 0
+        return self.rpn.predict({**batch_dict, "points": points[keep]})
+
+    # ------------------------------------------------------------------ checkpoints
+    def checkpoint_info(self) -> dict:
+        """What a checkpoint of this model records besides its weights."""
+        return {"rpn": dict(self.rpn_info)}
+
+    def load_params_from_file(self, filename, *, strict: bool = True, map_location: str = "cpu"):
+        ckpt = super().load_params_from_file(filename, strict=strict, map_location=map_location)
+        recorded = (ckpt.get("model_info") or {}).get("rpn", {}).get("sha256")
+        if recorded != self.rpn_info["sha256"]:
+            raise CheckpointMismatchError(
+                f"checkpoint {filename} was trained on the proposals of an RPN with checkpoint "
+                f"SHA-256 {recorded}; MODEL.RPN.CHECKPOINT {self.rpn_info['checkpoint']} has "
+                f"{self.rpn_info['sha256']}: use the RPN it was trained with, or retrain"
+            )
+        return ckpt
+
+    # ------------------------------------------------------------------ randomness
+    @staticmethod
+    def sample_generators(batch_dict: Mapping, purpose: str) -> list[torch.Generator]:
+        """One CPU generator per sample, keyed by the sample's ``frame_seed`` (set by the
+        dataset from its seed, epoch, sequence and frame) and ``purpose``."""
+        if "frame_seed" not in batch_dict:
+            raise KeyError(
+                "two-stage models need batch_dict['frame_seed'] (one int per sample, as the "
+                "datasets' collate_batch provides)"
+            )
+        return [torch_generator(int(s), purpose) for s in batch_dict["frame_seed"]]
+
+
+def proposals_to_padded(
+    proposals: list[Mapping], device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-sample RPN outputs -> ``boxes (B, R, 9)``, ``scores (B, R)``, ``labels (B, R)`` long,
+    ``valid (B, R)`` bool (``R``: the largest count, at least 1)."""
+    count = max([1] + [len(p["pred_scores"]) for p in proposals])
+    batch = len(proposals)
+    boxes = torch.zeros(batch, count, 9, device=device)
+    scores = torch.zeros(batch, count, device=device)
+    labels = torch.zeros(batch, count, dtype=torch.long, device=device)
+    valid = torch.zeros(batch, count, dtype=torch.bool, device=device)
+    for b, p in enumerate(proposals):
+        n = len(p["pred_scores"])
+        width = p["pred_boxes"].shape[1] if n else 9
+        if n and width < 9:
+            raise ValueError(f"RPN boxes need velocity columns (9), got {width}")
+        boxes[b, :n] = p["pred_boxes"][:, :9].to(device)
+        scores[b, :n] = p["pred_scores"].to(device)
+        labels[b, :n] = p["pred_labels"].to(device).long()
+        valid[b, :n] = True
+    return boxes, scores, labels, valid
+
+
+def roi_boxes_to_padded(roi_boxes: torch.Tensor):
+    """A batch's collated ``roi_boxes`` ``(B, R, 11)`` ``[box 9, score, label]`` (label 0:
+    padding) -> ``boxes``, ``scores``, ``labels``, ``valid`` as :func:`proposals_to_padded`."""
+    labels = roi_boxes[..., 10].round().long()
+    return roi_boxes[..., :9], roi_boxes[..., 9], labels, labels > 0

@@ -1,0 +1,185 @@
+"""Motion-guided point sampling of temporal two-stage heads (MSF; PTT's current-frame pooling).
+
+A proposal of the current frame is propagated backwards along its velocity (MSF: the box of
+frame ``t - i`` is the current box moved by ``-0.1 i v``, size, height and heading unchanged).
+For each propagated box, up to ``num_sample`` points of that frame are drawn from the vertical
+cylinder around its centre of radius ``gamma^(i + 1) * ||(dx / 2, dy / 2)||`` (the paper's radius
+growing with the frame's age; ``radius_growth=False`` gives the released code's constant
+``gamma * ||(dx / 2, dy / 2)||``).
+
+Which points are drawn: every point of a sample gets one uniform key from the sample's
+generator (one ``torch.rand`` over the sample's points, in their order); a box takes the
+``num_sample`` points of its cylinder with the smallest keys (a uniform random subset, as the
+released code's permutation-then-first-k). Slots left over are zero with ``valid`` False.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+from pcdet_atlas.datasets.multiframe import SECONDS_PER_FRAME
+
+__all__ = [
+    "frame_of_points",
+    "propagate_boxes",
+    "sample_batch_points",
+    "sample_cylinder_points",
+    "sampling_radius",
+]
+
+#: A point belongs to frame ``i`` when its time lag is within this of ``0.1 i`` s.
+LAG_TOLERANCE_S = 0.25 * SECONDS_PER_FRAME
+
+
+def propagate_boxes(boxes: torch.Tensor, num_frames: int) -> torch.Tensor:
+    """``(T, R, 7)`` boxes of frames ``t, t-1, ..., t-T+1`` from current boxes ``(R, 9)`` with
+    velocity ``(vx, vy)`` in m/s: frame ``i`` is moved by ``-0.1 i (vx, vy)``."""
+    if boxes.dim() != 2 or boxes.shape[1] < 9:
+        raise ValueError(f"propagate_boxes: need (R, 9) boxes with velocity, got {boxes.shape}")
+    steps = torch.arange(num_frames, dtype=boxes.dtype, device=boxes.device)
+    traj = boxes[None, :, :7].repeat(num_frames, 1, 1)
+    traj[:, :, 0:2] = (
+        boxes[None, :, 0:2] - SECONDS_PER_FRAME * steps[:, None, None] * boxes[None, :, 7:9]
+    )
+    return traj
+
+
+def sampling_radius(boxes: torch.Tensor, frame: int, gamma: float, radius_growth: bool):
+    """``(R,)`` cylinder radii of frame ``frame``'s boxes ``(R, 7)`` (module docstring)."""
+    factor = gamma ** (frame + 1) if radius_growth else gamma
+    return factor * torch.linalg.vector_norm(boxes[:, 3:5] / 2, dim=1)
+
+
+def frame_of_points(lag_s: torch.Tensor, num_frames: int) -> torch.Tensor:
+    """``(N,)`` long frame index ``i`` of points with time lag ``0.1 i`` s; -1 for a lag that is
+    none of ``0 .. num_frames - 1`` frames."""
+    index = torch.round(lag_s / SECONDS_PER_FRAME)
+    ok = ((lag_s - index * SECONDS_PER_FRAME).abs() <= LAG_TOLERANCE_S) & (index >= 0)
+    ok &= index < num_frames
+    return torch.where(ok, index, torch.full_like(index, -1)).long()
+
+
+def sample_cylinder_points(
+    points: torch.Tensor,
+    frame_index: torch.Tensor,
+    trajectories: torch.Tensor,
+    *,
+    num_sample: int,
+    gamma: float,
+    radius_growth: bool,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Draw the points of one sample for each box of each frame.
+
+    Args:
+        points: ``(N, C)`` the sample's points, ``x, y, z`` first (any further columns are
+            carried along).
+        frame_index: ``(N,)`` long, the frame of each point (:func:`frame_of_points`; -1 never
+            sampled).
+        trajectories: ``(T, R, 7)`` boxes per frame (:func:`propagate_boxes`).
+        generator: a CPU ``torch.Generator`` (the keys are drawn on the CPU, then moved).
+    Returns:
+        ``(R, T, num_sample, C)`` points (zero where invalid) and ``(R, T, num_sample)`` bool
+        validity.
+    """
+    num_frames, num_boxes = trajectories.shape[0], trajectories.shape[1]
+    keys = torch.rand(points.shape[0], generator=generator, dtype=torch.float64)
+    keys = keys.to(points.device)
+    out = points.new_zeros(num_boxes, num_frames, num_sample, points.shape[1])
+    valid = torch.zeros(num_boxes, num_frames, num_sample, dtype=torch.bool, device=points.device)
+    for frame in range(num_frames):
+        members = torch.nonzero(frame_index == frame).squeeze(1)
+        if members.numel() == 0 or num_boxes == 0:
+            continue
+        boxes = trajectories[frame]
+        radius = sampling_radius(boxes, frame, gamma, radius_growth)
+        box_id, point_id = cylinder_pairs(points[members, 0:2], boxes[:, 0:2], radius)
+        point_id = members[point_id]
+        # per box, its candidates in increasing key order; the first num_sample are drawn
+        order = torch.argsort(keys[point_id], stable=True)
+        order = order[torch.argsort(box_id[order], stable=True)]
+        box_id, point_id = box_id[order], point_id[order]
+        first = torch.searchsorted(box_id, box_id, right=False)
+        rank = torch.arange(box_id.numel(), device=box_id.device) - first
+        take = rank < num_sample
+        box_id, point_id, rank = box_id[take], point_id[take], rank[take]
+        out[box_id, frame, rank] = points[point_id]
+        valid[box_id, frame, rank] = True
+    return out, valid
+
+
+def cylinder_pairs(
+    xy: torch.Tensor, centers: torch.Tensor, radius: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every (box, point) pair with the point's XY within ``radius`` of the box centre, as two
+    ``(P,)`` long index tensors sorted by box. Points are bucketed on a BEV grid of cells the
+    size of the largest radius, so only the 3 x 3 cells around a centre are measured."""
+    if xy.shape[0] == 0 or centers.shape[0] == 0:
+        empty = torch.zeros(0, dtype=torch.long, device=xy.device)
+        return empty, empty
+    cell = float(radius.max().clamp_min(1e-3))
+    origin = torch.minimum(xy.min(0).values, centers.min(0).values) - cell
+    point_cell = torch.floor((xy - origin) / cell).long()
+    width = int(torch.floor((torch.maximum(xy.max(0).values, centers.max(0).values) - origin)
+                            / cell).max()) + 3  # fmt: skip
+    point_key = point_cell[:, 0] * width + point_cell[:, 1]
+    center_cell = torch.floor((centers - origin) / cell).long()
+    offsets = torch.tensor([-1, 0, 1], device=xy.device)
+    nx = center_cell[:, 0, None, None] + offsets[None, :, None]
+    ny = center_cell[:, 1, None, None] + offsets[None, None, :]
+    cell_key = (nx * width + ny).reshape(-1)  # (R * 9,)
+    needed = torch.zeros(width * width, dtype=torch.bool, device=xy.device)
+    needed[cell_key] = True
+    near = torch.nonzero(needed[point_key]).squeeze(1)  # points in a cell some box looks at
+    sorted_key, order = torch.sort(point_key[near], stable=True)
+    sorted_point = near[order]
+    start = torch.searchsorted(sorted_key, cell_key, right=False)
+    count = torch.searchsorted(sorted_key, cell_key, right=True) - start
+    pair_box = torch.arange(centers.shape[0], device=xy.device).repeat_interleave(9)
+    total = int(count.sum())
+    if total == 0:
+        empty = torch.zeros(0, dtype=torch.long, device=xy.device)
+        return empty, empty
+    box_id = pair_box.repeat_interleave(count)
+    base = torch.cumsum(count, 0) - count
+    within = torch.arange(total, device=xy.device) - base.repeat_interleave(count)
+    point_id = sorted_point[start.repeat_interleave(count) + within]
+    delta = xy[point_id] - centers[box_id]
+    inside = (delta * delta).sum(1) <= radius[box_id] ** 2
+    return box_id[inside], point_id[inside]
+
+
+def sample_batch_points(
+    points: torch.Tensor,
+    trajectories: torch.Tensor,
+    generators: Sequence[torch.Generator],
+    *,
+    num_sample: int,
+    gamma: float,
+    radius_growth: bool,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`sample_cylinder_points` over a batch.
+
+    Args:
+        points: ``(N, 1 + C)`` collated points ``[batch_idx, x, y, z, ..., lag_s]`` (time lag
+            last); the lag column is dropped from the output.
+        trajectories: ``(B, T, R, 7)``; generators: one per sample.
+    Returns:
+        ``(B, R, T, num_sample, C - 1)`` and ``(B, R, T, num_sample)`` validity.
+    """
+    batch, num_frames, num_boxes = trajectories.shape[:3]
+    features = points.shape[1] - 2
+    out = points.new_zeros(batch, num_boxes, num_frames, num_sample, features)
+    valid = torch.zeros(
+        batch, num_boxes, num_frames, num_sample, dtype=torch.bool, device=points.device
+    )
+    for b in range(batch):
+        rows = points[points[:, 0] == b]
+        frame_index = frame_of_points(rows[:, -1], num_frames)
+        out[b], valid[b] = sample_cylinder_points(
+            rows[:, 1:-1], frame_index, trajectories[b], num_sample=num_sample, gamma=gamma,
+            radius_growth=radius_growth, generator=generators[b],
+        )  # fmt: skip
+    return out, valid

@@ -1,0 +1,5 @@
+"""Second stages of two-stage detectors (registered in ``MODEL_STAGES``)."""
+
+from pcdet_atlas.models.roi_heads.msf_head import MSFHead
+
+__all__ = ["MSFHead"]

@@ -1,0 +1,587 @@
+"""MSF's second stage (He et al., CVPR'23): refine the current frame's proposals with points
+sampled along each proposal's motion over the last ``T`` frames (docs/model_zoo.md, "MSF").
+
+Per proposal (ROI) and frame ``i``: up to ``NUM_POINTS`` points from a cylinder around the
+proposal propagated ``i`` frames back (:mod:`~pcdet_atlas.models.model_utils.motion_sampler`);
+each point is embedded by its geometry (offsets to frame ``i``'s box corners and centre, in
+spherical form, with intensity and elongation) plus its motion (the same offsets to the current
+box, with the frame's time); a trajectory branch encodes the box sequence; ``ENC_LAYERS``
+blocks of point self-attention, a per-frame query token attending to its frame's points and,
+in the first ``BIFA_LAYERS`` blocks, bidirectional feature aggregation (BiFA) between adjacent
+frames; the frames' final tokens and the trajectory feature give the refined box, the current
+frame's token the confidence.
+
+Deliberate difference from the released code: BiFA runs per frame (each group holds one frame's
+points). The released code's reshape builds groups of 32-point slices of all frames.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from pcdet_atlas.config import check_known_keys
+from pcdet_atlas.config_values import check_finite
+from pcdet_atlas.models.model_utils.box_coder import (
+    ResidualCoder,
+    decode_roi_boxes,
+    encode_roi_targets,
+)
+from pcdet_atlas.models.model_utils.motion_sampler import propagate_boxes, sample_batch_points
+from pcdet_atlas.models.model_utils.roi_sampler import RoiSamplerConfig, sample_rois
+from pcdet_atlas.models.model_utils.roi_utils import corner_loss, soft_iou_label
+from pcdet_atlas.ops.boxes import boxes_to_corners_3d
+from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d
+from pcdet_atlas.registry import MODEL_STAGES
+
+__all__ = ["MSFHead", "BiFATransformer", "spherical_offsets", "augment_boxes"]
+
+#: OpenPCDet's two-stage regression loss: smooth-L1 with beta 1/9.
+SMOOTH_L1_BETA = 1.0 / 9.0
+
+
+def mlp(dims: Sequence[int], *, bias_last: bool = True) -> nn.Sequential:
+    """Linear layers ``dims[0] -> ... -> dims[-1]`` with ReLU between (none after the last)."""
+    layers: list[nn.Module] = []
+    for k, (a, b) in enumerate(zip(dims[:-1], dims[1:])):
+        last = k == len(dims) - 2
+        layers.append(nn.Linear(a, b, bias=bias_last or not last))
+        if not last:
+            layers.append(nn.ReLU(inplace=True))
+    return nn.Sequential(*layers)
+
+
+def spherical_offsets(points_xyz: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+    """``(..., K, 27)`` offsets of points ``(..., K, 3)`` to the 8 corners and the centre of their
+    box ``(..., 7)``, each as (distance / box diagonal, atan(dy / dx), acos(dz / distance)),
+    grouped as 9 distances, 9 azimuths, 9 polar angles (the released code's encoding)."""
+    lead = boxes.shape[:-1]
+    corners = boxes_to_corners_3d(boxes.reshape(-1, boxes.shape[-1])[:, :7]).reshape(*lead, 8, 3)
+    anchors = torch.cat([corners, boxes[..., None, 0:3]], dim=-2)  # (..., 9, 3)
+    delta = points_xyz[..., :, None, :] - anchors[..., None, :, :]  # (..., K, 9, 3)
+    dist = torch.linalg.vector_norm(delta, dim=-1)
+    diagonal = torch.linalg.vector_norm(boxes[..., 3:6], dim=-1)[..., None, None]
+    azimuth = torch.atan(delta[..., 1] / (delta[..., 0] + 1e-5))
+    polar = torch.acos((delta[..., 2] / (dist + 1e-5)).clamp(-1.0, 1.0))
+    return torch.cat([dist / (diagonal + 1e-5), azimuth, polar], dim=-1)
+
+
+def augment_boxes(
+    boxes: torch.Tensor,
+    references: torch.Tensor,
+    base_iou: torch.Tensor,
+    *,
+    tries: int,
+    keep_ratio: float,
+    iou_thresh: float,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """MSF's ROI jitter: per box up to ``tries`` draws, each the box itself with probability
+    ``keep_ratio`` or the box shifted by U(-0.5, 0.5) m per axis, sized by U(0.85, 1.15) per
+    axis and turned by U(-pi/12, pi/12); the first draw whose 3D IoU with its reference reaches
+    ``iou_thresh`` is taken, else the last. Returns the boxes and their IoU (``base_iou`` where
+    the box itself was taken)."""
+    num = boxes.shape[0]
+    if num == 0:
+        return boxes.clone(), base_iou.clone()
+    u = torch.rand(tries, num, 8, generator=generator, dtype=torch.float64).to(boxes)
+    keep = u[..., 7] <= keep_ratio
+    cand = boxes[None].repeat(tries, 1, 1)
+    cand[..., 0:3] = cand[..., 0:3] + (u[..., 0:3] - 0.5)
+    cand[..., 3:6] = cand[..., 3:6] * (1.0 + (u[..., 3:6] - 0.5) * 0.3)
+    cand[..., 6] = cand[..., 6] + (u[..., 6] - 0.5) * (math.pi / 6)
+    cand = torch.where(keep[..., None], boxes[None], cand)
+    iou = boxes_aligned_iou3d(
+        cand.reshape(-1, cand.shape[-1])[:, :7], references[None].expand(tries, -1, -1)
+        .reshape(-1, references.shape[-1])[:, :7],
+    ).reshape(tries, num).to(boxes.dtype)  # fmt: skip
+    iou = torch.where(keep, base_iou[None].to(boxes.dtype), iou)
+    ok = iou >= iou_thresh
+    first = torch.where(ok.any(0), ok.float().argmax(0), torch.full_like(ok[0], tries - 1).long())
+    cols = torch.arange(num, device=boxes.device)
+    return cand[first, cols], iou[first, cols]
+
+
+class TrajectoryPointNet(nn.Module):
+    """The trajectory branch: a PointNet over the box sequence ``(N, 8, T)`` (centre relative
+    to the current box and rotated into its heading, size, heading 0, time) -> an auxiliary box
+    code ``(N, 7)`` and a feature ``(N, hidden)``."""
+
+    def __init__(self, hidden: int, code_size: int = 7):
+        super().__init__()
+        widths = [8, 64, 128, 256, 512]
+        self.input_norm = nn.BatchNorm1d(8)
+        convs, norms = [], []
+        for a, b in zip(widths[:-1], widths[1:]):
+            convs.append(nn.Conv1d(a, b, 1))
+            norms.append(nn.BatchNorm1d(b))
+        self.convs, self.norms = nn.ModuleList(convs), nn.ModuleList(norms)
+        self.fc = nn.Sequential(
+            nn.Linear(512, hidden), nn.BatchNorm1d(hidden), nn.ReLU(inplace=True),
+            nn.Linear(hidden, hidden), nn.BatchNorm1d(hidden), nn.ReLU(inplace=True),
+        )  # fmt: skip
+        self.center = nn.Sequential(
+            nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 3, bias=False)
+        )
+        self.size = nn.Sequential(
+            nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, 3, bias=False)
+        )
+        self.heading = nn.Sequential(
+            nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, code_size - 6, bias=False)
+        )
+
+    def forward(self, seq: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = self.input_norm(seq)
+        for k, (conv, norm) in enumerate(zip(self.convs, self.norms)):
+            x = norm(conv(x))
+            if k < len(self.convs) - 1:
+                x = F.relu(x)
+        feat = self.fc(x.max(dim=2).values)
+        return torch.cat([self.center(feat), self.size(feat), self.heading(feat)], 1), feat
+
+
+def trajectory_sequence(trajectories: torch.Tensor) -> torch.Tensor:
+    """``(N, 8, T)`` inputs of :class:`TrajectoryPointNet` from boxes ``(N, T, 7)``."""
+    num_frames = trajectories.shape[1]
+    seq = trajectories[..., :7].clone()
+    seq[..., 0:3] = seq[..., 0:3] - seq[:, :1, 0:3]
+    yaw0 = seq[:, 0, 6]
+    cos, sin = torch.cos(-yaw0)[:, None], torch.sin(-yaw0)[:, None]
+    x, y = seq[..., 0].clone(), seq[..., 1].clone()
+    seq[..., 0], seq[..., 1] = x * cos - y * sin, x * sin + y * cos
+    seq[..., 6] = 0.0
+    time = 0.1 * torch.arange(num_frames, dtype=seq.dtype, device=seq.device)
+    seq = torch.cat([seq, time[None, :, None].expand(seq.shape[0], -1, 1)], dim=2)
+    return seq.transpose(1, 2).contiguous()
+
+
+class EncoderLayer(nn.Module):
+    """One MSF block over ``T`` groups: point self-attention, the query token attending to its
+    frame's points, and (``bifa``) bidirectional aggregation between adjacent frames."""
+
+    def __init__(
+        self, dim: int, heads: int, point_heads: int, ffn: int, dropout: float, bifa: bool
+    ):
+        super().__init__()
+        self.point_attn = nn.MultiheadAttention(dim, point_heads, dropout=dropout)
+        self.point_norm1, self.point_norm2 = nn.LayerNorm(dim), nn.LayerNorm(dim)
+        self.point_ffn = nn.Sequential(
+            nn.Linear(dim, ffn), nn.ReLU(inplace=True), nn.Dropout(dropout), nn.Linear(ffn, dim)
+        )
+        self.token_attn = nn.MultiheadAttention(dim, heads, dropout=dropout)
+        self.token_norm1, self.token_norm2 = nn.LayerNorm(dim), nn.LayerNorm(dim)
+        self.token_ffn = nn.Sequential(
+            nn.Linear(dim, ffn), nn.ReLU(inplace=True), nn.Dropout(dropout), nn.Linear(ffn, dim)
+        )
+        self.dropout = nn.Dropout(dropout)
+        self.bifa = bifa
+        if bifa:
+            self.forward_fuse, self.backward_fuse = nn.Linear(2 * dim, dim), nn.Linear(2 * dim, dim)
+            self.forward_norm, self.backward_norm = nn.LayerNorm(dim), nn.LayerNorm(dim)
+
+    def forward(self, groups: torch.Tensor) -> torch.Tensor:
+        """``groups``: ``(T, 1 + K, N, C)`` (frame, token + points, ROI, channel)."""
+        num_frames, length, num, dim = groups.shape
+        seq = groups.reshape(num_frames, length, num, dim).permute(1, 0, 2, 3)
+        seq = seq.reshape(length, num_frames * num, dim)  # frames side by side on the batch axis
+        token, pts = seq[:1], seq[1:]
+        pts = self.point_norm1(
+            pts + self.dropout(self.point_attn(pts, pts, pts, need_weights=False)[0])
+        )
+        pts = self.point_norm2(pts + self.dropout(self.point_ffn(pts)))
+        token = self.token_norm1(
+            token + self.dropout(self.token_attn(token, pts, pts, need_weights=False)[0])
+        )
+        token = self.token_norm2(token + self.dropout(self.token_ffn(token)))
+        seq = torch.cat([token, pts], 0).reshape(length, num_frames, num, dim).permute(1, 0, 2, 3)
+        if self.bifa and num_frames > 1:
+            seq = self._bifa(seq)
+        return seq
+
+    def _bifa(self, groups: torch.Tensor) -> torch.Tensor:
+        """Frame ``k`` takes the max-pooled features of frame ``k - 1`` (forward, newer ->
+        older), then of frame ``k + 1`` (backward), each by a linear layer on the concatenation,
+        a residual and a layer norm."""
+        pooled = groups.max(dim=1).values  # (T, N, C)
+        length = groups.shape[1]
+        older = groups[1:]
+        fused = self.forward_fuse(
+            torch.cat([older, pooled[:-1, None].expand(-1, length, -1, -1)], -1)
+        )
+        groups = torch.cat([groups[:1], self.forward_norm(fused + older)], 0)
+        pooled = groups.max(dim=1).values
+        newer = groups[:-1]
+        fused = self.backward_fuse(
+            torch.cat([newer, pooled[1:, None].expand(-1, length, -1, -1)], -1)
+        )
+        return torch.cat([self.backward_norm(fused + newer), groups[-1:]], 0)
+
+
+class BiFATransformer(nn.Module):
+    """``layers`` :class:`EncoderLayer` blocks (the first ``bifa_layers`` with BiFA) over one
+    group per frame, each led by a learnt query token of its frame."""
+
+    def __init__(self, num_frames: int, dim: int, heads: int, point_heads: int, ffn: int,
+                 layers: int, bifa_layers: int, dropout: float):  # fmt: skip
+        super().__init__()
+        self.token = nn.Parameter(torch.zeros(num_frames, 1, 1, dim))
+        nn.init.normal_(self.token, std=0.02)
+        self.layers = nn.ModuleList(
+            EncoderLayer(dim, heads, point_heads, ffn, dropout, bifa=k < bifa_layers)
+            for k in range(layers)
+        )
+
+    def forward(self, points: torch.Tensor) -> list[torch.Tensor]:
+        """``points``: ``(T, K, N, C)`` embedded points; returns each layer's tokens
+        ``(T, N, C)``."""
+        num_frames, _, num, dim = points.shape
+        groups = torch.cat([self.token.expand(num_frames, 1, num, dim), points], 1)
+        tokens = []
+        for layer in self.layers:
+            groups = layer(groups)
+            tokens.append(groups[:, 0])
+        return tokens
+
+
+@MODEL_STAGES.register()
+class MSFHead(nn.Module):
+    """The MSF ROI head (module docstring); config keys in :meth:`from_config` and
+    docs/model_zoo.md.
+
+    :meth:`forward` reads ``points`` ``(N, 1 + C)`` with the time lag last, ``rois`` ``(B, R, 9)``
+    (current-frame proposals with velocity), ``roi_valid`` ``(B, R)`` bool and ``generators``
+    (one CPU ``torch.Generator`` per sample), and writes ``rcnn_cls`` (list over layers of
+    ``(B, R)`` logits), ``rcnn_reg`` ``(B, R, 7)`` codes, ``aux_reg`` (list of ``(B, R, 7)``
+    codes: per layer and frame token, then the trajectory branch's).
+    """
+
+    CONFIG_KEYS = (
+        "NAME", "NUM_FRAMES", "IOU_WEIGHT", "SAMPLER", "TRANSFORMER", "EMBED_DIM",
+        "TARGET_CONFIG", "LOSS_CONFIG",
+    )  # fmt: skip
+
+    def __init__(
+        self,
+        *,
+        num_class: int,
+        num_point_features: int,
+        num_frames: int = 4,
+        iou_weight: Sequence[float] = (0.5, 0.4, 0.4),
+        num_points: int = 128,
+        gamma: float = 1.1,
+        radius_growth: bool = True,
+        hidden_dim: int = 256,
+        nheads: int = 4,
+        point_nheads: int = 8,
+        enc_layers: int = 3,
+        bifa_layers: int = 2,
+        dim_feedforward: int = 512,
+        dropout: float = 0.1,
+        embed_dim: int = 64,
+        sampler_cfg: RoiSamplerConfig | None = None,
+        roi_aug: Mapping | None = None,
+        loss_weights: Mapping | None = None,
+    ):
+        super().__init__()
+        if len(iou_weight) != num_class:
+            raise ValueError(
+                f"IOU_WEIGHT needs one weight per class ({num_class}), got {iou_weight}"
+            )
+        if num_point_features < 6:
+            raise ValueError(
+                f"MSFHead needs points [x, y, z, intensity, elongation, ..., time lag], got "
+                f"{num_point_features} columns"
+            )
+        if not 0 <= bifa_layers <= enc_layers:
+            raise ValueError(
+                f"BIFA_LAYERS must be in [0, ENC_LAYERS={enc_layers}], got {bifa_layers}"
+            )
+        self.num_class = num_class
+        self.num_frames = int(num_frames)
+        self.iou_weight = [float(w) for w in iou_weight]
+        self.num_points, self.gamma, self.radius_growth = (
+            int(num_points),
+            float(gamma),
+            bool(radius_growth),
+        )
+        self.point_feature_dim = num_point_features - 1  # x, y, z, intensity, elongation, ...
+        self.sampler_cfg = sampler_cfg or RoiSamplerConfig()
+        self.roi_aug = dict(
+            roi_aug
+            or {
+                "ENABLED": True,
+                "TRIES": 10,
+                "KEEP_RATIO": 0.2,
+                "TRAJ_ENABLED": True,
+                "TRAJ_THRESH": 0.8,
+            }
+        )
+        self.loss_weights = dict(loss_weights or {})
+        self.box_coder = ResidualCoder(7)
+        extra = self.point_feature_dim - 3
+        self.geometry_embed = mlp([27 + extra, embed_dim, embed_dim, hidden_dim])
+        self.motion_embed = mlp([30, embed_dim, embed_dim, hidden_dim])
+        self.trajectory = TrajectoryPointNet(hidden_dim)
+        self.transformer = BiFATransformer(
+            self.num_frames, hidden_dim, nheads, point_nheads, dim_feedforward, enc_layers,
+            bifa_layers, dropout,
+        )  # fmt: skip
+        self.class_embed = nn.Linear(hidden_dim, 1)
+        self.frame_reg = nn.ModuleList(
+            mlp([hidden_dim, hidden_dim, hidden_dim, hidden_dim, 7]) for _ in range(self.num_frames)
+        )
+        self.joint_reg = mlp(
+            [hidden_dim * (self.num_frames + 1), hidden_dim, hidden_dim, hidden_dim, 7]
+        )
+        for head in [self.joint_reg, *self.frame_reg]:
+            nn.init.normal_(head[-1].weight, std=0.001)
+            nn.init.zeros_(head[-1].bias)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping, model_info: Mapping) -> MSFHead:
+        check_known_keys(cfg, cls.CONFIG_KEYS, "MODEL.ROI_HEAD")
+        sampler = cfg.get("SAMPLER", {})
+        check_known_keys(
+            sampler, ["NUM_POINTS", "GAMMA", "RADIUS_GROWTH"], "MODEL.ROI_HEAD.SAMPLER"
+        )
+        trans = cfg.get("TRANSFORMER", {})
+        check_known_keys(
+            trans,
+            [
+                "HIDDEN_DIM",
+                "NHEADS",
+                "POINT_NHEADS",
+                "ENC_LAYERS",
+                "BIFA_LAYERS",
+                "DIM_FEEDFORWARD",
+                "DROPOUT",
+            ],
+            "MODEL.ROI_HEAD.TRANSFORMER",
+        )
+        target = cfg.get("TARGET_CONFIG", {})
+        target_keys = {
+            "ROI_PER_IMAGE": "roi_per_image", "FG_RATIO": "fg_ratio",
+            "REG_FG_THRESH": "reg_fg_thresh", "CLS_FG_THRESH": "cls_fg_thresh",
+            "CLS_BG_THRESH": "cls_bg_thresh", "CLS_BG_THRESH_LO": "cls_bg_thresh_lo",
+            "HARD_BG_RATIO": "hard_bg_ratio", "SAMPLE_ROI_BY_EACH_CLASS": "by_class",
+        }  # fmt: skip
+        aug_keys = ["USE_ROI_AUG", "ROI_FG_AUG_TIMES", "RATIO", "USE_TRAJ_AUG"]
+        check_known_keys(target, [*target_keys, *aug_keys], "MODEL.ROI_HEAD.TARGET_CONFIG")
+        traj_aug = target.get("USE_TRAJ_AUG", {"ENABLED": True, "THRESHOLD": 0.8})
+        check_known_keys(
+            traj_aug, ["ENABLED", "THRESHOLD"], "MODEL.ROI_HEAD.TARGET_CONFIG.USE_TRAJ_AUG"
+        )
+        loss = cfg.get("LOSS_CONFIG", {})
+        check_known_keys(loss, ["LOSS_WEIGHTS"], "MODEL.ROI_HEAD.LOSS_CONFIG")
+        weights = dict(loss.get("LOSS_WEIGHTS", {}))
+        check_known_keys(
+            weights,
+            [
+                "rcnn_cls_weight",
+                "rcnn_reg_weight",
+                "rcnn_corner_weight",
+                "traj_reg_weight",
+                "code_weights",
+            ],
+            "MODEL.ROI_HEAD.LOSS_CONFIG.LOSS_WEIGHTS",
+        )
+        check_finite(cfg, "MODEL.ROI_HEAD")
+        class_names = model_info["class_names"]
+        return cls(
+            num_class=len(class_names),
+            num_point_features=model_info["num_rawpoint_features"],
+            num_frames=int(cfg.get("NUM_FRAMES", 4)),
+            iou_weight=list(cfg.get("IOU_WEIGHT", [0.5] + [0.4] * (len(class_names) - 1))),
+            num_points=int(sampler.get("NUM_POINTS", 128)),
+            gamma=float(sampler.get("GAMMA", 1.1)),
+            radius_growth=bool(sampler.get("RADIUS_GROWTH", True)),
+            hidden_dim=int(trans.get("HIDDEN_DIM", 256)),
+            nheads=int(trans.get("NHEADS", 4)),
+            point_nheads=int(trans.get("POINT_NHEADS", 8)),
+            enc_layers=int(trans.get("ENC_LAYERS", 3)),
+            bifa_layers=int(trans.get("BIFA_LAYERS", 2)),
+            dim_feedforward=int(trans.get("DIM_FEEDFORWARD", 512)),
+            dropout=float(trans.get("DROPOUT", 0.1)),
+            embed_dim=int(cfg.get("EMBED_DIM", 64)),
+            sampler_cfg=RoiSamplerConfig(
+                **{v: target[k] for k, v in target_keys.items() if k in target}
+            ),
+            roi_aug={
+                "ENABLED": bool(target.get("USE_ROI_AUG", True)),
+                "TRIES": int(target.get("ROI_FG_AUG_TIMES", 10)),
+                "KEEP_RATIO": float(target.get("RATIO", 0.2)),
+                "TRAJ_ENABLED": bool(traj_aug.get("ENABLED", True)),
+                "TRAJ_THRESH": float(traj_aug.get("THRESHOLD", 0.8)),
+            },
+            loss_weights=weights,
+        )
+
+    # ------------------------------------------------------------------ features
+    def forward(self, batch: dict) -> dict:
+        valid = batch["roi_valid"]
+        trajectories = batch["trajectories"]  # (B, T, R, 7); frame 0 holds the ROIs
+        batch_size, num_frames, num_rois = trajectories.shape[:3]
+        if num_frames != self.num_frames:
+            raise ValueError(
+                f"MSFHead: {num_frames} trajectory frames for NUM_FRAMES={self.num_frames}"
+            )
+        pts, pts_valid = sample_batch_points(
+            batch["points"],
+            trajectories,
+            batch["generators"],
+            num_sample=self.num_points,
+            gamma=self.gamma,
+            radius_growth=self.radius_growth,
+        )  # fmt: skip  (B, R, T, K, C)
+        num = batch_size * num_rois
+        pts = pts.reshape(num, num_frames, self.num_points, -1)
+        pts_valid = pts_valid.reshape(num, num_frames, self.num_points)
+        traj = trajectories.permute(0, 2, 1, 3).reshape(num, num_frames, -1)  # (N, T, 7)
+        geometry = spherical_offsets(pts[..., 0:3], traj)  # frame i's box
+        geometry = torch.cat([geometry, pts[..., 3:]], dim=-1)
+        motion = spherical_offsets(pts[..., 0:3], traj[:, :1].expand(-1, num_frames, -1))
+        time = 0.1 * torch.arange(num_frames, dtype=pts.dtype, device=pts.device)
+        time = time[None, :, None, None].expand(num, num_frames, self.num_points, 1)
+        motion = torch.cat([motion, torch.zeros_like(time), torch.zeros_like(time), time], dim=-1)
+        src = self.geometry_embed(geometry) + self.motion_embed(motion)
+        src = src * (pts_valid & valid.reshape(num, 1, 1))[..., None]  # empty slots and ROIs: 0
+        box_code, box_feat = self.trajectory(trajectory_sequence(traj))
+        tokens = self.transformer(src.permute(1, 2, 0, 3))  # (T, K, N, C) -> per layer (T, N, C)
+        last = tokens[-1]
+        joint = self.joint_reg(torch.cat([last.permute(1, 0, 2).reshape(num, -1), box_feat], 1))
+        batch = dict(batch)
+        batch["rcnn_cls"] = [self.class_embed(t[0]).reshape(batch_size, num_rois) for t in tokens]
+        batch["rcnn_reg"] = joint.reshape(batch_size, num_rois, 7)
+        aux = [
+            self.frame_reg[f](t[f]).reshape(batch_size, num_rois, 7)
+            for t in tokens
+            for f in range(num_frames)
+        ]
+        batch["aux_reg"] = aux
+        batch["traj_reg"] = box_code.reshape(batch_size, num_rois, 7)
+        return batch
+
+    # ------------------------------------------------------------------ training
+    def assign_targets(
+        self,
+        rois: torch.Tensor,
+        roi_labels: torch.Tensor,
+        roi_valid: torch.Tensor,
+        gt_boxes: torch.Tensor,
+        generators: Sequence[torch.Generator],
+    ) -> dict:
+        """Sample ``ROI_PER_IMAGE`` proposals per frame, jitter them (MSF's ROI and trajectory
+        augmentation) and match them to the ground truth.
+
+        Args:
+            rois: ``(B, R, 9)`` proposals with velocity; roi_labels ``(B, R)`` 1-based;
+                roi_valid ``(B, R)`` bool (False: padding).
+            gt_boxes: ``(B, M, 8|10)`` with the 1-based class last (all-zero rows: padding).
+        Returns:
+            ``rois`` ``(B, S, 9)``, ``trajectories`` ``(B, T, S, 7)``, ``roi_valid`` ``(B, S)``
+            (False for every row of a frame without proposals), ``gt_of_rois`` ``(B, S, 7)``,
+            ``reg_valid`` ``(B, S)`` bool, ``cls_label`` ``(B, S)``, ``roi_labels`` ``(B, S)``.
+        """
+        cfg, aug = self.sampler_cfg, self.roi_aug
+        count = cfg.roi_per_image
+        out = {
+            "rois": rois.new_zeros(len(generators), count, rois.shape[-1]),
+            "trajectories": rois.new_zeros(len(generators), self.num_frames, count, 7),
+            "roi_valid": torch.zeros(len(generators), count, dtype=torch.bool, device=rois.device),
+            "gt_of_rois": rois.new_zeros(len(generators), count, 7),
+            "reg_valid": torch.zeros(len(generators), count, dtype=torch.bool, device=rois.device),
+            "cls_label": rois.new_zeros(len(generators), count),
+            "roi_labels": torch.zeros(len(generators), count, dtype=torch.long, device=rois.device),
+        }
+        fg_thresh = min(cfg.reg_fg_thresh, cfg.cls_fg_thresh)
+        for b, gen in enumerate(generators):
+            keep = roi_valid[b]
+            if not bool(keep.any()):
+                continue  # a frame without proposals trains nothing (its rows stay invalid)
+            cur, labels = rois[b][keep], roi_labels[b][keep]
+            gt = gt_boxes[b][gt_boxes[b, :, :7].abs().sum(1) > 0]
+            draw = sample_rois(cur, labels, gt[:, :7], gt[:, -1].long(), cfg, gen)
+            chosen = cur[draw.roi_index].clone()
+            iou = draw.iou.to(chosen.dtype)
+            matched = gt[draw.gt_index.clamp_min(0), :7] if gt.shape[0] else chosen[:, :7] * 0
+            traj = propagate_boxes(chosen, self.num_frames)  # from the unjittered proposal
+            fg = iou >= fg_thresh
+            if aug["ENABLED"] and bool(fg.any()):
+                boxes, new_iou = augment_boxes(
+                    chosen[fg, :7], matched[fg], iou[fg], tries=aug["TRIES"],
+                    keep_ratio=aug["KEEP_RATIO"], iou_thresh=fg_thresh, generator=gen,
+                )  # fmt: skip
+                chosen[fg, :7], iou[fg] = boxes, new_iou
+                if aug["TRAJ_ENABLED"]:
+                    for frame in range(1, self.num_frames):
+                        ref = traj[frame][fg]
+                        traj[frame][fg] = augment_boxes(
+                            ref, ref, torch.ones_like(new_iou), tries=aug["TRIES"],
+                            keep_ratio=aug["KEEP_RATIO"], iou_thresh=aug["TRAJ_THRESH"],
+                            generator=gen,
+                        )[0]  # fmt: skip
+            traj[0] = chosen[:, :7]
+            out["rois"][b], out["trajectories"][b] = chosen, traj
+            out["roi_valid"][b] = True
+            out["gt_of_rois"][b] = matched
+            out["reg_valid"][b] = (iou > cfg.reg_fg_thresh) & (draw.gt_index >= 0)
+            out["cls_label"][b] = soft_iou_label(iou, cfg.cls_fg_thresh, cfg.cls_bg_thresh)
+            out["roi_labels"][b] = labels[draw.roi_index]
+        return out
+
+    def loss(self, outputs: Mapping, targets: Mapping) -> dict[str, torch.Tensor]:
+        """MSF's loss: soft-label BCE on every layer's confidence, smooth-L1 (beta 1/9) on the
+        refined box, the frame tokens' and the trajectory branch's auxiliary boxes, and the
+        corner loss of the refined box (weights: ``LOSS_CONFIG.LOSS_WEIGHTS``)."""
+        w = self.loss_weights
+        traj_w = list(w.get("traj_reg_weight", [2.0, 2.0, 2.0]))
+        code_w = torch.as_tensor(
+            w.get("code_weights", [1.0] * 7), dtype=outputs["rcnn_reg"].dtype,
+            device=outputs["rcnn_reg"].device,
+        )  # fmt: skip
+        valid = targets["roi_valid"]
+        reg_valid = targets["reg_valid"] & valid
+        rois = targets["rois"][..., :7]
+        goal = encode_roi_targets(
+            targets["gt_of_rois"].reshape(-1, 7), rois.reshape(-1, 7), self.box_coder
+        ).reshape(rois.shape)
+        num_valid = valid.sum().clamp_min(1)
+        num_fg = reg_valid.sum().clamp_min(1)
+
+        def reg_loss(codes: torch.Tensor) -> torch.Tensor:
+            per = F.smooth_l1_loss(codes, goal, beta=SMOOTH_L1_BETA, reduction="none") * code_w
+            return (per.sum(-1) * reg_valid).sum() / num_fg
+
+        cls = torch.stack([
+            (F.binary_cross_entropy_with_logits(
+                logits, targets["cls_label"], reduction="none") * valid).sum() / num_valid
+            for logits in outputs["rcnn_cls"]
+        ]).mean() * w.get("rcnn_cls_weight", 1.0)  # fmt: skip
+        reg = reg_loss(outputs["rcnn_reg"]) * w.get("rcnn_reg_weight", 1.0) * traj_w[0]
+        traj = reg_loss(outputs["traj_reg"]) * traj_w[1]
+        aux = torch.stack([reg_loss(c) for c in outputs["aux_reg"]]).mean() * traj_w[2]
+        fg_rois, fg_codes = rois[reg_valid], outputs["rcnn_reg"][reg_valid]
+        if fg_rois.shape[0]:
+            boxes = decode_roi_boxes(fg_codes, fg_rois, self.box_coder)
+            corner = corner_loss(boxes, targets["gt_of_rois"][reg_valid]).mean()
+        else:
+            corner = outputs["rcnn_reg"].sum() * 0.0
+        corner = corner * w.get("rcnn_corner_weight", 2.0)
+        total = cls + reg + traj + aux + corner
+        return {
+            "loss": total, "rcnn_loss_cls": cls, "rcnn_loss_reg": reg,
+            "rcnn_loss_traj": traj, "rcnn_loss_aux": aux, "rcnn_loss_corner": corner,
+        }  # fmt: skip
+
+    # ------------------------------------------------------------------ inference
+    def decode(self, outputs: Mapping, rois: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(B, R, 7)`` refined boxes and ``(B, R)`` confidence logits (last layer)."""
+        shape = rois.shape[:2]
+        boxes = decode_roi_boxes(
+            outputs["rcnn_reg"].reshape(-1, 7), rois[..., :7].reshape(-1, 7), self.box_coder
+        )
+        return boxes.reshape(*shape, 7), outputs["rcnn_cls"][-1]

@@ -1,0 +1,234 @@
+"""MSF's second stage: motion-guided sampling against a brute-force reference, BiFA's two
+directions, ROI jitter, target assignment and the loss."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from pcdet_atlas.models.model_utils.motion_sampler import (
+    frame_of_points,
+    propagate_boxes,
+    sample_cylinder_points,
+    sampling_radius,
+)
+from pcdet_atlas.models.model_utils.roi_sampler import RoiSamplerConfig
+from pcdet_atlas.models.roi_heads.msf_head import (
+    BiFATransformer,
+    MSFHead,
+    augment_boxes,
+    spherical_offsets,
+)
+from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d
+
+
+def scene(seed: int = 0, num_frames: int = 4, per_frame: int = 3000):
+    """Points of ``num_frames`` frames (lag column 0.1 i) around three moving boxes."""
+    g = torch.Generator().manual_seed(seed)
+    boxes = torch.tensor(
+        [
+            [5.0, 2.0, 0.8, 4.5, 2.0, 1.6, 0.4, 8.0, 1.0],
+            [-6.0, 3.0, 0.9, 0.8, 0.8, 1.8, 0.0, 0.0, 1.2],
+            [5.5, 2.5, 0.8, 4.2, 1.9, 1.5, 0.5, 7.0, 0.0],  # overlaps the first: shared points
+        ]
+    )
+    rows = []
+    for i in range(num_frames):
+        xy = (torch.rand(per_frame, 2, generator=g) - 0.5) * 30.0
+        z = torch.rand(per_frame, 1, generator=g) * 2
+        feat = torch.rand(per_frame, 2, generator=g)
+        lag = torch.full((per_frame, 1), 0.1 * i)
+        rows.append(torch.cat([xy, z, feat, lag], 1))
+    return torch.cat(rows), boxes
+
+
+def brute_force(points, frames, traj, num_sample, gamma, growth, keys):
+    """Per box and frame: the cylinder's points by a plain loop, then the smallest keys."""
+    num_frames, num_boxes = traj.shape[:2]
+    out = torch.zeros(num_boxes, num_frames, num_sample, points.shape[1])
+    valid = torch.zeros(num_boxes, num_frames, num_sample, dtype=torch.bool)
+    for r in range(num_boxes):
+        for i in range(num_frames):
+            box = traj[i, r]
+            radius = (gamma ** (i + 1) if growth else gamma) * math.hypot(box[3] / 2, box[4] / 2)
+            cand = [
+                n
+                for n in range(points.shape[0])
+                if frames[n] == i
+                and (points[n, 0] - box[0]) ** 2 + (points[n, 1] - box[1]) ** 2 <= radius**2
+            ]
+            cand.sort(key=lambda n: float(keys[n]))
+            for slot, n in enumerate(cand[:num_sample]):
+                out[r, i, slot] = points[n]
+                valid[r, i, slot] = True
+    return out, valid
+
+
+@pytest.mark.parametrize("growth", [True, False])
+def test_sampler_matches_brute_force(growth):
+    points, boxes = scene()
+    traj = propagate_boxes(boxes, 4)
+    frames = frame_of_points(points[:, -1], 4)
+    out, valid = sample_cylinder_points(
+        points[:, :-1], frames, traj, num_sample=64, gamma=1.1, radius_growth=growth,
+        generator=torch.Generator().manual_seed(7),
+    )  # fmt: skip
+    keys = torch.rand(
+        points.shape[0], generator=torch.Generator().manual_seed(7), dtype=torch.float64
+    )
+    ref_out, ref_valid = brute_force(points[:, :-1], frames, traj, 64, 1.1, growth, keys)
+    assert torch.equal(valid, ref_valid)
+    assert torch.equal(out, ref_out)
+    full = valid.all(-1)  # some cylinders hold more than 64 points, some fewer
+    assert full.any() and not full.all()
+
+
+def test_radius_grows_with_the_frame_age():
+    box = torch.tensor([[0.0, 0.0, 0.0, 4.0, 3.0, 1.5, 0.0]])
+    base = math.hypot(2.0, 1.5)
+    for i in range(4):
+        assert float(sampling_radius(box, i, 1.1, True)) == pytest.approx(base * 1.1 ** (i + 1))
+        assert float(sampling_radius(box, i, 1.1, False)) == pytest.approx(base * 1.1)
+    # a point just outside frame 0's radius but inside frame 3's is drawn in frame 3 only
+    r0, r3 = base * 1.1, base * 1.1**4
+    pts = torch.tensor([[0.5 * (r0 + r3), 0.0, 0.0, 0.1, 0.2]] * 2)
+    frames = torch.tensor([0, 3])
+    traj = box[None].repeat(4, 1, 1)
+    _, valid = sample_cylinder_points(
+        pts, frames, traj, num_sample=4, gamma=1.1, radius_growth=True,
+        generator=torch.Generator().manual_seed(0),
+    )  # fmt: skip
+    assert not valid[0, 0].any() and valid[0, 3, 0] and int(valid.sum()) == 1
+
+
+def test_propagation_moves_boxes_back_along_their_velocity():
+    boxes = torch.tensor([[1.0, 2.0, 0.5, 4.0, 2.0, 1.5, 0.3, 10.0, -5.0]])
+    traj = propagate_boxes(boxes, 3)
+    assert torch.allclose(traj[:, 0, 0], torch.tensor([1.0, 0.0, -1.0]))
+    assert torch.allclose(traj[:, 0, 1], torch.tensor([2.0, 2.5, 3.0]))
+    assert torch.equal(traj[:, 0, 2:7], boxes[:, 2:7].expand(3, -1))
+
+
+def test_frame_of_points_uses_the_time_lag():
+    lag = torch.tensor([0.0, 0.1, 0.2000001, 0.3, 0.35, 0.7, -0.1])
+    assert frame_of_points(lag, 4).tolist() == [0, 1, 2, 3, -1, -1, -1]
+    assert frame_of_points(lag, 8)[5] == 7
+
+
+def test_spherical_offsets_by_hand():
+    box = torch.tensor([[0.0, 0.0, 0.0, 2.0, 2.0, 2.0, 0.0]])
+    point = torch.tensor([[[0.0, 0.0, 1.0]]])  # above the centre
+    feat = spherical_offsets(point, box)
+    assert feat.shape == (1, 1, 27)
+    diag = math.sqrt(12.0)
+    assert float(feat[0, 0, 8]) == pytest.approx(1.0 / diag, rel=1e-4)  # distance to the centre
+    assert float(feat[0, 0, 26]) == pytest.approx(0.0, abs=1e-2)  # straight up: polar angle ~0
+
+
+def small_transformer(bifa_layers: int) -> BiFATransformer:
+    torch.manual_seed(0)
+    return BiFATransformer(4, 16, 2, 2, 32, layers=2, bifa_layers=bifa_layers, dropout=0.0).eval()
+
+
+def test_bifa_carries_information_both_ways_and_keeps_frames_apart():
+    points = torch.randn(4, 8, 3, 16)  # (T, K, N, C)
+    changed = points.clone()
+    changed[2] += torch.randn(8, 3, 16)  # perturb frame 2 only
+    with torch.no_grad():
+        base, moved = small_transformer(1)(points)[0], small_transformer(1)(changed)[0]
+        delta = (base - moved).abs().amax(dim=(1, 2))  # per frame, first layer's tokens
+        assert delta[1] > 1e-4 and delta[3] > 1e-4  # newer and older neighbours both see it
+        assert delta[0] == 0  # one hop per direction per layer: frame 0 is two away
+        # without BiFA each frame's token sees its own frame only (no mixing of frames)
+        base, moved = small_transformer(0)(points), small_transformer(0)(changed)
+        for layer_base, layer_moved in zip(base, moved):
+            delta = (layer_base - layer_moved).abs().amax(dim=(1, 2))
+            assert delta[2] > 1e-4 and torch.all(delta[[0, 1, 3]] == 0)
+
+
+def test_augment_boxes_reaches_the_threshold_or_keeps_the_last_try():
+    g = torch.Generator().manual_seed(3)
+    gt = torch.tensor([[0.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0]]).repeat(50, 1)
+    rois = gt.clone()
+    rois[:, 0] += torch.linspace(0.0, 0.8, 50)
+    base = boxes_aligned_iou3d(rois, gt)
+    out, iou = augment_boxes(rois, gt, base, tries=10, keep_ratio=0.2, iou_thresh=0.55, generator=g)
+    kept = (out == rois).all(1)
+    assert torch.allclose(iou[kept], base[kept].to(iou.dtype))
+    moved = ~kept
+    assert moved.any() and kept.any()
+    assert torch.allclose(
+        iou[moved], boxes_aligned_iou3d(out[moved], gt[moved]).to(iou.dtype), atol=1e-6
+    )
+    assert (iou >= 0.55).float().mean() > 0.9  # nearly all reach the foreground threshold
+    assert (out[:, :2] - rois[:, :2]).abs().max() <= 0.5 + 1e-6
+    assert ((out[:, 3:6] / rois[:, 3:6]) - 1).abs().max() <= 0.15 + 1e-6
+
+
+def tiny_head(num_frames: int = 4) -> MSFHead:
+    torch.manual_seed(0)
+    return MSFHead(
+        num_class=3, num_point_features=6, num_frames=num_frames, num_points=16, hidden_dim=32,
+        nheads=2, point_nheads=2, enc_layers=2, bifa_layers=1, dim_feedforward=64,
+        dropout=0.0, embed_dim=16, sampler_cfg=RoiSamplerConfig(roi_per_image=16),
+    )  # fmt: skip
+
+
+def head_batch():
+    points, boxes = scene(per_frame=1500)
+    batch_points = torch.cat([torch.zeros(points.shape[0], 1), points], 1)
+    gt = torch.cat([boxes[:2], torch.tensor([[1.0], [2.0]])], 1)[None]  # 10 columns
+    rois = torch.cat([boxes[:2] + torch.tensor([0.2, -0.1, 0, 0, 0, 0, 0.05, 0, 0]),
+                      torch.tensor([[9.0, -9.0, 0.5, 4.0, 2.0, 1.5, 0.0, 0.0, 0.0]])])[None]  # fmt: skip
+    labels = torch.tensor([[1, 2, 1]])
+    return batch_points, gt, rois, labels
+
+
+def test_targets_and_loss_train_the_head():
+    head = tiny_head()
+    points, gt, rois, labels = head_batch()
+    gens = [torch.Generator().manual_seed(1)]
+    targets = head.assign_targets(rois, labels, torch.ones_like(labels, dtype=torch.bool), gt, gens)
+    assert targets["rois"].shape == (1, 16, 9) and targets["roi_valid"].all()
+    assert targets["reg_valid"].any() and (~targets["reg_valid"]).any()
+    # frame 0 of the trajectory is the (jittered) ROI; older frames follow the velocity
+    assert torch.equal(targets["trajectories"][:, 0], targets["rois"][..., :7])
+    # the regression target decodes back to the matched ground truth
+    from pcdet_atlas.models.model_utils.box_coder import decode_roi_boxes, encode_roi_targets
+
+    fg = targets["reg_valid"][0]
+    codes = encode_roi_targets(
+        targets["gt_of_rois"][0, fg], targets["rois"][0, fg, :7], head.box_coder
+    )
+    back = decode_roi_boxes(codes, targets["rois"][0, fg, :7], head.box_coder)
+    assert torch.allclose(back[:, :6], targets["gt_of_rois"][0, fg, :6], atol=1e-4)
+    head.train()
+    opt = torch.optim.Adam(head.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(15):
+        out = head({"points": points, "trajectories": targets["trajectories"],
+                    "roi_valid": targets["roi_valid"], "generators": [torch.Generator().manual_seed(2)]})  # fmt: skip
+        loss = head.loss(out, targets)
+        assert all(torch.isfinite(v) for v in loss.values())
+        opt.zero_grad()
+        loss["loss"].backward()
+        opt.step()
+        losses.append(float(loss["loss"].detach()))
+    assert losses[-1] < 0.6 * losses[0]
+
+
+def test_a_frame_without_proposals_trains_nothing():
+    head = tiny_head()
+    points, gt, rois, labels = head_batch()
+    rois2 = torch.cat([rois, torch.zeros_like(rois)])
+    labels2 = torch.cat([labels, torch.zeros_like(labels)])
+    valid = labels2 > 0
+    targets = head.assign_targets(rois2, labels2, valid, gt.repeat(2, 1, 1),
+                                  [torch.Generator().manual_seed(1)] * 2)  # fmt: skip
+    assert targets["roi_valid"][0].all() and not targets["roi_valid"][1].any()
+    pts2 = torch.cat([points, torch.cat([torch.ones(5, 1), points[:5, 1:]], 1)])
+    out = head({"points": pts2, "trajectories": targets["trajectories"],
+                "roi_valid": targets["roi_valid"], "generators": [torch.Generator()] * 2})  # fmt: skip
+    assert torch.isfinite(head.loss(out, targets)["loss"])
