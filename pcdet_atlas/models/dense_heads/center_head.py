@@ -230,7 +230,8 @@ class CenterHead(nn.Module):
         ):
             raise ValueError(
                 f"MODEL.DENSE_HEAD.TARGET_ASSIGNER_CONFIG.FEATURE_MAP_STRIDE ({stride}) differs "
-                f"from the BEV backbone's output stride ({model_info['backbone_stride']})"
+                f"from the backbones' output stride ({model_info['backbone_stride']:g} voxels "
+                f"per cell: the 3D backbone's stride times the BEV backbone's)"
             )
         loss_cfg = cfg.get("LOSS_CONFIG", {})
         check_known_keys(loss_cfg, ["LOSS_WEIGHTS"], "MODEL.DENSE_HEAD.LOSS_CONFIG")
