@@ -168,13 +168,22 @@ def randomize(model: torch.nn.Module, seed: int) -> None:
                 value.copy_(noise + 0.5 if key.endswith("running_var") else (noise - 0.5) * 0.6)
 
 
-CONFIGS = ["cp4f_voxel.yaml", "centerpoint_voxel.yaml", "cp4f.yaml"]
+#: OpenPCDet's real-Waymo models (centerpoint.yaml, centerpoint_4frames.yaml, the dynamic-pillar
+#: centerpoint_dyn_pillar_1x.yaml) and the synthetic sizes
+CONFIGS = [
+    "centerpoint_voxel.yaml",
+    "cp4f_voxel.yaml",
+    "centerpoint.yaml",
+    "synthetic/centerpoint_voxel.yaml",
+    "synthetic/cp4f_voxel.yaml",
+    "synthetic/cp4f.yaml",
+]
 
 
 # ------------------------------------------------------------------------------ the tests
 @pytest.mark.parametrize("name", CONFIGS)
 def test_openpcdet_state_loads_strictly_and_exports_back(name):
-    cfg = cfg_from_yaml_file(SYNTHETIC / name)
+    cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "atlas" / name)
     model = build_network_from_config(cfg)
     theirs = openpcdet_state(cfg)
     ours, layout = openpcdet_to_atlas_state(theirs, model)
