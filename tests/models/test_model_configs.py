@@ -145,6 +145,19 @@ def test_head_stride_counts_the_3d_backbone(tmp_path, name, stride, wrong):
         build_network_from_config(cfg_from_yaml_file(path))
 
 
+def test_bev_strides_must_divide_the_3d_backbone_output(tmp_path):
+    """The BEV backbone sees the 3D backbone's 60 x 60 map (480 voxels / 8), which strides
+    [1, 8] cannot divide although they divide the voxel grid."""
+    path = tmp_path / "bad.yaml"
+    src = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint_voxel.yaml"
+    path.write_text(
+        f"_BASE_CONFIG_: {src}\nMODEL:\n  BACKBONE_2D:\n    LAYER_STRIDES: [1, 8]\n"
+        "    UPSAMPLE_STRIDES: [2, 16]\n"
+    )
+    with pytest.raises(ConfigError, match=r"product 8\) must divide the BEV map \(60, 60\)"):
+        build_network_from_config(cfg_from_yaml_file(path))
+
+
 def test_wrong_point_columns_raise():
     cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml")
     model = cropped_model(cfg)
