@@ -360,6 +360,8 @@ def vfe_forms_table(cfg_files: list[str], data_path: Path, args, device: torch.d
     )
     print("|---|---|---|---|---|---|---|")
     for cfg_file in cfg_files:
+        if cfg_from_yaml_file(cfg_file).MODEL.VFE.NAME not in ("DynamicPillarVFE", "DynPillarVFE"):
+            continue  # the two forms are the pillar VFE's; a voxel model's MeanVFE has one
         cfg, batches = _config_frames(cfg_file, data_path, args.frames + 1, device)
         torch.manual_seed(0)
         model = build_network_from_config(cfg).to(device)

@@ -16,13 +16,22 @@ from pcdet_atlas.train_utils import export_model_checkpoint
 CONFIGS = sorted((REPO_ROOT / "cfgs" / "atlas").rglob("*.yaml"))
 #: single-stage (CenterPoint) configs; two-stage ones are smoke-tested in test_msf.py
 SINGLE_STAGE = [p for p in CONFIGS if cfg_from_yaml_file(p).MODEL.NAME == "CenterPoint"]
-CELLS = 64  # smoke runs use a cropped grid of CELLS x CELLS pillars, same model widths
+CELLS = 64  # smoke runs use a cropped grid of CELLS x CELLS pillars / voxels, same model widths
+#: configs whose ATLAS.CHECKPOINT names the file a user trains (docs/model_zoo.md), not one that
+#: ships
+NOT_SHIPPED = {
+    "synthetic/centerpoint_voxel.yaml",
+    "synthetic/cp4f_voxel.yaml",
+    "synthetic/msf_4f.yaml",
+    "synthetic/msf_8f.yaml",
+}
 
 
 def test_there_are_configs():
     names = {str(p.relative_to(REPO_ROOT / "cfgs" / "atlas")) for p in CONFIGS}
     assert {"centerpoint.yaml", "cp4f.yaml", "synthetic/centerpoint.yaml"} <= names
     assert "synthetic/cp4f.yaml" in names
+    assert {"centerpoint_voxel.yaml", "cp4f_voxel.yaml"} | NOT_SHIPPED <= names
 
 
 def cropped_model(cfg):
@@ -43,6 +52,12 @@ def test_build_forward_loss_gradients(path: Path):
     cfg = cfg_from_yaml_file(path)
     full = build_network_from_config(cfg)  # the config as shipped builds
     assert type(full) is DETECTORS.get(cfg.MODEL.NAME)
+    # the head's cells are the voxel grid over every stride before it (3D x 2D backbone)
+    fms = cfg.MODEL.DENSE_HEAD.TARGET_ASSIGNER_CONFIG.FEATURE_MAP_STRIDE
+    grid = full.vfe.grid.grid_size
+    assert full.dense_head.feature_map_size == (grid[1] // fms, grid[0] // fms)
+    stride_3d = full.backbone_3d.output_stride if full.backbone_3d is not None else 1
+    assert stride_3d * full.backbone_2d.output_stride == fms
     torch.manual_seed(0)
     model = cropped_model(cfg)
     # the crop changes no parameter: a checkpoint of one loads strictly into the other
@@ -69,6 +84,7 @@ def test_build_forward_loss_gradients(path: Path):
         assert p.grad is not None, f"{name} received no gradient"
         assert torch.isfinite(p.grad).all(), name
     assert "head_outputs" not in batch and "pillar_features" not in batch  # input untouched
+    assert "voxel_features" not in batch
     # every parameter is connected to the loss. The batch has 4 objects, and an output bias's
     # L1 gradient is a sum of one +-c per object, which cancels exactly when two residuals are
     # positive and two negative: such a parameter must get a gradient from the same batch with
@@ -111,6 +127,41 @@ def test_bad_stage_value_names_section_and_file(tmp_path):
     src = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml"
     path.write_text(f"_BASE_CONFIG_: {src}\nMODEL:\n  VFE:\n    VOXEL_SIZE: [0.7, 0.7, 6.0]\n")
     with pytest.raises(ConfigError, match=r"MODEL\.VFE \(.*bad\.yaml.*whole number of voxels"):
+        build_network_from_config(cfg_from_yaml_file(path))
+
+
+@pytest.mark.parametrize(
+    "name,stride,wrong",
+    [("centerpoint_voxel.yaml", 8, 1), ("synthetic/centerpoint_voxel.yaml", 2, 4)],
+)
+def test_head_stride_counts_the_3d_backbone(tmp_path, name, stride, wrong):
+    """The head's stride is the 3D backbone's 8x times the BEV backbone's; OpenPCDet's real
+    config (BEV backbone at stride 1) needs FEATURE_MAP_STRIDE 8, and another value fails."""
+    cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "atlas" / name)
+    model = build_network_from_config(cfg)
+    assert model.backbone_3d.output_stride == 8
+    assert model.backbone_2d.output_stride * 8 == stride == model.dense_head.feature_map_stride
+    path = tmp_path / "bad.yaml"
+    path.write_text(
+        f"_BASE_CONFIG_: {REPO_ROOT / 'cfgs' / 'atlas' / name}\nMODEL:\n  DENSE_HEAD:\n"
+        f"    TARGET_ASSIGNER_CONFIG:\n      FEATURE_MAP_STRIDE: {wrong}\n"
+    )
+    with pytest.raises(
+        ConfigError, match=rf"FEATURE_MAP_STRIDE \({wrong}\) differs .* \({stride} voxels"
+    ):
+        build_network_from_config(cfg_from_yaml_file(path))
+
+
+def test_bev_strides_must_divide_the_3d_backbone_output(tmp_path):
+    """The BEV backbone sees the 3D backbone's 60 x 60 map (480 voxels / 8), which strides
+    [1, 8] cannot divide although they divide the voxel grid."""
+    path = tmp_path / "bad.yaml"
+    src = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint_voxel.yaml"
+    path.write_text(
+        f"_BASE_CONFIG_: {src}\nMODEL:\n  BACKBONE_2D:\n    LAYER_STRIDES: [1, 8]\n"
+        "    UPSAMPLE_STRIDES: [2, 16]\n"
+    )
+    with pytest.raises(ConfigError, match=r"product 8\) must divide the BEV map \(60, 60\)"):
         build_network_from_config(cfg_from_yaml_file(path))
 
 
@@ -164,5 +215,8 @@ def test_shipped_checkpoint_loads_strictly(path: Path):
     ckpt = cfg.get("ATLAS", {}).get("CHECKPOINT")
     if ckpt is None or not str(ckpt).startswith("checkpoints/"):
         pytest.skip("this config ships no checkpoint (null, or a training output path)")
+    name = str(path.relative_to(REPO_ROOT / "cfgs" / "atlas"))
+    if name in NOT_SHIPPED and not (REPO_ROOT / ckpt).is_file():
+        pytest.skip(f"{ckpt} is the file a user trains for {name}; it does not ship")
     assert (REPO_ROOT / ckpt).is_file(), f"{ckpt} named by {path.name} does not ship"
     build_network_from_config(cfg).load_params_from_file(REPO_ROOT / ckpt, strict=True)

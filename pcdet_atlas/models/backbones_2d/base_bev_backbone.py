@@ -86,10 +86,15 @@ class BaseBEVBackbone(nn.Module):
         require_keys(cfg, [*keys, "NUM_UPSAMPLE_FILTERS"], "MODEL.BACKBONE_2D")
         total = math.prod(int(s) for s in cfg["LAYER_STRIDES"])
         grid = model_info.get("grid_size")
-        if grid is not None and (grid[0] % total or grid[1] % total):
+        # the map this backbone sees: the voxel grid, or what a 3D backbone's stride leaves of it
+        before = int(model_info.get("backbone_stride", 1))
+        if grid is not None and ((grid[0] // before) % total or (grid[1] // before) % total):
+            seen = (grid[0] // before, grid[1] // before)
             raise ConfigError(
-                f"MODEL.BACKBONE_2D.LAYER_STRIDES (product {total}) must divide the BEV grid "
-                f"{tuple(grid[:2])} (POINT_CLOUD_RANGE / VOXEL_SIZE), or the levels misalign"
+                f"MODEL.BACKBONE_2D.LAYER_STRIDES (product {total}) must divide the BEV map "
+                f"{seen} (POINT_CLOUD_RANGE / VOXEL_SIZE"
+                + (f" / the 3D backbone's stride {before}" if before > 1 else "")
+                + "), or the levels misalign"
             )
         return cls(
             input_channels=model_info["num_bev_features"],

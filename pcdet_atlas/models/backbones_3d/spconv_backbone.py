@@ -82,6 +82,8 @@ class _VoxelBackBone(nn.Module):
         # OpenPCDet's sparse shape: grid_size[::-1] + [1, 0, 0] (one extra z layer)
         self.sparse_shape = [nz + 1, ny, nx]
         self.input_channels = input_channels
+        #: voxels per BEV cell of ``encoded_spconv_tensor`` along x and y
+        self.output_stride = 8
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> _VoxelBackBone:
@@ -111,7 +113,7 @@ class _VoxelBackBone(nn.Module):
         x_conv3 = self.conv3(x_conv2)
         x_conv4 = self.conv4(x_conv3)
         batch_dict["encoded_spconv_tensor"] = self.conv_out(x_conv4)
-        batch_dict["encoded_spconv_tensor_stride"] = 8
+        batch_dict["encoded_spconv_tensor_stride"] = self.output_stride
         batch_dict["multi_scale_3d_features"] = {
             "x_conv1": x_conv1, "x_conv2": x_conv2, "x_conv3": x_conv3, "x_conv4": x_conv4,
         }  # fmt: skip

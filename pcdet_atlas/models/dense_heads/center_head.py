@@ -230,7 +230,8 @@ class CenterHead(nn.Module):
         ):
             raise ValueError(
                 f"MODEL.DENSE_HEAD.TARGET_ASSIGNER_CONFIG.FEATURE_MAP_STRIDE ({stride}) differs "
-                f"from the BEV backbone's output stride ({model_info['backbone_stride']})"
+                f"from the backbones' output stride ({model_info['backbone_stride']:g} voxels "
+                f"per cell: the 3D backbone's stride times the BEV backbone's)"
             )
         loss_cfg = cfg.get("LOSS_CONFIG", {})
         check_known_keys(loss_cfg, ["LOSS_WEIGHTS"], "MODEL.DENSE_HEAD.LOSS_CONFIG")
@@ -280,6 +281,29 @@ class CenterHead(nn.Module):
             nms_pre_maxsize=nms.get("NMS_PRE_MAXSIZE", 4096),
             nms_post_maxsize=nms.get("NMS_POST_MAXSIZE", 500),
         )
+
+    def openpcdet_names(self) -> dict[str, str | None]:
+        """This head's ``state_dict`` keys -> the names OpenPCDet's CenterHead gives the same
+        tensors (``None``: a buffer OpenPCDet does not save; it comes from the config).
+
+        OpenPCDet nests each branch: ``heads_list.0.<head>.<k>.0`` / ``.<k>.1`` are the conv and
+        BatchNorm of the k-th conv-BN-ReLU block and ``heads_list.0.<head>.<num_conv - 1>`` the
+        output conv; here a branch is one flat ``nn.Sequential`` (``head.branches.<head>.<i>``).
+        """
+        names: dict[str, str | None] = {}
+        for key in self.state_dict():
+            parts = key.split(".")
+            if parts[0] == "head":  # head.branches.<name>.<i>.<tensor>
+                name, i, tensor = parts[2], int(parts[3]), ".".join(parts[4:])
+                if i == len(self.head.branches[name]) - 1:  # the output conv
+                    names[key] = f"heads_list.0.{name}.{i // 3}.{tensor}"
+                else:
+                    names[key] = f"heads_list.0.{name}.{i // 3}.{i % 3}.{tensor}"
+            elif key == "code_weights":
+                names[key] = None
+            else:  # shared_conv: the same names
+                names[key] = key
+        return names
 
     def forward(self, batch_dict: dict) -> dict:
         x = self.shared_conv(batch_dict["spatial_features_2d"])  # (B, C_shared, H, W)

@@ -1,5 +1,6 @@
-"""CenterPoint (pillar variant): DynamicPillarVFE -> PointPillarScatter -> BaseBEVBackbone ->
-CenterHead. With multi-frame input (a time-lag point column) and the ``vel`` head it is CP4F."""
+"""CenterPoint: pillars (DynamicPillarVFE -> PointPillarScatter) or voxels (MeanVFE ->
+VoxelResBackBone8x -> HeightCompression), then BaseBEVBackbone -> CenterHead. With multi-frame
+input (a time-lag point column) and the ``vel`` head it is CP4F."""
 
 from __future__ import annotations
 

@@ -62,7 +62,9 @@ def stage_model_info(stage: nn.Module, name: str, info: dict) -> None:
     if hasattr(stage, "num_bev_features"):
         info["num_bev_features"] = stage.num_bev_features
     if hasattr(stage, "output_stride"):
-        info["backbone_stride"] = stage.output_stride
+        # strides compose: a 2D backbone runs on the grid a 3D backbone leaves (8x for the
+        # voxel backbones), so ``backbone_stride`` counts voxels per cell of the last map
+        info["backbone_stride"] = info.get("backbone_stride", 1) * stage.output_stride
 
 
 class Detector3DTemplate(nn.Module):
