@@ -94,6 +94,9 @@ def load_checkpoint(
     ckpt = read_checkpoint(path)
     state = ckpt["model_state"] if "model_state" in ckpt else ckpt
     load_state_dict_checked(_unwrap(model), state, strict=strict, source=str(path))
+    check_info = getattr(_unwrap(model), "check_checkpoint_info", None)
+    if check_info is not None:  # e.g. a two-stage model resumed with another RPN
+        check_info(ckpt, path)
     for obj, key in ((optimizer, "optimizer_state"), (scheduler, "scheduler_state")):
         if obj is not None:
             if ckpt.get(key) is None:

@@ -21,7 +21,7 @@ from pcdet_atlas.models import build_network_from_config, load_data_to_device
 from pcdet_atlas.models.detectors import MSF, TwoStageDetector
 from pcdet_atlas.models.detectors.detector3d_template import CheckpointMismatchError
 from pcdet_atlas.ops.iou3d_nms import boxes_iou_bev
-from pcdet_atlas.train_utils import checkpoint_state, export_model_checkpoint
+from pcdet_atlas.train_utils import checkpoint_state, export_model_checkpoint, load_checkpoint
 from pcdet_atlas.train_utils.proposals import proposal_cache_file, training_proposals
 
 CFGS = REPO_ROOT / "cfgs" / "atlas"
@@ -148,8 +148,11 @@ def test_checkpoints_record_the_rpn(tmp_path):
     torch.save(rpn, other)
     cfg = cfg_from_yaml_file(CFGS / "synthetic" / "msf_4f.yaml")
     cfg.MODEL.RPN.CHECKPOINT = str(other)
+    other_model = build_network_from_config(cfg)
     with pytest.raises(CheckpointMismatchError, match="trained on the proposals of an RPN"):
-        build_network_from_config(cfg).load_params_from_file(small)
+        other_model.load_params_from_file(small)
+    with pytest.raises(CheckpointMismatchError, match="trained on the proposals of an RPN"):
+        load_checkpoint(path, other_model)  # resuming a training run with another RPN
 
 
 def test_missing_rpn_checkpoint_names_it():
@@ -262,3 +265,39 @@ def test_the_dataset_serves_and_augments_proposals_with_the_boxes(synthetic_root
 
 def test_two_stage_detector_is_exported():
     assert issubclass(MSF, TwoStageDetector)
+
+
+@pytest.mark.slow
+def test_test_tool_runs_msf_with_its_window_and_refuses_missing_data(
+    synthetic_root, injection, tmp_path, capsys
+):
+    """tools/test.py on MSF-8f: same flags and results.json, lifecycle window 8; on a fresh
+    machine the real config stops at once naming the data path and the synthetic config."""
+    from model_batches import load_tool
+
+    from pcdet_atlas.evaluation import load_results
+
+    test = load_tool("test")
+    with pytest.raises(SystemExit, match=r"DATA_PATH .*absent.*--cfg cfgs/atlas/synthetic/msf_8f"):
+        test.main(["--cfg", str(CFGS / "msf_8f.yaml"), "--set", "DATA_CONFIG.DATA_PATH",
+                   str(tmp_path / "absent")])  # fmt: skip
+    model = synthetic_msf("msf_8f.yaml")
+    ckpt = tmp_path / "msf_random.pth"
+    torch.save(checkpoint_state(model, epoch=0, it=0), ckpt)
+    variant = tmp_path / "inj_global_hard.yaml"
+    variant.write_text(
+        f"_BASE_CONFIG_: {REPO_ROOT / 'cfgs' / 'attacks' / 'inj_global_hard.yaml'}\n"
+        f"TRACE_LIBRARY:\n  PATH: {injection.TRACE_LIBRARY.PATH}\n  MIN_POINTS: 100\n"
+    )
+    ret = test.main([
+        "--cfg", str(CFGS / "synthetic" / "msf_8f.yaml"), "--ckpt", str(ckpt), "--attacks",
+        f"clean,{variant}", "--output_root", str(tmp_path / "out"), "--workers", "0",
+        "--no_progress", "--device", "cpu", "--set", "DATA_CONFIG.DATA_PATH", str(synthetic_root),
+        "DATA_CONFIG.SAMPLED_INTERVAL", "train:1,test:14",
+    ])  # fmt: skip
+    results = load_results(ret["output_dir"] / "results.json")
+    assert results["model"] == "MSF-8f"
+    inj = results["variants"]["inj_global_hard"]
+    assert inj["num_frames"] == 5 and inj["num_targets"] == 2
+    assert inj["lifecycle"]["window"] == 8
+    assert "inj_global_hard" in capsys.readouterr().out  # the table

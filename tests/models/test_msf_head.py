@@ -180,8 +180,9 @@ def head_batch():
     points, boxes = scene(per_frame=1500)
     batch_points = torch.cat([torch.zeros(points.shape[0], 1), points], 1)
     gt = torch.cat([boxes[:2], torch.tensor([[1.0], [2.0]])], 1)[None]  # 10 columns
-    rois = torch.cat([boxes[:2] + torch.tensor([0.2, -0.1, 0, 0, 0, 0, 0.05, 0, 0]),
-                      torch.tensor([[9.0, -9.0, 0.5, 4.0, 2.0, 1.5, 0.0, 0.0, 0.0]])])[None]  # fmt: skip
+    near = boxes[:2] + torch.tensor([0.2, -0.1, 0, 0, 0, 0, 0.05, 0, 0])
+    far = torch.tensor([[9.0, -9.0, 0.5, 4.0, 2.0, 1.5, 0.0, 0.0, 0.0]])
+    rois = torch.cat([near, far])[None]
     labels = torch.tensor([[1, 2, 1]])
     return batch_points, gt, rois, labels
 
@@ -208,8 +209,11 @@ def test_targets_and_loss_train_the_head():
     opt = torch.optim.Adam(head.parameters(), lr=3e-3)
     losses = []
     for _ in range(15):
-        out = head({"points": points, "trajectories": targets["trajectories"],
-                    "roi_valid": targets["roi_valid"], "generators": [torch.Generator().manual_seed(2)]})  # fmt: skip
+        gens = [torch.Generator().manual_seed(2)]
+        out = head(
+            {"points": points, "trajectories": targets["trajectories"],
+             "roi_valid": targets["roi_valid"], "generators": gens}
+        )  # fmt: skip
         loss = head.loss(out, targets)
         assert all(torch.isfinite(v) for v in loss.values())
         opt.zero_grad()
@@ -229,6 +233,9 @@ def test_a_frame_without_proposals_trains_nothing():
                                   [torch.Generator().manual_seed(1)] * 2)  # fmt: skip
     assert targets["roi_valid"][0].all() and not targets["roi_valid"][1].any()
     pts2 = torch.cat([points, torch.cat([torch.ones(5, 1), points[:5, 1:]], 1)])
-    out = head({"points": pts2, "trajectories": targets["trajectories"],
-                "roi_valid": targets["roi_valid"], "generators": [torch.Generator()] * 2})  # fmt: skip
+    gens = [torch.Generator()] * 2
+    out = head(
+        {"points": pts2, "trajectories": targets["trajectories"],
+         "roi_valid": targets["roi_valid"], "generators": gens}
+    )  # fmt: skip
     assert torch.isfinite(head.loss(out, targets)["loss"])

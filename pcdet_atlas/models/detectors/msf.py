@@ -52,8 +52,13 @@ class MSF(TwoStageDetector):
     def predict(self, batch_dict: Mapping) -> list[dict[str, torch.Tensor]]:
         """Per sample ``pred_boxes (K, 7)``, ``pred_scores``, ``pred_labels`` (1-based), and
         ``rois`` / ``roi_scores`` / ``roi_labels``: the RPN's proposals it refined."""
+        return self.refine(batch_dict, self.propose(batch_dict))
+
+    @torch.no_grad()
+    def refine(self, batch_dict: Mapping, proposals: list[Mapping]) -> list[dict]:
+        """The second stage alone: :meth:`predict` on given per-sample proposals (the RPN's
+        ``pred_boxes (R, 9)``, ``pred_scores``, ``pred_labels``)."""
         device = batch_dict["points"].device
-        proposals = self.propose(batch_dict)
         rois, scores, labels, valid = proposals_to_padded(proposals, device)
         head = self.roi_head
         traj = torch.stack([propagate_boxes(r, head.num_frames) for r in rois])

@@ -153,14 +153,18 @@ class TwoStageDetector(Detector3DTemplate):
 
     def load_params_from_file(self, filename, *, strict: bool = True, map_location: str = "cpu"):
         ckpt = super().load_params_from_file(filename, strict=strict, map_location=map_location)
+        self.check_checkpoint_info(ckpt, filename)
+        return ckpt
+
+    def check_checkpoint_info(self, ckpt: Mapping, source) -> None:
+        """Refuse a checkpoint trained on the proposals of another RPN checkpoint."""
         recorded = (ckpt.get("model_info") or {}).get("rpn", {}).get("sha256")
         if recorded != self.rpn_info["sha256"]:
             raise CheckpointMismatchError(
-                f"checkpoint {filename} was trained on the proposals of an RPN with checkpoint "
+                f"checkpoint {source} was trained on the proposals of an RPN with checkpoint "
                 f"SHA-256 {recorded}; MODEL.RPN.CHECKPOINT {self.rpn_info['checkpoint']} has "
                 f"{self.rpn_info['sha256']}: use the RPN it was trained with, or retrain"
             )
-        return ckpt
 
     # ------------------------------------------------------------------ randomness
     @staticmethod

@@ -252,11 +252,12 @@ class MSFHead(nn.Module):
     """The MSF ROI head (module docstring); config keys in :meth:`from_config` and
     docs/model_zoo.md.
 
-    :meth:`forward` reads ``points`` ``(N, 1 + C)`` with the time lag last, ``rois`` ``(B, R, 9)``
-    (current-frame proposals with velocity), ``roi_valid`` ``(B, R)`` bool and ``generators``
-    (one CPU ``torch.Generator`` per sample), and writes ``rcnn_cls`` (list over layers of
-    ``(B, R)`` logits), ``rcnn_reg`` ``(B, R, 7)`` codes, ``aux_reg`` (list of ``(B, R, 7)``
-    codes: per layer and frame token, then the trajectory branch's).
+    :meth:`forward` reads ``points`` ``(N, 1 + C)`` with the time lag last, ``trajectories``
+    ``(B, T, R, 7)`` (each proposal's box per frame, frame 0 the proposal itself),
+    ``roi_valid`` ``(B, R)`` bool and ``generators`` (one CPU ``torch.Generator`` per sample),
+    and writes ``rcnn_cls`` (list over blocks of ``(B, R)`` logits), ``rcnn_reg`` ``(B, R, 7)``
+    codes of the refined box, ``aux_reg`` (list over blocks and frame tokens of ``(B, R, 7)``
+    codes) and ``traj_reg`` ``(B, R, 7)`` (the trajectory branch's codes).
     """
 
     CONFIG_KEYS = (
@@ -429,14 +430,14 @@ class MSFHead(nn.Module):
             raise ValueError(
                 f"MSFHead: {num_frames} trajectory frames for NUM_FRAMES={self.num_frames}"
             )
-        pts, pts_valid = sample_batch_points(
+        pts, pts_valid = sample_batch_points(  # (B, R, T, K, C), (B, R, T, K)
             batch["points"],
             trajectories,
             batch["generators"],
             num_sample=self.num_points,
             gamma=self.gamma,
             radius_growth=self.radius_growth,
-        )  # fmt: skip  (B, R, T, K, C)
+        )
         num = batch_size * num_rois
         pts = pts.reshape(num, num_frames, self.num_points, -1)
         pts_valid = pts_valid.reshape(num, num_frames, self.num_points)
