@@ -3,6 +3,9 @@
 ``synthetic_root``: a tiny synthetic Waymo-format dataset generated once per test session
 (train: 2 sequences x 10 frames; val: 1 sequence x 70 frames, enough for one full 32-frame
 attack run 32..63 plus 6 frames after it), in OpenPCDet's processed layout.
+
+``injection``: the loaded ``inj_global_hard`` attack config with a trace library built from
+``synthetic_root`` (traces of at least 100 points).
 """
 
 from __future__ import annotations
@@ -28,3 +31,17 @@ def synthetic_root(tmp_path_factory):
         workers=2,
     )
     return root
+
+
+@pytest.fixture(scope="session")
+def injection(synthetic_root, tmp_path_factory):
+    """``inj_global_hard`` on the fixture dataset (module docstring)."""
+    from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
+    from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+
+    tmp = tmp_path_factory.mktemp("injection")
+    attack_cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "attacks" / "inj_global_hard.yaml")
+    attack_cfg.TRACE_LIBRARY.MIN_POINTS = 100
+    lib = build_trace_library(synthetic_root, TraceFilter.from_config(attack_cfg.TRACE_LIBRARY))
+    attack_cfg.TRACE_LIBRARY.PATH = str(lib.save(tmp / "lib.npz"))
+    return attack_cfg

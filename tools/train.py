@@ -125,7 +125,7 @@ def main(argv=None) -> dict:
             model, cfg.DATA_CONFIG, cfg.CLASS_NAMES, device=device, workers=args.workers,
             logger=logger,
         )  # fmt: skip
-        dataset.set_proposals(table, str(source))
+        dataset.set_proposals(table, str(source), history=model.proposal_history)
     optimizer = build_optimizer(model, optim_cfg)
     scheduler = build_scheduler(
         optimizer, optim_cfg, iters_per_epoch=len(loader), total_epochs=epochs

@@ -184,14 +184,13 @@ class AtlasWaymoDataset(WaymoDataset):
         return self.attack.frame_meta(seq, sample_idx)
 
     # ------------------------------------------------------------------ samples
-    def __getitem__(self, index: int) -> dict:
+    def get_sample(self, info: Mapping, epoch: int | None = None) -> dict:
         """The clean sample dict with attacked points and ``attack`` (the metadata record)."""
-        info = self.infos[index % len(self.infos)]
         sequence_name = info["point_cloud"]["lidar_sequence"]
         sample_idx = int(info["point_cloud"]["sample_idx"])
         self._current, self._current_meta = (sequence_name, sample_idx), None
         try:
-            data = super().__getitem__(index)
+            data = super().get_sample(info, epoch)
             meta = self._current_meta
         finally:
             self._current, self._current_meta = None, None

@@ -195,6 +195,7 @@ STACKED_KEYS = (
     "noise_rot",
     "noise_scale",
     "frame_seed",
+    "roi_history_frames",
 )
 
 
@@ -203,7 +204,8 @@ def collate_batch(batch_list: list[dict]) -> dict:
 
     * ``points`` ``(N_i, C)`` -> ``(sum N_i, 1 + C)`` float32 with the sample index first;
     * ``gt_boxes`` ``(M_i, B)`` -> ``(batch, max M_i, B)`` float32, zero-padded (the same for
-      the proposals ``roi_boxes`` of two-stage training, whose zero label marks padding);
+      the proposals ``roi_boxes`` / ``roi_history`` of two-stage training, whose zero label
+      marks padding);
     * the keys of :data:`STACKED_KEYS` -> ``np.stack`` (``(batch, ...)``);
     * anything else (``gt_names``, ``metadata``, attack metadata, ...) -> a list per key;
     * ``batch_size`` = number of samples.
@@ -229,7 +231,7 @@ def collate_batch(batch_list: list[dict]) -> dict:
                 out[start : start + len(v), 1:] = v
                 start += len(v)
             ret[key] = out
-        elif key in ("gt_boxes", "roi_boxes"):
+        elif key in ("gt_boxes", "roi_boxes", "roi_history"):
             max_gt = max(len(v) for v in vals)
             width = vals[0].shape[-1]
             boxes = np.zeros((batch_size, max_gt, width), dtype=np.float32)

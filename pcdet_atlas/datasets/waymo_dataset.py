@@ -29,6 +29,7 @@ from pcdet_atlas.datasets.multiframe import (
     rows_except,
     transform_points_into,
 )
+from pcdet_atlas.datasets.proposal_history import PROPOSAL_COLUMNS, gather_history
 from pcdet_atlas.datasets.waymo_format import (
     PROCESSED_DATA_TAG,
     WaymoFormatError,
@@ -119,6 +120,7 @@ class WaymoDataset(DatasetTemplate):
             )
         self.proposals: Mapping[str, np.ndarray] | None = None
         self.proposals_source = ""
+        self.proposal_history = 0
         self.set_split(dataset_cfg.DATA_SPLIT[self.mode])
 
     # ------------------------------------------------------------------ infos
@@ -160,26 +162,52 @@ class WaymoDataset(DatasetTemplate):
             )
         return infos[sample_idx]
 
-    def set_proposals(self, table: Mapping[str, np.ndarray], source: str) -> None:
+    def set_proposals(self, table: Mapping[str, np.ndarray], source: str, history: int = 0) -> None:
         """Serve ``roi_boxes`` with every sample: ``table[frame_id]`` ``(R, 11)`` ``[x, y, z, dx,
         dy, dz, heading, vx, vy, score, label]`` (the training proposals of a two-stage model,
-        read from ``source``). Every frame of ``self.infos`` must have an entry."""
+        read from ``source``). Every frame of ``self.infos`` must have an entry.
+
+        With ``history`` ``H > 0`` also ``roi_history`` ``(N, 12)`` (the proposals of the ``H``
+        previous frames in the sample's vehicle frame, frames back in the last column) and
+        ``roi_history_frames`` (how many previous frames exist): every frame of the split's
+        sequences must then have an entry (:mod:`pcdet_atlas.datasets.proposal_history`).
+        """
         if self.data_augmentor is not None and "gt_sampling" in self.data_augmentor.names:
             raise ConfigError(
                 "DATA_CONFIG.DATA_AUGMENTOR: gt_sampling pastes objects that have no proposals; "
                 "leave it out of a two-stage model's augmentation"
             )
-        missing = [info["frame_id"] for info in self.infos if info["frame_id"] not in table]
+        if isinstance(history, bool) or not isinstance(history, int) or history < 0:
+            raise ValueError(f"set_proposals: history must be an int >= 0, got {history!r}")
+        needed = self.all_infos if history else self.infos
+        missing = [info["frame_id"] for info in needed if info["frame_id"] not in table]
         if missing:
             raise KeyError(
-                f"{source}: no proposals for {len(missing)} of the {len(self.infos)} frames of "
+                f"{source}: no proposals for {len(missing)} of the {len(needed)} frames of "
                 f"split {self.split!r} (first: {missing[0]})"
             )
         for frame_id, boxes in table.items():
-            if np.ndim(boxes) != 2 or np.shape(boxes)[1] != 11:
-                raise ValueError(f"{source}: proposals of {frame_id} must be (R, 11), got "
-                                 f"{np.shape(boxes)}")  # fmt: skip
+            if np.ndim(boxes) != 2 or np.shape(boxes)[1] != PROPOSAL_COLUMNS:
+                raise ValueError(f"{source}: proposals of {frame_id} must be (R, "
+                                 f"{PROPOSAL_COLUMNS}), got {np.shape(boxes)}")  # fmt: skip
         self.proposals, self.proposals_source = table, source
+        self.proposal_history = history
+
+    def sample_proposals(self, sequence_name: str, sample_idx: int) -> dict:
+        """``roi_boxes`` (and with a history ``roi_history``, ``roi_history_frames``) of a frame
+        from the table of :meth:`set_proposals`."""
+        infos = self.seq_name_to_infos[sequence_name]
+        out = {
+            "roi_boxes": np.array(self.proposals[infos[sample_idx]["frame_id"]], dtype=np.float64)
+        }
+        if self.proposal_history:
+            rows, count = gather_history(
+                lambda k: self.proposals[infos[k]["frame_id"]],
+                lambda k: np.asarray(infos[k]["pose"], dtype=np.float64),
+                sample_idx, self.proposal_history,
+            )  # fmt: skip
+            out["roi_history"], out["roi_history_frames"] = rows, np.int64(count)
+        return out
 
     # ------------------------------------------------------------------ points
     def get_lidar(self, sequence_name: str, sample_idx: int) -> np.ndarray:
@@ -314,7 +342,15 @@ class WaymoDataset(DatasetTemplate):
         if self._merge_all_iters_to_one_epoch:
             epoch = self.epoch + index // len(self.infos)
             index = index % len(self.infos)
-        info = self.infos[index]
+        return self.get_sample(self.infos[index], epoch)
+
+    def frame_sample(self, sequence_name: str, sample_idx: int) -> dict:
+        """The sample of any frame of the split, also one that ``SAMPLED_INTERVAL`` leaves out
+        (as ``__getitem__`` builds it; the proposal bank reads history frames this way)."""
+        return self.get_sample(self.get_frame_info(sequence_name, int(sample_idx)), None)
+
+    def get_sample(self, info: Mapping, epoch: int | None = None) -> dict:
+        """The sample of the frame of ``info`` (``__getitem__``'s dict) at ``epoch``."""
         sequence_name = info["point_cloud"]["lidar_sequence"]
         sample_idx = int(info["point_cloud"]["sample_idx"])
         points = self.get_lidar(sequence_name, sample_idx)
@@ -334,7 +370,7 @@ class WaymoDataset(DatasetTemplate):
         if "annos" in info:
             input_dict.update(self.get_annotations(info))
         if self.proposals is not None:
-            input_dict["roi_boxes"] = np.array(self.proposals[info["frame_id"]], dtype=np.float64)
+            input_dict.update(self.sample_proposals(sequence_name, sample_idx))
         return self.prepare_data(input_dict, epoch=epoch)
 
     # ------------------------------------------------------------------ predictions

@@ -13,6 +13,7 @@ from torch import nn
 
 from pcdet_atlas.models.batch import load_data_to_device
 from pcdet_atlas.train_utils.dist import all_gather_objects, get_dist_info
+from pcdet_atlas.train_utils.proposal_bank import ProposalBank
 
 __all__ = ["predict_dataset", "eval_one_epoch", "write_prediction_files"]
 
@@ -34,11 +35,17 @@ def predict_dataset(
         (``frame_id`` order of ``dataset.infos``), and per frame ``{'frame_id', 'attack'}``
         (the attack record of an ``AtlasWaymoDataset`` sample, None for a clean dataset).
         ``timings`` (if given) accumulates seconds under ``'data'`` (loading, attack
-        simulation included) and ``'model'``.
+        simulation included) and ``'model'`` (for a model with a proposal history, PTT, the
+        proposal bank's RPN passes included: :class:`ProposalBank`).
     """
     dataset = dataloader.dataset
     rank, world = get_dist_info()
     model.eval()
+    core = model.module if isinstance(model, nn.parallel.DistributedDataParallel) else model
+    bank = (  # models reading earlier frames' proposals: each frame's computed once
+        ProposalBank(core, dataset, device=device)
+        if getattr(core, "proposal_history", 0) else None
+    )  # fmt: skip
     local: list[tuple[str, dict, dict]] = []
     bar = tqdm.tqdm(
         total=len(dataloader), desc=desc, leave=False, dynamic_ncols=True,
@@ -48,11 +55,9 @@ def predict_dataset(
     for batch in dataloader:
         t0 = time.perf_counter()
         batch_dev = load_data_to_device(batch, device)
-        pred_dicts = (
-            model.predict(batch_dev)
-            if not isinstance(model, nn.parallel.DistributedDataParallel)
-            else model.module.predict(batch_dev)
-        )
+        if bank is not None:
+            batch_dev = bank.attach(batch, batch_dev)
+        pred_dicts = core.predict(batch_dev)
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         t1 = time.perf_counter()

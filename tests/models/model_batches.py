@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 
+import numpy as np
 import torch
 
 from pcdet_atlas.config import REPO_ROOT
@@ -75,3 +76,31 @@ def load_tool(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def two_stage_batch(num_frames: int) -> dict:
+    """The model tests' two-sample batch with 6 point columns, its boxes as jittered proposals
+    (plus one far false positive) and a frame seed per sample."""
+    batch = make_batch(num_point_features=6, with_velocity=True)
+    rois = []
+    for b in range(2):
+        gt = batch["gt_boxes"][b]
+        gt = gt[gt[:, 3] > 0]
+        jitter = gt[:, :9].clone()
+        jitter[:, 0] += 0.3
+        far = torch.tensor([[30.0, 30.0, 1.0, 4.0, 2.0, 1.5, 0.0, 0.0, 0.0]])
+        boxes = torch.cat([jitter, far])
+        rows = torch.cat(
+            [boxes, torch.full((len(boxes), 1), 0.8), torch.cat([gt[:, -1:], torch.ones(1, 1)])], 1
+        )
+        rois.append(rows)
+    padded = torch.zeros(2, max(len(r) for r in rois), 11)
+    for b, r in enumerate(rois):
+        padded[b, : len(r)] = r
+    batch["roi_boxes"] = padded
+    batch["frame_seed"] = np.array([11, 12])
+    if num_frames > 4:  # older frames: copies of the first points with larger lags
+        extra = batch["points"][::3].clone()
+        extra[:, -1] = 0.6
+        batch["points"] = torch.cat([batch["points"], extra])
+    return batch

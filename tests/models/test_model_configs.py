@@ -24,6 +24,7 @@ NOT_SHIPPED = {
     "synthetic/cp4f_voxel.yaml",
     "synthetic/msf_4f.yaml",
     "synthetic/msf_8f.yaml",
+    "synthetic/ptt_32f.yaml",
 }
 
 

@@ -11,10 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from model_batches import make_batch
+from model_batches import two_stage_batch as training_batch
 
 from pcdet_atlas.attacks import AtlasWaymoDataset
-from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets.dataset import collate_batch
 from pcdet_atlas.models import build_network_from_config, load_data_to_device
@@ -54,34 +53,6 @@ def load_msf_cfg(path: Path, rpn_ckpt: Path | None = None):
         cfg.MODEL.ROI_HEAD.TARGET_CONFIG.ROI_PER_IMAGE = 8
         cfg.MODEL.ROI_HEAD.SAMPLER.NUM_POINTS = 16
     return cfg
-
-
-def training_batch(num_frames: int) -> dict:
-    """The model tests' two-sample batch with 6 point columns, its boxes as jittered proposals
-    (plus one far false positive) and a frame seed per sample."""
-    batch = make_batch(num_point_features=6, with_velocity=True)
-    rois = []
-    for b in range(2):
-        gt = batch["gt_boxes"][b]
-        gt = gt[gt[:, 3] > 0]
-        jitter = gt[:, :9].clone()
-        jitter[:, 0] += 0.3
-        far = torch.tensor([[30.0, 30.0, 1.0, 4.0, 2.0, 1.5, 0.0, 0.0, 0.0]])
-        boxes = torch.cat([jitter, far])
-        rows = torch.cat(
-            [boxes, torch.full((len(boxes), 1), 0.8), torch.cat([gt[:, -1:], torch.ones(1, 1)])], 1
-        )
-        rois.append(rows)
-    padded = torch.zeros(2, max(len(r) for r in rois), 11)
-    for b, r in enumerate(rois):
-        padded[b, : len(r)] = r
-    batch["roi_boxes"] = padded
-    batch["frame_seed"] = np.array([11, 12])
-    if num_frames > 4:  # older frames: copies of the first points with larger lags
-        extra = batch["points"][::3].clone()
-        extra[:, -1] = 0.6
-        batch["points"] = torch.cat([batch["points"], extra])
-    return batch
 
 
 @pytest.mark.parametrize("path", MSF_CONFIGS, ids=lambda p: str(p.relative_to(CFGS)))
@@ -159,16 +130,6 @@ def test_missing_rpn_checkpoint_names_it():
     cfg = cfg_from_yaml_file(CFGS / "msf_8f.yaml")
     with pytest.raises(FileNotFoundError, match=r"MODEL\.RPN\.CHECKPOINT.*checkpoint_epoch_36"):
         build_network_from_config(cfg)
-
-
-@pytest.fixture(scope="module")
-def injection(synthetic_root, tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("msf_attack")
-    attack_cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "attacks" / "inj_global_hard.yaml")
-    attack_cfg.TRACE_LIBRARY.MIN_POINTS = 100
-    lib = build_trace_library(synthetic_root, TraceFilter.from_config(attack_cfg.TRACE_LIBRARY))
-    attack_cfg.TRACE_LIBRARY.PATH = str(lib.save(tmp / "lib.npz"))
-    return attack_cfg
 
 
 def test_a_phantom_reaches_the_rpn_on_spoofed_frames(synthetic_root, injection):

@@ -18,9 +18,9 @@ from pcdet_atlas.models.model_utils.roi_sampler import RoiSamplerConfig
 from pcdet_atlas.models.roi_heads.msf_head import (
     BiFATransformer,
     MSFHead,
-    augment_boxes,
     spherical_offsets,
 )
+from pcdet_atlas.models.roi_heads.roi_head_template import augment_boxes
 from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d
 
 

@@ -5,13 +5,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
-from pcdet_atlas.models.model_utils.trajectory import (
-    associate_trajectories,
-    future_boxes,
-    history_to_current,
-)
+from pcdet_atlas.datasets.proposal_history import gather_history, history_to_current
+from pcdet_atlas.models.model_utils.trajectory import associate_trajectories, future_boxes
 
 
 def box(x, y, vx=10.0, vy=0.0, heading=0.0):
@@ -43,7 +41,9 @@ def test_sequence_start_is_padding():
     history = [torch.tensor([box(-1.0, 0.0)]), None, None]
     boxes, matched, valid = associate_trajectories(current, history)
     assert valid[:2].all() and not valid[2:].any()
-    assert torch.equal(boxes[2:], torch.zeros_like(boxes[2:]))
+    assert not matched[2:].any()
+    # padding continues the prediction (finite features; the model masks these frames)
+    assert torch.allclose(boxes[3, :, :2], boxes[1, :, :2] - 0.2 * boxes[1, :, 7:9])
     assert matched[1].tolist() == [True, False]  # the parked car has nothing to match
 
 
@@ -74,3 +74,26 @@ def test_history_to_current_against_the_world_frame():
     assert math.isclose(float(moved[6]) + (-0.4), world_heading, abs_tol=1e-9)
     assert torch.allclose(now[:2, :2] @ moved[7:9], world_vel)
     assert torch.equal(moved[3:6], local[0, 3:6])
+
+
+def test_gather_history_moves_each_frame_by_its_own_pose():
+    poses = [pose(float(k), 0.5 * k, 0.05 * k).numpy() for k in range(6)]
+    table = {
+        k: np.array(
+            [[*box(k, 1.0, 2.0, 0.5, heading=0.1), 0.9, 1.0]] * (k % 3), np.float32
+        ).reshape(-1, 11)
+        for k in range(6)
+    }
+    rows, count = gather_history(table.__getitem__, poses.__getitem__, 4, 31)
+    assert count == 4  # frames 3, 2, 1, 0 exist; older ones are before the sequence start
+    # frame k holds k % 3 proposals: frames 3 and 0 none, frame 2 two, frame 1 one
+    assert rows[:, 11].tolist() == [2.0, 2.0, 3.0]
+    for back in range(1, 5):
+        frame = rows[rows[:, 11] == back]
+        want = history_to_current(table[4 - back][:, :9].astype(np.float64), poses[4 - back],
+                                  poses[4])  # fmt: skip
+        np.testing.assert_array_equal(frame[:, :9], want)
+        np.testing.assert_array_equal(frame[:, 9:11], table[4 - back][:, 9:11])
+    rows, count = gather_history(table.__getitem__, poses.__getitem__, 5, 2)
+    assert count == 2 and set(rows[:, 11].tolist()) <= {1.0, 2.0}
+    assert gather_history(table.__getitem__, poses.__getitem__, 0, 31)[1] == 0

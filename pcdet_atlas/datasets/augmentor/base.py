@@ -23,6 +23,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from pcdet_atlas.config import ConfigError, check_known_keys, key_source
+from pcdet_atlas.datasets.proposal_history import PROPOSAL_KEYS
 from pcdet_atlas.registry import TRANSFORMS
 from pcdet_atlas.utils.common import limit_period
 from pcdet_atlas.utils.seeding import numpy_generator
@@ -113,9 +114,10 @@ class DataAugmentor(_Pipeline):
         data_dict = self._run(data_dict, seed_keys)
         boxes = data_dict["gt_boxes"]
         boxes[:, 6] = limit_period(boxes[:, 6], offset=0.5, period=2 * np.pi)
-        if data_dict.get("roi_boxes") is not None:  # two-stage training proposals
-            rois = data_dict["roi_boxes"]
-            rois[:, 6] = limit_period(rois[:, 6], offset=0.5, period=2 * np.pi)
+        for key in PROPOSAL_KEYS:  # two-stage training proposals
+            if data_dict.get(key) is not None:
+                rois = data_dict[key]
+                rois[:, 6] = limit_period(rois[:, 6], offset=0.5, period=2 * np.pi)
         if "gt_boxes_mask" in data_dict:
             mask = data_dict.pop("gt_boxes_mask")
             data_dict["gt_boxes"] = boxes[mask]

@@ -15,6 +15,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from pcdet_atlas.config import ConfigError, require_keys
+from pcdet_atlas.datasets.proposal_history import PROPOSAL_KEYS
 from pcdet_atlas.registry import TRANSFORMS
 
 __all__ = ["RandomWorldFlip", "RandomWorldRotation", "RandomWorldScaling"]
@@ -22,10 +23,12 @@ __all__ = ["RandomWorldFlip", "RandomWorldRotation", "RandomWorldScaling"]
 
 def _box_arrays(data_dict: dict) -> list[np.ndarray]:
     """The box arrays a world transform moves: ``gt_boxes`` and, when present, the first 9
-    columns (box and velocity; not score and label) of the proposals ``roi_boxes``."""
+    columns (box and velocity; not score and label) of the proposals ``roi_boxes`` and
+    ``roi_history``."""
     arrays = [data_dict["gt_boxes"]]
-    if data_dict.get("roi_boxes") is not None:
-        arrays.append(data_dict["roi_boxes"][:, :9])  # a view: changed in place
+    for key in PROPOSAL_KEYS:
+        if data_dict.get(key) is not None:
+            arrays.append(data_dict[key][:, :9])  # a view: changed in place
     return arrays
 
 

@@ -13,7 +13,6 @@ from pcdet_atlas.models.detectors.two_stage import (
     roi_boxes_to_padded,
 )
 from pcdet_atlas.models.model_utils.motion_sampler import propagate_boxes
-from pcdet_atlas.models.model_utils.roi_utils import fuse_scores, select_detections
 from pcdet_atlas.registry import DETECTORS
 
 __all__ = ["MSF"]
@@ -67,26 +66,4 @@ class MSF(TwoStageDetector):
             "generators": self.sample_generators(batch_dict, "msf_points"),
         })  # fmt: skip
         boxes, logits = head.decode(out, rois)
-        post = self.post_processing
-        nms = post.get("NMS_CONFIG", {})
-        no_nms = [1 + self.class_names.index("Vehicle")] if (
-            post.get("NOT_APPLY_NMS_FOR_VEL", True) and "Vehicle" in self.class_names
-        ) else []  # fmt: skip
-        results = []
-        for b, proposal in enumerate(proposals):
-            n = len(proposal["pred_scores"])
-            fused = fuse_scores(logits[b, :n], scores[b, :n], labels[b, :n], head.iou_weight)
-            keep = select_detections(
-                boxes[b, :n], fused, labels[b, :n],
-                score_thresh=float(post.get("SCORE_THRESH", 0.1)),
-                nms_thresh=float(nms.get("NMS_THRESH", 0.7)),
-                pre_max_size=int(nms.get("NMS_PRE_MAXSIZE", 4096)),
-                post_max_size=int(nms.get("NMS_POST_MAXSIZE", 500)),
-                no_nms_labels=no_nms,
-            )  # fmt: skip
-            results.append({
-                "pred_boxes": boxes[b, keep], "pred_scores": fused[keep],
-                "pred_labels": labels[b, keep], "rois": proposal["pred_boxes"],
-                "roi_scores": proposal["pred_scores"], "roi_labels": proposal["pred_labels"],
-            })  # fmt: skip
-        return results
+        return self.detections(proposals, boxes, logits, scores, labels)

@@ -26,6 +26,7 @@ from pcdet_atlas.models.detectors.detector3d_template import (
     Detector3DTemplate,
 )
 from pcdet_atlas.models.model_utils.motion_sampler import frame_of_points
+from pcdet_atlas.models.model_utils.roi_utils import fuse_scores, select_detections
 from pcdet_atlas.utils.seeding import torch_generator
 
 __all__ = ["RPN_KEYS", "TwoStageDetector", "file_sha256", "load_rpn", "resolve_repo_path"]
@@ -127,6 +128,12 @@ class TwoStageDetector(Detector3DTemplate):
             **kwargs,
         )  # fmt: skip
 
+    @property
+    def proposal_history(self) -> int:
+        """How many previous frames' proposals the model reads besides the current frame's (0:
+        only the current frame's, which :meth:`propose` computes from the batch)."""
+        return 0
+
     # ------------------------------------------------------------------ the frozen RPN
     def _apply(self, fn, recurse=True):
         super()._apply(fn, recurse)
@@ -145,6 +152,46 @@ class TwoStageDetector(Detector3DTemplate):
         points = batch_dict["points"]
         keep = frame_of_points(points[:, -1], self.rpn_info["window"]) >= 0
         return self.rpn.predict({**batch_dict, "points": points[keep]})
+
+    # ------------------------------------------------------------------ detections
+    def detections(
+        self,
+        proposals: list[Mapping],
+        boxes: torch.Tensor,
+        logits: torch.Tensor,
+        scores: torch.Tensor,
+        labels: torch.Tensor,
+    ) -> list[dict[str, torch.Tensor]]:
+        """Per sample: the refined boxes ``(B, R, 7)`` of its proposals with their confidence
+        ``logits`` fused with the proposal ``scores`` (``IOU_WEIGHT`` per class), then the score
+        threshold and NMS per class (none for vehicles with ``NOT_APPLY_NMS_FOR_VEL``, as MSF and
+        PTT). ``proposals`` (the RPN's per-sample outputs) are returned as ``rois``,
+        ``roi_scores``, ``roi_labels``."""
+        post = self.post_processing
+        nms = post.get("NMS_CONFIG", {})
+        no_nms = [1 + self.class_names.index("Vehicle")] if (
+            post.get("NOT_APPLY_NMS_FOR_VEL", True) and "Vehicle" in self.class_names
+        ) else []  # fmt: skip
+        results = []
+        for b, proposal in enumerate(proposals):
+            n = len(proposal["pred_scores"])
+            fused = fuse_scores(
+                logits[b, :n], scores[b, :n], labels[b, :n], self.roi_head.iou_weight
+            )
+            keep = select_detections(
+                boxes[b, :n], fused, labels[b, :n],
+                score_thresh=float(post.get("SCORE_THRESH", 0.1)),
+                nms_thresh=float(nms.get("NMS_THRESH", 0.7)),
+                pre_max_size=int(nms.get("NMS_PRE_MAXSIZE", 4096)),
+                post_max_size=int(nms.get("NMS_POST_MAXSIZE", 500)),
+                no_nms_labels=no_nms,
+            )  # fmt: skip
+            results.append({
+                "pred_boxes": boxes[b, keep], "pred_scores": fused[keep],
+                "pred_labels": labels[b, keep], "rois": proposal["pred_boxes"],
+                "roi_scores": proposal["pred_scores"], "roi_labels": proposal["pred_labels"],
+            })  # fmt: skip
+        return results
 
     # ------------------------------------------------------------------ checkpoints
     def checkpoint_info(self) -> dict:

@@ -1,12 +1,14 @@
 """Proposal trajectories over a history of per-frame proposal sets (PTT's association).
 
 All boxes are ``(R, 9)`` ``[x, y, z, dx, dy, dz, heading, vx, vy]`` in the current vehicle
-frame (history proposals moved there with their poses: :func:`history_to_current`), velocity in
-m/s. A trajectory starts at a current proposal and walks back one frame at a time: the box of
-frame ``i`` is predicted from frame ``i - 1``'s by moving it ``-0.1 v`` (its velocity turned into
+frame (history proposals moved there with their poses:
+:func:`pcdet_atlas.datasets.proposal_history.history_to_current`), velocity in m/s. A
+trajectory starts at a current proposal and walks back one frame at a time: the box of frame ``i``
+is predicted from frame ``i - 1``'s by moving it ``-0.1 v`` (its velocity turned into
 the backward displacement of one frame); the proposal of frame ``i`` with the highest 3D IoU
 with the prediction replaces it when that IoU reaches ``iou_thresh`` (0.5), else the prediction is
-kept. Frames before the start of the sequence are padding (``valid`` False).
+kept. Frames before the start of the sequence are padding: ``valid`` False, and their boxes
+continue the prediction (so features computed from them stay finite; the model masks them).
 """
 
 from __future__ import annotations
@@ -16,20 +18,9 @@ from collections.abc import Sequence
 import torch
 
 from pcdet_atlas.datasets.multiframe import SECONDS_PER_FRAME
-from pcdet_atlas.ops.boxes import transform_boxes
 from pcdet_atlas.ops.iou3d_nms import boxes_iou3d
 
-__all__ = ["associate_trajectories", "future_boxes", "history_to_current"]
-
-
-def history_to_current(
-    boxes: torch.Tensor, pose_then: torch.Tensor, pose_now: torch.Tensor
-) -> torch.Tensor:
-    """Boxes ``(R, 9)`` of an earlier frame (in that frame's vehicle frame, pose ``pose_then``)
-    in the current vehicle frame (pose ``pose_now``): centre by the relative pose, heading plus
-    the poses' yaw difference, velocity rotated."""
-    relative = torch.linalg.inv(pose_now.double()) @ pose_then.double()
-    return transform_boxes(boxes.double(), relative).to(boxes.dtype)
+__all__ = ["associate_trajectories", "future_boxes"]
 
 
 def associate_trajectories(
@@ -44,10 +35,11 @@ def associate_trajectories(
         history: for frames ``t-1, t-2, ...``: that frame's proposals ``(R_i, 9)`` in the current
             vehicle frame, or ``None`` for a frame before the start of the sequence (it and every
             older frame are padding).
+        iou_thresh: the 3D IoU a proposal needs with the prediction to be taken.
     Returns:
         ``boxes`` ``(1 + H, R, 9)`` (frame 0 = ``current``), ``matched`` ``(1 + H, R)`` bool (a
         proposal of that frame was taken; frame 0 True), ``valid`` ``(1 + H, R)`` bool (False on
-        padding frames, whose boxes are zero).
+        padding frames).
     """
     num = current.shape[0]
     frames = 1 + len(history)
@@ -55,13 +47,14 @@ def associate_trajectories(
     matched = torch.zeros(frames, num, dtype=torch.bool, device=current.device)
     valid = torch.zeros(frames, num, dtype=torch.bool, device=current.device)
     boxes[0], matched[0], valid[0] = current, True, True
+    started = True
     for i, props in enumerate(history, start=1):
-        if props is None:
-            break  # the sequence starts here: this and older frames stay padding
         pred = boxes[i - 1].clone()
         pred[:, 0:2] = pred[:, 0:2] - SECONDS_PER_FRAME * pred[:, 7:9]
-        boxes[i], valid[i] = pred, True
-        if props.shape[0] == 0 or num == 0:
+        boxes[i] = pred
+        started = started and props is not None  # padding from the sequence start on
+        valid[i] = started
+        if not started or props.shape[0] == 0 or num == 0:
             continue
         iou, index = boxes_iou3d(pred[:, :7], props[:, :7]).max(dim=1)
         hit = iou >= iou_thresh

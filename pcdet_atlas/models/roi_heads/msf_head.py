@@ -17,7 +17,6 @@ points). The released code's reshape builds groups of 32-point slices of all fra
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 
 import torch
@@ -26,22 +25,13 @@ from torch import nn
 
 from pcdet_atlas.config import check_known_keys
 from pcdet_atlas.config_values import check_finite
-from pcdet_atlas.models.model_utils.box_coder import (
-    ResidualCoder,
-    decode_roi_boxes,
-    encode_roi_targets,
-)
 from pcdet_atlas.models.model_utils.motion_sampler import propagate_boxes, sample_batch_points
-from pcdet_atlas.models.model_utils.roi_sampler import RoiSamplerConfig, sample_rois
-from pcdet_atlas.models.model_utils.roi_utils import corner_loss, soft_iou_label
+from pcdet_atlas.models.model_utils.roi_sampler import RoiSamplerConfig
+from pcdet_atlas.models.roi_heads.roi_head_template import TemporalRoIHead
 from pcdet_atlas.ops.boxes import boxes_to_corners_3d
-from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d
 from pcdet_atlas.registry import MODEL_STAGES
 
-__all__ = ["MSFHead", "BiFATransformer", "spherical_offsets", "augment_boxes"]
-
-#: OpenPCDet's two-stage regression loss: smooth-L1 with beta 1/9.
-SMOOTH_L1_BETA = 1.0 / 9.0
+__all__ = ["MSFHead", "BiFATransformer", "mlp", "spherical_offsets"]
 
 
 def mlp(dims: Sequence[int], *, bias_last: bool = True) -> nn.Sequential:
@@ -68,42 +58,6 @@ def spherical_offsets(points_xyz: torch.Tensor, boxes: torch.Tensor) -> torch.Te
     azimuth = torch.atan(delta[..., 1] / (delta[..., 0] + 1e-5))
     polar = torch.acos((delta[..., 2] / (dist + 1e-5)).clamp(-1.0, 1.0))
     return torch.cat([dist / (diagonal + 1e-5), azimuth, polar], dim=-1)
-
-
-def augment_boxes(
-    boxes: torch.Tensor,
-    references: torch.Tensor,
-    base_iou: torch.Tensor,
-    *,
-    tries: int,
-    keep_ratio: float,
-    iou_thresh: float,
-    generator: torch.Generator,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """MSF's ROI jitter: per box up to ``tries`` draws, each the box itself with probability
-    ``keep_ratio`` or the box shifted by U(-0.5, 0.5) m per axis, sized by U(0.85, 1.15) per
-    axis and turned by U(-pi/12, pi/12); the first draw whose 3D IoU with its reference reaches
-    ``iou_thresh`` is taken, else the last. Returns the boxes and their IoU (``base_iou`` where
-    the box itself was taken)."""
-    num = boxes.shape[0]
-    if num == 0:
-        return boxes.clone(), base_iou.clone()
-    u = torch.rand(tries, num, 8, generator=generator, dtype=torch.float64).to(boxes)
-    keep = u[..., 7] <= keep_ratio
-    cand = boxes[None].repeat(tries, 1, 1)
-    cand[..., 0:3] = cand[..., 0:3] + (u[..., 0:3] - 0.5)
-    cand[..., 3:6] = cand[..., 3:6] * (1.0 + (u[..., 3:6] - 0.5) * 0.3)
-    cand[..., 6] = cand[..., 6] + (u[..., 6] - 0.5) * (math.pi / 6)
-    cand = torch.where(keep[..., None], boxes[None], cand)
-    iou = boxes_aligned_iou3d(
-        cand.reshape(-1, cand.shape[-1])[:, :7], references[None].expand(tries, -1, -1)
-        .reshape(-1, references.shape[-1])[:, :7],
-    ).reshape(tries, num).to(boxes.dtype)  # fmt: skip
-    iou = torch.where(keep, base_iou[None].to(boxes.dtype), iou)
-    ok = iou >= iou_thresh
-    first = torch.where(ok.any(0), ok.float().argmax(0), torch.full_like(ok[0], tries - 1).long())
-    cols = torch.arange(num, device=boxes.device)
-    return cand[first, cols], iou[first, cols]
 
 
 class TrajectoryPointNet(nn.Module):
@@ -248,7 +202,7 @@ class BiFATransformer(nn.Module):
 
 
 @MODEL_STAGES.register()
-class MSFHead(nn.Module):
+class MSFHead(TemporalRoIHead):
     """The MSF ROI head (module docstring); config keys in :meth:`from_config` and
     docs/model_zoo.md.
 
@@ -287,11 +241,10 @@ class MSFHead(nn.Module):
         roi_aug: Mapping | None = None,
         loss_weights: Mapping | None = None,
     ):
-        super().__init__()
-        if len(iou_weight) != num_class:
-            raise ValueError(
-                f"IOU_WEIGHT needs one weight per class ({num_class}), got {iou_weight}"
-            )
+        super().__init__(
+            num_class=num_class, iou_weight=iou_weight, sampler_cfg=sampler_cfg, roi_aug=roi_aug,
+            loss_weights=loss_weights,
+        )  # fmt: skip
         if num_point_features < 6:
             raise ValueError(
                 f"MSFHead needs points [x, y, z, intensity, elongation, ..., time lag], got "
@@ -301,28 +254,13 @@ class MSFHead(nn.Module):
             raise ValueError(
                 f"BIFA_LAYERS must be in [0, ENC_LAYERS={enc_layers}], got {bifa_layers}"
             )
-        self.num_class = num_class
         self.num_frames = int(num_frames)
-        self.iou_weight = [float(w) for w in iou_weight]
         self.num_points, self.gamma, self.radius_growth = (
             int(num_points),
             float(gamma),
             bool(radius_growth),
         )
         self.point_feature_dim = num_point_features - 1  # x, y, z, intensity, elongation, ...
-        self.sampler_cfg = sampler_cfg or RoiSamplerConfig()
-        self.roi_aug = dict(
-            roi_aug
-            or {
-                "ENABLED": True,
-                "TRIES": 10,
-                "KEEP_RATIO": 0.2,
-                "TRAJ_ENABLED": True,
-                "TRAJ_THRESH": 0.8,
-            }
-        )
-        self.loss_weights = dict(loss_weights or {})
-        self.box_coder = ResidualCoder(7)
         extra = self.point_feature_dim - 3
         self.geometry_embed = mlp([27 + extra, embed_dim, embed_dim, hidden_dim])
         self.motion_embed = mlp([30, embed_dim, embed_dim, hidden_dim])
@@ -363,40 +301,11 @@ class MSFHead(nn.Module):
             ],
             "MODEL.ROI_HEAD.TRANSFORMER",
         )
-        target = cfg.get("TARGET_CONFIG", {})
-        target_keys = {
-            "ROI_PER_IMAGE": "roi_per_image", "FG_RATIO": "fg_ratio",
-            "REG_FG_THRESH": "reg_fg_thresh", "CLS_FG_THRESH": "cls_fg_thresh",
-            "CLS_BG_THRESH": "cls_bg_thresh", "CLS_BG_THRESH_LO": "cls_bg_thresh_lo",
-            "HARD_BG_RATIO": "hard_bg_ratio", "SAMPLE_ROI_BY_EACH_CLASS": "by_class",
-        }  # fmt: skip
-        aug_keys = ["USE_ROI_AUG", "ROI_FG_AUG_TIMES", "RATIO", "USE_TRAJ_AUG"]
-        check_known_keys(target, [*target_keys, *aug_keys], "MODEL.ROI_HEAD.TARGET_CONFIG")
-        traj_aug = target.get("USE_TRAJ_AUG", {"ENABLED": True, "THRESHOLD": 0.8})
-        check_known_keys(
-            traj_aug, ["ENABLED", "THRESHOLD"], "MODEL.ROI_HEAD.TARGET_CONFIG.USE_TRAJ_AUG"
-        )
-        loss = cfg.get("LOSS_CONFIG", {})
-        check_known_keys(loss, ["LOSS_WEIGHTS"], "MODEL.ROI_HEAD.LOSS_CONFIG")
-        weights = dict(loss.get("LOSS_WEIGHTS", {}))
-        check_known_keys(
-            weights,
-            [
-                "rcnn_cls_weight",
-                "rcnn_reg_weight",
-                "rcnn_corner_weight",
-                "traj_reg_weight",
-                "code_weights",
-            ],
-            "MODEL.ROI_HEAD.LOSS_CONFIG.LOSS_WEIGHTS",
-        )
+        common = cls.common_config(cfg, model_info["class_names"])
         check_finite(cfg, "MODEL.ROI_HEAD")
-        class_names = model_info["class_names"]
         return cls(
-            num_class=len(class_names),
             num_point_features=model_info["num_rawpoint_features"],
             num_frames=int(cfg.get("NUM_FRAMES", 4)),
-            iou_weight=list(cfg.get("IOU_WEIGHT", [0.5] + [0.4] * (len(class_names) - 1))),
             num_points=int(sampler.get("NUM_POINTS", 128)),
             gamma=float(sampler.get("GAMMA", 1.1)),
             radius_growth=bool(sampler.get("RADIUS_GROWTH", True)),
@@ -408,17 +317,7 @@ class MSFHead(nn.Module):
             dim_feedforward=int(trans.get("DIM_FEEDFORWARD", 512)),
             dropout=float(trans.get("DROPOUT", 0.1)),
             embed_dim=int(cfg.get("EMBED_DIM", 64)),
-            sampler_cfg=RoiSamplerConfig(
-                **{v: target[k] for k, v in target_keys.items() if k in target}
-            ),
-            roi_aug={
-                "ENABLED": bool(target.get("USE_ROI_AUG", True)),
-                "TRIES": int(target.get("ROI_FG_AUG_TIMES", 10)),
-                "KEEP_RATIO": float(target.get("RATIO", 0.2)),
-                "TRAJ_ENABLED": bool(traj_aug.get("ENABLED", True)),
-                "TRAJ_THRESH": float(traj_aug.get("THRESHOLD", 0.8)),
-            },
-            loss_weights=weights,
+            **common,
         )
 
     # ------------------------------------------------------------------ features
@@ -466,123 +365,8 @@ class MSFHead(nn.Module):
         batch["traj_reg"] = box_code.reshape(batch_size, num_rois, 7)
         return batch
 
-    # ------------------------------------------------------------------ training
-    def assign_targets(
-        self,
-        rois: torch.Tensor,
-        roi_labels: torch.Tensor,
-        roi_valid: torch.Tensor,
-        gt_boxes: torch.Tensor,
-        generators: Sequence[torch.Generator],
-    ) -> dict:
-        """Sample ``ROI_PER_IMAGE`` proposals per frame, jitter them (MSF's ROI and trajectory
-        augmentation) and match them to the ground truth.
-
-        Args:
-            rois: ``(B, R, 9)`` proposals with velocity; roi_labels ``(B, R)`` 1-based;
-                roi_valid ``(B, R)`` bool (False: padding).
-            gt_boxes: ``(B, M, 8|10)`` with the 1-based class last (all-zero rows: padding).
-        Returns:
-            ``rois`` ``(B, S, 9)``, ``trajectories`` ``(B, T, S, 7)``, ``roi_valid`` ``(B, S)``
-            (False for every row of a frame without proposals), ``gt_of_rois`` ``(B, S, 7)``,
-            ``reg_valid`` ``(B, S)`` bool, ``cls_label`` ``(B, S)``, ``roi_labels`` ``(B, S)``.
-        """
-        cfg, aug = self.sampler_cfg, self.roi_aug
-        count = cfg.roi_per_image
-        out = {
-            "rois": rois.new_zeros(len(generators), count, rois.shape[-1]),
-            "trajectories": rois.new_zeros(len(generators), self.num_frames, count, 7),
-            "roi_valid": torch.zeros(len(generators), count, dtype=torch.bool, device=rois.device),
-            "gt_of_rois": rois.new_zeros(len(generators), count, 7),
-            "reg_valid": torch.zeros(len(generators), count, dtype=torch.bool, device=rois.device),
-            "cls_label": rois.new_zeros(len(generators), count),
-            "roi_labels": torch.zeros(len(generators), count, dtype=torch.long, device=rois.device),
-        }
-        fg_thresh = min(cfg.reg_fg_thresh, cfg.cls_fg_thresh)
-        for b, gen in enumerate(generators):
-            keep = roi_valid[b]
-            if not bool(keep.any()):
-                continue  # a frame without proposals trains nothing (its rows stay invalid)
-            cur, labels = rois[b][keep], roi_labels[b][keep]
-            gt = gt_boxes[b][gt_boxes[b, :, :7].abs().sum(1) > 0]
-            draw = sample_rois(cur, labels, gt[:, :7], gt[:, -1].long(), cfg, gen)
-            chosen = cur[draw.roi_index].clone()
-            iou = draw.iou.to(chosen.dtype)
-            matched = gt[draw.gt_index.clamp_min(0), :7] if gt.shape[0] else chosen[:, :7] * 0
-            traj = propagate_boxes(chosen, self.num_frames)  # from the unjittered proposal
-            fg = iou >= fg_thresh
-            if aug["ENABLED"] and bool(fg.any()):
-                boxes, new_iou = augment_boxes(
-                    chosen[fg, :7], matched[fg], iou[fg], tries=aug["TRIES"],
-                    keep_ratio=aug["KEEP_RATIO"], iou_thresh=fg_thresh, generator=gen,
-                )  # fmt: skip
-                chosen[fg, :7], iou[fg] = boxes, new_iou
-                if aug["TRAJ_ENABLED"]:
-                    for frame in range(1, self.num_frames):
-                        ref = traj[frame][fg]
-                        traj[frame][fg] = augment_boxes(
-                            ref, ref, torch.ones_like(new_iou), tries=aug["TRIES"],
-                            keep_ratio=aug["KEEP_RATIO"], iou_thresh=aug["TRAJ_THRESH"],
-                            generator=gen,
-                        )[0]  # fmt: skip
-            traj[0] = chosen[:, :7]
-            out["rois"][b], out["trajectories"][b] = chosen, traj
-            out["roi_valid"][b] = True
-            out["gt_of_rois"][b] = matched
-            out["reg_valid"][b] = (iou > cfg.reg_fg_thresh) & (draw.gt_index >= 0)
-            out["cls_label"][b] = soft_iou_label(iou, cfg.cls_fg_thresh, cfg.cls_bg_thresh)
-            out["roi_labels"][b] = labels[draw.roi_index]
-        return out
-
-    def loss(self, outputs: Mapping, targets: Mapping) -> dict[str, torch.Tensor]:
-        """MSF's loss: soft-label BCE on every layer's confidence, smooth-L1 (beta 1/9) on the
-        refined box, the frame tokens' and the trajectory branch's auxiliary boxes, and the
-        corner loss of the refined box (weights: ``LOSS_CONFIG.LOSS_WEIGHTS``)."""
-        w = self.loss_weights
-        traj_w = list(w.get("traj_reg_weight", [2.0, 2.0, 2.0]))
-        code_w = torch.as_tensor(
-            w.get("code_weights", [1.0] * 7), dtype=outputs["rcnn_reg"].dtype,
-            device=outputs["rcnn_reg"].device,
-        )  # fmt: skip
-        valid = targets["roi_valid"]
-        reg_valid = targets["reg_valid"] & valid
-        rois = targets["rois"][..., :7]
-        goal = encode_roi_targets(
-            targets["gt_of_rois"].reshape(-1, 7), rois.reshape(-1, 7), self.box_coder
-        ).reshape(rois.shape)
-        num_valid = valid.sum().clamp_min(1)
-        num_fg = reg_valid.sum().clamp_min(1)
-
-        def reg_loss(codes: torch.Tensor) -> torch.Tensor:
-            per = F.smooth_l1_loss(codes, goal, beta=SMOOTH_L1_BETA, reduction="none") * code_w
-            return (per.sum(-1) * reg_valid).sum() / num_fg
-
-        cls = torch.stack([
-            (F.binary_cross_entropy_with_logits(
-                logits, targets["cls_label"], reduction="none") * valid).sum() / num_valid
-            for logits in outputs["rcnn_cls"]
-        ]).mean() * w.get("rcnn_cls_weight", 1.0)  # fmt: skip
-        reg = reg_loss(outputs["rcnn_reg"]) * w.get("rcnn_reg_weight", 1.0) * traj_w[0]
-        traj = reg_loss(outputs["traj_reg"]) * traj_w[1]
-        aux = torch.stack([reg_loss(c) for c in outputs["aux_reg"]]).mean() * traj_w[2]
-        fg_rois, fg_codes = rois[reg_valid], outputs["rcnn_reg"][reg_valid]
-        if fg_rois.shape[0]:
-            boxes = decode_roi_boxes(fg_codes, fg_rois, self.box_coder)
-            corner = corner_loss(boxes, targets["gt_of_rois"][reg_valid]).mean()
-        else:
-            corner = outputs["rcnn_reg"].sum() * 0.0
-        corner = corner * w.get("rcnn_corner_weight", 2.0)
-        total = cls + reg + traj + aux + corner
-        return {
-            "loss": total, "rcnn_loss_cls": cls, "rcnn_loss_reg": reg,
-            "rcnn_loss_traj": traj, "rcnn_loss_aux": aux, "rcnn_loss_corner": corner,
-        }  # fmt: skip
-
-    # ------------------------------------------------------------------ inference
-    def decode(self, outputs: Mapping, rois: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(B, R, 7)`` refined boxes and ``(B, R)`` confidence logits (last layer)."""
-        shape = rois.shape[:2]
-        boxes = decode_roi_boxes(
-            outputs["rcnn_reg"].reshape(-1, 7), rois[..., :7].reshape(-1, 7), self.box_coder
-        )
-        return boxes.reshape(*shape, 7), outputs["rcnn_cls"][-1]
+    def default_trajectories(self, sample: int, chosen: torch.Tensor):
+        """MSF's trajectories (:data:`TrajectoryFn`): each proposal moved back by its velocity,
+        frame by frame."""
+        del sample
+        return propagate_boxes(chosen, self.num_frames), None

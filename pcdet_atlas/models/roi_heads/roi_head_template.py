@@ -1,0 +1,307 @@
+"""What the second stages of the temporal two-stage detectors (MSF, PTT) share: the config of
+their ROI targets and loss, target assignment with MSF's ROI and trajectory jitter, the loss
+(soft-label BCE, smooth-L1 on residual box codes, corner loss) and decoding.
+
+A head built on :class:`TemporalRoIHead` writes ``rcnn_cls`` (a list of ``(B, R)`` logits, one
+per refinement block; the loss averages them), ``rcnn_reg`` ``(B, R, 7)`` (the refined box's
+residual code), ``traj_reg`` ``(B, R, 7)`` (an auxiliary code from the box-sequence branch) and
+``aux_reg`` (a list, possibly empty, of further auxiliary ``(B, R, 7)`` codes).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from pcdet_atlas.config import check_known_keys
+from pcdet_atlas.models.model_utils.box_coder import (
+    ResidualCoder,
+    decode_roi_boxes,
+    encode_roi_targets,
+)
+from pcdet_atlas.models.model_utils.roi_sampler import RoiSamplerConfig, sample_rois
+from pcdet_atlas.models.model_utils.roi_utils import corner_loss, soft_iou_label
+from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d
+
+__all__ = ["TemporalRoIHead", "augment_boxes", "SMOOTH_L1_BETA"]
+
+#: OpenPCDet's two-stage regression loss: smooth-L1 with beta 1/9.
+SMOOTH_L1_BETA = 1.0 / 9.0
+
+#: ``TARGET_CONFIG`` key -> :class:`RoiSamplerConfig` field
+TARGET_KEYS = {
+    "ROI_PER_IMAGE": "roi_per_image", "FG_RATIO": "fg_ratio",
+    "REG_FG_THRESH": "reg_fg_thresh", "CLS_FG_THRESH": "cls_fg_thresh",
+    "CLS_BG_THRESH": "cls_bg_thresh", "CLS_BG_THRESH_LO": "cls_bg_thresh_lo",
+    "HARD_BG_RATIO": "hard_bg_ratio", "SAMPLE_ROI_BY_EACH_CLASS": "by_class",
+}  # fmt: skip
+AUG_KEYS = ("USE_ROI_AUG", "ROI_FG_AUG_TIMES", "RATIO", "USE_TRAJ_AUG")
+LOSS_WEIGHT_KEYS = (
+    "rcnn_cls_weight", "rcnn_reg_weight", "rcnn_corner_weight", "traj_reg_weight",
+    "code_weights",
+)  # fmt: skip
+
+#: a trajectory function: (sample index, its chosen proposals ``(S, 9)``) -> boxes per frame
+#: ``(T, S, D >= 7)`` (frame 0: the proposals themselves) and their validity ``(T, S)`` or None
+TrajectoryFn = Callable[[int, torch.Tensor], tuple[torch.Tensor, torch.Tensor | None]]
+
+
+def augment_boxes(
+    boxes: torch.Tensor,
+    references: torch.Tensor,
+    base_iou: torch.Tensor,
+    *,
+    tries: int,
+    keep_ratio: float,
+    iou_thresh: float,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """MSF's ROI jitter: per box up to ``tries`` draws, each the box itself with probability
+    ``keep_ratio`` or the box shifted by U(-0.5, 0.5) m per axis, sized by U(0.85, 1.15) per
+    axis and turned by U(-pi/12, pi/12); the first draw whose 3D IoU with its reference reaches
+    ``iou_thresh`` is taken, else the last. Columns past the 7th (velocity) are kept. Returns the
+    boxes and their IoU (``base_iou`` where the box itself was taken)."""
+    num = boxes.shape[0]
+    if num == 0:
+        return boxes.clone(), base_iou.clone()
+    u = torch.rand(tries, num, 8, generator=generator, dtype=torch.float64).to(boxes)
+    keep = u[..., 7] <= keep_ratio
+    cand = boxes[None].repeat(tries, 1, 1)
+    cand[..., 0:3] = cand[..., 0:3] + (u[..., 0:3] - 0.5)
+    cand[..., 3:6] = cand[..., 3:6] * (1.0 + (u[..., 3:6] - 0.5) * 0.3)
+    cand[..., 6] = cand[..., 6] + (u[..., 6] - 0.5) * (math.pi / 6)
+    cand = torch.where(keep[..., None], boxes[None], cand)
+    iou = boxes_aligned_iou3d(
+        cand.reshape(-1, cand.shape[-1])[:, :7], references[None].expand(tries, -1, -1)
+        .reshape(-1, references.shape[-1])[:, :7],
+    ).reshape(tries, num).to(boxes.dtype)  # fmt: skip
+    iou = torch.where(keep, base_iou[None].to(boxes.dtype), iou)
+    ok = iou >= iou_thresh
+    first = torch.where(ok.any(0), ok.float().argmax(0), torch.full_like(ok[0], tries - 1).long())
+    cols = torch.arange(num, device=boxes.device)
+    return cand[first, cols], iou[first, cols]
+
+
+class TemporalRoIHead(nn.Module):
+    """Targets, loss and decoding of a temporal ROI head (module docstring).
+
+    Config keys read by :meth:`common_config`: ``IOU_WEIGHT`` (per class, the weight of the
+    refined confidence in the fused score), ``TARGET_CONFIG`` (OpenPCDet's ROI sampler keys
+    plus MSF's ``USE_ROI_AUG``, ``ROI_FG_AUG_TIMES``, ``RATIO``, ``USE_TRAJ_AUG``) and
+    ``LOSS_CONFIG.LOSS_WEIGHTS``.
+    """
+
+    def __init__(
+        self,
+        *,
+        num_class: int,
+        iou_weight: Sequence[float],
+        sampler_cfg: RoiSamplerConfig | None = None,
+        roi_aug: Mapping | None = None,
+        loss_weights: Mapping | None = None,
+    ):
+        super().__init__()
+        if len(iou_weight) != num_class:
+            raise ValueError(
+                f"IOU_WEIGHT needs one weight per class ({num_class}), got {iou_weight}"
+            )
+        self.num_class = num_class
+        self.iou_weight = [float(w) for w in iou_weight]
+        self.sampler_cfg = sampler_cfg or RoiSamplerConfig()
+        self.roi_aug = dict(
+            roi_aug
+            or {
+                "ENABLED": True,
+                "TRIES": 10,
+                "KEEP_RATIO": 0.2,
+                "TRAJ_ENABLED": True,
+                "TRAJ_THRESH": 0.8,
+            }
+        )
+        self.loss_weights = dict(loss_weights or {})
+        self.box_coder = ResidualCoder(7)
+
+    @staticmethod
+    def common_config(cfg: Mapping, class_names: Sequence[str]) -> dict:
+        """The keyword arguments of :class:`TemporalRoIHead` from a ``MODEL.ROI_HEAD`` section."""
+        target = cfg.get("TARGET_CONFIG", {})
+        check_known_keys(target, [*TARGET_KEYS, *AUG_KEYS], "MODEL.ROI_HEAD.TARGET_CONFIG")
+        traj_aug = target.get("USE_TRAJ_AUG", {"ENABLED": True, "THRESHOLD": 0.8})
+        check_known_keys(
+            traj_aug, ["ENABLED", "THRESHOLD"], "MODEL.ROI_HEAD.TARGET_CONFIG.USE_TRAJ_AUG"
+        )
+        loss = cfg.get("LOSS_CONFIG", {})
+        check_known_keys(loss, ["LOSS_WEIGHTS"], "MODEL.ROI_HEAD.LOSS_CONFIG")
+        weights = dict(loss.get("LOSS_WEIGHTS", {}))
+        check_known_keys(weights, LOSS_WEIGHT_KEYS, "MODEL.ROI_HEAD.LOSS_CONFIG.LOSS_WEIGHTS")
+        return {
+            "num_class": len(class_names),
+            "iou_weight": list(cfg.get("IOU_WEIGHT", [0.5] + [0.4] * (len(class_names) - 1))),
+            "sampler_cfg": RoiSamplerConfig(
+                **{v: target[k] for k, v in TARGET_KEYS.items() if k in target}
+            ),
+            "roi_aug": {
+                "ENABLED": bool(target.get("USE_ROI_AUG", True)),
+                "TRIES": int(target.get("ROI_FG_AUG_TIMES", 10)),
+                "KEEP_RATIO": float(target.get("RATIO", 0.2)),
+                "TRAJ_ENABLED": bool(traj_aug.get("ENABLED", True)),
+                "TRAJ_THRESH": float(traj_aug.get("THRESHOLD", 0.8)),
+            },
+            "loss_weights": weights,
+        }
+
+    # ------------------------------------------------------------------ training
+    def default_trajectories(
+        self, sample: int, chosen: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The head's :data:`TrajectoryFn` when :meth:`assign_targets` is given none."""
+        raise NotImplementedError(f"{type(self).__name__} needs a trajectory_fn")
+
+    def assign_targets(
+        self,
+        rois: torch.Tensor,
+        roi_labels: torch.Tensor,
+        roi_valid: torch.Tensor,
+        gt_boxes: torch.Tensor,
+        generators: Sequence[torch.Generator],
+        trajectory_fn: TrajectoryFn | None = None,
+    ) -> dict:
+        """Sample ``ROI_PER_IMAGE`` proposals per frame, jitter them (MSF's ROI and trajectory
+        augmentation) and match them to the ground truth.
+
+        Args:
+            rois: ``(B, R, 9)`` proposals with velocity; roi_labels ``(B, R)`` 1-based;
+                roi_valid ``(B, R)`` bool (False: padding).
+            gt_boxes: ``(B, M, 8|10)`` with the 1-based class last (all-zero rows: padding).
+            generators: one per sample.
+            trajectory_fn: the boxes of each chosen proposal over the head's frames, computed
+                from the unjittered proposal (:data:`TrajectoryFn`; default: the head's
+                :meth:`default_trajectories`).
+        Returns:
+            ``rois`` ``(B, S, 9)``, ``trajectories`` ``(B, T, S, D)`` (frame 0: the jittered
+            ROI), ``trajectory_valid`` ``(B, T, S)``, ``roi_valid`` ``(B, S)`` (False for every
+            row of a frame without proposals), ``gt_of_rois`` ``(B, S, 7)``, ``reg_valid``
+            ``(B, S)`` bool, ``cls_label`` ``(B, S)``, ``roi_labels`` ``(B, S)``.
+        """
+        trajectory_fn = trajectory_fn or self.default_trajectories
+        cfg, aug = self.sampler_cfg, self.roi_aug
+        count, batch, device = cfg.roi_per_image, len(generators), rois.device
+        out = {
+            "rois": rois.new_zeros(batch, count, rois.shape[-1]),
+            "roi_valid": torch.zeros(batch, count, dtype=torch.bool, device=device),
+            "gt_of_rois": rois.new_zeros(batch, count, 7),
+            "reg_valid": torch.zeros(batch, count, dtype=torch.bool, device=device),
+            "cls_label": rois.new_zeros(batch, count),
+            "roi_labels": torch.zeros(batch, count, dtype=torch.long, device=device),
+        }
+        trajectories: list[torch.Tensor | None] = [None] * batch
+        traj_valid: list[torch.Tensor | None] = [None] * batch
+        fg_thresh = min(cfg.reg_fg_thresh, cfg.cls_fg_thresh)
+        for b, gen in enumerate(generators):
+            keep = roi_valid[b]
+            if not bool(keep.any()):
+                continue  # a frame without proposals trains nothing (its rows stay invalid)
+            cur, labels = rois[b][keep], roi_labels[b][keep]
+            gt = gt_boxes[b][gt_boxes[b, :, :7].abs().sum(1) > 0]
+            draw = sample_rois(cur, labels, gt[:, :7], gt[:, -1].long(), cfg, gen)
+            chosen = cur[draw.roi_index].clone()
+            iou = draw.iou.to(chosen.dtype)
+            matched = gt[draw.gt_index.clamp_min(0), :7] if gt.shape[0] else chosen[:, :7] * 0
+            traj, valid = trajectory_fn(b, chosen)  # from the unjittered proposal
+            traj = traj.clone()
+            fg = iou >= fg_thresh
+            if aug["ENABLED"] and bool(fg.any()):
+                boxes, new_iou = augment_boxes(
+                    chosen[fg, :7], matched[fg], iou[fg], tries=aug["TRIES"],
+                    keep_ratio=aug["KEEP_RATIO"], iou_thresh=fg_thresh, generator=gen,
+                )  # fmt: skip
+                chosen[fg, :7], iou[fg] = boxes, new_iou
+                if aug["TRAJ_ENABLED"]:
+                    for frame in range(1, traj.shape[0]):
+                        ref = traj[frame][fg]
+                        traj[frame][fg] = augment_boxes(
+                            ref, ref, torch.ones_like(new_iou), tries=aug["TRIES"],
+                            keep_ratio=aug["KEEP_RATIO"], iou_thresh=aug["TRAJ_THRESH"],
+                            generator=gen,
+                        )[0]  # fmt: skip
+            traj[0, :, :7] = chosen[:, :7]
+            trajectories[b] = traj
+            traj_valid[b] = (
+                valid if valid is not None else torch.ones(traj.shape[:2], dtype=torch.bool,
+                                                           device=device)
+            )  # fmt: skip
+            out["rois"][b] = chosen
+            out["roi_valid"][b] = True
+            out["gt_of_rois"][b] = matched
+            out["reg_valid"][b] = (iou > cfg.reg_fg_thresh) & (draw.gt_index >= 0)
+            out["cls_label"][b] = soft_iou_label(iou, cfg.cls_fg_thresh, cfg.cls_bg_thresh)
+            out["roi_labels"][b] = labels[draw.roi_index]
+        template = next((t for t in trajectories if t is not None), None)
+        if template is None:  # no sample has proposals: shapes from an empty call
+            template, _ = trajectory_fn(0, rois.new_zeros(count, rois.shape[-1]))
+        shape = (template.shape[0], count, template.shape[-1])
+        out["trajectories"] = torch.stack(
+            [t if t is not None else rois.new_zeros(shape) for t in trajectories]
+        )
+        out["trajectory_valid"] = torch.stack([
+            v if v is not None else torch.zeros(shape[:2], dtype=torch.bool, device=device)
+            for v in traj_valid
+        ])  # fmt: skip
+        return out
+
+    def loss(self, outputs: Mapping, targets: Mapping) -> dict[str, torch.Tensor]:
+        """Soft-label BCE on every block's confidence, smooth-L1 (beta 1/9) on the refined box,
+        the box-sequence branch's and the auxiliary codes, and the corner loss of the refined
+        box (weights: ``LOSS_CONFIG.LOSS_WEIGHTS``; ``traj_reg_weight`` = the weights of the
+        refined, box-sequence and auxiliary codes, default 2 each)."""
+        w = self.loss_weights
+        traj_w = list(w.get("traj_reg_weight", [2.0, 2.0, 2.0]))
+        code_w = torch.as_tensor(
+            w.get("code_weights", [1.0] * 7), dtype=outputs["rcnn_reg"].dtype,
+            device=outputs["rcnn_reg"].device,
+        )  # fmt: skip
+        valid = targets["roi_valid"]
+        reg_valid = targets["reg_valid"] & valid
+        rois = targets["rois"][..., :7]
+        goal = encode_roi_targets(
+            targets["gt_of_rois"].reshape(-1, 7), rois.reshape(-1, 7), self.box_coder
+        ).reshape(rois.shape)
+        num_valid = valid.sum().clamp_min(1)
+        num_fg = reg_valid.sum().clamp_min(1)
+
+        def reg_loss(codes: torch.Tensor) -> torch.Tensor:
+            per = F.smooth_l1_loss(codes, goal, beta=SMOOTH_L1_BETA, reduction="none") * code_w
+            return (per.sum(-1) * reg_valid).sum() / num_fg
+
+        cls = torch.stack([
+            (F.binary_cross_entropy_with_logits(
+                logits, targets["cls_label"], reduction="none") * valid).sum() / num_valid
+            for logits in outputs["rcnn_cls"]
+        ]).mean() * w.get("rcnn_cls_weight", 1.0)  # fmt: skip
+        reg = reg_loss(outputs["rcnn_reg"]) * w.get("rcnn_reg_weight", 1.0) * traj_w[0]
+        traj = reg_loss(outputs["traj_reg"]) * traj_w[1]
+        losses = {"rcnn_loss_cls": cls, "rcnn_loss_reg": reg, "rcnn_loss_traj": traj}
+        if outputs["aux_reg"]:
+            aux = torch.stack([reg_loss(c) for c in outputs["aux_reg"]]).mean() * traj_w[2]
+            losses["rcnn_loss_aux"] = aux
+        fg_rois, fg_codes = rois[reg_valid], outputs["rcnn_reg"][reg_valid]
+        if fg_rois.shape[0]:
+            boxes = decode_roi_boxes(fg_codes, fg_rois, self.box_coder)
+            corner = corner_loss(boxes, targets["gt_of_rois"][reg_valid]).mean()
+        else:
+            corner = outputs["rcnn_reg"].sum() * 0.0
+        losses["rcnn_loss_corner"] = corner * w.get("rcnn_corner_weight", 2.0)
+        return {"loss": sum(losses.values()), **losses}
+
+    # ------------------------------------------------------------------ inference
+    def decode(self, outputs: Mapping, rois: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(B, R, 7)`` refined boxes and ``(B, R)`` confidence logits (last block)."""
+        shape = rois.shape[:2]
+        boxes = decode_roi_boxes(
+            outputs["rcnn_reg"].reshape(-1, 7), rois[..., :7].reshape(-1, 7), self.box_coder
+        )
+        return boxes.reshape(*shape, 7), outputs["rcnn_cls"][-1]
