@@ -8,9 +8,12 @@ one is generated in a temporary folder if it is missing) through each config's o
 ``WaymoDataset`` pipeline (test mode, 1 or 4 frames), so the models see realistic clouds. Every
 model runs ``predict`` on the same frames, batch size 1, after one warm-up frame; the models take
 turns frame by frame so that machine load hits them alike. Latency covers voxelization to NMS
-(not data loading); for a two-stage model (MSF) it is split into the RPN's proposals and the
+(not data loading); for a two-stage model (MSF, PTT) it is split into the RPN's proposals and the
 second stage, and its parameter count is the second stage's (the RPN's is its CP-4f row); a
 two-stage config whose RPN checkpoint is missing (the real-Waymo ones) is listed as not built.
+PTT is timed on frames from 31 on, with the proposal bank holding the previous frames: its RPN
+column is the bank's one RPN pass for the new frame (plus reading the history), and the bank's
+memory is printed below the table.
 Peak memory of one ``predict`` is measured in a fresh process per model (so no
 model reuses memory another freed): CUDA ``max_memory_allocated``, or on CPU the rise of the
 process's peak resident set (``VmHWM``, reset through ``/proc/self/clear_refs``).
@@ -18,6 +21,12 @@ With ``--eval``, a model whose ``ATLAS.CHECKPOINT`` exists is evaluated (Waymo L
 val split of ``--data_path``; without a checkpoint the model runs with random weights and the
 column says so ("checkpoint missing", or "no checkpoint" for configs without
 ``ATLAS.CHECKPOINT``, the real-Waymo ones).
+
+``--bank_cfg`` (a PTT config) also times the evaluation of the first ``--bank_frames`` frames of
+a val sequence under ``--bank_variant`` with the proposal bank (one RPN pass per frame) against
+recomputing every window's 32 frames:
+
+    python tools/bench_models.py --cfgs --bank_cfg cfgs/atlas/synthetic/ptt_32f.yaml
 
 ``--vfe_forms`` times the VFE of each ``--cfgs`` config (random weights with BatchNorm
 statistics from a few training-mode passes, or its checkpoint) in its two eval forms on the same
@@ -57,8 +66,10 @@ import torch
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import build_dataloader
 from pcdet_atlas.models import build_network_from_config, load_data_to_device
-from pcdet_atlas.models.detectors import TwoStageDetector
+from pcdet_atlas.models.detectors import PTT, TwoStageDetector
+from pcdet_atlas.registry import DETECTORS
 from pcdet_atlas.train_utils import eval_one_epoch
+from pcdet_atlas.train_utils.proposal_bank import ProposalBank
 from pcdet_atlas.train_utils.setup import device_arg
 
 
@@ -88,22 +99,23 @@ def _rss_kib() -> int:
 
 
 def _peak_memory_mib(cfg_file: str, data_path: str, device: str, trained: bool) -> float:
-    """Peak memory of one ``predict`` on the first val frame, in a fresh process (MiB).
+    """Peak memory of one ``predict`` on the first val frame (PTT: frame 31, with a full
+    proposal history), in a fresh process (MiB).
 
     CUDA: ``max_memory_allocated`` above what model and batch hold. CPU: rise of the process's
     peak resident set (``VmHWM``, reset just before) above its resident set before the call.
     """
     cfg = cfg_from_yaml_file(cfg_file)
-    cfg.DATA_CONFIG.DATA_PATH = data_path
     dev = torch.device(device)
-    _, loader, _ = build_dataloader(
-        cfg.DATA_CONFIG, cfg.CLASS_NAMES, 1, False, workers=0, training=False
-    )
-    batch = load_data_to_device(next(iter(loader)), dev)
+    start = _history_of(cfg)
+    cfg, batches, dataset = _config_frames(cfg_file, Path(data_path), 1, dev, start)
+    batch = batches[0]
     torch.manual_seed(0)
     model = build_network_from_config(cfg).to(dev).eval()
     if trained:
         model.load_params_from_file(REPO_ROOT / cfg.ATLAS.CHECKPOINT)
+    if start:  # the bank holds the 31 previous frames' proposals; the frame's own RPN pass
+        batch = _warm_bank(model, dataset, batch, dev).attach(batch, batch)  # is not counted
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
         torch.cuda.reset_peak_memory_stats(dev)
@@ -131,6 +143,12 @@ def parse_args():
         help="also time a tools/test.py step of this model config on clean / injection / removal",
     )  # fmt: skip
     p.add_argument("--share_frames", type=int, default=8, help="frames from 32 on (a spoofed run)")
+    p.add_argument(
+        "--bank_cfg", default=None,
+        help="also time a PTT evaluation with and without the proposal bank",
+    )  # fmt: skip
+    p.add_argument("--bank_frames", type=int, default=40, help="frames of --bank_cfg's run")
+    p.add_argument("--bank_variant", default="inj_global_hard", help="the variant of --bank_cfg")
     p.add_argument(
         "--vfe_forms", action="store_true",
         help="time the VFE's folded eval form against the layer-by-layer one instead",
@@ -336,20 +354,39 @@ def test_step_shares(cfg_file: str, data_path: Path, frames: int, device: torch.
         )
 
 
-def _config_frames(cfg_file: str, data_path: Path, count: int, device: torch.device):
-    """A model config (its data path set to ``data_path``) and the first ``count`` val batches of
-    its own test pipeline (batch 1), on ``device``."""
+def _config_frames(
+    cfg_file: str, data_path: Path, count: int, device: torch.device, start: int = 0
+):
+    """A model config (its data path set to ``data_path``), the val batches ``start`` to
+    ``start + count - 1`` of its own test pipeline (batch 1) on ``device``, and the dataset."""
     cfg = cfg_from_yaml_file(cfg_file)
     cfg.DATA_CONFIG.DATA_PATH = str(data_path)
-    _, loader, _ = build_dataloader(
+    dataset, loader, _ = build_dataloader(
         cfg.DATA_CONFIG, cfg.CLASS_NAMES, 1, False, workers=0, training=False
     )
     batches = []
-    for batch in loader:
-        batches.append(load_data_to_device(batch, device))
+    for index, batch in enumerate(loader):
+        if index >= start:
+            batches.append(load_data_to_device(batch, device))
         if len(batches) == count:
             break
-    return cfg, batches
+    return cfg, batches, dataset
+
+
+def _history_of(cfg) -> int:
+    """Previous frames of proposals a config's model reads (PTT: ``NUM_HISTORY``; others 0)."""
+    if DETECTORS.get(cfg.MODEL.NAME) is not PTT:
+        return 0
+    return int(cfg.MODEL.ROI_HEAD.get("NUM_HISTORY", 31))
+
+
+def _warm_bank(model, dataset, batch, device: torch.device) -> ProposalBank:
+    """A proposal bank for ``model`` on ``dataset`` holding the history of ``batch``'s frame."""
+    bank = ProposalBank(model, dataset, device=device)
+    seq, idx = batch["sequence_name"][0], int(batch["sample_idx"][0])
+    for back in range(min(bank.num_history, idx), 0, -1):
+        bank.frame(seq, idx - back)
+    return bank
 
 
 def vfe_forms_table(cfg_files: list[str], data_path: Path, args, device: torch.device) -> None:
@@ -366,7 +403,7 @@ def vfe_forms_table(cfg_files: list[str], data_path: Path, args, device: torch.d
     for cfg_file in cfg_files:
         if cfg_from_yaml_file(cfg_file).MODEL.VFE.NAME not in ("DynamicPillarVFE", "DynPillarVFE"):
             continue  # the two forms are the pillar VFE's; a voxel model's MeanVFE has one
-        cfg, batches = _config_frames(cfg_file, data_path, args.frames + 1, device)
+        cfg, batches, _ = _config_frames(cfg_file, data_path, args.frames + 1, device)
         torch.manual_seed(0)
         model = build_network_from_config(cfg).to(device)
         ckpt = cfg.get("ATLAS", {}).get("CHECKPOINT")
@@ -412,7 +449,8 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
     """Print latency / peak memory / L2 mAP of each config, models taking turns per frame."""
     runs, unbuilt = [], []
     for cfg_file in cfg_files:
-        cfg, batches = _config_frames(cfg_file, data_path, args.frames + 1, device)
+        start = _history_of(cfg_from_yaml_file(cfg_file))
+        cfg, batches, dataset = _config_frames(cfg_file, data_path, args.frames + 1, device, start)
         torch.manual_seed(0)
         try:
             model = build_network_from_config(cfg).to(device).eval()
@@ -429,6 +467,8 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
              "trained": trained, "ships_ckpt": bool(ckpt), "times": [], "points": n_points,
              "params": sum(p.numel() for p in model.parameters()), "rpn_times": []}
         )  # fmt: skip
+        if start:  # PTT: frames from 31 on, the bank already holding their history
+            runs[-1]["bank"] = _warm_bank(model, dataset, batches[0], device)
 
     ctx = multiprocessing.get_context("spawn")
     for run in runs:  # peak memory in a fresh process per model (no allocator reuse), warm-up
@@ -436,14 +476,21 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
             run["peak_mib"] = pool.apply(
                 _peak_memory_mib, (run["cfg"], str(data_path), str(device), run["trained"])
             )
-        run["model"].predict(run["batches"][0])
+        warm = run["batches"][0]
+        run["model"].predict(run["bank"].attach(warm, warm) if "bank" in run else warm)
     for i in range(1, args.frames + 1):  # models take turns frame by frame
         for run in runs:
             batch = run["batches"][min(i, len(run["batches"]) - 1)]
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             t0 = time.perf_counter()
-            if isinstance(run["model"], TwoStageDetector):  # RPN and second stage apart
+            if "bank" in run:  # PTT: the frame's RPN pass into the bank, then the head
+                batch = run["bank"].attach(batch, batch)
+                if device.type == "cuda":
+                    torch.cuda.synchronize(device)
+                run["rpn_times"].append(time.perf_counter() - t0)
+                run["model"].predict(batch)
+            elif isinstance(run["model"], TwoStageDetector):  # RPN and second stage apart
                 proposals = run["model"].propose(batch)
                 if device.type == "cuda":
                     torch.cuda.synchronize(device)
@@ -499,6 +546,62 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
     for cfg_file, reason in unbuilt:
         name = str(Path(cfg_file).resolve().relative_to(REPO_ROOT / "cfgs"))
         print(f"| {name} | not built: {reason} | | | | | | |")
+    for run in runs:
+        if "bank" in run:
+            st = run["bank"].stats()
+            name = str(Path(run["cfg"]).resolve().relative_to(REPO_ROOT / "cfgs"))
+            print(
+                f"\n{name}: frames {run['bank'].num_history}+ (a full history); the RPN column is "
+                f"the bank's one RPN pass per new frame plus reading the previous frames; the "
+                f"bank then held {st['frames_held']} frames, {st['bytes_held'] / 2**20:.2f} MiB "
+                f"({st['bytes_held'] / max(1, st['frames_held']) / 1024:.1f} KiB per frame)"
+            )
+
+
+def bank_table(cfg_file: str, data_path: Path, args, device: torch.device) -> None:
+    """Print the cost of evaluating frames 0 .. N-1 of a val sequence under one variant with the
+    proposal bank (one RPN pass per frame) and without it (each frame's own 32 RPN passes)."""
+    from pcdet_atlas.train_utils.atlas_eval import build_attack_loader
+
+    cfg = cfg_from_yaml_file(cfg_file)
+    cfg.DATA_CONFIG.DATA_PATH = str(data_path)
+    attack = REPO_ROOT / "cfgs" / "attacks" / f"{args.bank_variant}.yaml"
+    torch.manual_seed(0)
+    model = build_network_from_config(cfg).to(device).eval()
+    ckpt = cfg.ATLAS.get("CHECKPOINT")
+    if ckpt and (REPO_ROOT / ckpt).is_file():
+        model.load_params_from_file(REPO_ROOT / ckpt)
+    results = {}
+    for mode in ("bank", "no bank"):
+        dataset, loader = build_attack_loader(
+            cfg.DATA_CONFIG, cfg.CLASS_NAMES, attack, batch_size=1, dist=False, workers=0,
+            seed=0,
+        )  # fmt: skip
+        bank = ProposalBank(model, dataset, device=device)
+        passes, t0 = 0, time.perf_counter()
+        for index, batch in enumerate(loader):
+            if index == args.bank_frames:
+                break
+            if mode == "no bank":  # every window recomputes its 32 frames
+                passes += bank.rpn_frames
+                bank = ProposalBank(model, dataset, device=device)
+            batch_dev = load_data_to_device(batch, device)
+            model.predict(bank.attach(batch, batch_dev))
+        passes += bank.rpn_frames
+        results[mode] = (time.perf_counter() - t0, passes)
+    name = str(Path(cfg_file).resolve().relative_to(REPO_ROOT / "cfgs"))
+    print(
+        f"\n{name}, variant {args.bank_variant}, frames 0-{args.bank_frames - 1} of the first val "
+        f"sequence, device {device}, {torch.get_num_threads()} threads\n"
+    )
+    print("| proposals | RPN passes | RPN passes/frame | seconds | s/frame | ratio |")
+    print("|---|---|---|---|---|---|")
+    base = results["bank"][0]
+    for mode, (secs, passes) in results.items():
+        print(
+            f"| {mode} | {passes} | {passes / args.bank_frames:.1f} | {secs:.1f} "
+            f"| {secs / args.bank_frames:.2f} | {secs / base:.2f}x |"
+        )
 
 
 def main() -> None:
@@ -533,6 +636,8 @@ def main() -> None:
         latency_table(cfg_files, data_path, args, device)
     if args.share_cfg is not None:
         test_step_shares(args.share_cfg, data_path, args.share_frames, device)
+    if args.bank_cfg is not None:
+        bank_table(args.bank_cfg, data_path, args, device)
     if tmp is not None:
         tmp.cleanup()
 

@@ -1,5 +1,6 @@
 """The shipped synthetic checkpoints detect: each, evaluated on frames it never saw, clears a
-Vehicle L2 AP bar far above what an untrained model of the same config reaches.
+Vehicle L2 AP bar far above what an untrained model of the same config reaches (for a two-stage
+model: above what its RPN with an untrained second stage reaches).
 
 The frames are the val sequence of the session's tiny synthetic dataset (``synthetic_root``:
 generator seed 0 like the default dataset, split ``val``, 70 frames; the scene draws are keyed by
@@ -23,10 +24,13 @@ from pcdet_atlas.train_utils import eval_one_epoch
 
 SYNTHETIC = REPO_ROOT / "cfgs" / "atlas" / "synthetic"
 #: config -> the least Vehicle L2 AP its shipped checkpoint must reach on the fixture frames
-#: (the checkpoints of docs/model_zoo.md measure 0.212 (CenterPoint, 10 epochs) and 0.631 (CP-4f,
-#: 36 epochs) here, 0.217 and 0.704 on the full val split; random weights 0.0; raise the bars
-#: with the checkpoints)
-VEHICLE_AP_BARS = {"centerpoint.yaml": 0.14, "cp4f.yaml": 0.45}
+#: (the checkpoints of docs/model_zoo.md measure 0.212 (CenterPoint, 10 epochs), 0.631 (CP-4f,
+#: 36 epochs) and 0.849 (MSF-4f) here, 0.217, 0.704 and 0.879 on the full val split; random
+#: weights 0.0, and a random MSF-4f second stage on the shipped CP-4f 0.637 (the RPN's boxes
+#: barely moved); raise the bars with the checkpoints)
+VEHICLE_AP_BARS = {"centerpoint.yaml": 0.14, "cp4f.yaml": 0.45, "msf_4f.yaml": 0.75}
+#: two-stage configs: an untrained second stage keeps its RPN's quality, not 0
+TWO_STAGE = {"msf_4f.yaml"}
 #: every 6th of the fixture's 70 val frames (12 frames)
 FRAME_INTERVAL = 6
 
@@ -57,4 +61,6 @@ def test_shipped_checkpoint_detects_vehicles(name, synthetic_root):
     assert trained[key] >= VEHICLE_AP_BARS[name], trained
     torch.manual_seed(0)
     untrained = _evaluate(cfg, synthetic_root, None)
-    assert untrained[key] < 0.05, untrained  # the bar measures training, not the data
+    # the bar measures training, not the data (nor, for a two-stage model, its RPN)
+    ceiling = VEHICLE_AP_BARS[name] - 0.05 if name in TWO_STAGE else 0.05
+    assert untrained[key] < ceiling, untrained
