@@ -34,16 +34,6 @@ def test_msf_configs_exist():
     assert names == {"msf_4f.yaml", "msf_8f.yaml", "synthetic/msf_4f.yaml", "synthetic/msf_8f.yaml"}
 
 
-@pytest.fixture(scope="module")
-def real_rpn_checkpoint(tmp_path_factory):
-    """Random weights of the real-Waymo CP-4f (the real MSF configs' RPN is not shipped)."""
-    torch.manual_seed(0)
-    rpn = build_network_from_config(cfg_from_yaml_file(CFGS / "cp4f.yaml"))
-    path = tmp_path_factory.mktemp("rpn") / "cp4f_random.pth"
-    torch.save({"model_state": rpn.state_dict()}, path)
-    return path
-
-
 def load_msf_cfg(path: Path, rpn_ckpt: Path | None = None):
     """The config; a real-Waymo one with a random RPN and fewer ROIs and points per frame (the
     parameters do not depend on those; the full sizes need GPU memory)."""

@@ -53,16 +53,6 @@ def with_history(batch: dict, counts=(3, 0)) -> dict:
     return {**batch, "roi_history": padded, "roi_history_frames": torch.tensor(counts)}
 
 
-@pytest.fixture(scope="module")
-def real_rpn_checkpoint(tmp_path_factory):
-    """Random weights of the real-Waymo CP-4f (the real PTT config's RPN is not shipped)."""
-    torch.manual_seed(0)
-    rpn = build_network_from_config(cfg_from_yaml_file(CFGS / "cp4f.yaml"))
-    path = tmp_path_factory.mktemp("rpn") / "cp4f_random.pth"
-    torch.save({"model_state": rpn.state_dict()}, path)
-    return path
-
-
 def synthetic_ptt() -> PTT:
     torch.manual_seed(0)
     return build_network_from_config(cfg_from_yaml_file(CFGS / "synthetic" / "ptt_32f.yaml"))

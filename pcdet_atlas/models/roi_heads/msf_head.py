@@ -242,14 +242,9 @@ class MSFHead(TemporalRoIHead):
         loss_weights: Mapping | None = None,
     ):
         super().__init__(
-            num_class=num_class, iou_weight=iou_weight, sampler_cfg=sampler_cfg, roi_aug=roi_aug,
-            loss_weights=loss_weights,
+            num_class=num_class, num_point_features=num_point_features, iou_weight=iou_weight,
+            sampler_cfg=sampler_cfg, roi_aug=roi_aug, loss_weights=loss_weights,
         )  # fmt: skip
-        if num_point_features < 6:
-            raise ValueError(
-                f"MSFHead needs points [x, y, z, intensity, elongation, ..., time lag], got "
-                f"{num_point_features} columns"
-            )
         if not 0 <= bifa_layers <= enc_layers:
             raise ValueError(
                 f"BIFA_LAYERS must be in [0, ENC_LAYERS={enc_layers}], got {bifa_layers}"
@@ -260,7 +255,6 @@ class MSFHead(TemporalRoIHead):
             float(gamma),
             bool(radius_growth),
         )
-        self.point_feature_dim = num_point_features - 1  # x, y, z, intensity, elongation, ...
         extra = self.point_feature_dim - 3
         self.geometry_embed = mlp([27 + extra, embed_dim, embed_dim, hidden_dim])
         self.motion_embed = mlp([30, embed_dim, embed_dim, hidden_dim])

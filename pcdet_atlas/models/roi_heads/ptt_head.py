@@ -170,14 +170,9 @@ class PTTHead(TemporalRoIHead):
         loss_weights: Mapping | None = None,
     ):
         super().__init__(
-            num_class=num_class, iou_weight=iou_weight, sampler_cfg=sampler_cfg, roi_aug=roi_aug,
-            loss_weights=loss_weights,
+            num_class=num_class, num_point_features=num_point_features, iou_weight=iou_weight,
+            sampler_cfg=sampler_cfg, roi_aug=roi_aug, loss_weights=loss_weights,
         )  # fmt: skip
-        if num_point_features < 6:
-            raise ValueError(
-                f"PTTHead needs points [x, y, z, intensity, elongation, ..., time lag], got "
-                f"{num_point_features} columns"
-            )
         if not 1 <= short_frames <= num_history:
             raise ValueError(
                 f"SHORT_FRAMES must be in [1, NUM_HISTORY={num_history}], got {short_frames}"
@@ -192,7 +187,6 @@ class PTTHead(TemporalRoIHead):
         self.short_frames = int(short_frames)
         self.association_iou = float(association_iou)
         self.num_points, self.gamma = int(num_points), float(gamma)
-        self.point_feature_dim = num_point_features - 1
         frame_dim = box_dim + pool_dim
         extra = self.point_feature_dim - 3
         self.point_embed = mlp([27 + extra, embed_dim, embed_dim, point_dim])

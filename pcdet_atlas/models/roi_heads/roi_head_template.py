@@ -89,7 +89,8 @@ def augment_boxes(
 class TemporalRoIHead(nn.Module):
     """Targets, loss and decoding of a temporal ROI head (module docstring).
 
-    Config keys read by :meth:`common_config`: ``IOU_WEIGHT`` (per class, the weight of the
+    ``num_point_features`` counts the point columns with the time lag (last). Config keys read by
+    :meth:`common_config`: ``IOU_WEIGHT`` (per class, the weight of the
     refined confidence in the fused score), ``TARGET_CONFIG`` (OpenPCDet's ROI sampler keys
     plus MSF's ``USE_ROI_AUG``, ``ROI_FG_AUG_TIMES``, ``RATIO``, ``USE_TRAJ_AUG``) and
     ``LOSS_CONFIG.LOSS_WEIGHTS``.
@@ -99,12 +100,20 @@ class TemporalRoIHead(nn.Module):
         self,
         *,
         num_class: int,
+        num_point_features: int,
         iou_weight: Sequence[float],
         sampler_cfg: RoiSamplerConfig | None = None,
         roi_aug: Mapping | None = None,
         loss_weights: Mapping | None = None,
     ):
         super().__init__()
+        if num_point_features < 6:
+            raise ValueError(
+                f"{type(self).__name__} needs points [x, y, z, intensity, elongation, ..., time "
+                f"lag], got {num_point_features} columns"
+            )
+        #: point columns the head reads: x, y, z, intensity, elongation, ... (not the time lag)
+        self.point_feature_dim = num_point_features - 1
         if len(iou_weight) != num_class:
             raise ValueError(
                 f"IOU_WEIGHT needs one weight per class ({num_class}), got {iou_weight}"
