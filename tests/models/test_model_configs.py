@@ -23,7 +23,6 @@ NOT_SHIPPED = {
     "synthetic/centerpoint_voxel.yaml",
     "synthetic/cp4f_voxel.yaml",
     "synthetic/msf_8f.yaml",
-    "synthetic/ptt_32f.yaml",
 }
 
 
