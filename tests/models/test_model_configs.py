@@ -22,7 +22,6 @@ CELLS = 64  # smoke runs use a cropped grid of CELLS x CELLS pillars / voxels, s
 NOT_SHIPPED = {
     "synthetic/centerpoint_voxel.yaml",
     "synthetic/cp4f_voxel.yaml",
-    "synthetic/msf_8f.yaml",
 }
 
 
