@@ -15,7 +15,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-import torch
 
 from pcdet_atlas.ops.boxes import transform_boxes
 
@@ -31,23 +30,16 @@ PROPOSAL_COLUMNS = 11
 HISTORY_COLUMNS = 12
 
 
-def _pose(pose) -> np.ndarray:
-    if isinstance(pose, torch.Tensor):
-        pose = pose.detach().cpu().numpy()
-    return np.asarray(pose, dtype=np.float64).reshape(4, 4)
-
-
-def history_to_current(boxes, pose_then, pose_now):
-    """Boxes ``(R, 9)`` (numpy or torch) of an earlier frame, in that frame's vehicle frame (pose
-    ``pose_then``, vehicle -> world), moved into the vehicle frame of pose ``pose_now``: centre by
-    the relative pose, heading plus the poses' yaw difference (wrapped), velocity rotated.
-    Computed in float64, returned in the input's dtype."""
-    relative = np.linalg.inv(_pose(pose_now)) @ _pose(pose_then)
-    if isinstance(boxes, torch.Tensor):
-        moved = transform_boxes(boxes.double(), torch.from_numpy(relative).to(boxes.device))
-        return moved.to(boxes.dtype)
+def history_to_current(boxes, pose_then, pose_now) -> np.ndarray:
+    """Boxes ``(R, 9)`` of an earlier frame, in that frame's vehicle frame (pose ``pose_then``,
+    vehicle -> world ``(4, 4)``), moved into the vehicle frame of pose ``pose_now``: centre by the
+    relative pose, heading plus the poses' yaw difference (wrapped), velocity rotated. Computed
+    in float64, returned in the input's dtype."""
     boxes = np.asarray(boxes)
-    return transform_boxes(boxes.astype(np.float64), relative).astype(boxes.dtype)
+    then = np.asarray(pose_then, dtype=np.float64).reshape(4, 4)
+    now = np.asarray(pose_now, dtype=np.float64).reshape(4, 4)
+    moved = transform_boxes(boxes.astype(np.float64), np.linalg.inv(now) @ then)
+    return moved.astype(boxes.dtype)
 
 
 def gather_history(

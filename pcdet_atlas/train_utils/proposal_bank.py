@@ -128,8 +128,6 @@ class ProposalBank:
                 lambda k, infos=infos: np.asarray(infos[k]["pose"], dtype=np.float64),
                 idx, self.num_history,
             )  # fmt: skip
-            if current.shape[1] != PROPOSAL_COLUMNS:
-                raise ValueError(f"banked proposals of {seq} frame {idx}: {current.shape}")
             samples.append({
                 "roi_boxes": current.astype(np.float64), "roi_history": rows,
                 "roi_history_frames": np.int64(count),

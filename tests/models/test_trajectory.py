@@ -68,7 +68,7 @@ def test_history_to_current_against_the_world_frame():
     c = then @ torch.tensor([5.0, 2.0, 1.0, 1.0], dtype=torch.float64)
     world_heading = 0.2 + 0.3
     world_vel = then[:2, :2] @ torch.tensor([4.0, 1.0], dtype=torch.float64)
-    moved = history_to_current(local, then, now)[0]
+    moved = torch.from_numpy(history_to_current(local.numpy(), then.numpy(), now.numpy())[0])
     back_c = now @ torch.cat([moved[:3], torch.ones(1, dtype=torch.float64)])
     assert torch.allclose(back_c, c)
     assert math.isclose(float(moved[6]) + (-0.4), world_heading, abs_tol=1e-9)

@@ -7,11 +7,7 @@ from collections.abc import Mapping
 
 import torch
 
-from pcdet_atlas.models.detectors.two_stage import (
-    TwoStageDetector,
-    proposals_to_padded,
-    roi_boxes_to_padded,
-)
+from pcdet_atlas.models.detectors.two_stage import TwoStageDetector, proposals_to_padded
 from pcdet_atlas.models.model_utils.motion_sampler import propagate_boxes
 from pcdet_atlas.registry import DETECTORS
 
@@ -36,16 +32,7 @@ class MSF(TwoStageDetector):
                     f"MSF.loss needs batch_dict[{key!r}] (training proposals: "
                     "pcdet_atlas.train_utils.proposals, attached by tools/train.py)"
                 )
-        head = self.roi_head
-        rois, _, labels, valid = roi_boxes_to_padded(batch_dict["roi_boxes"])
-        gens = self.sample_generators(batch_dict, "msf_targets")
-        targets = head.assign_targets(rois, labels, valid, batch_dict["gt_boxes"], gens)
-        out = head({
-            **batch_dict, "rois": targets["rois"], "roi_valid": targets["roi_valid"],
-            "trajectories": targets["trajectories"],
-            "generators": self.sample_generators(batch_dict, "msf_points"),
-        })  # fmt: skip
-        return head.loss(out, targets)
+        return self.second_stage_loss(batch_dict, "msf")
 
     @torch.no_grad()
     def predict(self, batch_dict: Mapping) -> list[dict[str, torch.Tensor]]:

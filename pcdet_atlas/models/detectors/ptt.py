@@ -58,21 +58,11 @@ class PTT(TwoStageDetector):
 
     def loss(self, batch_dict: Mapping) -> dict[str, torch.Tensor]:
         self._check_inputs(batch_dict, "loss", ("gt_boxes",))
-        head = self.roi_head
-        rois, _, labels, valid = roi_boxes_to_padded(batch_dict["roi_boxes"])
         histories = self.histories(batch_dict)
-        targets = head.assign_targets(
-            rois, labels, valid, batch_dict["gt_boxes"],
-            self.sample_generators(batch_dict, "ptt_targets"),
-            lambda b, chosen: head.trajectories(chosen, histories[b]),
+        return self.second_stage_loss(
+            batch_dict, "ptt",
+            lambda b, chosen: self.roi_head.trajectories(chosen, histories[b]),
         )  # fmt: skip
-        out = head({
-            **batch_dict, "rois": targets["rois"], "roi_valid": targets["roi_valid"],
-            "trajectories": targets["trajectories"],
-            "trajectory_valid": targets["trajectory_valid"],
-            "generators": self.sample_generators(batch_dict, "ptt_points"),
-        })  # fmt: skip
-        return head.loss(out, targets)
 
     @torch.no_grad()
     def predict(self, batch_dict: Mapping) -> list[dict[str, torch.Tensor]]:

@@ -153,6 +153,28 @@ class TwoStageDetector(Detector3DTemplate):
         keep = frame_of_points(points[:, -1], self.rpn_info["window"]) >= 0
         return self.rpn.predict({**batch_dict, "points": points[keep]})
 
+    # ------------------------------------------------------------------ training
+    def second_stage_loss(
+        self, batch_dict: Mapping, purpose: str, trajectory_fn=None
+    ) -> dict[str, torch.Tensor]:
+        """The head's loss on the batch's training proposals ``roi_boxes`` ``(B, R, 11)``:
+        ROI sampling and jitter (``<purpose>_targets`` draws), trajectories of the sampled
+        proposals by ``trajectory_fn`` (default: the head's), the head on them
+        (``<purpose>_points`` draws)."""
+        head = self.roi_head
+        rois, _, labels, valid = roi_boxes_to_padded(batch_dict["roi_boxes"])
+        targets = head.assign_targets(
+            rois, labels, valid, batch_dict["gt_boxes"],
+            self.sample_generators(batch_dict, f"{purpose}_targets"), trajectory_fn,
+        )  # fmt: skip
+        out = head({
+            **batch_dict, "rois": targets["rois"], "roi_valid": targets["roi_valid"],
+            "trajectories": targets["trajectories"],
+            "trajectory_valid": targets["trajectory_valid"],
+            "generators": self.sample_generators(batch_dict, f"{purpose}_points"),
+        })  # fmt: skip
+        return head.loss(out, targets)
+
     # ------------------------------------------------------------------ detections
     def detections(
         self,

@@ -291,7 +291,7 @@ class PTTHead(TemporalRoIHead):
         pt_feat = self.point_embed(torch.cat([geometry, extra], dim=-1))
         pt_feat = pt_feat * pts_valid[:, None, :, None]
         # 2. per-frame features (N, L, D): box sequence + pooled points
-        box = self.box_embed[1](self.box_embed[0](box_sequence_features(seq, fut).reshape(-1, 8)))
+        box = self.box_embed(box_sequence_features(seq, fut).reshape(-1, 8))
         box = F.relu(self.box_norm(box)).reshape(num, length, -1)
         frame_feat = torch.cat([box, self.point_pool(pt_feat.max(dim=2).values)], dim=-1)
         # 3. memories

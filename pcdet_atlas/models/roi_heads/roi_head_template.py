@@ -251,7 +251,7 @@ class TemporalRoIHead(nn.Module):
             out["roi_labels"][b] = labels[draw.roi_index]
         template = next((t for t in trajectories if t is not None), None)
         if template is None:  # no sample has proposals: shapes from an empty call
-            template, _ = trajectory_fn(0, rois.new_zeros(count, rois.shape[-1]))
+            template, _ = trajectory_fn(0, rois.new_zeros(0, rois.shape[-1]))
         shape = (template.shape[0], count, template.shape[-1])
         out["trajectories"] = torch.stack(
             [t if t is not None else rois.new_zeros(shape) for t in trajectories]
