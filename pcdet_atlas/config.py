@@ -196,7 +196,7 @@ def _is_str_list(v: Any) -> bool:
 
 #: The sections of a detector config (``tools/train.py`` / ``tools/test.py``); the nested keys of
 #: each are checked by the code that reads the section.
-EXPERIMENT_SECTIONS = ("CLASS_NAMES", "DATA_CONFIG", "MODEL", "OPTIMIZATION", "ATLAS")
+EXPERIMENT_SECTIONS = ("CLASS_NAMES", "DATA_CONFIG", "MODEL", "OPTIMIZATION", "ATLAS", "STAGE")
 #: ``(dotted key, check, what a valid value is)`` of the values whose type is checked at load time.
 EXPERIMENT_VALUES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("CLASS_NAMES", _is_str_list, "a non-empty list of class names, e.g. [Vehicle]"),

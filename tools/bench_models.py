@@ -35,6 +35,13 @@ one (``fold_eval = False``), with the largest difference of their outputs:
 
     python tools/bench_models.py --vfe_forms --cfgs cfgs/atlas/synthetic/cp4f.yaml --frames 8
 
+For a model with a LOT stage (PHiM+LOT), the time LOT takes inside its frames is printed below
+the table. ``--ssm`` times :func:`~pcdet_atlas.models.ssm.selective_scan` (chunked) against the
+plain sequential loop (``selective_scan_reference``) on the same inputs, forward and forward +
+backward, at ``--ssm_lengths`` steps (b 2, d 64, n 16, Mamba's sizes), alternating:
+
+    python tools/bench_models.py --cfgs --ssm --threads 1
+
 ``--train_step`` instead times training steps (batch ``--batch_size``, the configs' own train
 pipeline with GT sampling and augmentation, AdamW + one-cycle, gradient clipping: what
 ``tools/train.py`` does per iteration) of each ``--train_cfgs`` config, in a fresh process per
@@ -153,6 +160,8 @@ def parse_args():
         "--vfe_forms", action="store_true",
         help="time the VFE's folded eval form against the layer-by-layer one instead",
     )  # fmt: skip
+    p.add_argument("--ssm", action="store_true", help="time selective_scan against the loop")
+    p.add_argument("--ssm_lengths", type=int, nargs="+", default=[1024, 16384])
     t = p.add_argument_group("training step (--train_step)")
     t.add_argument("--train_step", action="store_true", help="time training steps instead")
     t.add_argument("--train_cfgs", nargs="+", default=list(TRAIN_STEP_CFGS))
@@ -467,6 +476,8 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
              "trained": trained, "ships_ckpt": bool(ckpt), "times": [], "points": n_points,
              "params": sum(p.numel() for p in model.parameters()), "rpn_times": []}
         )  # fmt: skip
+        if getattr(model, "lot", None) is not None:  # time LOT inside the frames
+            runs[-1]["lot_times"] = _time_module(model.lot)
         if start:  # PTT: frames from 31 on, the bank already holding their history
             runs[-1]["bank"] = _warm_bank(model, dataset, batches[0], device)
 
@@ -547,6 +558,15 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
         name = str(Path(cfg_file).resolve().relative_to(REPO_ROOT / "cfgs"))
         print(f"| {name} | not built: {reason} | | | | | | |")
     for run in runs:
+        if "lot_times" in run:
+            lot = statistics.median(run["lot_times"][-args.frames :])
+            med = statistics.median(run["times"])
+            name = str(Path(run["cfg"]).resolve().relative_to(REPO_ROOT / "cfgs"))
+            print(
+                f"\n{name}: LOT (score MLP, occupancy maps, ConvSSM forecast, filtering) takes "
+                f"{lot * 1e3:,.1f} ms of the {med * 1e3:,.0f} ms frame ({lot / med:.1%})"
+            )
+    for run in runs:
         if "bank" in run:
             st = run["bank"].stats()
             name = str(Path(run["cfg"]).resolve().relative_to(REPO_ROOT / "cfgs"))
@@ -604,6 +624,58 @@ def bank_table(cfg_file: str, data_path: Path, args, device: torch.device) -> No
         )
 
 
+def _time_module(module: torch.nn.Module) -> list[float]:
+    """Seconds of every forward of ``module`` from now on, appended to the returned list."""
+    times: list[float] = []
+    start: list[float] = []
+    module.register_forward_pre_hook(lambda m, i: start.append(time.perf_counter()))
+    module.register_forward_hook(lambda m, i, o: times.append(time.perf_counter() - start.pop()))
+    return times
+
+
+def ssm_table(lengths: list[int], frames: int, device: torch.device) -> None:
+    """selective_scan (chunked) against the sequential loop, same inputs, alternating."""
+    from pcdet_atlas.models.ssm import selective_scan, selective_scan_reference
+
+    g = torch.Generator().manual_seed(0)
+    b, d, n = 2, 64, 16
+    print(f"\nselective_scan vs the plain loop: b {b}, d {d}, n {n}, {device}, "
+          f"{torch.get_num_threads()} threads, median of {frames}")  # fmt: skip
+    print("| l | pass | chunked ms | loop ms | speed-up | max abs diff |")
+    print("|---|---|---|---|---|---|")
+    for l in lengths:
+        args = [
+            torch.randn(b, d, l, generator=g), torch.rand(b, d, l, generator=g) - 2,
+            -torch.rand(d, n, generator=g) * 4, torch.randn(b, n, l, generator=g),
+            torch.randn(b, n, l, generator=g),
+        ]  # fmt: skip
+        args = [a.to(device) for a in args]
+        kw = {"D": torch.ones(d, device=device), "delta_softplus": True}
+        for backward in (False, True):
+            times: dict = {selective_scan: [], selective_scan_reference: []}
+            outs = {}
+            for _ in range(frames):
+                for fn in times:
+                    inp = [a.clone().requires_grad_(backward) for a in args]
+                    if device.type == "cuda":
+                        torch.cuda.synchronize(device)
+                    t0 = time.perf_counter()
+                    with torch.set_grad_enabled(backward):
+                        y = fn(*inp, **kw)
+                        if backward:
+                            y.sum().backward()
+                    if device.type == "cuda":
+                        torch.cuda.synchronize(device)
+                    times[fn].append(time.perf_counter() - t0)
+                    outs[fn] = y.detach()
+            fast, slow = (statistics.median(times[f]) for f in times)
+            diff = float((outs[selective_scan] - outs[selective_scan_reference]).abs().max())
+            print(
+                f"| {l:,} | {'forward + backward' if backward else 'forward'} | "
+                f"{fast * 1e3:,.1f} | {slow * 1e3:,.1f} | {slow / fast:.1f}x | {diff:.1e} |"
+            )
+
+
 def main() -> None:
     args = parse_args()
     if args.threads:
@@ -638,6 +710,8 @@ def main() -> None:
         test_step_shares(args.share_cfg, data_path, args.share_frames, device)
     if args.bank_cfg is not None:
         bank_table(args.bank_cfg, data_path, args, device)
+    if args.ssm:
+        ssm_table(args.ssm_lengths, args.frames, device)
     if tmp is not None:
         tmp.cleanup()
 

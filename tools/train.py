@@ -47,6 +47,12 @@ from pcdet_atlas.train_utils.setup import (
     require_dataset,
     setup_runtime,
 )
+from pcdet_atlas.train_utils.stages import (
+    apply_stage_freezing,
+    load_stage_init,
+    stage_from_config,
+    stage_init_checkpoint,
+)
 from pcdet_atlas.utils.common import create_logger
 
 
@@ -126,6 +132,13 @@ def main(argv=None) -> dict:
             logger=logger,
         )  # fmt: skip
         dataset.set_proposals(table, str(source), history=model.proposal_history)
+    stage = stage_from_config(cfg)
+    if stage is not None:  # before the optimizer: it takes only the stage's trainable parameters
+        trainable = apply_stage_freezing(model, stage)
+        logger.info(
+            f"stage {stage.name}: training {', '.join(stage.train)} ({len(trainable)} tensors), "
+            f"freezing the rest"
+        )
     optimizer = build_optimizer(model, optim_cfg)
     scheduler = build_scheduler(
         optimizer, optim_cfg, iters_per_epoch=len(loader), total_epochs=epochs
@@ -146,6 +159,17 @@ def main(argv=None) -> dict:
             )
         state = TrainState(epoch=ckpt["epoch"], it=ckpt["it"])
         logger.info(f"resumed from {resume} (epoch {state.epoch}, iteration {state.it})")
+    elif stage is not None:
+        try:
+            init = stage_init_checkpoint(
+                stage, output_root=args.output_root, extra_tag=args.extra_tag,
+                pretrained_model=args.pretrained_model,
+            )  # fmt: skip
+            new = load_stage_init(model, stage, init)
+        except (FileNotFoundError, ValueError) as err:
+            raise SystemExit(str(err)) from None
+        modules = sorted({k.rsplit(".", 2)[0] for k in new})
+        logger.info(f"stage {stage.name}: initialised from {init}; new in this stage: {modules}")
     elif args.pretrained_model is not None:
         model.load_params_from_file(args.pretrained_model)
         logger.info(f"initialised from {args.pretrained_model}")

@@ -16,6 +16,7 @@ from pcdet_atlas.models import (  # noqa: F401
     dense_heads,
     detectors,
     map_to_bev,
+    occupancy,
     roi_heads,
     vfe,
 )

@@ -136,3 +136,45 @@ def test_truncated_checkpoint_names_its_path(synthetic_root, tmp_path):
         train.main(one_step_args(synthetic_root, tmp_path, "cut"))
     with pytest.raises(ValueError, match=f"checkpoint {cut} cannot be read"):
         model.load_params_from_file(cut)
+
+
+@pytest.mark.slow
+def test_staged_training_chains_through_train_py(synthetic_root, tmp_path):
+    """PHiM+LOT's stages: stage 1 from a PHiM checkpoint, stage 2 from stage 1's run under the
+    same --extra_tag (its frozen score MLP kept bit for bit), a missing predecessor an error."""
+    train = load_tool("train")
+    stages = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "phim_lot"
+    out = tmp_path / "output"
+
+    def args(name, tag, *extra):
+        return [
+            "--cfg", str(stages / name), "--output_root", str(out), "--extra_tag", tag,
+            "--epochs", "1", "--batch_size", "2", "--workers", "0", "--no_progress",
+            "--fix_random_seed", "--device", "cpu", *extra,
+            "--set", "DATA_CONFIG.DATA_PATH", str(synthetic_root),
+            "DATA_CONFIG.DATA_AUGMENTOR.DISABLE_AUG_LIST", "gt_sampling",
+            "DATA_CONFIG.SAMPLED_INTERVAL", "train:5,test:5",
+            "DATA_CONFIG.POINT_CLOUD_RANGE", "-20.48,-20.48,-2,20.48,20.48,4",
+        ]  # fmt: skip
+
+    phim_cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "phim.yaml")
+    torch.manual_seed(3)
+    phim = build_network_from_config(phim_cfg)
+    torch.save({"model_state": phim.state_dict()}, tmp_path / "phim.pth")
+    s1 = train.main(
+        args("stage1_score.yaml", "chain", "--pretrained_model", str(tmp_path / "phim.pth"))
+    )
+    s2 = train.main(args("stage2_ssm.yaml", "chain"))
+    w1 = torch.load(s1["output_dir"] / "ckpt" / "checkpoint_epoch_1.pth", weights_only=False)
+    w2 = torch.load(s2["output_dir"] / "ckpt" / "checkpoint_epoch_1.pth", weights_only=False)
+    m0, m1, m2 = phim.state_dict(), w1["model_state"], w2["model_state"]
+    for k in m1:
+        if k.startswith("vfe."):
+            assert torch.equal(m0[k], m1[k]) and torch.equal(m1[k], m2[k]), k
+        if k.startswith("lot.score_mlp."):
+            assert torch.equal(m1[k], m2[k]), k  # frozen in stage 2
+    assert any(not torch.equal(m1[k], m2[k]) for k in m1 if k.startswith("lot.convssm."))
+    # stage 1 leaves the detector as PHiM left it
+    assert all(torch.equal(m0[k], m1[k]) for k in m0 if k.startswith("backbone_3d."))
+    with pytest.raises(SystemExit, match=r"stage2_ssm.*stage1_score"):
+        train.main(args("stage2_ssm.yaml", "other"))

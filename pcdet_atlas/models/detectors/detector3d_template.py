@@ -17,11 +17,13 @@ import torch
 from torch import nn
 
 from pcdet_atlas.config import ConfigError, check_known_keys, key_source, require_keys
+from pcdet_atlas.models.model_utils.polar_grid import PolarGrid
 from pcdet_atlas.registry import MODEL_STAGES
 
 # stage attribute -> its section in MODEL (OpenPCDet's names)
 STAGE_CFG_KEYS = {
     "vfe": "VFE",
+    "lot": "LOT",
     "backbone_3d": "BACKBONE_3D",
     "map_to_bev_module": "MAP_TO_BEV",
     "pfe": "PFE",
@@ -57,8 +59,16 @@ def stage_model_info(stage: nn.Module, name: str, info: dict) -> None:
     """Update ``info`` in place with what ``stage`` (built as ``name``) tells later stages."""
     if name == "vfe":
         info["num_point_features"] = stage.get_output_feature_dim()
-        info["voxel_size"] = stage.grid.voxel_size
-        info["grid_size"] = stage.grid.grid_size
+        if isinstance(stage.grid, PolarGrid):  # a polar VFE: the BEV grid comes later
+            info["polar_grid"] = stage.grid
+        else:
+            info["voxel_size"] = stage.grid.voxel_size
+            info["grid_size"] = stage.grid.grid_size
+    if name == "backbone_3d" and hasattr(stage, "num_point_features"):
+        info["num_point_features"] = stage.num_point_features
+    if hasattr(stage, "bev_grid"):  # a stage that leaves polar cells for the Cartesian BEV
+        info["voxel_size"] = stage.bev_grid.voxel_size
+        info["grid_size"] = stage.bev_grid.grid_size
     if hasattr(stage, "num_bev_features"):
         info["num_bev_features"] = stage.num_bev_features
     if hasattr(stage, "output_stride"):
@@ -77,6 +87,8 @@ class Detector3DTemplate(nn.Module):
     module_topology = list(STAGE_CFG_KEYS)
     required_stages: tuple[str, ...] = ()
     #: keys ``MODEL.POST_PROCESSING`` may hold for this detector
+    #: further ``MODEL`` keys a subclass reads (beside ``NAME``, ``POST_PROCESSING``, stages)
+    EXTRA_MODEL_KEYS: tuple[str, ...] = ()
     POST_PROCESSING_KEYS: tuple[str, ...] = (
         "RECALL_THRESH_LIST", "EVAL_METRIC", "SCORE_THRESH", "OUTPUT_RAW_SCORE",
     )  # fmt: skip
@@ -98,6 +110,9 @@ class Detector3DTemplate(nn.Module):
         self.num_class = len(self.class_names)
         for name in self.module_topology:
             setattr(self, name, stages.get(name))
+        #: module names that train (a training stage's ``STAGE.TRAIN``); None: all of them.
+        #: The others stay in eval mode under ``train()``.
+        self.trainable_modules: tuple[str, ...] | None = None
 
     @property
     def module_list(self) -> list[nn.Module]:
@@ -125,7 +140,11 @@ class Detector3DTemplate(nn.Module):
             extra: further keyword arguments of the subclass's constructor.
         """
         stage_keys = {STAGE_CFG_KEYS[n] for n in cls.module_topology}
-        check_known_keys(model_cfg, ["NAME", "POST_PROCESSING", *sorted(stage_keys)], "MODEL")
+        check_known_keys(
+            model_cfg,
+            ["NAME", "POST_PROCESSING", *sorted(stage_keys), *cls.EXTRA_MODEL_KEYS],
+            "MODEL",
+        )
         post = model_cfg.get("POST_PROCESSING", {})
         check_known_keys(post, cls.POST_PROCESSING_KEYS, "MODEL.POST_PROCESSING")
         for name in cls.required_stages:
@@ -156,6 +175,20 @@ class Detector3DTemplate(nn.Module):
                 ) from err
             stage_model_info(stages[name], name, info)
         return cls(class_names=class_names, **extra, **stages)
+
+    def train(self, mode: bool = True) -> Detector3DTemplate:
+        """``nn.Module.train``, keeping every module outside :attr:`trainable_modules` (and not
+        containing one) in eval mode, so frozen batch norms keep their statistics."""
+        super().train(mode)
+        if mode and self.trainable_modules is not None:
+            for name, module in self.named_modules():
+                keep = not name or any(  # the detector itself, a trained module, or one above it
+                    name == t or name.startswith(t + ".") or t.startswith(name + ".")
+                    for t in self.trainable_modules
+                )
+                if not keep:
+                    module.training = False
+        return self
 
     # --------------------------------------------------------------------- running
     def run_stages(self, batch_dict: Mapping) -> dict:

@@ -2,5 +2,6 @@
 
 from pcdet_atlas.models.map_to_bev.height_compression import HeightCompression
 from pcdet_atlas.models.map_to_bev.pointpillar_scatter import PointPillarScatter
+from pcdet_atlas.models.map_to_bev.sector_feature_buffer import SectorFeatureBuffer
 
-__all__ = ["HeightCompression", "PointPillarScatter"]
+__all__ = ["HeightCompression", "PointPillarScatter", "SectorFeatureBuffer"]

@@ -180,7 +180,13 @@ def focal_loss_centernet(pred_logits: torch.Tensor, target: torch.Tensor) -> tor
     Returns:
         scalar loss.
     """
-    pred = torch.sigmoid(pred_logits.float()).clamp(min=1e-4, max=1 - 1e-4)
+    return focal_loss_centernet_prob(torch.sigmoid(pred_logits.float()), target)
+
+
+def focal_loss_centernet_prob(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """:func:`focal_loss_centernet` on probabilities ``pred`` (any shape, values in [0, 1],
+    clamped to [1e-4, 1 - 1e-4] as OpenPCDet's ``_sigmoid``) instead of logits."""
+    pred = pred.float().clamp(min=1e-4, max=1 - 1e-4)
     pos = target.eq(1).float()
     neg_weight = torch.pow(1 - target, 4)
     pos_loss = (torch.log(pred) * torch.pow(1 - pred, 2) * pos).sum()

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["VoxelGrid", "Voxelization", "voxelize"]
+__all__ = ["VoxelGrid", "Voxelization", "check_point_columns", "voxelize"]
 
 # grids with at most this many cells (batch included) group points with a dense per-cell table
 # (bincount, O(N + cells)); larger ones (fine 3D voxels) sort the keys with torch.unique
@@ -117,3 +117,12 @@ def voxelize(points: torch.Tensor, grid: VoxelGrid) -> Voxelization:
     return Voxelization(
         point_mask=mask, point_voxel_idx=inverse, voxel_coords=coords, voxel_num_points=counts
     )
+
+
+def check_point_columns(points: torch.Tensor, num_point_features: int, owner: str) -> None:
+    """A ValueError naming ``owner`` unless ``points`` is ``(N, 1 + num_point_features)``."""
+    if points.dim() != 2 or points.shape[1] != 1 + num_point_features:
+        raise ValueError(
+            f"{owner}: points must be (N, 1 + {num_point_features}) [batch_idx, x, y, z, ...], "
+            f"got {tuple(points.shape)}"
+        )

@@ -2,5 +2,6 @@
 
 from pcdet_atlas.models.vfe.dynamic_pillar_vfe import DynamicPillarVFE
 from pcdet_atlas.models.vfe.mean_vfe import MeanVFE
+from pcdet_atlas.models.vfe.polar_vfe import PolarVFE
 
-__all__ = ["DynamicPillarVFE", "MeanVFE"]
+__all__ = ["DynamicPillarVFE", "MeanVFE", "PolarVFE"]

@@ -21,7 +21,7 @@ from torch import nn
 
 from pcdet_atlas.config import ConfigError, check_known_keys, key_source
 from pcdet_atlas.models.model_utils.scatter import scatter_max, scatter_mean
-from pcdet_atlas.models.model_utils.voxelize import VoxelGrid, voxelize
+from pcdet_atlas.models.model_utils.voxelize import VoxelGrid, check_point_columns, voxelize
 from pcdet_atlas.registry import MODEL_STAGES
 
 
@@ -141,11 +141,7 @@ class DynamicPillarVFE(nn.Module):
 
     def forward(self, batch_dict: dict) -> dict:
         points = batch_dict["points"]  # (N, 1 + C)
-        if points.dim() != 2 or points.shape[1] != 1 + self.num_point_features:
-            raise ValueError(
-                f"DynamicPillarVFE: points must be (N, 1 + {self.num_point_features}) "
-                f"[batch_idx, x, y, z, ...], got {tuple(points.shape)}"
-            )
+        check_point_columns(points, self.num_point_features, "DynamicPillarVFE")
         vox = voxelize(points, self.grid)
         pts = points[vox.point_mask, 1:].float()  # (N_in, C)
         idx = vox.point_voxel_idx

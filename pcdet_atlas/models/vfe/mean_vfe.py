@@ -14,7 +14,7 @@ from torch import nn
 
 from pcdet_atlas.config import check_known_keys, require_keys
 from pcdet_atlas.models.model_utils.hard_voxelize import hard_voxelize
-from pcdet_atlas.models.model_utils.voxelize import VoxelGrid
+from pcdet_atlas.models.model_utils.voxelize import VoxelGrid, check_point_columns
 from pcdet_atlas.registry import MODEL_STAGES
 
 
@@ -78,11 +78,7 @@ class MeanVFE(nn.Module):
 
     def forward(self, batch_dict: dict) -> dict:
         points = batch_dict["points"]  # (N, 1 + C)
-        if points.dim() != 2 or points.shape[1] != 1 + self.num_point_features:
-            raise ValueError(
-                f"MeanVFE: points must be (N, 1 + {self.num_point_features}) "
-                f"[batch_idx, x, y, z, ...], got {tuple(points.shape)}"
-            )
+        check_point_columns(points, self.num_point_features, "MeanVFE")
         split = "train" if self.training else "test"
         vox = hard_voxelize(
             points, self.grid, self.max_points_per_voxel, self.max_number_of_voxels[split]

@@ -1,0 +1,78 @@
+"""PHiM's sector feature buffer: the polar voxel features of a frame's sectors gathered into the
+Cartesian BEV map that the full-scan branch (a BEV backbone and the CenterHead) reads.
+
+Every point inside the polar grid carries its voxel's feature to the Cartesian cell it falls in,
+and a cell keeps the per-channel maximum (a cell is empty, zero, where no point fell). Going
+through the points rather than the voxel centres keeps the map dense at long range, where one
+azimuth bin is wider than a BEV cell.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import torch
+from torch import nn
+
+from pcdet_atlas.config import check_known_keys, require_keys
+from pcdet_atlas.models.model_utils.scatter import scatter_max
+from pcdet_atlas.models.model_utils.voxelize import VoxelGrid
+from pcdet_atlas.registry import MODEL_STAGES
+
+__all__ = ["SectorFeatureBuffer"]
+
+
+@MODEL_STAGES.register()
+class SectorFeatureBuffer(nn.Module):
+    """Reads ``voxel_features`` (V, C), ``voxel_coords`` (V, 4), ``voxel_point_idx`` (N_in,),
+    ``voxel_point_xy`` (N_in, 2) and ``batch_size``; writes ``spatial_features`` (B, C, ny, nx)
+    over :attr:`bev_grid`, features as the BEV backbone expects them (Linear, BN, ReLU)."""
+
+    def __init__(
+        self,
+        *,
+        input_channels: int,
+        num_bev_features: int,
+        point_cloud_range: Sequence[float],
+        bev_cell_m: Sequence[float],
+    ):
+        super().__init__()
+        pcr = tuple(float(v) for v in point_cloud_range)
+        self.bev_grid = VoxelGrid(
+            pcr, (float(bev_cell_m[0]), float(bev_cell_m[1]), pcr[5] - pcr[2])
+        )
+        self.num_bev_features = num_bev_features
+        self.proj = nn.Sequential(
+            nn.Linear(input_channels, num_bev_features, bias=False),
+            nn.BatchNorm1d(num_bev_features, eps=1e-3, momentum=0.01),
+            nn.ReLU(),
+        )
+
+    @classmethod
+    def from_config(cls, cfg: Mapping, model_info: Mapping) -> SectorFeatureBuffer:
+        check_known_keys(cfg, ["NAME", "NUM_BEV_FEATURES", "BEV_CELL_M"], "MODEL.MAP_TO_BEV")
+        require_keys(cfg, ["NUM_BEV_FEATURES", "BEV_CELL_M"], "MODEL.MAP_TO_BEV")
+        return cls(
+            input_channels=model_info["num_point_features"],
+            num_bev_features=int(cfg["NUM_BEV_FEATURES"]),
+            point_cloud_range=model_info["point_cloud_range"],
+            bev_cell_m=cfg["BEV_CELL_M"],
+        )
+
+    def forward(self, batch_dict: dict) -> dict:
+        feats = self.proj(batch_dict["voxel_features"])  # (V, C) >= 0
+        idx = batch_dict["voxel_point_idx"]  # (N_in,)
+        xy = batch_dict["voxel_point_xy"]  # (N_in, 2)
+        B = int(batch_dict["batch_size"])
+        nx, ny, _ = self.bev_grid.grid_size
+        pcr, vs = self.bev_grid.point_cloud_range, self.bev_grid.voxel_size
+        ix = torch.floor((xy[:, 0].double() - pcr[0]) / vs[0]).long()
+        iy = torch.floor((xy[:, 1].double() - pcr[1]) / vs[1]).long()
+        inside = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        b = batch_dict["voxel_coords"][:, 0].index_select(0, idx)
+        key = ((b * ny + iy) * nx + ix)[inside]  # (N_bev,)
+        canvas = scatter_max(feats.index_select(0, idx[inside]), key, B * ny * nx)
+        batch_dict["spatial_features"] = (
+            canvas.view(B, ny, nx, -1).permute(0, 3, 1, 2).contiguous()
+        )  # (B, C, ny, nx)
+        return batch_dict

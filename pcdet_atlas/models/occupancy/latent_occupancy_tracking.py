@@ -1,0 +1,166 @@
+"""Latent Occupancy Tracking (LOT), the ATLAS paper's defence on PHiM (its appendix "LOT
+Implementation Details"; docs/model_zoo.md "PHiM+LOT").
+
+Between the VFE and the backbone: a score MLP (Linear, GELU, Linear) gives every polar voxel an
+occupancy probability; the scores fill a dense ``(z, azimuth, range)`` grid, which is collapsed
+over height by a masked mean and average-pooled over azimuth and range. The map is cut into the
+frame's sectors; a fixed-length buffer holds the ``K`` sector maps streamed before each sector
+(empty at the start of every frame) and a :class:`~pcdet_atlas.models.ssm.ConvSSM` forecasts the
+sector from them. ``X_final = 0.5 X_current + 0.5 X_forecast``; a voxel's confidence is the
+value of the confidence map at its cell, and voxels below ``filter_thresh`` are removed (with
+their points) before the detector sees them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from pcdet_atlas.config import check_known_keys
+from pcdet_atlas.models.model_utils.centernet_utils import (
+    focal_loss_centernet,
+    focal_loss_centernet_prob,
+)
+from pcdet_atlas.models.model_utils.polar_grid import PolarGrid
+from pcdet_atlas.models.occupancy.occupancy_targets import occupancy_target
+from pcdet_atlas.models.ssm import ConvSSM
+from pcdet_atlas.registry import MODEL_STAGES
+
+__all__ = ["LatentOccupancyTracking"]
+
+CONFIDENCE_MAPS = ("final", "forecast")
+
+
+@MODEL_STAGES.register()
+class LatentOccupancyTracking(nn.Module):
+    """Reads ``voxel_features`` (V, C), ``voxel_coords`` (V, 4) ``[b, z, a, r]``,
+    ``voxel_point_idx``, ``voxel_point_xy`` and ``batch_size``; writes the kept voxels (and
+    points) under the same keys, and ``lot_current``, ``lot_forecast_logits``, ``lot_final``
+    (B, A', R') maps, ``lot_voxel_confidence`` (V,) and ``lot_keep`` (V,) of the input voxels."""
+
+    def __init__(
+        self,
+        *,
+        input_channels: int,
+        grid: PolarGrid,
+        hidden_channels: int = 32,
+        pool_size: tuple[int, int] = (2, 2),
+        buffer_length: int = 4,
+        state_channels: int = 16,
+        kernel_size: int = 3,
+        filter_thresh: float = 0.1,
+        confidence_map: str = "final",
+        gt_min_sigma: float = 0.5,
+    ):
+        """
+        Args:
+            input_channels: VFE feature width.
+            grid: the VFE's polar grid.
+            pool_size: ``(azimuth, range)`` grid cells per occupancy cell; a sector's azimuth
+                bins must be a multiple of the first.
+            buffer_length: K, historical sector maps the ConvSSM reads.
+            filter_thresh: voxels whose confidence is below it are removed.
+            confidence_map: ``final`` (0.5 current + 0.5 forecast) or ``forecast``.
+            gt_min_sigma: smallest Gaussian sigma of the occupancy target, in cells.
+        """
+        super().__init__()
+        pa, pr = (int(v) for v in pool_size)
+        if grid.sector_bins % pa or grid.grid_size[0] % pr:
+            raise ValueError(
+                f"LOT: POOL_SIZE {list(pool_size)} must divide the {grid.sector_bins} azimuth "
+                f"bins of a sector and the {grid.grid_size[0]} range bins"
+            )
+        if confidence_map not in CONFIDENCE_MAPS:
+            raise ValueError(
+                f"LOT: CONFIDENCE_MAP must be one of {CONFIDENCE_MAPS}, got {confidence_map!r}"
+            )
+        if buffer_length < 1:
+            raise ValueError(f"LOT: BUFFER_LENGTH must be >= 1, got {buffer_length}")
+        self.grid = grid
+        self.pool_size = (pa, pr)
+        self.buffer_length = int(buffer_length)
+        self.filter_thresh = float(filter_thresh)
+        self.confidence_map = confidence_map
+        self.gt_min_sigma = float(gt_min_sigma)
+        self.score_mlp = nn.Sequential(
+            nn.Linear(input_channels, hidden_channels), nn.GELU(), nn.Linear(hidden_channels, 1)
+        )
+        self.convssm = ConvSSM(1, state_channels, kernel_size)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping, model_info: Mapping) -> LatentOccupancyTracking:
+        keys = {
+            "HIDDEN_CHANNELS": "hidden_channels", "POOL_SIZE": "pool_size",
+            "BUFFER_LENGTH": "buffer_length", "STATE_CHANNELS": "state_channels",
+            "KERNEL_SIZE": "kernel_size", "FILTER_THRESH": "filter_thresh",
+            "CONFIDENCE_MAP": "confidence_map", "GT_MIN_SIGMA": "gt_min_sigma",
+        }  # fmt: skip
+        check_known_keys(cfg, ["NAME", *keys], "MODEL.LOT")
+        grid = model_info.get("polar_grid")
+        if grid is None:
+            raise ValueError("LOT needs a polar VFE (MODEL.VFE.NAME: PolarVFE)")
+        kwargs = {arg: cfg[key] for key, arg in keys.items() if key in cfg}
+        if "pool_size" in kwargs:
+            kwargs["pool_size"] = tuple(kwargs["pool_size"])
+        return cls(input_channels=model_info["num_point_features"], grid=grid, **kwargs)
+
+    def occupancy_maps(self, batch_dict: Mapping) -> dict[str, torch.Tensor]:
+        """``lot_current``, ``lot_forecast_logits``, ``lot_final`` (B, A', R') and the
+        confidence of every voxel ``lot_voxel_confidence`` (V,)."""
+        feats, coords = batch_dict["voxel_features"], batch_dict["voxel_coords"]
+        B = int(batch_dict["batch_size"])
+        nr, na, nz = self.grid.grid_size
+        pa, pr = self.pool_size
+        S, K = self.grid.num_sectors, self.buffer_length
+        score = torch.sigmoid(self.score_mlp(feats)).squeeze(1)  # (V,)
+        b, z, a, r = coords.unbind(1)
+        flat = ((b * nz + z) * na + a) * nr + r
+        occ = score.new_zeros(B * nz * na * nr).index_put((flat,), score).view(B, nz, na, nr)
+        valid = score.new_zeros(B * nz * na * nr).index_put((flat,), torch.ones_like(score))
+        valid = valid.view(B, nz, na, nr)
+        occ_2d = occ.sum(1) / valid.sum(1).clamp(min=1)  # (B, na, nr) masked mean over height
+        current = F.avg_pool2d(occ_2d[:, None], (pa, pr))  # (B, 1, A', R')
+        A, R = current.shape[2:]
+        sectors = current.view(B, S, A // S, R)  # (B, S, A/S, R') in streaming order
+        # the buffer of each sector: the K sectors streamed before it, empty before the first
+        padded = torch.cat([sectors.new_zeros(B, K, A // S, R), sectors], dim=1)
+        history = torch.stack([padded[:, k : k + S] for k in range(K)], dim=2)  # (B, S, K, ...)
+        logits = self.convssm(history.reshape(B * S, K, 1, A // S, R))  # (B*S, 1, A/S, R')
+        logits = logits.view(B, A, R)
+        current = current[:, 0]
+        final = 0.5 * current + 0.5 * torch.sigmoid(logits)
+        conf_map = final if self.confidence_map == "final" else torch.sigmoid(logits)
+        confidence = conf_map[b, a // pa, r // pr]  # (V,)
+        return {
+            "lot_current": current, "lot_forecast_logits": logits, "lot_final": final,
+            "lot_voxel_confidence": confidence,
+        }  # fmt: skip
+
+    def forward(self, batch_dict: dict) -> dict:
+        maps = self.occupancy_maps(batch_dict)
+        batch_dict.update(maps)
+        keep = maps["lot_voxel_confidence"] >= self.filter_thresh  # (V,)
+        batch_dict["lot_keep"] = keep
+        idx = batch_dict["voxel_point_idx"]
+        new_index = torch.cumsum(keep, 0) - 1  # (V,) position among the kept voxels
+        point_keep = keep.index_select(0, idx)
+        batch_dict["voxel_features"] = batch_dict["voxel_features"][keep]
+        batch_dict["voxel_coords"] = batch_dict["voxel_coords"][keep]
+        batch_dict["voxel_point_idx"] = new_index.index_select(0, idx)[point_keep]
+        batch_dict["voxel_point_xy"] = batch_dict["voxel_point_xy"][point_keep]
+        return batch_dict
+
+    def loss(self, batch_dict: Mapping, term: str) -> torch.Tensor:
+        """CenterNet focal loss of the current map (``term`` ``occupancy``, stage 1) or of the
+        forecast (``forecast``, stage 2) against :func:`occupancy_target` of ``gt_boxes``."""
+        target = occupancy_target(
+            batch_dict["gt_boxes"], self.grid, self.pool_size, self.gt_min_sigma
+        )  # (B, A', R')
+        if term == "occupancy":
+            return focal_loss_centernet_prob(batch_dict["lot_current"], target)
+        if term == "forecast":
+            return focal_loss_centernet(batch_dict["lot_forecast_logits"], target)
+        raise ValueError(f"LOT.loss: term must be 'occupancy' or 'forecast', got {term!r}")

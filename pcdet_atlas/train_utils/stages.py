@@ -1,0 +1,159 @@
+"""Staged training: a config's ``STAGE`` section says where a stage starts and what it trains.
+
+::
+
+    STAGE:
+      NAME: stage2_ssm
+      INIT_FROM: stage1_score.yaml   # the predecessor's config, relative to this file
+      TRAIN: [lot.convssm]           # the only modules that train
+      FREEZE: [vfe, lot.score_mlp]   # taken from the predecessor's checkpoint and kept fixed
+
+A stage starts from the newest checkpoint its predecessor's run left under the same
+``--extra_tag`` (``--pretrained_model`` names another file). Every parameter outside ``TRAIN`` has
+``requires_grad`` off and its module stays in eval mode while training, so batch-norm statistics
+do not move either. A missing predecessor checkpoint, or one without the parameters of a module
+the stage freezes, stops the run with an error naming the stage and the checkpoint.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+from torch import nn
+
+from pcdet_atlas.config import ConfigError, check_known_keys, key_source, require_keys
+from pcdet_atlas.models.detectors.detector3d_template import (
+    load_state_dict_checked,
+    read_checkpoint,
+)
+from pcdet_atlas.train_utils.checkpoint import find_latest_checkpoint
+
+__all__ = [
+    "TrainingStage",
+    "apply_stage_freezing",
+    "load_stage_init",
+    "stage_from_config",
+    "stage_init_checkpoint",
+]
+
+STAGE_KEYS = ("NAME", "INIT_FROM", "TRAIN", "FREEZE")
+
+
+@dataclass(frozen=True)
+class TrainingStage:
+    """A parsed ``STAGE`` section (``source``: the file that set it)."""
+
+    name: str
+    init_from: Path | None
+    train: tuple[str, ...]
+    freeze: tuple[str, ...]
+    source: str
+
+
+def stage_from_config(cfg: Mapping) -> TrainingStage | None:
+    """The config's ``STAGE`` (None when it has none); ``INIT_FROM`` resolved against the file
+    that set it."""
+    sec = cfg.get("STAGE")
+    if sec is None:
+        return None
+    check_known_keys(sec, STAGE_KEYS, "STAGE")
+    require_keys(sec, ["NAME", "TRAIN"], "STAGE")
+    source = key_source(sec, "TRAIN")
+    init_from = None
+    if sec.get("INIT_FROM") is not None:
+        base = Path(key_source(sec, "INIT_FROM")).parent
+        init_from = (base / str(sec["INIT_FROM"])).resolve()
+        if not init_from.is_file():
+            raise ConfigError(
+                f"STAGE.INIT_FROM {sec['INIT_FROM']!r} (from {key_source(sec, 'INIT_FROM')}): "
+                f"no config at {init_from}"
+            )
+    train, freeze = tuple(sec["TRAIN"]), tuple(sec.get("FREEZE", ()))
+    if not train:
+        raise ConfigError(f"STAGE.TRAIN (from {source}) is empty: a stage must train something")
+    clash = [(t, f) for t in train for f in freeze if _under(t, f) or _under(f, t)]
+    if clash:
+        raise ConfigError(f"STAGE (from {source}): modules both trained and frozen: {clash}")
+    return TrainingStage(str(sec["NAME"]), init_from, train, freeze, source)
+
+
+def _under(name: str, prefix: str) -> bool:
+    return name == prefix or name.startswith(prefix + ".")
+
+
+def stage_init_checkpoint(
+    stage: TrainingStage, *, output_root: str | Path, extra_tag: str, pretrained_model: str | None
+) -> Path:
+    """The checkpoint the stage starts from: ``pretrained_model`` if given, else the newest
+    checkpoint of the ``INIT_FROM`` config's run under ``extra_tag``."""
+    if pretrained_model is not None:
+        path = Path(pretrained_model)
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"stage {stage.name} ({stage.source}): --pretrained_model {path} does not exist"
+            )
+        return path
+    if stage.init_from is None:
+        raise ValueError(
+            f"stage {stage.name} ({stage.source}) starts from a trained model: give "
+            "STAGE.INIT_FROM or --pretrained_model"
+        )
+    from pcdet_atlas.train_utils.setup import load_cfg, output_dir_for
+
+    ckpt_dir = output_dir_for(load_cfg(str(stage.init_from), None), output_root, extra_tag) / "ckpt"
+    found = find_latest_checkpoint(ckpt_dir)
+    if found is None:
+        raise FileNotFoundError(
+            f"stage {stage.name} ({stage.source}) starts from its predecessor "
+            f"{stage.init_from.name}, but {ckpt_dir} holds no checkpoint: train "
+            f"{stage.init_from} with --extra_tag {extra_tag} first, or pass --pretrained_model"
+        )
+    return found
+
+
+def load_stage_init(model: nn.Module, stage: TrainingStage, checkpoint: str | Path) -> list[str]:
+    """Load ``checkpoint`` into ``model`` for ``stage``; returns the parameters it did not hold
+    (modules new in this stage, left at their initialisation).
+
+    Raises:
+        ValueError: a module of ``stage.freeze`` has parameters the checkpoint lacks (naming the
+            stage, the module, the checkpoint and the missing keys).
+        CheckpointMismatchError: unexpected or wrongly shaped parameters.
+    """
+    ckpt = read_checkpoint(checkpoint)
+    state = ckpt["model_state"] if "model_state" in ckpt else ckpt
+    own = model.state_dict()
+    for name in stage.freeze:
+        need = [k for k in own if _under(k, name)]
+        missing = [k for k in need if k not in state]
+        if missing:
+            raise ValueError(
+                f"stage {stage.name} ({stage.source}) freezes {name}, but checkpoint {checkpoint} "
+                f"lacks {len(missing)} of its {len(need)} tensors (e.g. {missing[:3]}): it must "
+                "come from the stage before"
+            )
+    unexpected = sorted(set(state) - set(own))
+    if unexpected:
+        load_state_dict_checked(model, state, strict=True, source=str(checkpoint))  # names them
+    load_state_dict_checked(model, state, strict=False, source=str(checkpoint))
+    return sorted(set(own) - set(state))
+
+
+def apply_stage_freezing(model: nn.Module, stage: TrainingStage) -> list[str]:
+    """Turn gradients off outside ``stage.train`` and keep those modules in eval mode while
+    training; returns the names of the trainable parameters."""
+    names = dict(model.named_modules())
+    for name in (*stage.train, *stage.freeze):
+        if name not in names:
+            raise ConfigError(
+                f"STAGE (from {stage.source}): {name!r} is not a module of "
+                f"{type(model).__name__} (top-level: {[n for n in names if n and '.' not in n]})"
+            )
+    model.requires_grad_(False)
+    for name in stage.train:
+        names[name].requires_grad_(True)
+    model.trainable_modules = stage.train
+    model.train(model.training)
+    return [n for n, p in model.named_parameters() if p.requires_grad]
