@@ -44,6 +44,7 @@ from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d
 ASR_IOU_THRESHOLD = 0.7
 HIGH_SCORE_THRESHOLD = 0.7
 NUM_SCORE_BINS = 20  # fixed bins of width 0.05 over [0, 1]
+PEAK_RESOLUTION = 1e-3  # the centre gap's resolution (the paper reports three decimals)
 DEFAULT_TARGET_CLASS = "Vehicle"
 #: The schedule window the attack engine records ``lifecycle_k`` for by default (docs/attacks.md,
 #: ``pcdet_atlas.attacks.schedule.DEFAULT_WINDOW``; a schedule config with another ``WINDOW``
@@ -441,22 +442,28 @@ def score_histogram(scores: np.ndarray, num_bins: int = NUM_SCORE_BINS) -> dict:
     return {"bin_edges": edges, "counts": counts.tolist()}
 
 
-def histogram_peak(scores: np.ndarray, num_bins: int = NUM_SCORE_BINS) -> float | None:
-    """Peak (mode) of a score distribution: the centre of the fullest of ``num_bins`` fixed bins.
+def score_peak(scores: np.ndarray, resolution: float = PEAK_RESOLUTION) -> float | None:
+    """Peak (mode) of a score distribution at the paper's resolution (0.001 by default).
 
-    Ties between equally full bins go to the bin whose [1, 2, 1]-smoothed count is largest, then
-    to the lowest. A fixed-bin mode is used rather than a KDE because it is defined for any
-    sample size (one score included) and matches the paper's "centre" of a histogram peak.
-    None for an empty sample.
+    The maximum of a Gaussian kernel density estimate (Silverman's rule-of-thumb bandwidth,
+    ``0.9 min(std, IQR / 1.34) n^(-1/5)``, the std alone when the IQR is 0) on a grid of step
+    ``resolution`` over [0, 1]; ties go to the lowest score. A sample with no spread (one score,
+    or identical scores) has its value as peak (the limit of the estimate as the bandwidth
+    shrinks), on the same grid. None for an empty sample.
     """
     scores = np.asarray(scores, dtype=np.float64).reshape(-1)
     if scores.size == 0:
         return None
-    counts = np.asarray(score_histogram(scores, num_bins)["counts"], dtype=np.float64)
-    smooth = np.convolve(np.pad(counts, 1), [1.0, 2.0, 1.0], mode="valid")
-    tied = np.flatnonzero(counts == counts.max())
-    best = tied[np.argmax(smooth[tied])]  # argmax takes the first (lowest) among equal
-    return (best + 0.5) / num_bins
+    steps = int(round(1.0 / resolution))
+    std = float(scores.std(ddof=1)) if scores.size > 1 else 0.0
+    if std == 0.0:
+        return round(float(np.round(scores[0] * steps)) / steps, 12)
+    q75, q25 = np.percentile(scores, [75, 25])
+    spread = min(std, (q75 - q25) / 1.34) or std
+    bandwidth = 0.9 * spread * scores.size ** (-0.2)
+    grid = np.arange(steps + 1) / steps  # (G,)
+    density = np.exp(-0.5 * ((grid[:, None] - scores[None]) / bandwidth) ** 2).sum(1)
+    return round(float(grid[int(np.argmax(density))]), 12)  # argmax: the lowest of ties
 
 
 def injection_confidence(
@@ -529,7 +536,7 @@ def removal_confidence(
     'num_above', 'fraction_above' (surviving scores > high_score), 'num_paired',
     'num_clean_missed', 'mean_score_drop' (clean - attacked, paired), 'median_score_drop',
     'clean_peak', 'attacked_peak', 'peak_gap' (clean_peak - attacked_peak, see
-    :func:`histogram_peak`; over the paired targets), 'histogram' (all surviving scores),
+    :func:`score_peak`; over the paired targets), 'histogram' (all surviving scores),
     'paired_attacked_histogram', 'paired_clean_histogram'}``.
     """
     attacked = matches.attacked()
@@ -547,7 +554,7 @@ def removal_confidence(
     att_p, clean_p = attacked_scores[paired], _score_values(clean_scores[paired])
     drop = clean_p - att_p
     n_above = int(np.sum(attacked_scores > high_score))
-    clean_peak, att_peak = histogram_peak(clean_p, num_bins), histogram_peak(att_p, num_bins)
+    clean_peak, att_peak = score_peak(clean_p), score_peak(att_p)
     return {
         "kind": "removal",
         "high_score_threshold": float(high_score),

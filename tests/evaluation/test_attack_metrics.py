@@ -13,7 +13,6 @@ from pcdet_atlas.evaluation.attack_metrics import (
     AttackMetricError,
     attack_success_rate,
     evaluate_attack,
-    histogram_peak,
     injection_confidence,
     lifecycle_asr,
     lifecycle_position,
@@ -22,6 +21,7 @@ from pcdet_atlas.evaluation.attack_metrics import (
     removal_confidence,
     robustness_ranks,
     score_histogram,
+    score_peak,
 )
 from pcdet_atlas.ops.iou3d_nms import boxes_iou3d
 
@@ -267,10 +267,20 @@ def test_score_histogram_and_peak():
     assert h["counts"][19] == 1 and sum(h["counts"]) == 4  # 1.0 in the last (closed) bin
     with pytest.raises(AttackMetricError, match="in \\[0, 1\\]"):
         score_histogram(np.array([1.2]))
-    assert histogram_peak(np.array([0.12, 0.13, 0.14, 0.9])) == pytest.approx(0.125)
-    # tie of single counts at bins 2, 18, 19: the smoothed count favours 18/19, then the lowest
-    assert histogram_peak(np.array([0.12, 0.91, 0.96])) == pytest.approx(0.925)
-    assert histogram_peak(np.zeros(0)) is None
+
+
+def test_score_peak_at_the_papers_resolution():
+    assert score_peak(np.array([0.12, 0.13, 0.14, 0.9])) == pytest.approx(0.13)
+    # no spread: the value itself, on the 0.001 grid
+    assert score_peak(np.array([0.4])) == 0.4 and score_peak(np.array([0.5, 0.5])) == 0.5
+    assert score_peak(np.zeros(0)) is None
+    # a peak between the 0.05 histogram bins' centres is found to within the estimate's error
+    g = np.random.default_rng(0)
+    peak = score_peak(np.clip(g.normal(0.637, 0.02, 4000), 0, 1))
+    assert abs(peak - 0.637) < 0.01 and peak not in (0.625, 0.675)  # not a bin centre
+    assert peak == round(peak, 3)
+    # two equal modes: the lower one
+    assert score_peak(np.array([0.2, 0.2, 0.8, 0.8])) < 0.5
 
 
 def test_injection_confidence():
@@ -307,8 +317,8 @@ def test_removal_confidence_against_clean_run():
     assert c["num_paired"] == 2 and c["num_clean_missed"] == 1
     assert c["num_above"] == 0 and c["fraction_above"] == 0.0
     assert c["mean_score_drop"] == pytest.approx((0.60 + 0.57) / 2, abs=1e-6)
-    assert c["clean_peak"] == pytest.approx(0.925)  # 0.90 and 0.92 share a bin
-    assert c["attacked_peak"] == pytest.approx(0.325)  # tie 0.30 | 0.35: lowest bin
+    assert c["clean_peak"] == pytest.approx(0.90)  # two equal modes 0.90 | 0.92: the lower
+    assert c["attacked_peak"] == pytest.approx(0.30)
     assert c["peak_gap"] == pytest.approx(0.6)
     assert sum(c["histogram"]["counts"]) == 3
     assert sum(c["paired_clean_histogram"]["counts"]) == 2

@@ -96,7 +96,7 @@ def model_results(model: str, l2_maps: dict, asrs: dict) -> dict:
     )
 
 
-# values from the paper's Tables 1-3 (CenterPoint, PTT), a subset of the variants
+# values from the paper's Tables 2-4 (CenterPoint, PTT), a subset of the variants
 CP = model_results(
     "CenterPoint",
     {"clean": 0.657, "inj_rel_easy": 0.655, "inj_global_hard": 0.652, "rem_10": 0.643,

@@ -150,10 +150,11 @@ def format_comparison_table(
     models_as: str = "rows",
     mark_best: bool = True,
 ) -> str:
-    """Several models side by side: L2 mAP and ASR per variant, as the paper's Tables 2 and 3.
+    """Several models side by side: L2 mAP and ASR per variant, as the paper's Tables 3 and 4.
 
     Args:
-        family: only the variants of this family (e.g. 'injection' for the paper's Table 2).
+        family: only the variants of this family (e.g. 'injection' for the paper's Table 3,
+            'removal' for Table 4).
         variants: explicit variant list (default: all present, paper order).
         models_as: 'rows' (the paper's layout: a row per detector, a column pair per variant) or
             'columns' (a row per variant, a column pair per model; narrower for many variants).
