@@ -378,7 +378,9 @@ class InjectionAttack(BaseAttack):
         added = np.concatenate([spoof[visible], inten[:, None], elong[:, None]], axis=1)
         meta = self.meta(
             state,
-            target_box=box,
+            # a target only when the phantom is in the scan (the paper records g "when a
+            # spoofed object is present"); a fully occluded one is counted as untargeted
+            target_box=box if visible.size else None,
             target_obj_id=self.phantom_id(run),
             num_spoof_points=run.budget,
             num_visible=int(visible.size),

@@ -69,7 +69,9 @@ class TargetMatches:
     if unknown), ``run_id``, ``lifecycle_k`` (int), ``is_shadow`` (bool), ``target_box`` (T, 7)
     float64, ``max_iou`` (float64, best 3D IoU of an eligible prediction, 0 if none),
     ``matched_score`` (float64, best score among eligible predictions with IoU >= ``iou_threshold``,
-    NaN if none) and ``overlap_score`` (same for IoU > 0).
+    NaN if none) and ``overlap_score`` (same for IoU > 0). ``num_spoofed``: the spoofed frames of
+    the input, ``num_untargeted``: those that recorded no target (a phantom of which no point
+    survived the raycast, a removal target lost or not fired); neither counts in the ASR.
     """
 
     variant: str
@@ -80,6 +82,8 @@ class TargetMatches:
     score_threshold: float | None
     target_class: str | None
     num_frames: int
+    num_spoofed: int
+    num_untargeted: int
     frame_index: np.ndarray
     frame_id: np.ndarray
     run_id: np.ndarray
@@ -135,6 +139,8 @@ class TargetMatches:
             score_threshold=self.score_threshold,
             target_class=self.target_class,
             num_frames=self.num_frames,
+            num_spoofed=self.num_spoofed,
+            num_untargeted=self.num_untargeted,
             **rows,
         )
 
@@ -338,6 +344,7 @@ def match_targets(
         k: [] for k in ("frame_index", "frame_id", "run_id", "lifecycle_k", "is_shadow", "box")
     }
     batch = _PairBatch()
+    num_spoofed = num_untargeted = 0
     for i, (anno, info) in enumerate(zip(det_annos, attack_infos)):
         where = _frame_where(i, anno, info)
         if "frame_id" in anno and "frame_id" in info and anno["frame_id"] != info["frame_id"]:
@@ -347,7 +354,9 @@ def match_targets(
             )
         names, boxes, scores = _check_predictions(anno, where)
         target = _check_attack_info(info, where)
+        num_spoofed += bool(info["spoofed"])
         if target is None:
+            num_untargeted += bool(info["spoofed"])
             continue
         if success_if_detected is None:
             raise AttackMetricError(
@@ -374,6 +383,8 @@ def match_targets(
         score_threshold=None if score_threshold is None else float(score_threshold),
         target_class=target_class,
         num_frames=len(det_annos),
+        num_spoofed=num_spoofed,
+        num_untargeted=num_untargeted,
         frame_index=np.asarray(rows["frame_index"], dtype=np.int64),
         frame_id=np.asarray(rows["frame_id"], dtype=str),
         run_id=np.asarray(rows["run_id"], dtype=np.int64),
@@ -395,7 +406,9 @@ def asr_from_matches(matches: TargetMatches) -> dict:
     """ASR of the attacked (non-shadow) targets.
 
     Returns ``{'asr', 'num_targets', 'num_success', 'asr_lenient', 'num_success_lenient',
-    'iou_threshold', 'score_threshold', 'target_class'}``; the rates are None without targets.
+    'num_spoofed_frames', 'num_untargeted', 'iou_threshold', 'score_threshold',
+    'target_class'}``; the rates are None without targets. ``num_untargeted`` spoofed frames
+    recorded no target and are not in the ASR (see :class:`TargetMatches`).
     """
     attacked = matches.attacked()
     n = len(attacked)
@@ -406,6 +419,8 @@ def asr_from_matches(matches: TargetMatches) -> dict:
         "num_success": n_ok,
         "asr_lenient": _rate(n_len, n),
         "num_success_lenient": n_len,
+        "num_spoofed_frames": matches.num_spoofed,
+        "num_untargeted": matches.num_untargeted,
         "iou_threshold": matches.iou_threshold,
         "score_threshold": matches.score_threshold,
         "target_class": matches.target_class,

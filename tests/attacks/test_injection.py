@@ -2,9 +2,11 @@ import math
 
 import numpy as np
 import pytest
+import torch
 from atlas_helpers import GROUND_Z, synthetic_library, write_tiny_waymo
 from device_params import DEVICES
 
+from pcdet_atlas.attacks import injection as injection_module
 from pcdet_atlas.attacks.base import SequenceData
 from pcdet_atlas.attacks.ground import GroundEstimator
 from pcdet_atlas.attacks.injection import InjectionAttack, sample_phantom
@@ -307,3 +309,24 @@ def test_ground_estimator_matches_brute_force_disc_percentile():
                 assert got.source == "fallback" and got.z == est.fallback_z
             else:
                 assert (got.z, got.source, got.num_points) == expected
+
+
+def test_fully_occluded_phantom_records_no_target(tiny, monkeypatch):
+    """A phantom none of whose points survives the raycast is not in the scan: the frame is
+    spoofed but records no target (the evaluation counts it as untargeted, not as a failure)."""
+    root, lib, seq = tiny
+    attack = make_attack(lib, "relative", "hard")
+    pts = load_frame_points(root / "waymo_processed_data_v0_5_0" / SEQ / "0050.npy")
+    visible = attack.simulate(pts[:, :3], seq, 50)
+    assert visible.meta["num_visible"] > 0 and visible.meta["target_box"] is not None
+    real = injection_module.raycast_merge
+
+    def everything_occluded(*args, **kwargs):  # as if an occluder stood before every ray
+        keep_scene, keep_spoof = real(*args, **kwargs)
+        return keep_scene, torch.zeros_like(keep_spoof)
+
+    monkeypatch.setattr(injection_module, "raycast_merge", everything_occluded)
+    r = attack.simulate(pts[:, :3], seq, 50)
+    assert r.meta["spoofed"] and r.meta["num_visible"] == 0 and r.added.shape[0] == 0
+    assert r.meta["target_box"] is None
+    assert r.meta["num_spoof_points"] == visible.meta["num_spoof_points"]

@@ -117,6 +117,17 @@ def test_injection_asr_counts_exactly():
     assert out["iou_threshold"] == 0.7 and out["target_class"] == "Vehicle"
 
 
+def test_spoofed_frames_without_a_target_are_counted_apart():
+    """A phantom absent from the scan (or a removal target lost) records no target: it is
+    neither a success nor a failure, and is reported as untargeted."""
+    dets, infos = four_frames("injection")
+    dets.append(anno("e", [TARGET], scores=[0.9]))
+    infos.append({**info(None, spoofed=True), "frame_id": "e"})  # phantom fully occluded
+    out = attack_success_rate(dets, infos)
+    assert out["num_targets"] == 3 and out["num_success"] == 1  # as without frame e
+    assert out["num_spoofed_frames"] == 4 and out["num_untargeted"] == 1
+
+
 def test_removal_asr_is_the_inverse():
     dets, infos = four_frames("removal")
     out = attack_success_rate(dets, infos)

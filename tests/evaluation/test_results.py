@@ -27,6 +27,7 @@ from pcdet_atlas.evaluation.results import (
     save_results,
     validate_results,
 )
+from pcdet_atlas.evaluation.results.io import upgrade_v1
 
 CLASSES = ["Vehicle", "Pedestrian", "Cyclist"]
 TARGET = np.array([20.0, 2.0, 1.0, 4.0, 2.0, 2.0, 0.3], dtype=np.float32)
@@ -61,6 +62,8 @@ def attack(variant: str, family: str, asr: float, num_targets: int = 100) -> dic
         "num_success": n_ok,
         "asr_lenient": n_ok / num_targets,
         "num_success_lenient": n_ok,
+        "num_spoofed_frames": num_targets,
+        "num_untargeted": 0,
         "iou_threshold": 0.7,
         "score_threshold": None,
         "target_class": "Vehicle",
@@ -188,15 +191,23 @@ def test_the_schema_is_a_standard_json_schema():
         jsonschema.validate({**CP, "schema_version": 1}, RESULTS_SCHEMA)
 
 
-def test_a_schema_1_file_loads_as_schema_2(tmp_path):
-    """Files written before rank_group existed load, with their families' rank groups."""
+def test_older_schema_files_load_as_the_current_one(tmp_path):
+    """Files written before rank_group (schema 1) or the untargeted counts (schema 2) load, with
+    their families' rank groups and the counts unknown (None)."""
     old = copy.deepcopy(CP)
     old["schema_version"] = 1
     for entry in old["variants"].values():
         entry.pop("rank_group")
+        entry.pop("num_spoofed_frames")
+        entry.pop("num_untargeted")
+    expected = copy.deepcopy(CP)
+    for entry in expected["variants"].values():
+        entry["num_spoofed_frames"] = entry["num_untargeted"] = None
     path = tmp_path / "results.json"
     path.write_text(json.dumps(old))
-    assert load_results(path) == CP
+    assert load_results(path) == expected
+    path.write_text(json.dumps(upgrade_v1(old)))
+    assert load_results(path) == expected
     broken = {**old, "variants": {**old["variants"], "rem_10": {**old["variants"]["rem_10"]}}}
     broken["variants"]["rem_10"].pop("asr")
     path.write_text(json.dumps(broken))

@@ -78,6 +78,8 @@ def build_variant_result(
             num_targets=0,
             num_success=0,
             num_success_lenient=0,
+            num_spoofed_frames=0,
+            num_untargeted=0,
             iou_threshold=0.7,
             score_threshold=None,
             target_class=None,

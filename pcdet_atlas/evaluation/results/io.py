@@ -9,7 +9,7 @@ from pathlib import Path
 from pcdet_atlas.evaluation.results.build import plain
 from pcdet_atlas.evaluation.results.schema import ResultsError, validate_results
 
-__all__ = ["load_results", "load_results_dir", "save_results", "upgrade_v1"]
+__all__ = ["load_results", "load_results_dir", "save_results", "upgrade_v1", "upgrade_v2"]
 
 
 def save_results(results: Mapping, path: str | Path) -> Path:
@@ -36,6 +36,8 @@ def load_results(path: str | Path) -> dict:
         raise ResultsError(f"{path}: not valid JSON ({err})") from err
     if isinstance(results, dict) and results.get("schema_version") == 1:
         results = upgrade_v1(results)
+    if isinstance(results, dict) and results.get("schema_version") == 2:
+        results = upgrade_v2(results)
     validate_results(results, where=str(path))
     return results
 
@@ -57,6 +59,21 @@ def upgrade_v1(results: dict) -> dict:
         for name, entry in variants.items()
     }
     return {**results, "schema_version": 2, "variants": upgraded}
+
+
+def upgrade_v2(results: dict) -> dict:
+    """A schema-2 results dict as schema 3: each variant gains ``num_spoofed_frames`` and
+    ``num_untargeted`` as None (unknown: schema 2 did not count them)."""
+    variants = results.get("variants")
+    if not isinstance(variants, dict):
+        return results  # validation names what is wrong
+    upgraded = {
+        name: {**entry, "num_spoofed_frames": None, "num_untargeted": None}
+        if isinstance(entry, dict)
+        else entry
+        for name, entry in variants.items()
+    }
+    return {**results, "schema_version": 3, "variants": upgraded}
 
 
 def load_results_dir(root: str | Path, pattern: str = "**/results.json") -> list[dict]:

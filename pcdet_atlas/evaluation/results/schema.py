@@ -20,7 +20,7 @@ __all__ = [
     "validate_variant",
 ]
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 METRIC_KEYS = ("L1/mAP", "L1/mAPH", "L2/mAP", "L2/mAPH")
 CLASS_METRIC_KEYS = ("L1/AP", "L1/APH", "L2/AP", "L2/APH")
 ATTACK_KEYS = (
@@ -29,6 +29,8 @@ ATTACK_KEYS = (
     "num_targets",
     "num_success",
     "num_success_lenient",
+    "num_spoofed_frames",
+    "num_untargeted",
     "iou_threshold",
     "score_threshold",
     "target_class",
@@ -146,6 +148,8 @@ _VARIANT = _closed(
         "num_targets": _COUNT,
         "num_success": _COUNT,
         "num_success_lenient": _COUNT,
+        "num_spoofed_frames": _nullable(_COUNT),  # None: a file from before schema 3
+        "num_untargeted": _nullable(_COUNT),
         "iou_threshold": _FRAC,
         "score_threshold": _nullable(_FRAC),
         "target_class": _nullable(_NAME),
@@ -284,6 +288,15 @@ def _variant_invariants(v: Mapping, path: str, class_names: list[str]) -> None:
     if set(v["per_class"]) != set(class_names):
         _fail(f"{path}['per_class']", f"classes {sorted(v['per_class'])} != {class_names}")
     n = v["num_targets"]
+    spoofed, untargeted = v["num_spoofed_frames"], v["num_untargeted"]
+    if (spoofed is None) != (untargeted is None) or (
+        spoofed is not None and (untargeted > spoofed or n > spoofed)
+    ):
+        _fail(
+            f"{path}['num_untargeted']",
+            f"{v['num_untargeted']} untargeted and {n} targets of {v['num_spoofed_frames']} "
+            "spoofed frames",
+        )
     for num_key, rate_key in (("num_success", "asr"), ("num_success_lenient", "asr_lenient")):
         _rate(v[rate_key], v[num_key], n, f"{path}['{rate_key}']", f"{path}['{num_key}']")
     if v["confidence"] is not None:
