@@ -13,6 +13,10 @@ Parts:
         Waymo-format split (``--data_path``, a synthetic one is generated if absent), single-frame
         (target <= 1.25x on spoofed frames) and 4-frame input (<= 1.35x), for an injection and a
         removal variant; clean frames (ratio ~1) alongside.
+    visible: not a timing: how many of a phantom's points the raycast keeps (one echo per ray,
+        docs/attacks.md), per injection variant over the spoofed frames of the val split of
+        ``--data_path``: the budget (trace points), the visible points, their ratio, and the
+        phantom's range.
 
 Times are the median of ``--repeats`` calls after one warm-up call (getitem: after a warm-up
 pass of both datasets over every timed frame; clean and attacked alternate call by call;
@@ -368,12 +372,48 @@ def bench_getitem(args) -> None:
                       f"{sims:>6.2f}{goal:>9}")  # fmt: skip
 
 
-PARTS = {"raycast": bench_raycast, "getitem": bench_getitem}
+def visible_counts(args) -> None:
+    """Budget vs visible phantom points per injection variant (the one-echo-per-ray cap)."""
+    from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
+    from pcdet_atlas.attacks.schedule import is_spoofed
+    from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+
+    root, lib_path = _getitem_data(args)
+    data_cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "dataset_configs" / "synthetic_waymo.yaml")
+    data_cfg.DATA_PATH = str(root)
+    classes = ["Vehicle", "Pedestrian", "Cyclist"]
+    print(f"visible: data {root}, spoofed frames of the val split")
+    print("| variant | frames | budget (median) | visible (median) | visible / budget (median, "
+          "min-max) | range m (median, min-max) | frames with 0 visible |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|")
+    for variant in INJECTION_VARIANTS:
+        attack_cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "attacks" / f"{variant}.yaml")
+        attack_cfg.TRACE_LIBRARY.PATH = str(lib_path)
+        ds = AtlasWaymoDataset(data_cfg, classes, attack_cfg, root_path=root)
+        rows = []
+        for i, info in enumerate(ds.infos):
+            if is_spoofed(info["point_cloud"]["sample_idx"]):
+                meta = ds[i]["attack"]
+                box = meta["target_box"]
+                rng = math.hypot(box[0], box[1]) if box is not None else float("nan")
+                rows.append((meta["num_spoof_points"], meta["num_visible"], rng))
+        budget, vis, rng = (np.array(c, dtype=np.float64) for c in zip(*rows))
+        ratio = vis / budget
+        print(
+            f"| {variant} | {len(rows)} | {np.median(budget):.0f} | {np.median(vis):.0f} | "
+            f"{np.median(ratio):.2f} ({ratio.min():.2f}-{ratio.max():.2f}) | "
+            f"{np.nanmedian(rng):.1f} ({np.nanmin(rng):.1f}-{np.nanmax(rng):.1f}) | "
+            f"{int((vis == 0).sum())} |"
+        )
+
+
+INJECTION_VARIANTS = [f"inj_{m}_{d}" for m in ("rel", "global") for d in ("easy", "medium", "hard")]
+PARTS = {"raycast": bench_raycast, "getitem": bench_getitem, "visible": visible_counts}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--part", choices=["all", *PARTS], default="all")
+    parser.add_argument("--part", choices=["all", *PARTS], default="all")  # all: the timings
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     parser.add_argument("--repeats", type=int, default=30)
@@ -395,7 +435,7 @@ def main() -> None:
         parser.error(f"--rounds: expected a positive number of rounds, got {args.rounds}")
     torch.set_num_threads(args.threads)
     for name, fn in PARTS.items():
-        if args.part in ("all", name):
+        if args.part == name or (args.part == "all" and name != "visible"):
             fn(args)
 
 
