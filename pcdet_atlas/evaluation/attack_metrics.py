@@ -32,6 +32,7 @@ Definitions (paper §"Evaluation Metric"; docs/evaluation.md, "Attack metrics"):
 from __future__ import annotations
 
 import math
+import zlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import ClassVar
@@ -45,6 +46,9 @@ ASR_IOU_THRESHOLD = 0.7
 HIGH_SCORE_THRESHOLD = 0.7
 NUM_SCORE_BINS = 20  # fixed bins of width 0.05 over [0, 1]
 PEAK_RESOLUTION = 1e-3  # the centre gap's resolution (the paper reports three decimals)
+CI_LEVEL = 0.95  # the ASR's interval: a cluster bootstrap over spoof runs
+CI_RESAMPLES = 4000
+CI_SEED = 0
 DEFAULT_TARGET_CLASS = "Vehicle"
 #: The schedule window the attack engine records ``lifecycle_k`` for by default (docs/attacks.md,
 #: ``pcdet_atlas.attacks.schedule.DEFAULT_WINDOW``; a schedule config with another ``WINDOW``
@@ -402,19 +406,57 @@ def _rate(num: int, den: int) -> float | None:
     return None if den == 0 else num / den
 
 
+def run_bootstrap_interval(
+    run_id: np.ndarray,
+    success: np.ndarray,
+    *,
+    level: float = CI_LEVEL,
+    num_resamples: int = CI_RESAMPLES,
+    generator: np.random.Generator,
+) -> tuple[float, float] | None:
+    """Percentile interval of a success rate, resampling whole runs (a cluster bootstrap).
+
+    The targets of one spoof run share its phantom trace and placement (or its removal target),
+    so they are not independent draws: the runs are. Each resample draws as many runs as there
+    are, with replacement, and takes ``sum(successes) / sum(targets)`` over them. None with fewer
+    than two runs (the spread between runs is then unknown).
+
+    Args:
+        run_id: (T,) int, the run of every target. success: (T,) bool.
+        generator: the explicit random source (see :func:`asr_from_matches` for its key).
+    """
+    runs, inverse = np.unique(run_id, return_inverse=True)
+    if runs.size < 2:
+        return None
+    targets = np.bincount(inverse, minlength=runs.size).astype(np.float64)  # (R,)
+    hits = np.bincount(inverse, weights=success.astype(np.float64), minlength=runs.size)
+    draws = generator.integers(0, runs.size, size=(num_resamples, runs.size))  # (S, R)
+    rates = hits[draws].sum(1) / targets[draws].sum(1)
+    tail = (1.0 - level) / 2 * 100
+    lo, hi = np.percentile(rates, [tail, 100 - tail])
+    return float(lo), float(hi)
+
+
 def asr_from_matches(matches: TargetMatches) -> dict:
     """ASR of the attacked (non-shadow) targets.
 
-    Returns ``{'asr', 'num_targets', 'num_success', 'asr_lenient', 'num_success_lenient',
-    'num_spoofed_frames', 'num_untargeted', 'iou_threshold', 'score_threshold',
-    'target_class'}``; the rates are None without targets. ``num_untargeted`` spoofed frames
+    Returns ``{'asr', 'asr_ci', 'num_runs', 'num_targets', 'num_success', 'asr_lenient',
+    'num_success_lenient', 'num_spoofed_frames', 'num_untargeted', 'iou_threshold',
+    'score_threshold', 'target_class'}``; the rates are None without targets. ``asr_ci`` is the
+    95% run-level bootstrap interval (:func:`run_bootstrap_interval`, ``[lo, hi]``; None with
+    fewer than two runs), drawn from a generator seeded by ``CI_SEED`` and the variant's name so
+    that every variant's interval is reproducible on its own. ``num_untargeted`` spoofed frames
     recorded no target and are not in the ASR (see :class:`TargetMatches`).
     """
     attacked = matches.attacked()
     n = len(attacked)
     n_ok, n_len = int(attacked.success.sum()), int(attacked.success_lenient.sum())
+    gen = np.random.default_rng([CI_SEED, zlib.crc32(matches.variant.encode())])
+    ci = run_bootstrap_interval(attacked.run_id, attacked.success, generator=gen)
     return {
         "asr": _rate(n_ok, n),
+        "asr_ci": None if ci is None else list(ci),
+        "num_runs": int(np.unique(attacked.run_id).size),
         "num_targets": n,
         "num_success": n_ok,
         "asr_lenient": _rate(n_len, n),

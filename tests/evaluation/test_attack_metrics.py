@@ -20,6 +20,7 @@ from pcdet_atlas.evaluation.attack_metrics import (
     match_targets,
     removal_confidence,
     robustness_ranks,
+    run_bootstrap_interval,
     score_histogram,
     score_peak,
 )
@@ -482,3 +483,30 @@ def test_accepts_the_attack_engine_metadata_records():
     assert m.lifecycle_k.tolist() == [0, 1] and m.is_shadow.tolist() == [True, False]
     out = attack_success_rate(dets, infos)
     assert out["num_targets"] == 1 and out["num_success"] == 1  # lost-target frame not counted
+
+
+# ------------------------------------------------------------------- run-level interval
+def test_run_bootstrap_interval_resamples_runs():
+    gen = np.random.default_rng(0)
+    # two runs of one target each, one hit: resampled rates 0, 1/2, 1 -> the 95% interval [0, 1]
+    lo, hi = run_bootstrap_interval(np.array([0, 1]), np.array([True, False]), generator=gen)
+    assert (lo, hi) == (0.0, 1.0)
+    # runs that agree give no spread however many targets they hold
+    runs = np.repeat(np.arange(4), 32)
+    same = np.tile(np.r_[np.ones(8, bool), np.zeros(24, bool)], 4)
+    assert run_bootstrap_interval(runs, same, generator=gen) == (0.25, 0.25)
+    # one run: the spread between runs is unknown
+    assert run_bootstrap_interval(np.zeros(32, int), same[:32], generator=gen) is None
+    # clustered targets widen the interval against the same rate spread over many runs
+    split = np.repeat(np.r_[np.ones(2, bool), np.zeros(2, bool)], 32)  # 2 runs all hit, 2 none
+    wide = run_bootstrap_interval(runs, split, generator=np.random.default_rng(1))
+    narrow = run_bootstrap_interval(np.arange(128), split, generator=np.random.default_rng(1))
+    assert wide[1] - wide[0] > 2 * (narrow[1] - narrow[0])
+
+
+def test_asr_interval_is_seeded_per_variant():
+    dets = [anno(f"s_{i:03d}", [TARGET] if i % 3 else []) for i in range(12)]
+    infos = [{**info(TARGET, run_id=i // 4), "frame_id": f"s_{i:03d}"} for i in range(12)]
+    a, b = attack_success_rate(dets, infos), attack_success_rate(dets, infos)
+    assert a["num_runs"] == 3 and a["asr_ci"] == b["asr_ci"]  # reproducible
+    assert a["asr_ci"][0] <= a["asr"] <= a["asr_ci"][1]

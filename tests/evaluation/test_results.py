@@ -62,6 +62,8 @@ def attack(variant: str, family: str, asr: float, num_targets: int = 100) -> dic
         "num_success": n_ok,
         "asr_lenient": n_ok / num_targets,
         "num_success_lenient": n_ok,
+        "asr_ci": [max(0.0, n_ok / num_targets - 0.1), min(1.0, n_ok / num_targets + 0.1)],
+        "num_runs": 3,
         "num_spoofed_frames": num_targets,
         "num_untargeted": 0,
         "iou_threshold": 0.7,
@@ -198,11 +200,12 @@ def test_older_schema_files_load_as_the_current_one(tmp_path):
     old["schema_version"] = 1
     for entry in old["variants"].values():
         entry.pop("rank_group")
-        entry.pop("num_spoofed_frames")
-        entry.pop("num_untargeted")
+        for key in ("asr_ci", "num_runs", "num_spoofed_frames", "num_untargeted"):
+            entry.pop(key)
     expected = copy.deepcopy(CP)
     for entry in expected["variants"].values():
-        entry["num_spoofed_frames"] = entry["num_untargeted"] = None
+        for key in ("asr_ci", "num_runs", "num_spoofed_frames", "num_untargeted"):
+            entry[key] = None
     path = tmp_path / "results.json"
     path.write_text(json.dumps(old))
     assert load_results(path) == expected
@@ -310,14 +313,15 @@ def test_format_table_text():
     text = format_table(CP)
     lines = text.splitlines()
     assert lines[0].startswith("CenterPoint (cfgs/waymo_models/CenterPoint.yaml)")
-    assert lines[1].split() == ["Variant", "L2", "mAP", "L2", "mAPH", "ASR", "ASR", "(IoU>0)",
-                                "Targets"]  # fmt: skip
+    assert lines[1].split() == ["Variant", "L2", "mAP", "L2", "mAPH", "ASR", "[95%", "CI]", "ASR",
+                                "(IoU>0)", "Runs", "Targets"]  # fmt: skip
     assert set(lines[2]) == {"-", " "}
     rows = [line.split() for line in lines[3:]]
     assert [r[0] for r in rows] == ["clean", "inj_rel_easy", "inj_global_hard", "rem_10", "rem_60"]
-    assert rows[0] == ["clean", "65.7", "63.7", "-", "-", "0"]
-    assert rows[2] == ["inj_global_hard", "65.2", "63.2", "0.32", "0.32", "100"]
-    assert rows[3] == ["rem_10", "64.3", "62.3", "0.90", "0.90", "100"]
+    assert rows[0] == ["clean", "65.7", "63.7", "-", "-", "0", "0"]
+    assert rows[2] == ["inj_global_hard", "65.2", "63.2", "0.32", "[0.22,", "0.42]", "0.32", "3",
+                       "100"]  # fmt: skip
+    assert rows[3] == ["rem_10", "64.3", "62.3", "0.90", "[0.80,", "1.00]", "0.90", "3", "100"]
     assert len({len(line) for line in lines[1:3]}) == 1  # header and rule aligned
 
 
@@ -325,10 +329,10 @@ def test_format_table_markdown():
     md = format_table(CP, "markdown", lenient=False)
     lines = md.splitlines()
     assert lines[0] == "**CenterPoint (cfgs/waymo_models/CenterPoint.yaml)**"
-    assert lines[2] == "| Variant | L2 mAP | L2 mAPH | ASR | Targets |"
-    assert lines[3] == "|:---|---:|---:|---:|---:|"
-    assert lines[4] == "| clean | 65.7 | 63.7 | - | 0 |"
-    assert lines[-1] == "| rem_60 | 60.7 | 58.7 | 0.77 | 100 |"
+    assert lines[2] == "| Variant | L2 mAP | L2 mAPH | ASR [95% CI] | Runs | Targets |"
+    assert lines[3] == "|:---|---:|---:|---:|---:|---:|"
+    assert lines[4] == "| clean | 65.7 | 63.7 | - | 0 | 0 |"
+    assert lines[-1] == "| rem_60 | 60.7 | 58.7 | 0.77 [0.67, 0.87] | 3 | 100 |"
     with pytest.raises(ValueError, match="fmt"):
         format_table(CP, "latex")
 
@@ -415,4 +419,6 @@ def test_end_to_end_with_waymo_evaluate_and_engine_metadata(tmp_path):
         variants={"inj_rel_easy": entry},
     )  # fmt: skip
     assert load_results(save_results(results, tmp_path / "results.json")) == results
-    assert format_table(results).splitlines()[-1].split()[3:] == ["0.50", "0.50", "2"]
+    # one spoof run: no interval (the spread between runs is unknown)
+    assert entry["num_runs"] == 1 and entry["asr_ci"] is None
+    assert format_table(results).splitlines()[-1].split()[3:] == ["0.50", "0.50", "1", "2"]

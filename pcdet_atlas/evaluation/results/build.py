@@ -74,6 +74,8 @@ def build_variant_result(
     if attack is None:
         entry.update(
             asr=None,
+            asr_ci=None,
+            num_runs=0,
             asr_lenient=None,
             num_targets=0,
             num_success=0,

@@ -62,13 +62,19 @@ def upgrade_v1(results: dict) -> dict:
 
 
 def upgrade_v2(results: dict) -> dict:
-    """A schema-2 results dict as schema 3: each variant gains ``num_spoofed_frames`` and
-    ``num_untargeted`` as None (unknown: schema 2 did not count them)."""
+    """A schema-2 results dict as schema 3: each variant gains ``asr_ci``, ``num_runs``,
+    ``num_spoofed_frames`` and ``num_untargeted`` as None (unknown: schema 2 did not have them)."""
     variants = results.get("variants")
     if not isinstance(variants, dict):
         return results  # validation names what is wrong
     upgraded = {
-        name: {**entry, "num_spoofed_frames": None, "num_untargeted": None}
+        name: {
+            **entry,
+            "asr_ci": None,
+            "num_runs": None,
+            "num_spoofed_frames": None,
+            "num_untargeted": None,
+        }  # fmt: skip
         if isinstance(entry, dict)
         else entry
         for name, entry in variants.items()

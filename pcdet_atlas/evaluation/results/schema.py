@@ -25,6 +25,8 @@ METRIC_KEYS = ("L1/mAP", "L1/mAPH", "L2/mAP", "L2/mAPH")
 CLASS_METRIC_KEYS = ("L1/AP", "L1/APH", "L2/AP", "L2/APH")
 ATTACK_KEYS = (
     "asr",
+    "asr_ci",
+    "num_runs",
     "asr_lenient",
     "num_targets",
     "num_success",
@@ -144,6 +146,9 @@ _VARIANT = _closed(
             "additionalProperties": _closed({k: _nullable(_FRAC) for k in CLASS_METRIC_KEYS}),
         },
         "asr": _nullable(_FRAC),
+        # [lo, hi] run-level bootstrap interval; None with < 2 runs or from before schema 3
+        "asr_ci": _nullable({"type": "array", "items": _FRAC, "minItems": 2, "maxItems": 2}),
+        "num_runs": _nullable(_COUNT),
         "asr_lenient": _nullable(_FRAC),
         "num_targets": _COUNT,
         "num_success": _COUNT,
@@ -288,6 +293,11 @@ def _variant_invariants(v: Mapping, path: str, class_names: list[str]) -> None:
     if set(v["per_class"]) != set(class_names):
         _fail(f"{path}['per_class']", f"classes {sorted(v['per_class'])} != {class_names}")
     n = v["num_targets"]
+    ci = v["asr_ci"]
+    if ci is not None and (v["asr"] is None or ci[0] > ci[1]):
+        _fail(f"{path}['asr_ci']", f"{ci} is not an interval [lo <= hi] of an ASR {v['asr']}")
+    if v["num_runs"] is not None and v["num_runs"] > n:
+        _fail(f"{path}['num_runs']", f"{v['num_runs']} runs > num_targets {n}")
     spoofed, untargeted = v["num_spoofed_frames"], v["num_untargeted"]
     if (spoofed is None) != (untargeted is None) or (
         spoofed is not None and (untargeted > spoofed or n > spoofed)

@@ -104,21 +104,24 @@ def format_table(
     variants: Sequence[str] | None = None,
     lenient: bool = True,
 ) -> str:
-    """One model's table: a row per variant (paper order), columns L2 mAP, L2 mAPH, ASR
-    (and the lenient IoU > 0 ASR beside it), targets. mAP x100, one decimal; ASR two decimals.
-    ``fmt``: 'text' or 'markdown'."""
+    """One model's table: a row per variant (paper order), columns L2 mAP, L2 mAPH, ASR with its
+    95% run-level interval, the lenient IoU > 0 ASR beside it, spoof runs and targets. mAP x100,
+    one decimal; ASR two decimals. ``fmt``: 'text' or 'markdown'."""
     names = ordered_variants(results["variants"]) if variants is None else list(variants)
-    header = ["Variant", "L2 mAP", "L2 mAPH", "ASR"] + (["ASR (IoU>0)"] if lenient else [])
-    header.append("Targets")
+    header = ["Variant", "L2 mAP", "L2 mAPH", "ASR [95% CI]"]
+    header += (["ASR (IoU>0)"] if lenient else []) + ["Runs", "Targets"]
     rows = []
     for name in names:
         if name not in results["variants"]:
             raise ResultsError(f"{results['model']}: no variant {name!r}")
         v = results["variants"][name]
-        row = [name, _fmt_map(v["L2/mAP"]), _fmt_map(v["L2/mAPH"]), _fmt_asr(v["asr"])]
+        asr = _fmt_asr(v["asr"])
+        if v["asr_ci"] is not None:
+            asr += f" [{v['asr_ci'][0]:.2f}, {v['asr_ci'][1]:.2f}]"
+        row = [name, _fmt_map(v["L2/mAP"]), _fmt_map(v["L2/mAPH"]), asr]
         if lenient:
             row.append(_fmt_asr(v["asr_lenient"]))
-        row.append(str(v["num_targets"]))
+        row += ["-" if v["num_runs"] is None else str(v["num_runs"]), str(v["num_targets"])]
         rows.append(row)
     title = f"{results['model']} ({results['config']})"
     table = _render(fmt, None, header, rows)
