@@ -342,8 +342,11 @@ def test_comparison_table_models_as_rows():
     lines = text.splitlines()
     assert "Removal 10" in lines[0] and "Removal 60" in lines[0] and "Global" not in lines[0]
     assert lines[1].split() == ["Detector", "L2", "mAP", "ASR", "L2", "mAP", "ASR"]
-    assert lines[3].split() == ["CenterPoint", "64.3", "0.90", "60.7", "0.77"]
-    assert lines[5].split() == ["PTT", "73.8", "0.68", "72.3", "0.50"]
+    # each ASR with its run-level interval (the fixture's: +-0.1)
+    assert lines[3].split() == ["CenterPoint", "64.3", "0.90", "[0.80,", "1.00]", "60.7", "0.77",
+                                "[0.67,", "0.87]"]  # fmt: skip
+    assert lines[5].split() == ["PTT", "73.8", "0.68", "[0.58,", "0.78]", "72.3", "0.50",
+                                "[0.40,", "0.60]"]  # fmt: skip
     md = format_comparison_table([CP, MSF, PTT], "markdown", family="injection")
     rows = md.splitlines()
     assert rows[0] == (
@@ -351,9 +354,11 @@ def test_comparison_table_models_as_rows():
         "Global Hard ASR |"
     )
     # best bold, second italic: mAP higher is better, ASR lower is better
-    assert rows[2] == "| CenterPoint | 65.5 | **0.11** | 65.2 | **0.32** |"
-    assert rows[3] == "| MSF-4f | _74.6_ | _0.13_ | _74.5_ | _0.46_ |"
-    assert rows[4] == "| PTT | **75.0** | 0.14 | **74.9** | 0.50 |"
+    assert rows[2] == (
+        "| CenterPoint | 65.5 | **0.11** [0.01, 0.21] | 65.2 | **0.32** [0.22, 0.42] |"
+    )
+    assert rows[3] == "| MSF-4f | _74.6_ | _0.13_ [0.03, 0.23] | _74.5_ | _0.46_ [0.36, 0.56] |"
+    assert rows[4] == "| PTT | **75.0** | 0.14 [0.04, 0.24] | **74.9** | 0.50 [0.40, 0.60] |"
 
 
 def test_comparison_table_models_as_columns():
@@ -362,7 +367,8 @@ def test_comparison_table_models_as_columns():
     assert "CenterPoint" in lines[0] and "PTT" in lines[0]
     assert lines[1].split() == ["Variant", "L2", "mAP", "ASR", "L2", "mAP", "ASR"]
     assert lines[3].split() == ["Clean", "65.7", "-", "74.9", "-"]
-    assert lines[4].split() == ["Rel-Fixed", "Easy", "65.5", "0.11", "75.0", "0.14"]
+    assert lines[4].split() == ["Rel-Fixed", "Easy", "65.5", "0.11", "[0.01,", "0.21]", "75.0",
+                                "0.14", "[0.04,", "0.24]"]  # fmt: skip
     assert len(lines) == 3 + 5
     with pytest.raises(ResultsError, match="no variant 'rem_20'"):
         format_comparison_table([CP, PTT], variants=["rem_20"])

@@ -163,6 +163,9 @@ def format_comparison_table(
             'columns' (a row per variant, a column pair per model; narrower for many variants).
         mark_best: Markdown only: best **bold**, second-best _italic_ per variant (mAP higher,
             ASR lower is better), compared at the printed precision.
+
+    An ASR with a run-level interval is printed ``0.49 [0.31, 0.66]``; the marks compare the
+    point estimates (overlapping intervals mean the order is not settled).
     """
     if models_as not in ("rows", "columns"):
         raise ValueError(f"models_as must be 'rows' or 'columns', got {models_as!r}")
@@ -187,6 +190,9 @@ def format_comparison_table(
             m, a = maps[i] or "-", asrs[i] or "-"
             if fmt == "markdown" and mark_best and len(models) > 1:
                 m, a = _mark(m, map_marks[i]), _mark(a, asr_marks[i])
+            ci = results_list[i]["variants"][name]["asr_ci"]
+            if ci is not None:
+                a += f" [{ci[0]:.2f}, {ci[1]:.2f}]"
             cells[(model, name)] = (m, a)
     if models_as == "rows":
         groups = [("", 1)] + [(variant_label(n), 2) for n in variants]
