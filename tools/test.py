@@ -14,6 +14,11 @@ for ``checkpoint_epoch_N.pth``, the file name without ``.pth`` otherwise) with `
 done), ``<variant>/result.pkl``, the merged config and a log; the table is printed as the paper
 lays it out.
 
+The clean variant runs first; under an attack variant, a frame whose whole model input (the
+frame, its point history and, for PTT, its proposal history) the attack leaves untouched takes
+the clean run's prediction, which is bitwise what the model would return
+(docs/evaluation.md "Reusing clean predictions"; ``--no_reuse`` runs every frame).
+
 Every variant YAML (its ``VARIANT`` must be its file name), the test split, the (first)
 checkpoint and the evaluation directories are checked before anything is written: an evaluation
 directory that already holds files is an error unless ``--overwrite`` is given, which deletes it
@@ -74,6 +79,11 @@ def parse_args(argv=None):
     parser.add_argument(
         "--overwrite", action="store_true", default=False,
         help="delete an existing evaluation directory first (default: refuse to run)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--no_reuse", action="store_true", default=False,
+        help="run the model on every frame of every variant (default: a frame whose input the "
+        "attack leaves untouched takes the clean run's prediction, bitwise the same)",
     )  # fmt: skip
     parser.add_argument("--no_progress", action="store_true", default=False, help="no tqdm bars")
     args = parser.parse_args(argv)
@@ -194,6 +204,7 @@ def evaluate_checkpoint(
             seed=args.seed, temporal_window=atlas_cfg.get("TEMPORAL_WINDOW"),
             clean_det_annos=clean_annos, out_dir=out_dir / variant, logger=logger,
             show_progress=not args.no_progress, save_to_file=args.save_to_file,
+            reuse_clean=not args.no_reuse,
         )  # fmt: skip
         if variant == "clean":
             clean_annos = det_annos

@@ -37,6 +37,10 @@ class ContiguousBatchSampler(torch.utils.data.Sampler):
         num_samples: the dataset's length. batch_size: samples per batch (>= 1).
         num_workers: the DataLoader's workers (0: one chunk). rank, world_size: the process and
             the number of processes.
+        compute: optional ``(num_samples,)`` booleans: only the batches holding at least one
+            sample marked True are yielded (before the chunking into workers). The batches keep
+            the composition they have without ``compute``, so a skipped batch's samples are
+            exactly those another run with the same arguments computed together.
     """
 
     def __init__(
@@ -46,6 +50,7 @@ class ContiguousBatchSampler(torch.utils.data.Sampler):
         num_workers: int = 0,
         rank: int = 0,
         world_size: int = 1,
+        compute: Sequence[bool] | None = None,
     ):
         if batch_size < 1 or num_workers < 0 or world_size < 1 or not 0 <= rank < world_size:
             raise ValueError(
@@ -57,6 +62,14 @@ class ContiguousBatchSampler(torch.utils.data.Sampler):
         batches = [
             list(range(i, min(i + batch_size, stop))) for i in range(start, stop, batch_size)
         ]
+        if compute is not None:
+            if len(compute) != num_samples:
+                raise ValueError(
+                    f"ContiguousBatchSampler: compute has {len(compute)} entries, expected "
+                    f"num_samples {num_samples}"
+                )
+            batches = [b for b in batches if any(compute[i] for i in b)]
+        self.compute = None if compute is None else np.asarray(compute, dtype=bool)
         chunks = max(1, num_workers)
         per_chunk = -(-len(batches) // chunks)
         runs = [batches[k * per_chunk : (k + 1) * per_chunk] for k in range(chunks)]

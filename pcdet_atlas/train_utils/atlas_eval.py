@@ -14,6 +14,7 @@ from collections.abc import Mapping, Sequence
 from functools import partial
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.distributed as torch_dist
 from torch.utils.data import DataLoader
@@ -27,6 +28,7 @@ from pcdet_atlas.config import (
     key_source,
 )
 from pcdet_atlas.datasets.loader import ContiguousBatchSampler, worker_init_fn
+from pcdet_atlas.datasets.multiframe import SequenceConfig
 from pcdet_atlas.evaluation import build_variant_result, evaluate_attack
 from pcdet_atlas.registry import DATASETS
 from pcdet_atlas.train_utils.dist import get_dist_info
@@ -39,6 +41,8 @@ __all__ = [
     "check_test_split",
     "build_attack_loader",
     "evaluate_variant",
+    "frames_to_compute",
+    "input_reach",
 ]
 
 ATLAS_KEYS = ("MODEL_NAME", "ATTACKS", "CHECKPOINT", "TEMPORAL_WINDOW")
@@ -113,6 +117,35 @@ def build_variant_attacks(
     return attacks
 
 
+def input_reach(model: torch.nn.Module, data_cfg: Mapping) -> int:
+    """How many frames before the current one a prediction of ``model`` on data of ``data_cfg``
+    reads: the point history of a multi-frame input (``SEQUENCE_CONFIG``), plus, for a model
+    reading earlier frames' proposals (PTT), those frames and each one's own point history."""
+    core = model.module if isinstance(model, torch.nn.parallel.DistributedDataParallel) else model
+    sequence_cfg = SequenceConfig.from_config(data_cfg.get("SEQUENCE_CONFIG"))
+    points = sequence_cfg.num_frames - 1 if sequence_cfg is not None else 0
+    return points + int(getattr(core, "proposal_history", 0) or 0)
+
+
+def frames_to_compute(dataset, reach: int) -> np.ndarray:
+    """``(len(dataset),)`` booleans: True where the model input of a frame (the frame and the
+    ``reach`` frames before it, clipped at the sequence start) holds a frame the variant's
+    attack changes (its schedule spoofs it). From the schedule alone: nothing is simulated.
+    A False frame's input is bitwise the clean input, so its prediction is the clean one."""
+    if reach < 0:
+        raise ValueError(f"reach must be >= 0, got {reach}")
+    out = np.zeros(len(dataset.infos), dtype=bool)
+    for i, info in enumerate(dataset.infos):
+        sequence = info["point_cloud"]["lidar_sequence"]
+        idx = int(info["point_cloud"]["sample_idx"])
+        num_frames = dataset.sequence_data(sequence).num_frames
+        out[i] = any(
+            dataset.attack.needs_simulation(j, num_frames)
+            for j in range(max(0, idx - reach), idx + 1)
+        )
+    return out
+
+
 def build_attack_loader(
     data_cfg: Mapping,
     class_names: Sequence[str],
@@ -123,18 +156,26 @@ def build_attack_loader(
     workers: int,
     seed: int,
     logger: logging.Logger | None = None,
+    reuse_reach: int | None = None,
 ):
     """``(dataset, loader)`` of the test split under one attack variant (no shuffle; each worker
     and process reads a contiguous run of frames, see ``ContiguousBatchSampler``);
-    ``attack`` is a built attack, a loaded attack YAML or the path of one."""
+    ``attack`` is a built attack, a loaded attack YAML or the path of one.
+
+    ``reuse_reach``: the model's :func:`input_reach`; the loader then yields only the batches
+    holding a frame whose input the attack changes (:func:`frames_to_compute`, kept as
+    ``loader.batch_sampler.compute``), in the composition they have in a full run."""
     dataset = DATASETS.get("AtlasWaymoDataset")(
         dataset_cfg=data_cfg, class_names=class_names, attack_cfg=attack, training=False,
         logger=logger,
     )  # fmt: skip
+    compute = None if reuse_reach is None else frames_to_compute(dataset, reuse_reach)
     # each worker (and process) reads a contiguous run of frames: the attacked-frame cache then
     # serves a temporal input's history; predict_dataset restores the frame order
     rank, world = (torch_dist.get_rank(), torch_dist.get_world_size()) if dist else (0, 1)
-    batch_sampler = ContiguousBatchSampler(len(dataset), batch_size, workers, rank, world)
+    batch_sampler = ContiguousBatchSampler(
+        len(dataset), batch_size, workers, rank, world, compute=compute
+    )
     loader = DataLoader(
         dataset, batch_sampler=batch_sampler, num_workers=workers,
         collate_fn=dataset.collate_batch, pin_memory=torch.cuda.is_available(),
@@ -161,8 +202,16 @@ def evaluate_variant(
     logger: logging.Logger | None = None,
     show_progress: bool = True,
     save_to_file: bool = False,
+    reuse_clean: bool = False,
 ) -> tuple[dict | None, list[dict]]:
     """Predict one variant and score it.
+
+    With ``reuse_clean`` (and ``clean_det_annos``, predicted with the same batch size), the
+    frames whose whole model input the attack leaves untouched (:func:`frames_to_compute` over
+    the model's :func:`input_reach`) take the clean run's predictions instead of running the
+    model; only the batches holding an attacked input run, in their full-run composition, so
+    the result is bitwise that of a full run (docs/evaluation.md "Reusing clean predictions").
+    The entry's ``num_reused_frames`` / ``num_recomputed_frames`` count both kinds.
 
     Returns:
         ``(entry, det_annos)``: the ``results.json`` variant entry (None on ranks > 0) and the
@@ -171,18 +220,24 @@ def evaluate_variant(
         ``out_dir/final_result/data/`` (:func:`write_prediction_files`).
     """
     rank, _ = get_dist_info()
+    reuse = reuse_clean and clean_det_annos is not None
+    reach = input_reach(model, data_cfg) if reuse else None
     dataset, loader = build_attack_loader(
         data_cfg, class_names, attack, batch_size=batch_size, dist=dist, workers=workers,
-        seed=seed, logger=logger,
+        seed=seed, logger=logger, reuse_reach=reach,
     )  # fmt: skip
     timings: dict = {}
     t0 = time.perf_counter()
     det_annos, extras = predict_dataset(
-        model, loader, device=device, desc=variant, show_progress=show_progress, timings=timings
-    )
+        model, loader, device=device, desc=variant, show_progress=show_progress, timings=timings,
+        reuse=clean_det_annos if reuse else None,
+    )  # fmt: skip
     timings["predict_wall"] = time.perf_counter() - t0
     if rank != 0:
         return None, det_annos
+    reused = np.array([e["reused"] for e in extras], dtype=bool)
+    if reuse and np.any(reused & loader.batch_sampler.compute):
+        raise RuntimeError(f"{variant}: a frame with an attacked input took a clean prediction")
     attack_infos = [e["attack"] for e in extras]
     for anno, info in zip(det_annos, attack_infos):
         anno["attack"] = info
@@ -202,6 +257,7 @@ def evaluate_variant(
     entry = build_variant_result(
         variant, family=family, num_frames=len(det_annos), metrics=ap_dict,
         class_names=class_names, attack=attack_metrics, rank_group=dataset.attack.RANK_GROUP,
+        num_reused_frames=int(reused.sum()),
         extra={"timing_s": {k: round(v, 3) for k, v in timings.items()}},
     )  # fmt: skip
     if out_dir is not None:

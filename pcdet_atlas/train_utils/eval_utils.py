@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from collections.abc import Sequence
@@ -27,13 +28,21 @@ def predict_dataset(
     desc: str = "eval",
     show_progress: bool = True,
     timings: dict | None = None,
+    reuse: Sequence[dict] | None = None,
 ) -> tuple[list[dict], list[dict]]:
     """Run the model over the loader; gather every rank's results in dataset order.
 
+    ``reuse``: predictions (anno dicts with ``frame_id``) that stand for the frames the loader
+    does not yield, as the clean run's do for the frames an attack leaves untouched
+    (``ContiguousBatchSampler(compute=...)``): each such frame gets a copy of its reused
+    prediction and, from an ``AtlasWaymoDataset``, its attack record (no simulation: the frame
+    is clean). A frame neither yielded nor in ``reuse`` is an error.
+
     Returns:
         ``(det_annos, extras)``: one OpenPCDet anno dict per frame of ``dataloader.dataset``
-        (``frame_id`` order of ``dataset.infos``), and per frame ``{'frame_id', 'attack'}``
-        (the attack record of an ``AtlasWaymoDataset`` sample, None for a clean dataset).
+        (``frame_id`` order of ``dataset.infos``), and per frame ``{'frame_id', 'attack',
+        'reused'}`` (the attack record of an ``AtlasWaymoDataset`` sample, None for a clean
+        dataset; whether the prediction came from ``reuse``).
         ``timings`` (if given) accumulates seconds under ``'data'`` (loading, attack
         simulation included) and ``'model'`` (for a model with a proposal history, PTT, the
         proposal bank's RPN passes included: :class:`ProposalBank`).
@@ -64,7 +73,8 @@ def predict_dataset(
         annos = dataset.generate_prediction_dicts(batch, pred_dicts, dataset.class_names)
         attacks = batch.get("attack", [None] * len(annos))
         for anno, attack in zip(annos, attacks):
-            local.append((anno["frame_id"], anno, {"frame_id": anno["frame_id"], "attack": attack}))
+            extra = {"frame_id": anno["frame_id"], "attack": attack, "reused": False}
+            local.append((anno["frame_id"], anno, extra))
         if timings is not None:
             timings["data"] = timings.get("data", 0.0) + (t0 - t_end)
             timings["model"] = timings.get("model", 0.0) + (t1 - t0)
@@ -77,10 +87,30 @@ def predict_dataset(
         for frame_id, anno, extra in part:
             by_frame.setdefault(frame_id, (anno, extra))  # DistributedSampler pads by repeating
     order = [info["frame_id"] for info in dataset.infos]
+    if reuse is not None:
+        _fill_reused(dataset, by_frame, reuse)
     missing = [f for f in order if f not in by_frame]
     if missing:
         raise RuntimeError(f"no predictions for {len(missing)} frames, e.g. {missing[:3]}")
     return [by_frame[f][0] for f in order], [by_frame[f][1] for f in order]
+
+
+def _fill_reused(dataset, by_frame: dict, reuse: Sequence[dict]) -> None:
+    """Put a copy of the reused prediction of every frame the loader did not yield into
+    ``by_frame`` (with the frame's attack record when the dataset has an attack)."""
+    reused = {str(anno["frame_id"]): anno for anno in reuse}
+    for info in dataset.infos:
+        frame_id = info["frame_id"]
+        if frame_id in by_frame or frame_id not in reused:
+            continue
+        anno = copy.deepcopy({k: v for k, v in reused[frame_id].items() if k != "attack"})
+        attack = None
+        if hasattr(dataset, "frame_attack_meta"):
+            point_cloud = info["point_cloud"]
+            attack = dataset.frame_attack_meta(
+                point_cloud["lidar_sequence"], int(point_cloud["sample_idx"])
+            )
+        by_frame[frame_id] = (anno, {"frame_id": frame_id, "attack": attack, "reused": True})
 
 
 def eval_one_epoch(

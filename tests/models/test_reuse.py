@@ -1,0 +1,186 @@
+"""Evaluating only what an attack changes: a frame whose whole model input (the frame, its point
+history, PTT's proposal history) the attack leaves untouched takes the clean prediction, and the
+variant's predictions, attack records and metrics are bitwise those of a full run, for a
+single-frame, a 4-frame and a two-stage model with a 31-frame proposal history. Batch
+composition does not change a prediction."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+from pcdet_atlas.datasets.loader import ContiguousBatchSampler
+from pcdet_atlas.models import build_network_from_config
+from pcdet_atlas.train_utils.atlas_eval import (
+    build_attack_loader,
+    evaluate_variant,
+    frames_to_compute,
+    input_reach,
+)
+from pcdet_atlas.train_utils.eval_utils import predict_dataset
+
+CFGS = REPO_ROOT / "cfgs" / "atlas" / "synthetic"
+ATTACKS = REPO_ROOT / "cfgs" / "attacks"
+CPU = torch.device("cpu")
+# frames 0, 5, ..., 65 of the fixture's 70-frame val sequence; its spoof run is 32..63
+INTERVAL = 5
+FRAMES = list(range(0, 70, INTERVAL))
+SPOOFED = [f for f in FRAMES if 32 <= f <= 63]
+
+
+def setup_model(name: str, root):
+    """A shipped synthetic model (real weights: real detections to compare) on the fixture
+    data, its BEV cropped to +-20.48 m."""
+    cfg = cfg_from_yaml_file(CFGS / f"{name}.yaml")
+    data_cfg = copy.deepcopy(cfg.DATA_CONFIG)
+    data_cfg.DATA_PATH = str(root)
+    data_cfg.SAMPLED_INTERVAL = {"train": 1, "test": INTERVAL}
+    data_cfg.POINT_CLOUD_RANGE = [-20.48, -20.48, *cfg.DATA_CONFIG.POINT_CLOUD_RANGE[2:3], 20.48,
+                                  20.48, cfg.DATA_CONFIG.POINT_CLOUD_RANGE[5]]  # fmt: skip
+    cfg.DATA_CONFIG = data_cfg
+    model = build_network_from_config(cfg)
+    model.load_params_from_file(REPO_ROOT / cfg.ATLAS.CHECKPOINT)
+    return model.eval(), cfg
+
+
+def run(model, cfg, attack, clean, *, reuse: bool, batch_size: int = 1):
+    variant = attack.stem if hasattr(attack, "stem") else attack.VARIANT
+    return evaluate_variant(
+        model, variant, attack, data_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES,
+        device=CPU, batch_size=batch_size, dist=False, workers=0, seed=0,
+        temporal_window=cfg.ATLAS.get("TEMPORAL_WINDOW"), clean_det_annos=clean, out_dir=None,
+        show_progress=False, reuse_clean=reuse,
+    )  # fmt: skip
+
+
+def assert_same(a, b, where: str) -> None:
+    """Bitwise equality of nested dicts / lists / arrays / scalars (dtypes included)."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), where
+        for key in a:
+            assert_same(a[key], b[key], f"{where}[{key!r}]")
+    elif isinstance(a, (list, tuple)):
+        assert type(a) is type(b) and len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same(x, y, f"{where}[{i}]")
+    elif isinstance(a, np.ndarray):
+        assert isinstance(b, np.ndarray) and a.dtype == b.dtype, where
+        np.testing.assert_array_equal(a, b, err_msg=where)
+    else:
+        assert type(a) is type(b) and (a == b or (a != a and b != b)), where
+
+
+def assert_annos_equal(got: list[dict], want: list[dict]) -> None:
+    assert len(got) == len(want)
+    for a, b in zip(got, want):
+        assert_same(a, b, str(a["frame_id"]))
+
+
+def strip(entry: dict) -> dict:
+    out = {k: v for k, v in entry.items() if k != "extra"}
+    out.pop("num_reused_frames"), out.pop("num_recomputed_frames")
+    return out
+
+
+@pytest.fixture(scope="module")
+def removal():
+    return cfg_from_yaml_file(ATTACKS / "rem_30.yaml")
+
+
+# (model, recomputed frames): the spoofed frames, plus the clean frames whose history holds
+# one (65: points 62..65 for a 4-frame input); frames before the run never need the model
+CASES = {
+    "centerpoint": SPOOFED,
+    "cp4f": [*SPOOFED, 65],
+    "ptt_32f": [*SPOOFED, 65],
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(CASES))
+def test_reuse_equals_a_full_run_bitwise(name, synthetic_root, injection, removal):
+    model, cfg = setup_model(name, synthetic_root)
+    _, clean = run(model, cfg, ATTACKS / "clean.yaml", None, reuse=False)
+    assert sum(len(a["score"]) for a in clean) > 0  # real detections to compare
+    variants = [injection] + ([removal] if name == "centerpoint" else [])
+    for attack in variants:
+        full_entry, full = run(model, cfg, attack, clean, reuse=False)
+        reuse_entry, reused = run(model, cfg, attack, clean, reuse=True)
+        assert_annos_equal(reused, full)
+        assert strip(reuse_entry) == strip(full_entry)
+        assert full_entry["num_reused_frames"] == 0
+        expected = len(FRAMES) - len(CASES[name])
+        assert reuse_entry["num_reused_frames"] == expected
+        assert reuse_entry["num_recomputed_frames"] == len(CASES[name])
+        assert reuse_entry["num_targets"] > 0
+
+
+def test_frames_to_compute_follows_the_input_reach(synthetic_root, injection):
+    from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
+
+    cfg = cfg_from_yaml_file(CFGS / "cp4f.yaml")
+    data_cfg = copy.deepcopy(cfg.DATA_CONFIG)
+    data_cfg.DATA_PATH = str(synthetic_root)
+    dataset = AtlasWaymoDataset(data_cfg, cfg.CLASS_NAMES, injection, training=False)
+    frames = [int(info["point_cloud"]["sample_idx"]) for info in dataset.infos]
+    assert frames == list(range(70))
+    for reach, first_after in ((0, 64), (3, 67), (34, 70)):
+        want = [32 <= f < first_after for f in frames]
+        assert frames_to_compute(dataset, reach).tolist() == want, reach
+    clean = AtlasWaymoDataset(data_cfg, cfg.CLASS_NAMES, ATTACKS / "clean.yaml", training=False)
+    assert not frames_to_compute(clean, 34).any()
+    with pytest.raises(ValueError, match="reach"):
+        frames_to_compute(dataset, -1)
+    ptt = cfg_from_yaml_file(CFGS / "ptt_32f.yaml")
+    assert input_reach(torch.nn.Module(), cfg.DATA_CONFIG) == 3
+    holder = torch.nn.Module()
+    holder.proposal_history = 31
+    assert input_reach(holder, ptt.DATA_CONFIG) == 34
+
+
+def test_the_sampler_keeps_batch_composition():
+    compute = [False] * 10
+    compute[4] = compute[9] = True
+    full = ContiguousBatchSampler(10, 3).batches
+    kept = ContiguousBatchSampler(10, 3, compute=compute).batches
+    assert full == [[0, 1, 2], [3, 4, 5], [6, 7, 8], [9]]
+    assert kept == [[3, 4, 5], [9]]
+    assert ContiguousBatchSampler(10, 3, num_workers=2, compute=compute).batches == kept
+    with pytest.raises(ValueError, match="compute has 3 entries"):
+        ContiguousBatchSampler(10, 3, compute=[True] * 3)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["centerpoint", "cp4f"])
+def test_batch_composition_and_reuse_at_batch_size_3(name, synthetic_root, injection):
+    """Batched with other frames, a frame's prediction differs from its prediction alone only
+    at float32 rounding (the CPU convolution picks its kernel by batch size; no sample leaks into
+    another), which is why reuse keeps the full run's batches: a reusing run at batch size 3
+    equals a full run at batch size 3 bitwise."""
+    model, cfg = setup_model(name, synthetic_root)
+    preds = {}
+    for batch_size in (1, 3):
+        _, loader = build_attack_loader(
+            cfg.DATA_CONFIG, cfg.CLASS_NAMES, injection, batch_size=batch_size, dist=False,
+            workers=0, seed=0,
+        )  # fmt: skip
+        preds[batch_size], _ = predict_dataset(model, loader, device=CPU, show_progress=False)
+    num_boxes = 0
+    for single, batched in zip(preds[1], preds[3]):
+        assert single["frame_id"] == batched["frame_id"]
+        assert len(single["score"]) == len(batched["score"]), single["frame_id"]
+        np.testing.assert_allclose(batched["score"], single["score"], rtol=0, atol=1e-5)
+        np.testing.assert_allclose(batched["boxes_lidar"], single["boxes_lidar"], atol=1e-4)
+        num_boxes += len(single["score"])
+    assert num_boxes > 0
+    _, clean = run(model, cfg, ATTACKS / "clean.yaml", None, reuse=False, batch_size=3)
+    full_entry, full = run(model, cfg, injection, clean, reuse=False, batch_size=3)
+    reuse_entry, reused = run(model, cfg, injection, clean, reuse=True, batch_size=3)
+    assert_annos_equal(reused, full)
+    assert strip(reuse_entry) == strip(full_entry)
+    # batches [30, 35, 40] and [60, 65] run whole: 30 and (single-frame) 65 are recomputed
+    assert 0 < reuse_entry["num_reused_frames"] < len(FRAMES) - len(CASES[name])
