@@ -573,6 +573,23 @@ def _align_by_frame_id(clean_det_annos: Sequence[Mapping], frame_ids: np.ndarray
     return aligned
 
 
+def clean_matched_scores(
+    matches: TargetMatches, clean_det_annos: Sequence[Mapping], *, iou_fn: IouFn | None = None
+) -> np.ndarray:
+    """(T,) the clean run's matched score of each target: the best score among the clean
+    predictions of the same ``frame_id`` that match the target box (the class, score and IoU
+    rules of ``matches``); NaN where the clean run has no such prediction."""
+    iou_fn = boxes_aligned_iou3d if iou_fn is None else iou_fn
+    clean_annos = _align_by_frame_id(clean_det_annos, matches.frame_id)
+    batch = _PairBatch()
+    for j, anno in enumerate(clean_annos):
+        names, boxes, scores = _check_predictions(anno, f"clean frame {matches.frame_id[j]}")
+        keep = _eligible(names, scores, matches.target_class, matches.score_threshold)
+        batch.add(matches.target_box[j], boxes[keep], scores[keep])
+    _, clean_scores, _ = batch.evaluate(matches.iou_threshold, iou_fn)
+    return clean_scores
+
+
 def removal_confidence(
     matches: TargetMatches,
     clean_det_annos: Sequence[Mapping],
@@ -598,14 +615,7 @@ def removal_confidence(
     """
     attacked = matches.attacked()
     surviving = attacked.select(attacked.detected)
-    iou_fn = boxes_aligned_iou3d if iou_fn is None else iou_fn
-    clean_annos = _align_by_frame_id(clean_det_annos, surviving.frame_id)
-    batch = _PairBatch()
-    for j, anno in enumerate(clean_annos):
-        names, boxes, scores = _check_predictions(anno, f"clean frame {surviving.frame_id[j]}")
-        keep = _eligible(names, scores, matches.target_class, matches.score_threshold)
-        batch.add(surviving.target_box[j], boxes[keep], scores[keep])
-    _, clean_scores, _ = batch.evaluate(matches.iou_threshold, iou_fn)
+    clean_scores = clean_matched_scores(surviving, clean_det_annos, iou_fn=iou_fn)
     attacked_scores = _score_values(surviving.matched_score)
     paired = np.isfinite(clean_scores)
     att_p, clean_p = attacked_scores[paired], _score_values(clean_scores[paired])
@@ -678,6 +688,7 @@ def lifecycle_asr(
     *,
     recorded_window: int | None = None,
     num_bins: int = NUM_SCORE_BINS,
+    clean_scores: np.ndarray | None = None,
 ) -> dict:
     """ASR by lifecycle position k = 0..2W for a detector with a ``window``-frame input.
 
@@ -690,7 +701,10 @@ def lifecycle_asr(
 
     Returns column lists over k: ``{'window', 'recorded_window', 'k', 'attacked' (bool: k in
     1..W), 'num_targets', 'num_success', 'asr', 'num_success_lenient', 'asr_lenient',
-    'score_bin_edges', 'score_counts' (per k: histogram of the matched scores)}``.
+    'score_bin_edges', 'score_counts' (per k: histogram of the matched scores),
+    'clean_score_counts'}``: per k the histogram of ``clean_scores`` (T,), the clean run's
+    matched score of the same targets (:func:`clean_matched_scores`, NaN = not detected), the
+    baseline of the lifecycle heatmaps; None without ``clean_scores``.
     """
     recorded_window = SCHEDULE_WINDOW if recorded_window is None else recorded_window
     pos = lifecycle_position(matches.lifecycle_k, matches.is_shadow, window, recorded_window)
@@ -708,7 +722,12 @@ def lifecycle_asr(
         "asr_lenient": [],
         "score_bin_edges": score_histogram(np.zeros(0), num_bins)["bin_edges"],
         "score_counts": [],
+        "clean_score_counts": None if clean_scores is None else [],
     }
+    if clean_scores is not None and len(clean_scores) != len(matches):
+        raise AttackMetricError(
+            f"clean_scores has {len(clean_scores)} entries for {len(matches)} targets"
+        )
     for k in ks:
         at = pos == k
         n, n_ok, n_len = int(at.sum()), int(success[at].sum()), int(lenient[at].sum())
@@ -719,6 +738,10 @@ def lifecycle_asr(
         out["asr_lenient"].append(_rate(n_len, n))
         scores = matches.matched_score[at & matches.detected]
         out["score_counts"].append(score_histogram(scores, num_bins)["counts"])
+        if clean_scores is not None:
+            clean = clean_scores[at]
+            clean = clean[np.isfinite(clean)]
+            out["clean_score_counts"].append(score_histogram(clean, num_bins)["counts"])
     return out
 
 
@@ -767,11 +790,17 @@ def evaluate_attack(
                 matches, clean_det_annos, high_score=high_score, num_bins=num_bins, iou_fn=iou_fn
             )
     out["confidence"] = confidence
-    out["lifecycle"] = (
-        None
-        if window is None or len(matches) == 0
-        else lifecycle_asr(matches, window, recorded_window=recorded_window, num_bins=num_bins)
-    )
+    out["lifecycle"] = None
+    if window is not None and len(matches) > 0:
+        clean_scores = (
+            None
+            if clean_det_annos is None
+            else clean_matched_scores(matches, clean_det_annos, iou_fn=iou_fn)
+        )
+        out["lifecycle"] = lifecycle_asr(
+            matches, window, recorded_window=recorded_window, num_bins=num_bins,
+            clean_scores=clean_scores,
+        )  # fmt: skip
     return out
 
 

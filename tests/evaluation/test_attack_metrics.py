@@ -373,6 +373,27 @@ def test_lifecycle_counts_and_asr(family):
     assert [sum(c) for c in lc["score_counts"]] == detected.tolist()
 
 
+@pytest.mark.parametrize("family", ["injection", "removal"])
+def test_lifecycle_clean_baseline_counts_the_clean_scores_of_the_same_targets(family):
+    w = 2
+    dets, infos = lifecycle_run([0, 1, 1, 0, 0], w, family)
+    # the clean run sees the target at k = 0, 1, 3 (score 0.93), not at k = 2, 4; a phantom
+    # far away never matches
+    seen = (0, 1, 3)
+    clean = [anno(d["frame_id"], [TARGET] * (k in seen), scores=[0.93] * (k in seen))
+             for k, d in enumerate(dets)]  # fmt: skip
+    clean[4] = anno(dets[4]["frame_id"], [TARGET + np.array([30, 0, 0, 0, 0, 0, 0], np.float32)])
+    out = evaluate_attack(dets, infos, clean_det_annos=clean, window=w, recorded_window=w)
+    lc = out["lifecycle"]
+    assert [sum(c) for c in lc["clean_score_counts"]] == [1, 1, 0, 1, 0]
+    assert lc["clean_score_counts"][0][18] == 1  # 0.93 in the bin [0.90, 0.95)
+    assert evaluate_attack(dets, infos, window=w, recorded_window=w)["lifecycle"][
+        "clean_score_counts"] is None  # fmt: skip
+    m = match_targets(dets, infos)
+    with pytest.raises(AttackMetricError, match="clean_scores has 2 entries for 5 targets"):
+        lifecycle_asr(m, w, recorded_window=w, clean_scores=np.zeros(2))
+
+
 def test_lifecycle_default_is_the_schedule_window():
     # the engine's default: W = 32 spoofed frames, 32 shadow frames after; a 4-frame detector
     ks = list(range(0, 65))

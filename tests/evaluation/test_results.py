@@ -218,6 +218,21 @@ def test_older_schema_files_load_as_the_current_one(tmp_path):
         load_results(path)
 
 
+def test_schema_3_files_load_with_reuse_counts_unknown(tmp_path):
+    entry = build_variant_result(
+        "rem_10", family="removal", num_frames=200, metrics=metrics(0.6), class_names=CLASSES,
+        attack=attack("rem_10", "removal", 0.5), rank_group="removal", num_reused_frames=120,
+    )  # fmt: skip
+    assert entry["num_reused_frames"] == 120 and entry["num_recomputed_frames"] == 80
+    old = copy.deepcopy(CP)
+    old["schema_version"] = 3
+    for v in old["variants"].values():
+        v.pop("num_reused_frames"), v.pop("num_recomputed_frames")
+    path = tmp_path / "v3.json"
+    path.write_text(json.dumps(old))
+    assert load_results(path) == CP  # CP records no reuse: both None
+
+
 def _broken(mutate):
     r = copy.deepcopy(CP)
     mutate(r)
@@ -238,6 +253,13 @@ def _broken(mutate):
         (lambda r: r["variants"]["rem_10"].update(asr=math.nan), r"\['asr'\]"),
         (lambda r: r["variants"]["rem_10"].update(num_success=101), "num_success"),
         (lambda r: r["variants"]["rem_10"].pop("asr_lenient"), "asr_lenient"),
+        (
+            lambda r: r["variants"]["rem_10"].update(
+                num_reused_frames=150, num_recomputed_frames=10
+            ),
+            "150 reused",
+        ),
+        (lambda r: r["variants"]["rem_10"].update(num_reused_frames=3), "num_reused_frames"),
         (lambda r: r["variants"]["rem_10"].update(num_frames=True), "num_frames"),
         (lambda r: r["variants"]["clean"].update(asr=0.0), r"\['clean'\]\['asr'\]"),
         (lambda r: r["variants"]["inj_rel_easy"].update({"L2/mAP": 65.5}), "L2/mAP"),
@@ -334,7 +356,12 @@ def test_format_table_markdown():
     assert lines[4] == "| clean | 65.7 | 63.7 | - | 0 | 0 |"
     assert lines[-1] == "| rem_60 | 60.7 | 58.7 | 0.77 [0.67, 0.87] | 3 | 100 |"
     with pytest.raises(ValueError, match="fmt"):
-        format_table(CP, "latex")
+        format_table(CP, "html")
+    tex = format_table(CP, "latex", lenient=False).splitlines()
+    assert tex[0] == "% CenterPoint (cfgs/waymo_models/CenterPoint.yaml)"
+    assert tex[1:3] == ["\\begin{tabular}{lrrrrr}", "\\toprule"]
+    assert tex[3] == "Variant & L2 mAP & L2 mAPH & ASR [95\\% CI] & Runs & Targets \\\\"
+    assert tex[-3] == "rem\\_60 & 60.7 & 58.7 & 0.77 [0.67, 0.87] & 3 & 100 \\\\"
 
 
 def test_comparison_table_models_as_rows():
@@ -372,6 +399,16 @@ def test_comparison_table_models_as_columns():
     assert len(lines) == 3 + 5
     with pytest.raises(ResultsError, match="no variant 'rem_20'"):
         format_comparison_table([CP, PTT], variants=["rem_20"])
+    partial = copy.deepcopy(PTT)
+    del partial["variants"]["rem_60"]
+    shown = format_comparison_table([CP, partial], "markdown", family="removal", missing="show")
+    assert (
+        shown.splitlines()[-1] == "| PTT | **73.8** | **0.68** [0.58, 0.78] | missing | missing |"
+    )
+    tex = format_comparison_table([CP, MSF, PTT], "latex", family="removal").splitlines()
+    assert "\\multicolumn{2}{c}{Removal 10}" in tex[2] and tex[3] == "\\cmidrule(lr){2-3}"
+    assert tex[-3].startswith("PTT & \\textbf{73.8} & \\textbf{0.68} [0.58, 0.78]")
+    assert "\\underline{73.4}" in tex[-4]
 
 
 def test_ranks_from_results_and_printer():

@@ -2,10 +2,10 @@
 plus the invariants between fields), ``build`` makes its entries, ``io`` reads and writes it and
 ``tables`` prints the paper's tables from it.
 
-Schema (version 2; every key required unless marked optional; unknown keys are errors)::
+Schema (version 4; every key required unless marked optional; unknown keys are errors)::
 
     {
-      "schema_version": 2,
+      "schema_version": 4,
       "model": str,                      # display name, e.g. "CenterPoint-4f"
       "checkpoint": str | null,          # path of the evaluated weights
       "config": str,                     # path of the model config
@@ -19,11 +19,17 @@ Schema (version 2; every key required unless marked optional; unknown keys are e
           "num_frames": int,
           "L1/mAP", "L1/mAPH", "L2/mAP", "L2/mAPH": float in [0, 1] | null,
           "per_class": {<class>: {"L1/AP", "L1/APH", "L2/AP", "L2/APH": float | null}},
+          "num_reused_frames", "num_recomputed_frames": int | null,  # clean predictions reused
           "asr", "asr_lenient": float in [0, 1] | null,    # null when num_targets == 0
+          "asr_ci": [lo, hi] | null,     # 95% run-level bootstrap interval (>= 2 runs)
+          "num_runs": int | null,        # spoof runs the targets come from
           "num_targets", "num_success", "num_success_lenient": int,
+          "num_spoofed_frames", "num_untargeted": int | null,  # spoofed frames; those without
+                                                               # a target (phantom not in scan)
           "iou_threshold": float, "score_threshold": float | null, "target_class": str | null,
           "confidence": {...} | null,    # attack_metrics.injection_confidence / removal_confidence
-          "lifecycle": {...} | null,     # attack_metrics.lifecycle_asr
+          "lifecycle": {...} | null,     # attack_metrics.lifecycle_asr (clean_score_counts:
+                                         # the clean run's scores of the same targets per k)
           "extra": {...}                 # optional, free-form
         }
       },

@@ -50,6 +50,7 @@ def build_variant_result(
     attack: Mapping | None = None,
     extra: Mapping | None = None,
     rank_group: str | None = None,
+    num_reused_frames: int | None = None,
 ) -> dict:
     """One ``variants`` entry from the Waymo metric and the attack metrics of that variant.
 
@@ -63,8 +64,14 @@ def build_variant_result(
         class_names: the evaluated classes (keys of ``per_class``).
         attack: :func:`attack_metrics.evaluate_attack` output; None for a variant without targets
             (clean), which stores ASR None and zero counts.
+        num_reused_frames: frames that took the clean run's prediction instead of running the
+            model (the rest count as recomputed); None: not recorded.
     """
     entry: dict = {"family": family, "rank_group": rank_group, "num_frames": int(num_frames)}
+    entry["num_reused_frames"] = None if num_reused_frames is None else int(num_reused_frames)
+    entry["num_recomputed_frames"] = (
+        None if num_reused_frames is None else int(num_frames) - int(num_reused_frames)
+    )
     for key in METRIC_KEYS:
         entry[key] = None if metrics is None else metrics[key]
     entry["per_class"] = {

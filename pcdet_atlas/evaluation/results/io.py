@@ -9,7 +9,14 @@ from pathlib import Path
 from pcdet_atlas.evaluation.results.build import plain
 from pcdet_atlas.evaluation.results.schema import ResultsError, validate_results
 
-__all__ = ["load_results", "load_results_dir", "save_results", "upgrade_v1", "upgrade_v2"]
+__all__ = [
+    "load_results",
+    "load_results_dir",
+    "save_results",
+    "upgrade_v1",
+    "upgrade_v2",
+    "upgrade_v3",
+]
 
 
 def save_results(results: Mapping, path: str | Path) -> Path:
@@ -38,6 +45,8 @@ def load_results(path: str | Path) -> dict:
         results = upgrade_v1(results)
     if isinstance(results, dict) and results.get("schema_version") == 2:
         results = upgrade_v2(results)
+    if isinstance(results, dict) and results.get("schema_version") == 3:
+        results = upgrade_v3(results)
     validate_results(results, where=str(path))
     return results
 
@@ -80,6 +89,23 @@ def upgrade_v2(results: dict) -> dict:
         for name, entry in variants.items()
     }
     return {**results, "schema_version": 3, "variants": upgraded}
+
+
+def upgrade_v3(results: dict) -> dict:
+    """A schema-3 results dict as schema 4: each variant gains ``num_reused_frames`` and
+    ``num_recomputed_frames`` as None, and its lifecycle ``clean_score_counts`` as None
+    (schema 3 did not record them)."""
+    variants = results.get("variants")
+    if not isinstance(variants, dict):
+        return results  # validation names what is wrong
+    upgraded = {}
+    for name, entry in variants.items():
+        if isinstance(entry, dict):
+            entry = {**entry, "num_reused_frames": None, "num_recomputed_frames": None}
+            if isinstance(entry.get("lifecycle"), dict):
+                entry["lifecycle"] = {**entry["lifecycle"], "clean_score_counts": None}
+        upgraded[name] = entry
+    return {**results, "schema_version": 4, "variants": upgraded}
 
 
 def load_results_dir(root: str | Path, pattern: str = "**/results.json") -> list[dict]:

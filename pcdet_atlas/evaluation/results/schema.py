@@ -20,7 +20,7 @@ __all__ = [
     "validate_variant",
 ]
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 METRIC_KEYS = ("L1/mAP", "L1/mAPH", "L2/mAP", "L2/mAPH")
 CLASS_METRIC_KEYS = ("L1/AP", "L1/APH", "L2/AP", "L2/APH")
 ATTACK_KEYS = (
@@ -133,6 +133,10 @@ _LIFECYCLE = _closed(
         "num_success_lenient": {"type": "array", "items": _COUNT},
         "asr_lenient": {"type": "array", "items": _nullable(_FRAC)},
         "score_counts": {"type": "array", "items": {"type": "array", "items": _COUNT}},
+        # the clean run's scores of the same targets per k; None without a clean run / before 4
+        "clean_score_counts": _nullable(
+            {"type": "array", "items": {"type": "array", "items": _COUNT}}
+        ),
     }
 )
 _VARIANT = _closed(
@@ -155,6 +159,9 @@ _VARIANT = _closed(
         "num_success_lenient": _COUNT,
         "num_spoofed_frames": _nullable(_COUNT),  # None: a file from before schema 3
         "num_untargeted": _nullable(_COUNT),
+        # frames that took the clean run's prediction / ran the model; None before schema 4
+        "num_reused_frames": _nullable(_COUNT),
+        "num_recomputed_frames": _nullable(_COUNT),
         "iou_threshold": _FRAC,
         "score_threshold": _nullable(_FRAC),
         "target_class": _nullable(_NAME),
@@ -267,8 +274,8 @@ def _lifecycle(lc: Mapping, path: str) -> None:
     if lc["k"] != list(range(2 * w + 1)):
         _fail(f"{path}['k']", f"expected [0, ..., {2 * w}], got {lc['k']!r}")
     for key in ("attacked", "num_targets", "num_success", "asr", "num_success_lenient",
-                "asr_lenient", "score_counts"):  # fmt: skip
-        if len(lc[key]) != 2 * w + 1:
+                "asr_lenient", "score_counts", "clean_score_counts"):  # fmt: skip
+        if lc[key] is not None and len(lc[key]) != 2 * w + 1:
             _fail(f"{path}['{key}']", f"expected a list of {2 * w + 1} entries")
     if lc["attacked"] != [1 <= k <= w for k in range(2 * w + 1)]:
         _fail(f"{path}['attacked']", "must be True exactly at k = 1..window")
@@ -280,6 +287,11 @@ def _lifecycle(lc: Mapping, path: str) -> None:
         _histogram(hist, f"{at}['score_counts']")
         if sum(lc["score_counts"][k]) > n:
             _fail(f"{at}['score_counts']", f"more scores than targets ({n})")
+        if lc["clean_score_counts"] is not None:
+            clean = {"bin_edges": lc["score_bin_edges"], "counts": lc["clean_score_counts"][k]}
+            _histogram(clean, f"{at}['clean_score_counts']")
+            if sum(clean["counts"]) > n:
+                _fail(f"{at}['clean_score_counts']", f"more scores than targets ({n})")
 
 
 def _check_schema(validator: jsonschema.Draft202012Validator, value, where: str) -> None:
@@ -309,6 +321,14 @@ def _variant_invariants(v: Mapping, path: str, class_names: list[str]) -> None:
         )
     for num_key, rate_key in (("num_success", "asr"), ("num_success_lenient", "asr_lenient")):
         _rate(v[rate_key], v[num_key], n, f"{path}['{rate_key}']", f"{path}['{num_key}']")
+    reused, recomputed = v["num_reused_frames"], v["num_recomputed_frames"]
+    if (reused is None) != (recomputed is None) or (
+        reused is not None and reused + recomputed != v["num_frames"]
+    ):
+        _fail(
+            f"{path}['num_reused_frames']",
+            f"{reused} reused + {recomputed} recomputed frames != num_frames {v['num_frames']}",
+        )
     if v["confidence"] is not None:
         _confidence(v["confidence"], f"{path}['confidence']", n)
     if v["lifecycle"] is not None:

@@ -7,11 +7,14 @@ from collections.abc import Iterable, Mapping, Sequence
 from pcdet_atlas.evaluation.results.schema import ResultsError
 
 __all__ = [
+    "FORMATS",
+    "MISSING",
     "PAPER_VARIANTS",
     "PAPER_VARIANT_LABELS",
     "format_comparison_table",
     "format_ranks",
     "format_table",
+    "latex_escape",
     "ordered_variants",
     "variant_label",
 ]
@@ -53,11 +56,49 @@ def _fmt_asr(v) -> str:
     return "-" if v is None else f"{v:.2f}"
 
 
+#: Cell of a variant a model was not evaluated on (not a zero: the value is unknown).
+MISSING = "missing"
+FORMATS = ("text", "markdown", "latex")
+_LATEX_ESCAPES = {"&": r"\&", "%": r"\%", "_": r"\_", "#": r"\#", "$": r"\$", "{": r"\{",
+                  "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}", "<": "$<$",
+                  ">": "$>$"}  # fmt: skip
+
+
+def latex_escape(text: str) -> str:
+    """``text`` with LaTeX's special characters escaped (backslash excluded: cells never hold one
+    except the marks this module adds)."""
+    return "".join(_LATEX_ESCAPES.get(c, c) for c in text)
+
+
+def _render_latex(groups: list[tuple[str, int]] | None, header: list[str], rows) -> str:
+    r"""A booktabs ``tabular``: grouped header with ``\cmidrule`` under each group."""
+    spec = "l" + "r" * (len(header) - 1)
+    lines = [f"\\begin{{tabular}}{{{spec}}}", "\\toprule"]
+    if groups is not None:
+        cells, rules, col = [], [], 1
+        for label, span in groups:
+            text = latex_escape(label)
+            cells.append(f"\\multicolumn{{{span}}}{{c}}{{{text}}}" if span > 1 else text)
+            if label and span > 1:
+                rules.append(f"\\cmidrule(lr){{{col}-{col + span - 1}}}")
+            col += span
+        lines.append(" & ".join(cells) + " \\\\")
+        lines += rules
+    lines.append(" & ".join(latex_escape(h) for h in header) + " \\\\")
+    lines.append("\\midrule")
+    lines += [" & ".join(r) + " \\\\" for r in rows]
+    lines += ["\\bottomrule", "\\end{tabular}"]
+    return "\n".join(lines)
+
+
 def _render(
     fmt: str, groups: list[tuple[str, int]] | None, header: list[str], rows: list[list[str]]
 ) -> str:
-    """Plain-text or Markdown table. ``groups``: (label, span) over ``header`` (text: a header
-    line above, Markdown: prefixed to the column names)."""
+    """Plain-text, Markdown or LaTeX table. ``groups``: (label, span) over ``header`` (text: a
+    header line above, Markdown: prefixed to the column names, LaTeX: a multicolumn row).
+    LaTeX cells must come escaped (:func:`latex_escape`); the header is escaped here."""
+    if fmt == "latex":
+        return _render_latex(groups, header, rows)
     if fmt == "markdown":
         head = list(header)
         if groups is not None:
@@ -72,7 +113,7 @@ def _render(
         lines += ["| " + " | ".join(r) + " |" for r in rows]
         return "\n".join(lines)
     if fmt != "text":
-        raise ValueError(f"fmt must be 'text' or 'markdown', got {fmt!r}")
+        raise ValueError(f"fmt must be one of {FORMATS}, got {fmt!r}")
     widths = [max(len(r[j]) for r in [header, *rows]) for j in range(len(header))]
     sep = "  "
     lines = []
@@ -106,7 +147,7 @@ def format_table(
 ) -> str:
     """One model's table: a row per variant (paper order), columns L2 mAP, L2 mAPH, ASR with its
     95% run-level interval, the lenient IoU > 0 ASR beside it, spoof runs and targets. mAP x100,
-    one decimal; ASR two decimals. ``fmt``: 'text' or 'markdown'."""
+    one decimal; ASR two decimals. ``fmt``: 'text', 'markdown' or 'latex'."""
     names = ordered_variants(results["variants"]) if variants is None else list(variants)
     header = ["Variant", "L2 mAP", "L2 mAPH", "ASR [95% CI]"]
     header += (["ASR (IoU>0)"] if lenient else []) + ["Runs", "Targets"]
@@ -124,6 +165,9 @@ def format_table(
         row += ["-" if v["num_runs"] is None else str(v["num_runs"]), str(v["num_targets"])]
         rows.append(row)
     title = f"{results['model']} ({results['config']})"
+    if fmt == "latex":
+        rows = [[latex_escape(c) for c in r] for r in rows]
+        return f"% {title}\n" + _render(fmt, None, header, rows)
     table = _render(fmt, None, header, rows)
     return (f"**{title}**\n\n" if fmt == "markdown" else f"{title}\n") + table
 
@@ -152,6 +196,7 @@ def format_comparison_table(
     variants: Sequence[str] | None = None,
     models_as: str = "rows",
     mark_best: bool = True,
+    missing: str = "error",
 ) -> str:
     """Several models side by side: L2 mAP and ASR per variant, as the paper's Tables 3 and 4.
 
@@ -161,14 +206,20 @@ def format_comparison_table(
         variants: explicit variant list (default: all present, paper order).
         models_as: 'rows' (the paper's layout: a row per detector, a column pair per variant) or
             'columns' (a row per variant, a column pair per model; narrower for many variants).
-        mark_best: Markdown only: best **bold**, second-best _italic_ per variant (mAP higher,
-            ASR lower is better), compared at the printed precision.
+        mark_best: Markdown: best **bold**, second-best _italic_; LaTeX: best ``\\textbf``,
+            second ``\\underline``; per variant (mAP higher, ASR lower is better), compared at
+            the printed precision.
+        missing: 'error' (a model without one of the variants raises :class:`ResultsError`) or
+            'show' (its cells read ``missing``: the value is unknown, not zero).
 
     An ASR with a run-level interval is printed ``0.49 [0.31, 0.66]``; the marks compare the
     point estimates (overlapping intervals mean the order is not settled).
     """
     if models_as not in ("rows", "columns"):
         raise ValueError(f"models_as must be 'rows' or 'columns', got {models_as!r}")
+    if missing not in ("error", "show"):
+        raise ValueError(f"missing must be 'error' or 'show', got {missing!r}")
+    esc = latex_escape if fmt == "latex" else str
     models = [r["model"] for r in results_list]
     if variants is None:
         present = {n: v["family"] for r in results_list for n, v in r["variants"].items()}
@@ -180,32 +231,44 @@ def format_comparison_table(
         maps, asrs = [], []
         for r in results_list:
             if name not in r["variants"]:
-                raise ResultsError(f"{r['model']}: no variant {name!r}")
+                if missing == "error":
+                    raise ResultsError(f"{r['model']}: no variant {name!r}")
+                maps.append(None), asrs.append(None)
+                continue
             v = r["variants"][name]
             maps.append(None if v["L2/mAP"] is None else _fmt_map(v["L2/mAP"]))
             asrs.append(None if v["asr"] is None else _fmt_asr(v["asr"]))
         map_marks = _best_marks([None if m is None else float(m) for m in maps], True)
         asr_marks = _best_marks([None if a is None else float(a) for a in asrs], False)
         for i, model in enumerate(models):
+            entry = results_list[i]["variants"].get(name)
+            if entry is None:
+                cells[(model, name)] = (MISSING, MISSING)
+                continue
             m, a = maps[i] or "-", asrs[i] or "-"
-            if fmt == "markdown" and mark_best and len(models) > 1:
-                m, a = _mark(m, map_marks[i]), _mark(a, asr_marks[i])
-            ci = results_list[i]["variants"][name]["asr_ci"]
+            if fmt in ("markdown", "latex") and mark_best and len(models) > 1:
+                m, a = _mark(m, map_marks[i], fmt), _mark(a, asr_marks[i], fmt)
+            ci = entry["asr_ci"]
             if ci is not None:
                 a += f" [{ci[0]:.2f}, {ci[1]:.2f}]"
             cells[(model, name)] = (m, a)
     if models_as == "rows":
         groups = [("", 1)] + [(variant_label(n), 2) for n in variants]
         header = ["Detector"] + ["L2 mAP", "ASR"] * len(variants)
-        rows = [[m] + [c for n in variants for c in cells[(m, n)]] for m in models]
+        rows = [[esc(m)] + [c for n in variants for c in cells[(m, n)]] for m in models]
     else:
         groups = [("", 1)] + [(m, 2) for m in models]
         header = ["Variant"] + ["L2 mAP", "ASR"] * len(models)
-        rows = [[variant_label(n)] + [c for m in models for c in cells[(m, n)]] for n in variants]
+        rows = [
+            [esc(variant_label(n))] + [c for m in models for c in cells[(m, n)]] for n in variants
+        ]
     return _render(fmt, groups, header, rows)
 
 
-def _mark(text: str, mark: str) -> str:
+def _mark(text: str, mark: str, fmt: str = "markdown") -> str:
+    if fmt == "latex":
+        wrap = {"best": "\\textbf{%s}", "second": "\\underline{%s}"}.get(mark, "%s")
+        return wrap % text
     return f"**{text}**" if mark == "best" else f"_{text}_" if mark == "second" else text
 
 
