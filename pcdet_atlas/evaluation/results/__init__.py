@@ -1,6 +1,7 @@
 """``results.json``: one file per evaluated model. ``schema`` states and checks it (a JSON Schema
 plus the invariants between fields), ``build`` makes its entries, ``io`` reads and writes it and
-``tables`` prints the paper's tables from it.
+``tables`` prints the paper's tables from it; ``report`` and ``figures`` write the paper's
+report (tables and PNG figures) from several of them (``tools/report.py``).
 
 Schema (version 4; every key required unless marked optional; unknown keys are errors)::
 
@@ -47,6 +48,7 @@ from pcdet_atlas.evaluation.results.build import (
     ranks_from_results,
 )
 from pcdet_atlas.evaluation.results.io import load_results, load_results_dir, save_results
+from pcdet_atlas.evaluation.results.report import collect_results, write_report
 from pcdet_atlas.evaluation.results.schema import (
     RESULTS_SCHEMA,
     SCHEMA_VERSION,
@@ -71,6 +73,7 @@ __all__ = [
     "SCHEMA_VERSION",
     "build_results",
     "build_variant_result",
+    "collect_results",
     "format_comparison_table",
     "format_ranks",
     "format_table",
@@ -82,4 +85,5 @@ __all__ = [
     "save_results",
     "validate_results",
     "variant_label",
+    "write_report",
 ]

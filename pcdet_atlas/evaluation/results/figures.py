@@ -1,0 +1,284 @@
+"""The paper's figures from ``results.json`` dicts, drawn headless (matplotlib's ``Figure``, no
+display and no pyplot state). Each function writes one PNG and returns its path, or returns a
+string saying why the figure cannot be drawn from the results it was given (too few models, no
+lifecycle or confidence data, no timing)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from pcdet_atlas.evaluation.results.build import ranks_from_results
+from pcdet_atlas.evaluation.results.tables import ordered_variants, variant_label
+
+__all__ = [
+    "accuracy_vs_time",
+    "confidence_histograms",
+    "lifecycle_curves",
+    "lifecycle_heatmaps",
+    "mean_asr",
+    "ms_per_frame",
+    "rank_correlation",
+    "ranked_variants",
+]
+
+DPI = 120
+HIGH_SCORE = 0.7
+
+
+def _figure(num_panels: int, panel_size=(4.0, 3.0), max_cols: int = 4):
+    from matplotlib.figure import Figure
+
+    cols = max(1, min(max_cols, num_panels))
+    rows = -(-num_panels // cols)
+    fig = Figure(
+        figsize=(panel_size[0] * cols, panel_size[1] * rows), dpi=DPI, layout="constrained"
+    )
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    for ax in axes[num_panels:]:
+        ax.set_visible(False)
+    return fig, axes[:num_panels]
+
+
+def _save(fig, path: Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, format="png")
+    return path
+
+
+def family_variants(results: Mapping, family: str) -> list[str]:
+    return [n for n in ordered_variants(results["variants"])
+            if results["variants"][n]["family"] == family]  # fmt: skip
+
+
+def ms_per_frame(results: Mapping) -> float | None:
+    """Model time per frame of the clean variant (``extra.timing_s.model`` of ``tools/test.py``
+    over its frames), in ms; None when the file has no clean timing."""
+    clean = results["variants"].get("clean")
+    if clean is None:
+        return None
+    model_s = clean.get("extra", {}).get("timing_s", {}).get("model")
+    if model_s is None or clean["num_frames"] == 0:
+        return None
+    return 1000.0 * float(model_s) / clean["num_frames"]
+
+
+def mean_asr(results: Mapping, family: str | None = None) -> float | None:
+    """Mean ASR over the attack variants (of ``family``) that have one."""
+    values = [v["asr"] for v in results["variants"].values()
+              if v["asr"] is not None and (family is None or v["family"] == family)]  # fmt: skip
+    return float(np.mean(values)) if values else None
+
+
+def ranked_variants(results_list: Sequence[Mapping]) -> list[str]:
+    """The ranked variants (with a rank group and an ASR) that every model has."""
+    common = None
+    for r in results_list:
+        names = {n for n, v in r["variants"].items()
+                 if v["rank_group"] is not None and v["asr"] is not None}  # fmt: skip
+        common = names if common is None else common & names
+    return ordered_variants(common or [])
+
+
+# ----------------------------------------------------------------------------- Fig. 3
+def rank_correlation(results_list: Sequence[Mapping], path: Path) -> Path | str:
+    """Removal rank against injection rank per model, with the least-squares line and R²
+    (paper Fig. "Robustness Correlation"); over the ranked variants every model has."""
+    variants = ranked_variants(results_list)
+    groups = {results_list[0]["variants"][n]["rank_group"] for n in variants} if variants else set()
+    if len(results_list) < 3 or not {"injection", "removal"} <= groups:
+        return (
+            "needs at least 3 models sharing injection and removal variants "
+            f"({len(results_list)} models, rank groups {sorted(groups)})"
+        )
+    ranks = ranks_from_results(results_list, variants=variants)
+    x_group, y_group = ranks["fit_axes"]
+    models = ranks["models"]
+    x = np.array([ranks["group_ranks"][x_group][m] for m in models])
+    y = np.array([ranks["group_ranks"][y_group][m] for m in models])
+    fig, (ax,) = _figure(1, (5.0, 4.2))
+    ax.scatter(x, y, color="tab:blue", zorder=3)
+    for m, xi, yi in zip(models, x, y):
+        ax.annotate(m, (xi, yi), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    fit = ranks["fit"]
+    if fit is not None:
+        xs = np.linspace(x.min() - 0.3, x.max() + 0.3, 2)
+        ax.plot(xs, fit["slope"] * xs + fit["intercept"], "--", color="tab:red",
+                label=f"y = {fit['slope']:.3f}x + {fit['intercept']:.3f}, "
+                      f"R² = {fit['r2']:.2f}")  # fmt: skip
+        ax.legend(fontsize=8)
+    ax.set_xlabel(f"{x_group} rank (1 = most robust)")
+    ax.set_ylabel(f"{y_group} rank (1 = most robust)")
+    ax.set_title(f"Robustness rank correlation ({len(variants)} variants)", fontsize=10)
+    ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+# ----------------------------------------------------------------------------- Figs. 4, 6
+def _lifecycle_models(results_list, family):
+    out = []
+    for r in results_list:
+        names = [n for n in family_variants(r, family) if r["variants"][n]["lifecycle"]]
+        if names:
+            out.append((r, names))
+    return out
+
+
+def _shade_attack(ax, window: int) -> None:
+    ax.axvspan(0.5, window + 0.5, color="tab:red", alpha=0.08, lw=0)
+    ax.axvline(window + 0.5, color="tab:red", ls="--", lw=1)
+
+
+def lifecycle_curves(results_list: Sequence[Mapping], family: str, path: Path) -> Path | str:
+    """ASR by lifecycle position k per model (a panel each) and variant (a line each): k = 1..W
+    spoofed (shaded), the dashed line the onset/decay boundary, k > W the clean frames after
+    the run (paper Figs. 4 and 6)."""
+    models = _lifecycle_models(results_list, family)
+    if not models:
+        return f"no {family} variant with lifecycle data"
+    fig, axes = _figure(len(models))
+    for ax, (r, names) in zip(axes, models):
+        window = r["variants"][names[0]]["lifecycle"]["window"]
+        _shade_attack(ax, window)
+        for name in names:
+            lc = r["variants"][name]["lifecycle"]
+            asr = np.array([np.nan if a is None else a for a in lc["asr"]], dtype=float)
+            ax.plot(lc["k"], asr, marker=".", ms=3, lw=1, label=variant_label(name))
+        ax.set_ylim(-0.02, 1.02)
+        ax.set_xlabel("lifecycle position k")
+        ax.set_ylabel("ASR")
+        ax.set_title(f"{r['model']} (W = {window})", fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6)
+    return _save(fig, path)
+
+
+def _bin_centres(edges) -> np.ndarray:
+    edges = np.asarray(edges, dtype=float)
+    return 0.5 * (edges[1:] + edges[:-1])
+
+
+def _mean_from_counts(edges, counts) -> float:
+    counts = np.asarray(counts, dtype=float)
+    return float(counts @ _bin_centres(edges) / counts.sum()) if counts.sum() > 0 else np.nan
+
+
+def lifecycle_heatmaps(results_list: Sequence[Mapping], family: str, path: Path) -> Path | str:
+    """Per model, the targets' matched scores by lifecycle position (the family's variants
+    pooled): each column k is the fraction of that k's targets detected with a score in each
+    bin (a column sums to the detected fraction). The white line is the mean attacked score
+    of the detected targets; the dashed blue line the clean baseline, the mean clean-run
+    score of the same targets at the same frames (paper Figs. 7 and 8)."""
+    models = _lifecycle_models(results_list, family)
+    if not models:
+        return f"no {family} variant with lifecycle data"
+    fig, axes = _figure(len(models), (4.2, 3.2))
+    image = None
+    for ax, (r, names) in zip(axes, models):
+        lcs = [r["variants"][n]["lifecycle"] for n in names]
+        window, edges = lcs[0]["window"], lcs[0]["score_bin_edges"]
+        lcs = [lc for lc in lcs if lc["window"] == window and lc["score_bin_edges"] == edges]
+        counts = np.sum([np.asarray(lc["score_counts"], dtype=float) for lc in lcs], axis=0)
+        targets = np.sum([np.asarray(lc["num_targets"], dtype=float) for lc in lcs], axis=0)
+        frac = np.divide(counts, targets[:, None], out=np.zeros_like(counts),
+                         where=targets[:, None] > 0)  # fmt: skip
+        ks = np.asarray(lcs[0]["k"])
+        image = ax.imshow(frac.T, origin="lower", aspect="auto", cmap="magma", vmin=0, vmax=1,
+                          extent=(ks[0] - 0.5, ks[-1] + 0.5, edges[0], edges[-1]))  # fmt: skip
+        ax.plot(ks, [_mean_from_counts(edges, c) for c in counts], color="white", lw=1.2,
+                label="attacked (mean)")  # fmt: skip
+        clean = [lc["clean_score_counts"] for lc in lcs]
+        if all(c is not None for c in clean):
+            clean_counts = np.sum([np.asarray(c, dtype=float) for c in clean], axis=0)
+            ax.plot(ks, [_mean_from_counts(edges, c) for c in clean_counts], color="deepskyblue",
+                    ls="--", lw=1.5, label="clean baseline (mean)")  # fmt: skip
+        ax.axvline(window + 0.5, color="cyan", ls=":", lw=1)
+        ax.axhline(HIGH_SCORE, color="grey", ls=":", lw=0.8)
+        ax.set_xlabel("lifecycle position k")
+        ax.set_ylabel("score")
+        ax.set_title(f"{r['model']} ({family}, W = {window})", fontsize=10)
+        ax.legend(fontsize=6, loc="lower right")
+    fig.colorbar(image, ax=list(axes), shrink=0.8, label="fraction of targets")
+    return _save(fig, path)
+
+
+# ----------------------------------------------------------------------------- Figs. 5, 9
+def confidence_histograms(results_list: Sequence[Mapping], family: str, path: Path) -> Path | str:
+    """Per model, the score distribution of the detected targets per variant (injection: the
+    phantoms' scores, paper Fig. 5; removal: the surviving targets' scores with the clean run's
+    scores of the same targets dashed, paper Fig. 9), as fractions of the detected targets;
+    the dotted line is the 0.7 high-confidence threshold."""
+    kind = {"injection": "injection", "removal": "removal"}.get(family)
+    if kind is None:
+        return f"no confidence figure for family {family!r}"
+    panels = []
+    for r in results_list:
+        names = [n for n in family_variants(r, family)
+                 if (r["variants"][n]["confidence"] or {}).get("kind") == kind]  # fmt: skip
+        if names:
+            panels.append((r, names))
+    if not panels:
+        return f"no {family} variant with confidence data"
+    fig, axes = _figure(len(panels))
+    for ax, (r, names) in zip(axes, panels):
+        clean_total = None
+        for name in names:
+            c = r["variants"][name]["confidence"]
+            h = c["histogram"]
+            counts = np.asarray(h["counts"], dtype=float)
+            if counts.sum() > 0:
+                above = c["fraction_above"]
+                label = f"{variant_label(name)} ({100 * above:.0f}% > {c['high_score_threshold']})"
+                ax.stairs(counts / counts.sum(), h["bin_edges"], label=label)
+            if kind == "removal":
+                pc = np.asarray(c["paired_clean_histogram"]["counts"], dtype=float)
+                clean_total = pc if clean_total is None else clean_total + pc
+                clean_edges = c["paired_clean_histogram"]["bin_edges"]
+        if clean_total is not None and clean_total.sum() > 0:
+            ax.stairs(clean_total / clean_total.sum(), clean_edges, color="black", ls="--",
+                      label="clean run (same targets)")  # fmt: skip
+        ax.axvline(HIGH_SCORE, color="grey", ls=":", lw=1)
+        ax.set_xlabel("score" if kind == "injection" else "surviving target score")
+        ax.set_ylabel("fraction of detected")
+        ax.set_title(f"{r['model']} ({family})", fontsize=10)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=6)
+        else:
+            ax.text(0.5, 0.5, "no target detected", ha="center", transform=ax.transAxes)
+        ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+# ----------------------------------------------------------------------------- accuracy/time
+def accuracy_vs_time(results_list: Sequence[Mapping], path: Path) -> Path | str:
+    """Clean L2 mAP against measured model ms/frame per model, the marker coloured by the mean
+    ASR over its attack variants (models without clean timing or mAP are left out)."""
+    points = []
+    for r in results_list:
+        ms, clean = ms_per_frame(r), r["variants"].get("clean")
+        if ms is None or clean is None or clean["L2/mAP"] is None:
+            continue
+        points.append((r["model"], ms, 100.0 * clean["L2/mAP"], mean_asr(r)))
+    if not points:
+        return "no model has a clean variant with timing and L2 mAP"
+    devices = sorted({str(r.get("extra", {}).get("device", "?")) for r in results_list})
+    fig, (ax,) = _figure(1, (5.5, 4.2))
+    asr = np.array([np.nan if p[3] is None else p[3] for p in points])
+    sc = ax.scatter([p[1] for p in points], [p[2] for p in points], c=asr, cmap="viridis_r",
+                    vmin=0, vmax=1, s=60, edgecolors="black", zorder=3)  # fmt: skip
+    for name, x, y, _ in points:
+        ax.annotate(name, (x, y), textcoords="offset points", xytext=(5, 4), fontsize=8)
+    fig.colorbar(sc, ax=ax, label="mean ASR over attack variants")
+    ax.set_xscale("log")
+    from matplotlib.ticker import FormatStrFormatter
+
+    ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+    ax.xaxis.set_minor_formatter(FormatStrFormatter("%g"))
+    ax.set_xlabel(f"model time per frame (ms, {', '.join(devices)})")
+    ax.set_ylabel("clean L2 mAP (x100)")
+    ax.set_title("Accuracy vs time", fontsize=10)
+    ax.grid(alpha=0.3, which="both")
+    return _save(fig, path)

@@ -1,0 +1,293 @@
+"""The paper's report from ``results.json`` files: ``report.md`` with its tables (and, on request,
+``report.tex`` with the same tables), and its figures as PNGs (docs/evaluation.md "Report").
+
+Tables: a model summary (clean L2 mAP/mAPH, input frames, clean rank, model time per frame,
+mean ASR per family), the injection table (paper Table 3) and the removal table (Table 4) with
+per-variant L2 mAP and ASR with its run-level interval (best and second best marked), the LOT
+ablation (Tables 5 and 6) when both models of the pair are given, the centre-gap table, the
+robustness ranks, and each model's full table with its runs and targets. A model that was not
+evaluated on a variant shows ``missing`` there, never a zero.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from pcdet_atlas.evaluation.results import figures
+from pcdet_atlas.evaluation.results.build import ranks_from_results
+from pcdet_atlas.evaluation.results.io import load_results
+from pcdet_atlas.evaluation.results.schema import ResultsError
+from pcdet_atlas.evaluation.results.tables import (
+    MISSING,
+    _render,
+    format_comparison_table,
+    format_ranks,
+    format_table,
+    latex_escape,
+    ordered_variants,
+    variant_label,
+)
+
+__all__ = [
+    "DEFAULT_LOT_PAIR",
+    "FIGURES",
+    "centre_gap_table",
+    "collect_results",
+    "lot_ablation_table",
+    "summary_table",
+    "write_report",
+]
+
+#: The model names (``ATLAS.MODEL_NAME``) of the LOT ablation: the detector and its defence.
+DEFAULT_LOT_PAIR = ("PHiM", "PHiM+LOT")
+#: Figure file -> (caption, how it is drawn).
+FIGURES = {
+    "rank_correlation.png": ("Robustness rank correlation (paper Fig. 3)",
+                             figures.rank_correlation),
+    "lifecycle_injection.png": ("Injection ASR over the attack lifecycle (paper Fig. 6)",
+                                lambda r, p: figures.lifecycle_curves(r, "injection", p)),
+    "lifecycle_removal.png": ("Removal ASR over the attack lifecycle (paper Fig. 4)",
+                              lambda r, p: figures.lifecycle_curves(r, "removal", p)),
+    "confidence_injection.png": ("Phantom confidence under injection (paper Fig. 5)",
+                                 lambda r, p: figures.confidence_histograms(r, "injection", p)),
+    "confidence_removal.png": ("Target confidence under removal (paper Fig. 9)",
+                               lambda r, p: figures.confidence_histograms(r, "removal", p)),
+    "heatmap_injection.png": ("Phantom confidence over the lifecycle (paper Fig. 7)",
+                              lambda r, p: figures.lifecycle_heatmaps(r, "injection", p)),
+    "heatmap_removal.png": ("Target confidence over the lifecycle (paper Fig. 8)",
+                            lambda r, p: figures.lifecycle_heatmaps(r, "removal", p)),
+    "accuracy_vs_time.png": ("Clean L2 mAP against model time per frame, coloured by mean ASR",
+                             figures.accuracy_vs_time),
+}  # fmt: skip
+
+
+def collect_results(paths: Sequence[str | Path]) -> list[tuple[Path, dict]]:
+    """``(file, results)`` for every given ``results.json`` and every one under a given folder
+    (sorted), each validated. Two files of the same model name are an error naming both."""
+    found: list[Path] = []
+    for arg in paths:
+        path = Path(arg)
+        if path.is_dir():
+            inside = sorted(path.glob("**/results.json"))
+            if not inside:
+                raise ResultsError(f"{path}: no results.json under this folder")
+            found += inside
+        elif path.is_file():
+            found.append(path)
+        else:
+            raise ResultsError(f"{path}: no such file or folder")
+    out, seen = [], {}
+    for path in found:
+        results = load_results(path)
+        model = results["model"]
+        if model in seen:
+            raise ResultsError(
+                f"model {model!r} appears twice: {seen[model]} and {path} (give one results.json "
+                "per model, or set ATLAS.MODEL_NAME apart)"
+            )
+        seen[model] = path
+        out.append((path, results))
+    if not out:
+        raise ResultsError("no results.json given")
+    return out
+
+
+def _fmt(value: float | None, scale: float = 1.0, digits: int = 2) -> str:
+    return "-" if value is None else f"{scale * value:.{digits}f}"
+
+
+def _fmt_ci(entry: Mapping) -> str:
+    if entry["asr"] is None:
+        return "-"
+    text = f"{entry['asr']:.2f}"
+    if entry["asr_ci"] is not None:
+        text += f" [{entry['asr_ci'][0]:.2f}, {entry['asr_ci'][1]:.2f}]"
+    return text
+
+
+def input_frames(results: Mapping) -> int | None:
+    """The model's temporal window as its lifecycle records it (None without lifecycle data)."""
+    for entry in results["variants"].values():
+        if entry["lifecycle"] is not None:
+            return int(entry["lifecycle"]["window"])
+    return None
+
+
+def summary_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str:
+    """A row per model: clean L2 mAP / mAPH (x100), input frames, clean rank (1 = highest clean
+    L2 mAP), model ms/frame on the clean run and its device, mean ASR per family."""
+    maps = [(r["variants"].get("clean") or {}).get("L2/mAP") for r in results_list]
+    order = sorted({m for m in maps if m is not None}, reverse=True)
+    header = ["Model", "L2 mAP", "L2 mAPH", "Frames", "Clean rank", "ms/frame", "Device",
+              "Mean inj. ASR", "Mean rem. ASR"]  # fmt: skip
+    rows = []
+    for r, l2 in zip(results_list, maps):
+        clean = r["variants"].get("clean")
+        frames = input_frames(r)
+        ms = figures.ms_per_frame(r)
+        rows.append([
+            r["model"],
+            MISSING if clean is None else _fmt(clean["L2/mAP"], 100, 1),
+            MISSING if clean is None else _fmt(clean["L2/mAPH"], 100, 1),
+            "-" if frames is None else str(frames),
+            "-" if l2 is None else str(order.index(l2) + 1),
+            "-" if ms is None else f"{ms:.0f}",
+            str(r.get("extra", {}).get("device", "-")),
+            _fmt(figures.mean_asr(r, "injection")),
+            _fmt(figures.mean_asr(r, "removal")),
+        ])  # fmt: skip
+    if fmt == "latex":
+        rows = [[latex_escape(c) for c in row] for row in rows]
+    return _render(fmt, None, header, rows)
+
+
+def lot_ablation_table(base: Mapping, defended: Mapping, fmt: str = "markdown") -> str:
+    """The LOT ablation (paper Tables 5 and 6): per variant both models' L2 mAP and ASR (with
+    intervals) and the ASR change the defence makes (defended - base)."""
+    names = ordered_variants(set(base["variants"]) | set(defended["variants"]))
+    header = ["Variant", f"{base['model']} L2 mAP", f"{base['model']} ASR",
+              f"{defended['model']} L2 mAP", f"{defended['model']} ASR", "ΔASR"]  # fmt: skip
+    rows = []
+    for name in names:
+        a, b = base["variants"].get(name), defended["variants"].get(name)
+        cells = [variant_label(name)]
+        for entry in (a, b):
+            cells += [MISSING, MISSING] if entry is None else [
+                _fmt(entry["L2/mAP"], 100, 1), _fmt_ci(entry)]  # fmt: skip
+        delta = None
+        if a is not None and b is not None and a["asr"] is not None and b["asr"] is not None:
+            delta = b["asr"] - a["asr"]
+        cells.append("-" if delta is None else f"{delta:+.2f}")
+        rows.append(cells)
+    if fmt == "latex":
+        rows = [[latex_escape(c) for c in row] for row in rows]
+        header[-1] = "ASR change"
+    return _render(fmt, None, header, rows)
+
+
+def centre_gap_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str | None:
+    """Per model and removal variant, the centre gap: the peak of the clean run's scores of the
+    surviving targets minus the peak of their attacked scores (docs/evaluation.md
+    "Confidence"); None when no model has a removal variant with confidence data."""
+    names = ordered_variants(
+        {
+            n
+            for r in results_list
+            for n, v in r["variants"].items()
+            if (v["confidence"] or {}).get("kind") == "removal"
+        }  # fmt: skip
+    )
+    if not names:
+        return None
+    header = ["Model", *(variant_label(n) for n in names)]
+    rows = []
+    for r in results_list:
+        row = [r["model"]]
+        for n in names:
+            entry = r["variants"].get(n)
+            if entry is None:
+                row.append(MISSING)
+            elif entry["confidence"] is None or entry["confidence"]["peak_gap"] is None:
+                row.append("-")
+            else:
+                row.append(f"{entry['confidence']['peak_gap']:.3f}")
+        rows.append(row)
+    if fmt == "latex":
+        rows = [[latex_escape(c) for c in row] for row in rows]
+    return _render(fmt, None, header, rows)
+
+
+def _families_present(results_list: Sequence[Mapping]) -> list[str]:
+    fams = {v["family"] for r in results_list for v in r["variants"].values()}
+    return [f for f in ("injection", "removal") if f in fams] + sorted(
+        fams - {"clean", "injection", "removal"}
+    )
+
+
+def _table_sections(results_list, fmt, lot_pair) -> list[tuple[str, str]]:
+    """(title, table) of every table of the report, in its order."""
+    sections = [("Models", summary_table(results_list, fmt))]
+    titles = {"injection": "Point injection (paper Table 3)",
+              "removal": "Point removal (paper Table 4)"}  # fmt: skip
+    for family in _families_present(results_list):
+        sections.append((
+            titles.get(family, f"Family {family}"),
+            format_comparison_table(results_list, fmt, family=family, missing="show"),
+        ))  # fmt: skip
+    by_name = {r["model"]: r for r in results_list}
+    if lot_pair[0] in by_name and lot_pair[1] in by_name:
+        sections.append((
+            f"LOT ablation: {lot_pair[0]} vs {lot_pair[1]} (paper Tables 5 and 6)",
+            lot_ablation_table(by_name[lot_pair[0]], by_name[lot_pair[1]], fmt),
+        ))  # fmt: skip
+    gap = centre_gap_table(results_list, fmt)
+    if gap is not None:
+        sections.append(("Centre gap under removal (clean peak - attacked peak)", gap))
+    return sections
+
+
+def _ranks_text(results_list) -> str:
+    variants = figures.ranked_variants(results_list)
+    if len(results_list) < 2 or not variants:
+        return "needs at least 2 models with a common ranked variant"
+    return format_ranks(ranks_from_results(results_list, variants=variants), "markdown")
+
+
+def write_report(
+    results_list: Sequence[Mapping],
+    out_dir: str | Path,
+    *,
+    sources: Sequence[str | Path] | None = None,
+    latex: bool = False,
+    lot_pair: tuple[str, str] = DEFAULT_LOT_PAIR,
+    command: str | None = None,
+) -> dict:
+    """Write ``report.md`` and the figures (and ``report.tex`` with ``latex``) to ``out_dir``.
+
+    Returns ``{'report': path, 'latex': path | None, 'figures': {file: path | reason}}``; a
+    figure that cannot be drawn from these results is named in the report with the reason.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    lines = ["# ATLAS report", ""]
+    if command:
+        lines += [f"Generated by `{command}`.", ""]
+    lines += ["| Model | Config | Checkpoint | Evaluated | Source |", "|:---|:---|:---|:---|:---|"]
+    for i, r in enumerate(results_list):
+        src = "-" if sources is None else f"`{sources[i]}`"
+        lines.append(f"| {r['model']} | `{r['config']}` | `{r['checkpoint']}` | {r['created']} "
+                     f"| {src} |")  # fmt: skip
+    lines += [
+        "",
+        "L2 mAP and mAPH x100; ASR with its 95% run-level bootstrap interval "
+        "(docs/evaluation.md); best **bold**, second _italic_ per variant (point estimates); "
+        f"`{MISSING}`: the model was not evaluated on that variant.",
+        "",
+    ]
+    for title, table in _table_sections(results_list, "markdown", lot_pair):
+        lines += [f"## {title}", "", table, ""]
+    lines += ["## Robustness ranks", "", _ranks_text(results_list), ""]
+    drawn: dict = {}
+    lines += ["## Figures", ""]
+    for name, (caption, draw) in FIGURES.items():
+        result = draw(results_list, out_dir / name)
+        drawn[name] = result
+        if isinstance(result, Path):
+            lines += [f"### {caption}", "", f"![{caption}]({name})", ""]
+        else:
+            lines += [f"### {caption}", "", f"Not drawn: {result}.", ""]
+    lines += ["## Per-model results", ""]
+    for r in results_list:
+        lines += [format_table(r, "markdown"), ""]
+    report = out_dir / "report.md"
+    report.write_text("\n".join(lines))
+    tex = None
+    if latex:
+        parts = ["% ATLAS report tables (booktabs)", ""]
+        for title, table in _table_sections(results_list, "latex", lot_pair):
+            parts += [f"% {title}", "\\begin{table}[t]", "\\centering", "\\small", table,
+                      f"\\caption{{{latex_escape(title)}}}", "\\end{table}", ""]  # fmt: skip
+        tex = out_dir / "report.tex"
+        tex.write_text("\n".join(parts))
+    return {"report": report, "latex": tex, "figures": drawn}

@@ -1,0 +1,188 @@
+"""tools/report.py: the report's tables and figures from small hand-made results files (every
+table row and figure present; a model missing a variant shows it as missing, not as zero; the
+LOT ablation only with both models; LaTeX tables; clear errors)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pcdet_atlas.attacks.metadata import make_meta
+from pcdet_atlas.config import REPO_ROOT
+from pcdet_atlas.evaluation.attack_metrics import evaluate_attack
+from pcdet_atlas.evaluation.results import (
+    ResultsError,
+    build_results,
+    build_variant_result,
+    save_results,
+)
+from pcdet_atlas.evaluation.results.report import (
+    FIGURES,
+    centre_gap_table,
+    collect_results,
+    lot_ablation_table,
+    summary_table,
+    write_report,
+)
+
+sys.path.insert(0, str(REPO_ROOT / "tests" / "models"))
+from model_batches import load_tool  # noqa: E402
+
+CLASSES = ["Vehicle", "Pedestrian", "Cyclist"]
+TARGET = np.array([20.0, 2.0, 1.0, 4.0, 2.0, 2.0, 0.3], dtype=np.float32)
+WINDOW = 2
+SCORING = {
+    "injection": {"success_if_detected": True, "confidence": "injection",
+                  "rank_group": "injection"},
+    "removal": {"success_if_detected": False, "confidence": "removal", "rank_group": "removal"},
+}  # fmt: skip
+
+
+def metrics(l2: float) -> dict:
+    out = {"L1/mAP": l2, "L1/mAPH": l2, "L2/mAP": l2, "L2/mAPH": l2 - 0.01}
+    for cls in CLASSES:
+        for key in ("L1/AP", "L1/APH", "L2/AP", "L2/APH"):
+            out[f"{cls}/{key}"] = out[key.replace("AP", "mAP")]
+    return out
+
+
+def attacked_entry(variant: str, family: str, p_detect: float, seed: int, l2: float) -> dict:
+    """A variant entry from real attack metrics: 4 spoof runs of the lifecycle k = 0..2W, the
+    target detected with probability ``p_detect`` at a random score; the clean run detects a
+    removal target at 0.95 and never sees a phantom."""
+    rng = np.random.default_rng(seed)
+    dets, infos, clean = [], [], []
+    for run in range(4):
+        box = TARGET + np.array([0, 10.0 * run, 0, 0, 0, 0, 0], np.float32)
+        for k in range(2 * WINDOW + 1):
+            frame_id = f"{variant}_r{run}_k{k}"
+            shadow = not 1 <= k <= WINDOW
+            hit = rng.random() < (p_detect if not shadow else 0.5 * p_detect)
+            score = np.float32(rng.uniform(0.3, 1.0))
+            dets.append({"frame_id": frame_id, "name": np.array(["Vehicle"] * hit),
+                         "boxes_lidar": np.array([box] * hit, np.float32).reshape(-1, 7),
+                         "score": np.full(int(hit), score, np.float32)})  # fmt: skip
+            clean_hit = family == "removal"
+            clean.append({"frame_id": frame_id, "name": np.array(["Vehicle"] * clean_hit),
+                          "boxes_lidar": np.array([box] * clean_hit, np.float32).reshape(-1, 7),
+                          "score": np.full(int(clean_hit), 0.95, np.float32)})  # fmt: skip
+            infos.append(make_meta(variant, family, spoofed=not shadow, run_id=run,
+                                   run_position=k - 1, lifecycle_k=k, target_box=box,
+                                   target_is_shadow=shadow, num_visible=100,
+                                   **SCORING[family]))  # fmt: skip
+    attack = evaluate_attack(dets, infos, clean_det_annos=clean, window=WINDOW,
+                             recorded_window=WINDOW)  # fmt: skip
+    return build_variant_result(
+        variant, family=family, num_frames=len(dets), metrics=metrics(l2), class_names=CLASSES,
+        attack=attack, rank_group=family, num_reused_frames=0,
+    )  # fmt: skip
+
+
+VARIANTS = {"inj_rel_easy": "injection", "inj_global_hard": "injection", "rem_10": "removal",
+            "rem_40": "removal"}  # fmt: skip
+
+
+def model(name: str, l2: float, p_inj: float, p_rem: float, ms: float, skip=()) -> dict:
+    variants = {
+        "clean": build_variant_result(
+            "clean",
+            family="clean",
+            num_frames=200,
+            metrics=metrics(l2),
+            class_names=CLASSES,
+            extra={"timing_s": {"model": ms * 200 / 1000.0}},
+        )  # fmt: skip
+    }
+    for i, (variant, family) in enumerate(VARIANTS.items()):
+        if variant not in skip:
+            p = p_inj if family == "injection" else 1.0 - p_rem
+            variants[variant] = attacked_entry(variant, family, p, seed=hash(name) % 1000 + i,
+                                               l2=l2 - 0.01 * (i + 1))  # fmt: skip
+    return build_results(
+        model=name, config=f"cfgs/{name}.yaml", checkpoint=None, class_names=CLASSES,
+        variants=variants, created="2026-11-25T08:00:00+00:00", extra={"device": "cpu"},
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def models():
+    return [
+        model("CenterPoint", 0.60, 0.3, 0.8, 40.0),
+        model("CP-4f", 0.70, 0.5, 0.6, 60.0, skip=("rem_40",)),  # not evaluated on rem_40
+        model("PHiM", 0.65, 0.4, 0.7, 120.0),
+        model("PHiM+LOT", 0.64, 0.45, 0.5, 150.0),
+    ]
+
+
+def test_report_has_every_table_row_and_figure(models, tmp_path):
+    out = write_report(models, tmp_path, sources=[f"m{i}.json" for i in range(4)], latex=True,
+                       command="python tools/report.py ...")  # fmt: skip
+    text = out["report"].read_text()
+    for section in ("## Models", "## Point injection (paper Table 3)",
+                    "## Point removal (paper Table 4)", "## LOT ablation: PHiM vs PHiM+LOT",
+                    "## Centre gap under removal", "## Robustness ranks", "## Figures",
+                    "## Per-model results"):  # fmt: skip
+        assert section in text, section
+    for name in ("CenterPoint", "CP-4f", "PHiM", "PHiM+LOT"):
+        assert f"| {name} |" in text
+    # CP-4f lacks rem_40: shown as missing in the removal table, not as zero
+    removal = text.split("## Point removal")[1].split("##")[0]
+    cp4f_row = next(line for line in removal.splitlines() if line.startswith("| CP-4f |"))
+    assert cp4f_row.count("missing") == 2 and " 0.00" not in cp4f_row.split("|")[-3]
+    for name, result in out["figures"].items():
+        assert isinstance(result, Path), (name, result)
+        assert result.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and result.stat().st_size > 5000
+        assert f"]({name})" in text
+    assert set(out["figures"]) == set(FIGURES)
+    tex = out["latex"].read_text()
+    assert tex.count("\\begin{tabular}") == 5 and "\\textbf{" in tex and "PHiM+LOT" in tex
+    assert "rem\\_40" not in tex or "missing" in tex
+
+
+def test_summary_lot_and_centre_gap_tables(models):
+    summary = summary_table(models).splitlines()
+    assert summary[0].startswith("| Model | L2 mAP | L2 mAPH | Frames | Clean rank | ms/frame")
+    rows = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[2:-1]] for r in summary[2:]}
+    assert rows["CP-4f"][:5] == ["70.0", "69.0", "2", "1", "60"]
+    assert rows["CenterPoint"][3] == "4"  # lowest clean mAP of the four
+    lot = lot_ablation_table(models[2], models[3]).splitlines()
+    assert lot[0] == ("| Variant | PHiM L2 mAP | PHiM ASR | PHiM+LOT L2 mAP | PHiM+LOT ASR | "
+                      "ΔASR |")  # fmt: skip
+    inj = next(r for r in lot if r.startswith("| Rel-Fixed Easy |")).split("|")
+    a, b = models[2]["variants"]["inj_rel_easy"], models[3]["variants"]["inj_rel_easy"]
+    assert inj[-2].strip() == f"{b['asr'] - a['asr']:+.2f}"
+    assert inj[3].strip().startswith(f"{a['asr']:.2f} [")  # with its interval
+    gap = centre_gap_table(models).splitlines()
+    assert gap[0] == "| Model | Removal 10 | Removal 40 |"
+    cp4f = next(r for r in gap if r.startswith("| CP-4f |"))
+    assert cp4f.endswith("| missing |")
+    peak = models[0]["variants"]["rem_10"]["confidence"]["peak_gap"]
+    assert f"{peak:.3f}" in next(r for r in gap if r.startswith("| CenterPoint |"))
+
+
+def test_figures_that_need_more_say_why(models, tmp_path):
+    out = write_report(models[:2], tmp_path)  # no LOT pair, 2 models: no rank fit
+    text = out["report"].read_text()
+    assert "LOT ablation" not in text
+    assert isinstance(out["figures"]["rank_correlation.png"], str)
+    assert "Not drawn: needs at least 3 models" in text
+    assert isinstance(out["figures"]["lifecycle_removal.png"], Path)
+
+
+def test_the_tool_reads_files_and_folders_and_refuses_duplicates(models, tmp_path):
+    paths = [save_results(r, tmp_path / "runs" / f"m{i}" / "results.json")
+             for i, r in enumerate(models)]  # fmt: skip
+    report = load_tool("report")
+    out = report.main(["--results", str(tmp_path / "runs"), "--out", str(tmp_path / "rep")])
+    assert out["report"].is_file() and out["latex"] is None
+    assert [p for p, _ in collect_results([tmp_path / "runs"])] == paths
+    save_results(models[0], tmp_path / "dup.json")
+    with pytest.raises(ResultsError, match="'CenterPoint' appears twice"):
+        collect_results([paths[0], tmp_path / "dup.json"])
+    with pytest.raises(ResultsError, match="no such file"):
+        collect_results([tmp_path / "nope"])
+    with pytest.raises(ResultsError, match="no results.json under"):
+        collect_results([tmp_path / "rep"])

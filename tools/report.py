@@ -1,0 +1,57 @@
+"""Write the paper's report (tables and figures) from results.json files of tools/test.py.
+
+    python tools/report.py --results output/atlas/synthetic --out report/
+    python tools/report.py --results a/results.json b/results.json --out report/ --latex
+
+``--results`` takes results.json files and/or folders (every results.json below a folder is
+read); each model must appear once. ``--out`` receives ``report.md``, the PNG figures and, with
+``--latex``, ``report.tex`` (booktabs tables). What each table and figure shows:
+docs/evaluation.md "Report".
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+
+from pcdet_atlas.config import REPO_ROOT
+from pcdet_atlas.evaluation.results.report import DEFAULT_LOT_PAIR, collect_results, write_report
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--results", nargs="+", required=True, help="results.json files or folders")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--latex", action="store_true", help="also write report.tex")
+    p.add_argument(
+        "--lot_pair", nargs=2, default=list(DEFAULT_LOT_PAIR), metavar=("BASE", "DEFENDED"),
+        help="model names of the LOT ablation (default: %(default)s)",
+    )  # fmt: skip
+    return p.parse_args(argv)
+
+
+def _shown(path: Path) -> str:
+    try:
+        return str(path.resolve().relative_to(REPO_ROOT))
+    except ValueError:
+        return str(path)
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    found = collect_results(args.results)
+    command = "python tools/report.py " + shlex.join(sys.argv[1:] if argv is None else argv)
+    out = write_report(
+        [r for _, r in found], args.out, sources=[_shown(p) for p, _ in found],
+        latex=args.latex, lot_pair=tuple(args.lot_pair), command=command,
+    )  # fmt: skip
+    print(f"report: {out['report']}" + (f"  latex: {out['latex']}" if out["latex"] else ""))
+    for name, result in out["figures"].items():
+        print(f"  {name}: " + ("written" if isinstance(result, Path) else f"not drawn ({result})"))
+    return out
+
+
+if __name__ == "__main__":
+    main()
