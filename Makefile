@@ -1,7 +1,7 @@
 # The two README commands: `make demo` and `make test`. Each installs what it needs.
 PYTHON ?= python3
 
-.PHONY: install test demo lint format
+.PHONY: install test demo reproduce lint format
 
 install:
 	@$(PYTHON) -c "import torch" 2>/dev/null || $(PYTHON) -m pip install torch==2.13.0
@@ -14,6 +14,13 @@ test: install
 
 demo: install
 	$(PYTHON) tools/demo.py
+
+# every shipped model on all 13 variants of the 6-sequence val split -> docs/results/
+VAL6 = data/synthetic_waymo_val6
+reproduce: install
+	$(PYTHON) tools/create_synthetic_waymo.py --root $(VAL6) --train-sequences 12 \
+		--train-frames 60 --val-sequences 6 --val-frames 198 --seed 0 --workers 2
+	$(PYTHON) tools/reproduce.py --data_path $(VAL6) --out docs/results
 
 lint:
 	$(PYTHON) -m ruff check . && $(PYTHON) -m ruff format --check .

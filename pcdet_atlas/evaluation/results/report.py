@@ -242,8 +242,10 @@ def write_report(
     latex: bool = False,
     lot_pair: tuple[str, str] = DEFAULT_LOT_PAIR,
     command: str | None = None,
+    appendix: str | None = None,
 ) -> dict:
-    """Write ``report.md`` and the figures (and ``report.tex`` with ``latex``) to ``out_dir``.
+    """Write ``report.md`` and the figures (and ``report.tex`` with ``latex``) to ``out_dir``
+    (``appendix``: Markdown added at the end, e.g. how the results were produced).
 
     Returns ``{'report': path, 'latex': path | None, 'figures': {file: path | reason}}``; a
     figure that cannot be drawn from these results is named in the report with the reason.
@@ -280,6 +282,8 @@ def write_report(
     lines += ["## Per-model results", ""]
     for r in results_list:
         lines += [format_table(r, "markdown"), ""]
+    if appendix:
+        lines += [appendix, ""]
     report = out_dir / "report.md"
     report.write_text("\n".join(lines))
     tex = None
