@@ -160,6 +160,12 @@ def parse_args():
         "--vfe_forms", action="store_true",
         help="time the VFE's folded eval form against the layer-by-layer one instead",
     )  # fmt: skip
+    p.add_argument(
+        "--reuse_cfgs", nargs="+", default=None,
+        help="time a tools/test.py suite of these shipped models with and without reusing "
+        "clean predictions, on the same frames",
+    )  # fmt: skip
+    p.add_argument("--reuse_attacks", default="all", help="variants of --reuse_cfgs' suite")
     p.add_argument("--ssm", action="store_true", help="time selective_scan against the loop")
     p.add_argument("--ssm_lengths", type=int, nargs="+", default=[1024, 16384])
     t = p.add_argument_group("training step (--train_step)")
@@ -361,6 +367,65 @@ def test_step_shares(cfg_file: str, data_path: Path, frames: int, device: torch.
         print(
             f"| {name} | " + " | ".join(f"{s:.0f}%" for s in shares) + f" | {total / frames:.2f} |"
         )
+
+
+def reuse_table(cfg_files: list[str], data_path: Path, args, device: torch.device) -> None:
+    """Each model's evaluation suite (clean, then ``--reuse_attacks``; shipped checkpoint, batch 1)
+    with and without reusing clean predictions, in one process on the same frames: per attack
+    variant the full and the reusing run alternate, so both see the same machine load. Their
+    results must agree (schema fields other than the reuse counts and timings)."""
+    from pcdet_atlas.train_utils.atlas_eval import (
+        build_variant_attacks,
+        evaluate_variant,
+        resolve_variants,
+    )
+
+    print(f"\nevaluation suite with and without reuse, {data_path.name}, batch 1, {device}")
+    print("| config | variants | frames | recomputed (reuse) | s without reuse | s with reuse | "
+          "ratio |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|")
+    for cfg_file in cfg_files:
+        cfg = cfg_from_yaml_file(cfg_file)
+        cfg.DATA_CONFIG.DATA_PATH = str(data_path)
+        model = build_network_from_config(cfg)
+        model.load_params_from_file(REPO_ROOT / cfg.ATLAS.CHECKPOINT)
+        model.to(device).eval()
+        variants = resolve_variants(args.reuse_attacks, cfg.get("ATLAS", {}))
+        attacks = build_variant_attacks(variants, data_path)
+        seconds = {False: 0.0, True: 0.0}
+        frames = recomputed = 0
+        clean = None
+        for name, attack in attacks.items():
+            entries = {}
+            for reuse in (False, True) if clean is not None else (False,):
+                t0 = time.perf_counter()
+                entry, annos = evaluate_variant(
+                    model, name, attack, data_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES,
+                    device=device, batch_size=1, dist=False, workers=args.workers, seed=0,
+                    temporal_window=cfg.ATLAS.get("TEMPORAL_WINDOW"), clean_det_annos=clean,
+                    out_dir=None, show_progress=False, reuse_clean=reuse,
+                )  # fmt: skip
+                elapsed = time.perf_counter() - t0
+                entries[reuse] = entry
+                if clean is None:  # the clean run is the same in both suites
+                    seconds[False] += elapsed
+                    seconds[True] += elapsed
+                    frames += entry["num_frames"]
+                    recomputed += entry["num_frames"]
+                    clean = annos
+                else:
+                    seconds[reuse] += elapsed
+            if True in entries:
+                frames += entries[False]["num_frames"]
+                recomputed += entries[True]["num_recomputed_frames"]
+                a, b = ({k: v for k, v in e.items()
+                         if k not in ("extra", "num_reused_frames", "num_recomputed_frames")}
+                        for e in (entries[False], entries[True]))  # fmt: skip
+                if a != b:
+                    raise SystemExit(f"{cfg_file} {name}: reuse changed the results")
+        print(f"| {Path(cfg_file).relative_to(REPO_ROOT / 'cfgs')} | {len(attacks)} | {frames:,} | "
+              f"{recomputed:,} | {seconds[False]:.0f} | {seconds[True]:.0f} | "
+              f"{seconds[False] / seconds[True]:.2f}x |")  # fmt: skip
 
 
 def _config_frames(
@@ -712,6 +777,8 @@ def main() -> None:
         bank_table(args.bank_cfg, data_path, args, device)
     if args.ssm:
         ssm_table(args.ssm_lengths, args.frames, device)
+    if args.reuse_cfgs:
+        reuse_table([str(Path(c).resolve()) for c in args.reuse_cfgs], data_path, args, device)
     if tmp is not None:
         tmp.cleanup()
 
