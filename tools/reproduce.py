@@ -16,7 +16,6 @@ docs/synthetic.md "A larger validation split".
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import platform
 import shlex
@@ -30,6 +29,7 @@ from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.evaluation.results import collect_results, write_report
 from pcdet_atlas.train_utils.atlas_eval import resolve_variants
+from pcdet_atlas.utils.common import load_tool
 
 DEFAULT_DATA = REPO_ROOT / "data" / "synthetic_waymo_val6"
 DEFAULT_OUT = REPO_ROOT / "docs" / "results"
@@ -59,14 +59,6 @@ def parse_args(argv=None):
     p.add_argument("--set", nargs=argparse.REMAINDER, default=[], dest="set_cfgs",
                    help="KEY VALUE pairs passed on to tools/test.py's --set")  # fmt: skip
     return p.parse_args(argv)
-
-
-def load_tool(name: str):
-    path = REPO_ROOT / "tools" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(f"tool_{name}", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def ensure_trace_libraries(root: Path, cfgs: list[Path], attacks: str) -> None:

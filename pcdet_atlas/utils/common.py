@@ -60,3 +60,19 @@ def resolve_device(name: str | None, local_rank: int = 0) -> torch.device:
     if index >= count:
         raise ValueError(f"{name!r}: only {count} CUDA device(s) are visible")
     return torch.device("cuda", index)
+
+
+def load_tool(name: str):
+    """Import ``tools/<name>.py`` of the repository as a module (tools are scripts, not a
+    package), so a tool can call another's ``main(argv)`` in its own process."""
+    import importlib.util
+
+    from pcdet_atlas.config import REPO_ROOT
+
+    path = REPO_ROOT / "tools" / f"{name}.py"
+    if not path.is_file():
+        raise FileNotFoundError(f"no tool {path}")
+    spec = importlib.util.spec_from_file_location(f"tool_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

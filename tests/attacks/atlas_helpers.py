@@ -15,6 +15,7 @@ import numpy as np
 from easydict import EasyDict
 
 from pcdet_atlas.datasets import waymo_format as wf
+from pcdet_atlas.utils.common import load_tool  # noqa: F401  (the tests' import)
 
 GROUND_Z = 0.0
 SENSOR_Z = 2.184
@@ -129,20 +130,6 @@ def dataset_cfg(root: Path, multiframe: bool = False) -> EasyDict:
     cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "dataset_configs" / name)
     cfg.DATA_PATH = str(root)
     return cfg
-
-
-def load_tool(name: str):
-    """Import ``tools/<name>.py`` as a module (tools/ is not a package)."""
-    import importlib.util
-
-    from pcdet_atlas.config import REPO_ROOT
-
-    spec = importlib.util.spec_from_file_location(
-        f"_tool_{name}", REPO_ROOT / "tools" / f"{name}.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 _LIBRARIES: dict[str, Path] = {}

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import importlib.util
-
 import numpy as np
 import torch
 
-from pcdet_atlas.config import REPO_ROOT
+from pcdet_atlas.utils.common import load_tool  # noqa: F401  (the tests' import)
 
 # (x, y, z, dx, dy, dz, heading, vx, vy, cls) per sample: cars, a pedestrian, a cyclist
 BOXES = [
@@ -67,15 +65,6 @@ def make_batch(
         "gt_boxes": gt.to(device),
         "batch_size": 2,
     }
-
-
-def load_tool(name: str):
-    """Import ``tools/<name>.py`` as a module (tools are scripts, not a package)."""
-    path = REPO_ROOT / "tools" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(f"tool_{name}", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def two_stage_batch(num_frames: int) -> dict:
