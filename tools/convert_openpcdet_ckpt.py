@@ -1,14 +1,17 @@
-"""Convert an OpenPCDet checkpoint of CenterPoint / CP4F (voxel or pillar) to this project's.
+"""Convert an OpenPCDet checkpoint (CenterPoint / CP4F, or MSF's second stage) to this project's.
 
     python tools/convert_openpcdet_ckpt.py --cfg cfgs/atlas/cp4f_voxel.yaml \
         --ckpt /path/to/openpcdet/checkpoint_epoch_36.pth --out checkpoints/cp4f_voxel_waymo.pth
 
 ``--cfg`` is the config whose model the checkpoint was trained as (``centerpoint_voxel.yaml`` for
 OpenPCDet's ``centerpoint.yaml``, ``cp4f_voxel.yaml`` for ``centerpoint_4frames.yaml``; the
-pillar configs for ``centerpoint_dyn_pillar_1x.yaml``). The written file loads strictly into that
-model (checked before the tool ends); pass it to ``tools/test.py --ckpt``. Sparse conv weights of
-spconv 1.x or 2.x are recognised by their shapes; ``--spconv_layout`` names the layout when the
-shapes cannot tell (docs/getting_started.md).
+pillar configs for ``centerpoint_dyn_pillar_1x.yaml``; ``msf_4f.yaml``, its ``MODEL.RPN`` naming
+the converted CP4F that proposed for it, for ``msf_4frames.yaml``). The written file loads
+strictly into that model (checked before the tool ends); pass it to ``tools/test.py --ckpt``.
+A two-stage checkpoint records the config's RPN checkpoint as the one it was trained with. Sparse
+conv weights of spconv 1.x or 2.x are recognised by their shapes; ``--spconv_layout`` names the
+layout when the shapes cannot tell (docs/getting_started.md). A PTT checkpoint of the PTT
+repository does not convert: part of its head has no counterpart here (the error names it).
 """
 
 from __future__ import annotations
@@ -54,10 +57,13 @@ def main(argv: list[str] | None = None) -> Path:
     written = convert_openpcdet_checkpoint(args.ckpt, out, model, spconv_layout=args.spconv_layout)
     model.load_params_from_file(out, strict=True)  # the promise of this tool
     source = written["converted_from"]
+    rpn = written.get("model_info", {}).get("rpn")
     print(
         f"{args.ckpt} ({source['version'] or 'no version'}, epoch {written.get('epoch', '?')}) "
         f"-> {out}: {len(written['model_state'])} tensors of {type(model).__name__} "
-        f"({args.cfg_file}), sparse conv layout {source['spconv_layout'] or '-'}; loads strictly"
+        f"({args.cfg_file}), sparse conv layout {source['spconv_layout'] or '-'}"
+        + (f", RPN {rpn['checkpoint']} recorded" if rpn else "")
+        + "; loads strictly"
     )
     return out
 

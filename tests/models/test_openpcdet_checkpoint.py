@@ -14,7 +14,7 @@ import copy
 import pytest
 import torch
 import torch.nn.functional as F
-from model_batches import load_tool, make_batch
+from model_batches import load_tool, make_batch, two_stage_batch
 
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.models import build_network, build_network_from_config, num_point_features_of
@@ -383,3 +383,462 @@ def test_convert_tool(tmp_path, capsys):
     torch.save({"weights": theirs}, src)
     with pytest.raises(CheckpointMismatchError, match="no 'model_state'"):
         tool.main(["--cfg", str(cfg_path), "--ckpt", str(src), "--out", str(out), "--overwrite"])
+
+
+# ------------------------------------- the MSF and PTT repositories' second stages, from facts
+# Their detectors (MSF; PTT's config names MPPNet) build only ``roi_head``: a checkpoint holds
+# ``global_step`` and ``roi_head.*``; the CenterPoint-4f that proposed is a checkpoint of its own.
+def _linear(prefix: str, cout: int, cin: int, bias: bool = True) -> dict[str, tuple]:
+    return {f"{prefix}.weight": (cout, cin)} | ({f"{prefix}.bias": (cout,)} if bias else {})
+
+
+def _conv1d(prefix: str, cout: int, cin: int) -> dict[str, tuple]:
+    """``nn.Conv1d(cin, cout, 1)``: weight (out, in, 1), bias."""
+    return {f"{prefix}.weight": (cout, cin, 1), f"{prefix}.bias": (cout,)}
+
+
+def _ln(prefix: str, channels: int) -> dict[str, tuple]:
+    return {f"{prefix}.weight": (channels,), f"{prefix}.bias": (channels,)}
+
+
+def _mha(prefix: str, channels: int) -> dict[str, tuple]:
+    """``nn.MultiheadAttention(channels, heads)``: packed in-projection, out-projection."""
+    return {
+        f"{prefix}.in_proj_weight": (3 * channels, channels),
+        f"{prefix}.in_proj_bias": (3 * channels,),
+        **_linear(f"{prefix}.out_proj", channels, channels),
+    }
+
+
+def _mlp(prefix: str, cin: int, hidden: int, cout: int, layers: int) -> dict[str, tuple]:
+    """The repositories' ``MLP``: ``layers.<k>`` Linear, ``layers - 1`` of width ``hidden``."""
+    dims = [cin, *[hidden] * (layers - 1), cout]
+    return {
+        k: v for i in range(layers) for k, v in _linear(f"{prefix}.layers.{i}", dims[i + 1],
+                                                        dims[i]).items()
+    }  # fmt: skip
+
+
+def _pointnet_heads(prefix: str, width: int) -> dict[str, tuple]:
+    """fc_ce / fc_s / fc_hr: width -> 256 -> 3, 3, 1 (the last without bias)."""
+    names: dict[str, tuple] = {}
+    for head, out in (("ce", 3), ("s", 3), ("hr", 1)):
+        names |= _linear(f"{prefix}.fc_{head}1", 256, width)
+        names |= _linear(f"{prefix}.fc_{head}2", out, 256, bias=False)
+    return names
+
+
+def msf_released_shapes(
+    frames: int = 4, width: int = 256, ffn: int = 512, layers: int = 3, bifa_layers: int = 2
+) -> dict[str, tuple]:
+    """Name -> shape of every tensor of the MSF repository's checkpoint (msf_4frames.yaml sizes:
+    TRANS_INPUT 256, dim_feedforward 512, enc_layers 3, num_groups 4). ``bifa_layers``: the
+    encoder layers with BiFA (``cross_conv_*``), 2 for the first model built in a process."""
+    p = "roi_head"
+    names: dict[str, tuple] = {"global_step": (1,)}
+    names |= _mlp(f"{p}.up_dimension_geometry", 29, 64, width, 3)
+    names |= _mlp(f"{p}.up_dimension_motion", 30, 64, width, 3)
+    names |= _mlp(f"{p}.jointembed", width * (frames + 1), width, 7, 4)
+    q = f"{p}.seqboxembed"  # PointNet(8): PointNetfeat convs, fc1 / fc2, three heads
+    names |= _bn(f"{q}.pre_bn", 8)
+    for k, (cin, cout) in enumerate(zip((8, 64, 128, 256), (64, 128, 256, 512)), start=1):
+        names |= _conv1d(f"{q}.feat.conv{k}", cout, cin) | _bn(f"{q}.feat.bn{k}", cout)
+    names |= _linear(f"{q}.fc1", 256, 512) | _bn(f"{q}.bn1", 256)
+    names |= _linear(f"{q}.fc2", width, 256) | _bn(f"{q}.bn2", width)
+    names |= _pointnet_heads(q, width)
+    names[f"{p}.transformer.token"] = (frames, 1, width)
+    for layer in range(layers):
+        e = f"{p}.transformer.encoder.layers.{layer}"
+        names |= _mha(f"{e}.self_attn", width) | _ln(f"{e}.norm1", width) | _ln(f"{e}.norm2", width)
+        names |= _linear(f"{e}.linear1", ffn, width) | _linear(f"{e}.linear2", width, ffn)
+        if layer < bifa_layers:
+            for k in (1, 2):
+                names |= _linear(f"{e}.cross_conv_{k}", width, 2 * width)
+                names |= _ln(f"{e}.cross_norm_{k}", width)
+        m = f"{e}.mlp_mixer_3d"  # SpatialMixerBlock: 8 heads, feed-forward 2 x width
+        names |= _mha(f"{m}.mixer", width) | _ln(f"{m}.norm", width)
+        names |= _ln(f"{m}.norm_channel", width)
+        names |= _linear(f"{m}.ffn.0", 2 * width, width) | _linear(f"{m}.ffn.3", width, 2 * width)
+    names |= _linear(f"{p}.class_embed.0", 1, width)
+    for group in range(frames):
+        names |= _mlp(f"{p}.bbox_embed.{group}", width, width, 7, 4)
+    return names
+
+
+def ptt_released_shapes(width: int = 256) -> dict[str, tuple]:
+    """Name -> shape of every tensor of the PTT repository's checkpoint (ptt_32frames.yaml:
+    TRANS_INPUT 256, two POOL_RADIUS, ROI_GRID_POOL.MLPS [[128, 128]] x 2, num_groups 4,
+    use_grid_pos index); the transformer ``PTTransformer(8)`` is ``roi_head.ptt``."""
+    p, q = "roi_head", "roi_head.ptt"
+    names: dict[str, tuple] = {"global_step": (1,)}
+    names |= _mlp(f"{p}.jointembed", 2 * width, width, 7, 4)
+    names |= _linear(f"{p}.fc", 256, 512) | _bn(f"{p}.bn", 256)
+    names |= _mlp(f"{p}.up_dimension_geometry", 29, 64, width // 2, 3)
+    names |= _mlp(f"{p}.up_dimension_motion", 30, 64, width // 2, 3)
+    for i in range(2):  # StackSAModuleMSG: Conv2d(128 + 3, 128, 1, bias=False), BatchNorm2d
+        names[f"{p}.roi_grid_pool_layer.mlps.{i}.0.weight"] = (128, 131, 1, 1)
+        names |= _bn(f"{p}.roi_grid_pool_layer.mlps.{i}.1", 128)
+    names |= _linear(f"{p}.class_embed.0", 1, width)
+    for group in range(4):
+        names |= _mlp(f"{p}.bbox_embed.{group}", width, width, 7, 4)
+    names |= _mlp(f"{p}.grid_pos_embeded", 3, 256, width, 2)
+    names |= _linear(f"{q}.fc1", 256, 512) | _linear(f"{q}.fc2", width, 256)
+    names |= _bn(f"{q}.pre_bn", 8) | _bn(f"{q}.x_bn1", 256) | _bn(f"{q}.x_bn2", width)
+    names |= _pointnet_heads(q, width)
+    for conv, cout, cin in (
+        ("conv1", 64, 8), ("conv2", 128, 96), ("conv2_p", 32, 256), ("conv2_long", 256, 128),
+        ("conv2_short", 256, 128), ("conv2_future", 256, 128), ("conv_future", 64, 96),
+        ("conv_point", 256, 768), ("conv_final", 512, 768), ("conv3", 256, 128),
+        ("conv4", 512, 256),
+    ):  # fmt: skip
+        names |= _conv1d(f"{q}.{conv}", cout, cin)
+    for bn, channels in (
+        ("bn2_long", 256), ("bn2_short", 256), ("bn2_future", 256), ("bn_future", 64),
+        ("bn_point", 256), ("bn_final", 512), ("bn1", 64), ("bn2", 128), ("bn2_p", 32),
+        ("bn3", 256), ("bn4", 512),
+    ):  # fmt: skip
+        names |= _bn(f"{q}.{bn}", channels)
+    for attn, dim in (
+        ("attn1_long", 96), ("attn1_short", 96), ("attn1_future", 96), ("attn1", 64),
+        ("attn2", 128), ("attn3", 256), ("attn3_point", 256), ("cross_long", 256),
+        ("cross_short", 256), ("cross_future", 256),
+    ):  # fmt: skip
+        for part in ("q", "k", "v", "o"):
+            names |= _linear(f"{q}.{attn}.fc_{part}", dim, dim)
+    names[f"{q}.future_token"] = (1, 1, 32)
+    return names
+
+
+def released_state(shapes: dict[str, tuple], seed: int = 0) -> dict[str, torch.Tensor]:
+    """Random values of ``shapes`` (BN variances positive, counters integer)."""
+    g = torch.Generator().manual_seed(seed)
+    state = {}
+    for name, shape in shapes.items():
+        if name == "global_step" or name.endswith("num_batches_tracked"):
+            state[name] = torch.randint(0, 1000, shape, generator=g)
+        elif name.endswith("running_var"):
+            state[name] = torch.rand(shape, generator=g) + 0.5
+        else:
+            state[name] = torch.randn(shape, generator=g) * 0.3
+    return state
+
+
+def released_sizes(name: str):
+    """``cfgs/atlas/<name>`` (the released head sizes) with the synthetic RPN of
+    ``synthetic/<name>`` (a shipped checkpoint; the real RPN does not ship)."""
+    cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "atlas" / name)
+    cfg.MODEL.RPN = cfg_from_yaml_file(SYNTHETIC / name).MODEL.RPN
+    return cfg
+
+
+def _functional(theirs: dict[str, torch.Tensor], prefix: str = "roi_head."):
+    """Linear, BatchNorm (channels second) and LayerNorm read from released tensors."""
+
+    def t(key):
+        return theirs[prefix + key]
+
+    def linear(x, p):
+        return F.linear(x, t(f"{p}.weight"), theirs.get(f"{prefix}{p}.bias"))
+
+    def bn(x, p):
+        return F.batch_norm(x, t(f"{p}.running_mean"), t(f"{p}.running_var"), t(f"{p}.weight"),
+                            t(f"{p}.bias"), eps=1e-5)  # fmt: skip
+
+    def ln(x, p):
+        return F.layer_norm(x, x.shape[-1:], t(f"{p}.weight"), t(f"{p}.bias"))
+
+    return t, linear, bn, ln
+
+
+def test_msf_release_loads_strictly_and_exports_back():
+    model = build_network_from_config(released_sizes("msf_4f.yaml"))
+    facts = msf_released_shapes()
+    exported = atlas_to_openpcdet_state(model.state_dict(), model)
+    assert {k: tuple(v.shape) for k, v in exported.items()} == facts  # names and shapes
+    theirs = released_state(facts)
+    ours, layout = openpcdet_to_atlas_state(theirs, model)
+    assert layout is None
+    model.load_state_dict(ours, strict=True)
+    token = model.roi_head.transformer.token  # (T, 1, 1, C) here, (T, 1, C) there
+    assert torch.equal(token[:, 0], theirs["roi_head.transformer.token"])
+    back = atlas_to_openpcdet_state(ours, model)
+    assert back.keys() == theirs.keys()
+    assert all(torch.equal(back[k], theirs[k]) for k in theirs if k != "global_step")
+
+
+def test_msf_tensors_land_where_the_released_code_uses_them():
+    """The trajectory branch, an encoder layer without BiFA and the output MLPs compute, with
+    the converted weights, what the MSF repository's modules compute from its tensors."""
+    model = build_network_from_config(released_sizes("msf_4f.yaml")).eval()
+    theirs = released_state(msf_released_shapes(), seed=2)
+    model.load_state_dict(openpcdet_to_atlas_state(theirs, model)[0], strict=True)
+    head = model.roi_head
+    t, linear, bn, ln = _functional(theirs)
+    g = torch.Generator().manual_seed(0)
+
+    # PointNet(8) of msf_utils.py: pre_bn, 4 convs (no ReLU after the 4th), max over frames, fc1 /
+    # fc2 with BN and ReLU, then centre, size, heading
+    seq = torch.randn(5, 8, 4, generator=g)  # (N, 8, T)
+    x = bn(seq, "seqboxembed.pre_bn")
+    for k in range(1, 5):
+        c = f"seqboxembed.feat.conv{k}"
+        x = bn(F.conv1d(x, t(f"{c}.weight"), t(f"{c}.bias")), f"seqboxembed.feat.bn{k}")
+        x = torch.relu(x) if k < 4 else x
+    x = torch.relu(bn(linear(x.max(2).values, "seqboxembed.fc1"), "seqboxembed.bn1"))
+    feat = torch.relu(bn(linear(x, "seqboxembed.fc2"), "seqboxembed.bn2"))
+    code = torch.cat([
+        linear(torch.relu(linear(feat, f"seqboxembed.fc_{h}1")), f"seqboxembed.fc_{h}2")
+        for h in ("ce", "s", "hr")
+    ], 1)  # fmt: skip
+    with torch.no_grad():
+        got_code, got_feat = head.trajectory(seq)
+    torch.testing.assert_close(got_feat, feat, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(got_code, code, rtol=1e-4, atol=1e-4)
+
+    # the third encoder layer (no BiFA): the mixer (8 heads) over each group's points, then the
+    # group's token attending to them (4 heads), post-norm
+    def mha(p, heads):
+        attn = torch.nn.MultiheadAttention(256, heads)
+        attn.load_state_dict({k: t(f"{p}.{k}") for k in attn.state_dict()})
+        return attn.eval()
+
+    e = "transformer.encoder.layers.2"
+    groups = torch.randn(4, 1 + 6, 3, 256, generator=g)  # (T groups, token + K points, N, C)
+    src = groups.permute(1, 0, 2, 3).reshape(7, 12, 256)  # groups side by side on the batch axis
+    with torch.no_grad():
+        got = head.transformer.layers[2](groups)
+        m = f"{e}.mlp_mixer_3d"
+        pts = src[1:]
+        pts = ln(pts + mha(f"{m}.mixer", 8)(pts, pts, pts)[0], f"{m}.norm")
+        pts = ln(
+            pts + linear(torch.relu(linear(pts, f"{m}.ffn.0")), f"{m}.ffn.3"), f"{m}.norm_channel"
+        )
+        token = src[:1]
+        token = ln(token + mha(f"{e}.self_attn", 4)(token, pts, pts)[0], f"{e}.norm1")
+        ffn = linear(torch.relu(linear(token, f"{e}.linear1")), f"{e}.linear2")
+        token = ln(token + ffn, f"{e}.norm2")
+    want = torch.cat([token, pts]).reshape(7, 4, 3, 256).permute(1, 0, 2, 3)
+    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-4)
+
+    # jointembed on [4 group tokens, trajectory feature], class_embed[0], bbox_embed[g]
+    def mlp(x, p, layers=4):
+        for i in range(layers):
+            x = linear(x, f"{p}.layers.{i}")
+            x = torch.relu(x) if i < layers - 1 else x
+        return x
+
+    joint_in, token = torch.randn(5, 5 * 256, generator=g), torch.randn(5, 256, generator=g)
+    with torch.no_grad():
+        torch.testing.assert_close(head.joint_reg(joint_in), mlp(joint_in, "jointembed"))
+        torch.testing.assert_close(head.class_embed(token), linear(token, "class_embed.0"))
+        torch.testing.assert_close(head.frame_reg[3](token), mlp(token, "bbox_embed.3"))
+
+
+def test_msf_forward_equals_the_model_with_the_same_weights():
+    """Model A's weights go out under the MSF repository's names and come back into a fresh
+    model B: B refines the same proposals exactly as A does, and its loss equals A's."""
+    cfg = released_sizes("msf_4f.yaml")
+    cfg.MODEL.ROI_HEAD.SAMPLER.NUM_POINTS = 16  # no tensor depends on these two
+    cfg.MODEL.ROI_HEAD.TARGET_CONFIG.ROI_PER_IMAGE = 8
+    torch.manual_seed(0)
+    a = build_network_from_config(cfg)
+    randomize(a, seed=4)
+    theirs = atlas_to_openpcdet_state(a.state_dict(), a)
+    torch.manual_seed(1)
+    b = build_network_from_config(cfg)
+    b.load_state_dict(openpcdet_to_atlas_state(theirs, b)[0], strict=True)
+    batch = two_stage_batch(4)
+    proposals = [
+        {"pred_boxes": r[r[:, 10] > 0, :9], "pred_scores": r[r[:, 10] > 0, 9],
+         "pred_labels": r[r[:, 10] > 0, 10].long()}
+        for r in batch["roi_boxes"]
+    ]  # fmt: skip
+    a.eval(), b.eval()
+    pa, pb = a.refine(batch, proposals), b.refine(batch, proposals)
+    assert sum(len(p["pred_boxes"]) for p in pa) > 0
+    for x, y in zip(pa, pb):
+        assert x.keys() == y.keys() and all(torch.equal(x[k], y[k]) for k in x)
+    la, lb = a.loss(batch), b.loss(batch)
+    assert la.keys() == lb.keys() and all(torch.equal(la[k], lb[k]) for k in la)
+
+
+def test_msf_mismatches_name_the_keys():
+    cfg = released_sizes("msf_4f.yaml")
+    model = build_network_from_config(cfg)
+
+    # a second MSF built in the released process has no BiFA layers (a class-wide counter)
+    second = released_state(msf_released_shapes(bifa_layers=0))
+    with pytest.raises(
+        CheckpointMismatchError,
+        match=r"x\.pth .*16 missing keys: 16 under roi_head \(first roi_head\.transformer\."
+        r"encoder\.layers\.0\.cross_conv_1\.bias\).*BIFA_LAYERS 0",
+    ):
+        openpcdet_to_atlas_state(second, model, source="x.pth")
+    no_bifa = copy.deepcopy(cfg)
+    no_bifa.MODEL.ROI_HEAD.TRANSFORMER.BIFA_LAYERS = 0
+    model0 = build_network_from_config(no_bifa)
+    model0.load_state_dict(openpcdet_to_atlas_state(second, model0)[0], strict=True)
+
+    theirs = released_state(msf_released_shapes())
+    eight = build_network_from_config(released_sizes("msf_8f.yaml"))
+    with pytest.raises(
+        CheckpointMismatchError,
+        match=r"32 missing keys: 32 under roi_head \(first roi_head\.bbox_embed\.4\.layers\.0\."
+        r"bias\).*written for 4 frames",
+    ):
+        openpcdet_to_atlas_state(theirs, eight)
+
+    small = build_network_from_config(cfg_from_yaml_file(SYNTHETIC / "msf_4f.yaml"))
+    with pytest.raises(
+        CheckpointMismatchError,
+        match=r"roi_head\.up_dimension_geometry\.layers\.0\.weight: checkpoint \(64, 29\) vs "
+        r"model \(32, 29\)",
+    ):
+        openpcdet_to_atlas_state(theirs, small)  # the synthetic widths
+
+    flat = dict(theirs)
+    flat["roi_head.transformer.token"] = torch.zeros(4, 256)
+    with pytest.raises(
+        CheckpointMismatchError,
+        match=r"roi_head\.transformer\.token: checkpoint \(4, 256\) vs \(4, 1, 256\) \(model "
+        r"roi_head\.transformer\.token \(4, 1, 1, 256\)\)",
+    ):
+        openpcdet_to_atlas_state(flat, model)
+
+    extra = dict(theirs)
+    extra["roi_head.transformer.fusion_all_group.layers.0.weight"] = torch.zeros(256, 512)
+    with pytest.raises(
+        CheckpointMismatchError, match=r"unexpected roi_head\.transformer\.fusion_all_group"
+    ):
+        openpcdet_to_atlas_state(extra, model)
+
+    rpn = openpcdet_state(cfg_from_yaml_file(SYNTHETIC / "cp4f_voxel.yaml"))
+    with pytest.raises(CheckpointMismatchError, match=r"shares no tensor name.*MODEL\.RPN\.CFG"):
+        openpcdet_to_atlas_state(rpn, model)  # the first stage's checkpoint for the second
+
+
+def test_ptt_release_maps_where_the_structures_agree_and_names_the_rest():
+    """Every released tensor that PTTHead has a counterpart of maps exactly (reshaped kernels,
+    biases folded into the BatchNorm after them, the future token's input columns moved); the
+    current-point features do not, and with them nothing loads: the error names both sides and
+    the released modules that the released forward never reads."""
+    model = build_network_from_config(released_sizes("ptt_32f.yaml")).eval()
+    theirs = released_state(ptt_released_shapes(), seed=5)
+    with pytest.raises(CheckpointMismatchError) as err:
+        openpcdet_to_atlas_state(theirs, model, source="ptt.pth")
+    msg = str(err.value)
+    assert "unexpected roi_head" not in msg and "missing roi_head" not in msg
+    for part in (
+        "no counterpart of roi_head.point_pool.* in the released code (released "
+        "roi_head.ptt.conv2_p, roi_head.ptt.bn2_p)",
+        "no counterpart of roi_head.current_proj.*, roi_head.point_attn.* in the released code "
+        "(released roi_head.ptt.attn3_point)",
+        "released roi_head.fc, roi_head.bn, roi_head.up_dimension_motion, "
+        "roi_head.grid_pos_embeded, roi_head.ptt.attn1, roi_head.ptt.attn3 without counterpart "
+        "here: built by the released PTTHead, never called",
+        "released roi_head.roi_grid_pool_layer without counterpart here",
+        "released roi_head.bbox_embed without counterpart here: training-only",
+    ):
+        assert part in msg, part
+    with pytest.raises(CheckpointMismatchError, match="have no counterpart in the released code"):
+        atlas_to_openpcdet_state(model.state_dict(), model)
+
+    ours, _ = openpcdet_to_atlas_state(theirs, model, partial=True)
+    result = model.load_state_dict(ours, strict=False)
+    assert not result.unexpected_keys
+    assert {k.split(".")[1] for k in result.missing_keys} == {
+        "point_pool", "point_attn", "current_proj"
+    }  # fmt: skip
+
+    head = model.roi_head
+    t, linear, bn, ln = _functional(theirs)
+    g = torch.Generator().manual_seed(0)
+
+    def conv_bn(x, conv, norm):  # Conv1d(kernel 1) with bias, then BatchNorm1d
+        return bn(F.conv1d(x, t(f"ptt.{conv}.weight"), t(f"ptt.{conv}.bias")), f"ptt.{norm}")
+
+    def attention(query, key, p, heads):  # PTT's Attention: heads stacked on the batch axis
+        q, k, v = linear(query, f"{p}.fc_q"), linear(key, f"{p}.fc_k"), linear(key, f"{p}.fc_v")
+        split = q.shape[-1] // heads
+        qh, kh, vh = (torch.cat(z.split(split, 2), 0) for z in (q, k, v))
+        a = torch.softmax(qh.bmm(kh.transpose(1, 2)) / q.shape[-1] ** 0.5, 2)
+        out = torch.cat((qh + a.bmm(vh)).split(query.shape[0], 0), 2)
+        return out + torch.relu(linear(out, f"{p}.fc_o"))
+
+    with torch.no_grad():
+        # the box sequence path: pre_bn, conv1 + bn1 + ReLU
+        box = torch.randn(6, 8, 5, generator=g)  # (N, 8, L)
+        want = torch.relu(conv_bn(bn(box, "ptt.pre_bn"), "conv1", "bn1"))
+        got = torch.relu(head.box_norm(head.box_embed(box.transpose(1, 2).reshape(-1, 8))))
+        torch.testing.assert_close(got.reshape(6, 5, 64).transpose(1, 2), want, rtol=1e-4,
+                                   atol=1e-4)  # fmt: skip
+
+        # the future memory [token, conv_future] queries short + long memory (1 head there)
+        future = torch.randn(6, 96, 16, generator=g)  # (N, C, F)
+        memory = torch.randn(6, 32, 96, generator=g)  # (N, S + L, C)
+        query = torch.cat([
+            t("ptt.future_token").expand(6, 16, 32),
+            torch.relu(conv_bn(future, "conv_future", "bn_future")).transpose(1, 2),
+        ], 2)  # fmt: skip
+        want = attention(query, memory, "ptt.attn1_future", heads=1)
+        head.future_attn.heads = 1  # the released head count of this block
+        query = torch.cat([
+            head.future_proj(future.transpose(1, 2)), head.future_token.expand(6, 16, 32)
+        ], 2)  # fmt: skip
+        torch.testing.assert_close(head.future_attn(query, memory), want, rtol=1e-4, atol=1e-4)
+
+        # the aggregator, the trajectory feature and its box, the refined box and confidence
+        enhanced = torch.randn(6, 128, 48, generator=g)  # (N, C, L)
+        current = torch.randn(6, 256, generator=g)
+        x = conv_bn(torch.relu(conv_bn(enhanced, "conv3", "bn3")), "conv4", "bn4")
+        x = torch.cat([x.max(2, keepdim=True).values, current[..., None]], 1)
+        x = torch.relu(conv_bn(x, "conv_final", "bn_final"))[..., 0]
+        x = torch.relu(bn(linear(x, "ptt.fc1"), "ptt.x_bn1"))
+        feat = torch.relu(bn(linear(x, "ptt.fc2"), "ptt.x_bn2"))
+        code = torch.cat([
+            linear(torch.relu(linear(feat, f"ptt.fc_{h}1")), f"ptt.fc_{h}2")
+            for h in ("ce", "s", "hr")
+        ], 1)  # fmt: skip
+        joint = torch.cat([current, feat], 1)
+        for i in range(4):
+            joint = linear(joint, f"jointembed.layers.{i}")
+            joint = torch.relu(joint) if i < 3 else joint
+        pooled = head.aggregate(enhanced.transpose(1, 2)).max(1).values
+        got_feat = head.trajectory_fc(torch.cat([pooled, current], 1))
+        got_code = torch.cat([
+            head.traj_center(got_feat), head.traj_size(got_feat), head.traj_heading(got_feat)
+        ], 1)  # fmt: skip
+        torch.testing.assert_close(got_feat, feat, rtol=1e-4, atol=1e-4)
+        torch.testing.assert_close(got_code, code, rtol=1e-4, atol=1e-4)
+        got_joint = head.joint_reg(torch.cat([current, got_feat], 1))
+        torch.testing.assert_close(got_joint, joint, rtol=1e-4, atol=1e-4)
+        torch.testing.assert_close(head.class_embed(current), linear(current, "class_embed.0"))
+
+
+def test_convert_tool_msf_records_the_rpn_and_refuses_ptt(tmp_path, capsys):
+    rpn = ["MODEL.RPN.CFG", "cfgs/atlas/synthetic/cp4f.yaml",
+           "MODEL.RPN.CHECKPOINT", "checkpoints/cp4f_synthetic.pth"]  # fmt: skip
+    src = tmp_path / "msf" / "checkpoint_epoch_6.pth"
+    src.parent.mkdir()
+    theirs = released_state(msf_released_shapes())
+    torch.save({"epoch": 6, "it": 99, "model_state": theirs, "version": "pcdet+0.6.0"}, src)
+    out = tmp_path / "msf_4f_converted.pth"
+    tool = load_tool("convert_openpcdet_ckpt")
+    cfg_path = REPO_ROOT / "cfgs" / "atlas" / "msf_4f.yaml"
+    tool.main(["--cfg", str(cfg_path), "--ckpt", str(src), "--out", str(out), "--set", *rpn])
+    printed = capsys.readouterr().out
+    assert "RPN checkpoints/cp4f_synthetic.pth recorded; loads strictly" in printed
+    model = build_network_from_config(released_sizes("msf_4f.yaml"))
+    ckpt = model.load_params_from_file(out, strict=True)  # the RPN's SHA-256 is checked
+    assert ckpt["model_info"]["rpn"]["sha256"] == model.rpn_info["sha256"]
+    assert ckpt["epoch"] == 6 and ckpt["converted_from"]["spconv_layout"] is None
+    key = "roi_head.transformer.layers.1.point_attn.in_proj_weight"
+    name = "roi_head.transformer.encoder.layers.1.mlp_mixer_3d.mixer.in_proj_weight"
+    assert torch.equal(model.state_dict()[key], theirs[name])
+
+    torch.save({"model_state": released_state(ptt_released_shapes())}, src)
+    cfg_path = REPO_ROOT / "cfgs" / "atlas" / "ptt_32f.yaml"
+    with pytest.raises(CheckpointMismatchError, match=r"no counterpart of roi_head\.point_pool"):
+        tool.main(["--cfg", str(cfg_path), "--ckpt", str(src), "--out", str(tmp_path / "p.pth"),
+                   "--set", *rpn])  # fmt: skip
+    assert not (tmp_path / "p.pth").exists()

@@ -314,6 +314,86 @@ class MSFHead(TemporalRoIHead):
             **common,
         )
 
+    # ------------------------------------------------------------------ released checkpoints
+    def openpcdet_names(self) -> dict:
+        """This head's ``state_dict`` keys -> the names the MSF repository's ``MSFHead`` gives
+        the same tensors (skyhehe123/MSF, ``pcdet/models/roi_heads/msf_head.py`` and
+        ``pcdet/models/model_utils/msf_utils.py``; its detector saves the head as ``roi_head``).
+
+        Every tensor has one counterpart; the query tokens are ``(T, 1, C)`` there. The names say
+        nothing of the forward: the released BiFA groups points otherwise (module docstring).
+        """
+        # imported here: that module imports the detectors, which import this head
+        from pcdet_atlas.models.openpcdet_checkpoint import Reshaped, renamed
+
+        def mlp_layers(ours: str, theirs: str, mlp: nn.Sequential) -> dict[str, str]:
+            linear = [i for i, m in enumerate(mlp) if isinstance(m, nn.Linear)]
+            return {f"{ours}.{i}": f"{theirs}.layers.{k}" for k, i in enumerate(linear)}
+
+        modules = {
+            **mlp_layers("geometry_embed", "up_dimension_geometry", self.geometry_embed),
+            **mlp_layers("motion_embed", "up_dimension_motion", self.motion_embed),
+            **mlp_layers("joint_reg", "jointembed", self.joint_reg),
+            **{
+                k: v
+                for f, reg in enumerate(self.frame_reg)
+                for k, v in mlp_layers(f"frame_reg.{f}", f"bbox_embed.{f}", reg).items()
+            },
+            "class_embed": "class_embed.0",
+            "trajectory.input_norm": "seqboxembed.pre_bn",
+            "trajectory.fc.0": "seqboxembed.fc1",
+            "trajectory.fc.1": "seqboxembed.bn1",
+            "trajectory.fc.3": "seqboxembed.fc2",
+            "trajectory.fc.4": "seqboxembed.bn2",
+            **{f"trajectory.convs.{k}": f"seqboxembed.feat.conv{k + 1}" for k in range(4)},
+            **{f"trajectory.norms.{k}": f"seqboxembed.feat.bn{k + 1}" for k in range(4)},
+        }
+        for ours, theirs in (("center", "fc_ce"), ("size", "fc_s"), ("heading", "fc_hr")):
+            modules[f"trajectory.{ours}.0"] = f"seqboxembed.{theirs}1"
+            modules[f"trajectory.{ours}.2"] = f"seqboxembed.{theirs}2"
+        block = {  # one encoder layer: the point mixer, the token's attention, BiFA
+            "point_attn": "mlp_mixer_3d.mixer", "point_norm1": "mlp_mixer_3d.norm",
+            "point_norm2": "mlp_mixer_3d.norm_channel", "point_ffn.0": "mlp_mixer_3d.ffn.0",
+            "point_ffn.3": "mlp_mixer_3d.ffn.3", "token_attn": "self_attn",
+            "token_norm1": "norm1", "token_norm2": "norm2", "token_ffn.0": "linear1",
+            "token_ffn.3": "linear2", "forward_fuse": "cross_conv_1",
+            "forward_norm": "cross_norm_1", "backward_fuse": "cross_conv_2",
+            "backward_norm": "cross_norm_2",
+        }  # fmt: skip
+        for layer in range(len(self.transformer.layers)):
+            for ours, theirs in block.items():
+                modules[f"transformer.layers.{layer}.{ours}"] = (
+                    f"transformer.encoder.layers.{layer}.{theirs}"
+                )
+        names: dict = {}
+        for key in self.state_dict():
+            if key == "transformer.token":  # (T, 1, 1, C) here
+                frames, dim = self.transformer.token.shape[0], self.transformer.token.shape[-1]
+                names[key] = Reshaped(key, (frames, 1, dim))
+                continue
+            theirs = renamed(key, modules)
+            if theirs is None:
+                raise ValueError(f"MSFHead: no released name for {key}")
+            names[key] = theirs
+        return names
+
+    def openpcdet_hint(self, missing: Sequence[str], unexpected: Sequence[str]) -> str | None:
+        """Why a released checkpoint does not fit, where the released code explains it."""
+        if any(".cross_conv_" in k or ".cross_norm_" in k for k in missing):
+            return (
+                "the released code builds BiFA's cross_conv_* / cross_norm_* only in encoder "
+                "layers whose class-wide counter is at most enc_layers - 1, i.e. in the first "
+                "model built in a process, and a checkpoint without them ran no BiFA: set "
+                "MODEL.ROI_HEAD.TRANSFORMER.BIFA_LAYERS 0"
+            )
+        if self.num_frames != 4 and any(".bbox_embed." in k for k in [*missing, *unexpected]):
+            return (
+                "the released MSF is written for 4 frames (num_groups 4, its BiFA reshape and "
+                "token split hard-code 4): there is no released counterpart of "
+                f"NUM_FRAMES={self.num_frames}"
+            )
+        return None
+
     # ------------------------------------------------------------------ features
     def forward(self, batch: dict) -> dict:
         valid = batch["roi_valid"]

@@ -248,6 +248,134 @@ class PTTHead(TemporalRoIHead):
             **common,
         )
 
+    # ------------------------------------------------------------------ released checkpoints
+    def openpcdet_names(self) -> dict:
+        """This head's ``state_dict`` keys -> the names the PTT repository's ``PTTHead`` gives
+        the same tensors (KuanchihHuang/PTT, ``pcdet/models/roi_heads/ptt_head.py``; its
+        detector saves the head as ``roi_head``, the transformer as ``roi_head.ptt``).
+
+        Kernel-size-1 ``Conv1d`` weights there are ``Linear`` weights here; their biases, before
+        a BatchNorm, fold into its running mean; the future token comes first in the future
+        memory's query there, last here. The current frame's point features have no
+        counterpart: the released code reads them as 128 pairs of points (two points' channels
+        side by side) at twice the width, here they stay 256 points.
+        """
+        # imported here: that module imports the detectors, which import this head
+        from pcdet_atlas.models.openpcdet_checkpoint import (
+            FoldedBias,
+            NoCounterpart,
+            PermutedInputs,
+            Reshaped,
+            renamed,
+        )
+
+        linear_bn = {  # ours -> the released (conv or linear, BatchNorm) pair
+            "future_proj": ("ptt.conv_future", "ptt.bn_future"),
+            "memory_proj": ("ptt.conv2", "ptt.bn2"),
+            "segment_proj.0": ("ptt.conv2_future", "ptt.bn2_future"),
+            "segment_proj.1": ("ptt.conv2_short", "ptt.bn2_short"),
+            "segment_proj.2": ("ptt.conv2_long", "ptt.bn2_long"),
+            "segment_fuse": ("ptt.conv_point", "ptt.bn_point"),
+            "aggregate.0": ("ptt.conv3", "ptt.bn3"),
+            "aggregate.1": ("ptt.conv4", "ptt.bn4"),
+            "trajectory_fc.0": ("ptt.conv_final", "ptt.bn_final"),
+            "trajectory_fc.1": ("ptt.fc1", "ptt.x_bn1"),
+            "trajectory_fc.2": ("ptt.fc2", "ptt.x_bn2"),
+        }
+        attention = {
+            "long_attn": "ptt.attn1_long", "short_attn": "ptt.attn1_short",
+            "future_attn": "ptt.attn1_future", "memory_attn": "ptt.attn2",
+            "segment_attn.0": "ptt.cross_future", "segment_attn.1": "ptt.cross_short",
+            "segment_attn.2": "ptt.cross_long",
+        }  # fmt: skip
+        modules = {
+            "box_embed.0": "ptt.pre_bn",
+            "box_norm": "ptt.bn1",
+            "class_embed": "class_embed.0",
+            **{f"{ours}.norm": bn for ours, (_, bn) in linear_bn.items()},
+            **{
+                f"{ours}.{part}": f"{theirs}.fc_{part[0]}"
+                for ours, theirs in attention.items()
+                for part in ("q", "k", "v", "out")
+            },
+        }
+        for ours, theirs, layers in (
+            ("point_embed", "up_dimension_geometry", self.point_embed),
+            ("joint_reg", "jointembed", self.joint_reg),
+        ):
+            linear = [i for i, m in enumerate(layers) if isinstance(m, nn.Linear)]
+            modules.update({f"{ours}.{i}": f"{theirs}.layers.{k}" for k, i in enumerate(linear)})
+        for ours, theirs in (
+            ("traj_center", "fc_ce"), ("traj_size", "fc_s"), ("traj_heading", "fc_hr")
+        ):  # fmt: skip
+            modules[f"{ours}.0"], modules[f"{ours}.2"] = f"ptt.{theirs}1", f"ptt.{theirs}2"
+        pooled = NoCounterpart(
+            "the released code views each frame's P-T features (K points x C) as K/2 pairs of "
+            "points x 2C (ptt_head.py, src.view) and projects their max over the pairs (the even "
+            "points' max beside the odd points'), where this head projects the max over the K "
+            "points (C channels)",
+            ("ptt.conv2_p", "ptt.bn2_p"),
+        )
+        current = NoCounterpart(
+            "the released current-point attention runs over those K/2 pairs at width 2C and is "
+            "max-pooled, where this head attends over the K points at width C and projects them "
+            "(current_proj) before the max",
+            ("ptt.attn3_point",),
+        )
+        token = self.future_token.numel()
+        frame_dim = self.future_attn.q.in_features
+        names: dict = {}
+        for key, value in self.state_dict().items():
+            module, owner = key.rsplit(".", 1)[0], key.rsplit(".", 2)[0]
+            if owner in linear_bn and key.endswith(".linear.weight"):
+                conv = linear_bn[owner][0]
+                is_conv = not conv.startswith("ptt.fc")  # a Conv1d(kernel 1) there
+                names[key] = (
+                    Reshaped(f"{conv}.weight", (*value.shape, 1)) if is_conv else f"{conv}.weight"
+                )
+            elif owner in linear_bn and key.endswith(".norm.running_mean"):
+                bn, conv = linear_bn[owner][1], linear_bn[owner][0]
+                names[key] = FoldedBias(f"{bn}.running_mean", f"{conv}.bias")
+            elif key == "box_embed.1.weight":  # Conv1d(8, 64, 1) there, its bias folded
+                names[key] = Reshaped("ptt.conv1.weight", (*value.shape, 1))
+            elif key == "box_norm.running_mean":
+                names[key] = FoldedBias("ptt.bn1.running_mean", "ptt.conv1.bias")
+            elif key == "future_token":
+                names[key] = Reshaped("ptt.future_token", (1, 1, token))
+            elif key == "future_attn.q.weight":  # query [projection, token] here, [token, ...]
+                order = (*range(token, frame_dim), *range(token))
+                names[key] = PermutedInputs("ptt.attn1_future.fc_q.weight", order)
+            elif module.startswith("point_pool."):
+                names[key] = pooled
+            elif module.startswith("point_attn.") or module == "current_proj":
+                names[key] = current
+            else:
+                theirs = renamed(key, modules)
+                if theirs is None:
+                    raise ValueError(f"PTTHead: no released name for {key}")
+                names[key] = theirs
+        return names
+
+    @staticmethod
+    def openpcdet_unused() -> dict[str, str]:
+        """Modules of the released ``PTTHead`` that its forward never reads (built, never
+        called), with no counterpart here."""
+        never = "built by the released PTTHead, never called by its forward"
+        return {
+            "fc": never,
+            "bn": never,
+            "up_dimension_motion": never,
+            "roi_grid_pool_layer": never + " (roi_grid_pool() is never called)",
+            "grid_pos_embeded": never,
+            "pos": never,
+            "ptt.attn1": never,
+            "ptt.attn3": never,
+            "bbox_embed": (
+                "training-only auxiliary boxes of the released PTTHead (bbox_embed.0 on the "
+                "current feature, the others never called), and this head has no auxiliary box"
+            ),
+        }
+
     # ------------------------------------------------------------------ trajectories
     def trajectories(
         self, rois: torch.Tensor, history: list[torch.Tensor | None]
