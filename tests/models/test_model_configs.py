@@ -22,8 +22,6 @@ CELLS = 64  # smoke runs use a cropped grid of CELLS x CELLS pillars / voxels, s
 NOT_SHIPPED = {
     "synthetic/centerpoint_voxel.yaml",
     "synthetic/cp4f_voxel.yaml",
-    "synthetic/phim.yaml",
-    "synthetic/phim_lot/stage3_finetune.yaml",
 }
 
 

@@ -189,12 +189,12 @@ def lifecycle_heatmaps(results_list: Sequence[Mapping], family: str, path: Path)
         image = ax.imshow(frac.T, origin="lower", aspect="auto", cmap="magma", vmin=0, vmax=1,
                           extent=(ks[0] - 0.5, ks[-1] + 0.5, edges[0], edges[-1]))  # fmt: skip
         ax.plot(ks, [_mean_from_counts(edges, c) for c in counts], color="white", lw=1.2,
-                label="attacked (mean)")  # fmt: skip
+                marker="o", ms=3, label="attacked (mean)")  # fmt: skip
         clean = [lc["clean_score_counts"] for lc in lcs]
         if all(c is not None for c in clean):
             clean_counts = np.sum([np.asarray(c, dtype=float) for c in clean], axis=0)
             ax.plot(ks, [_mean_from_counts(edges, c) for c in clean_counts], color="deepskyblue",
-                    ls="--", lw=1.5, label="clean baseline (mean)")  # fmt: skip
+                    ls="--", lw=1.5, marker="s", ms=3, label="clean baseline (mean)")  # fmt: skip
         ax.axvline(window + 0.5, color="cyan", ls=":", lw=1)
         ax.axhline(HIGH_SCORE, color="grey", ls=":", lw=0.8)
         ax.set_xlabel("lifecycle position k")
