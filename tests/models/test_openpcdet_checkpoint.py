@@ -133,16 +133,7 @@ def openpcdet_shapes(cfg) -> dict[str, tuple]:
 
 def openpcdet_state(cfg, seed: int = 0) -> dict[str, torch.Tensor]:
     """Random values under OpenPCDet's names and shapes (BN variances positive)."""
-    g = torch.Generator().manual_seed(seed)
-    state = {}
-    for name, shape in openpcdet_shapes(cfg).items():
-        if name == "global_step" or name.endswith("num_batches_tracked"):
-            state[name] = torch.randint(0, 1000, shape, generator=g)
-        elif name.endswith("running_var"):
-            state[name] = torch.rand(shape, generator=g) + 0.5
-        else:
-            state[name] = torch.randn(shape, generator=g) * 0.3
-    return state
+    return released_state(openpcdet_shapes(cfg), seed)
 
 
 def cropped(cfg, cells: int = 64):
