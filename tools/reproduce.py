@@ -120,7 +120,7 @@ def main(argv=None) -> dict:
     found = collect_results([r["results"] for r in runs])
     results = [r for _, r in found]
     device = str(results[0].get("extra", {}).get("device", "?"))
-    frames = results[0]["variants"]["clean"]["num_frames"]
+    frames = next(iter(results[0]["variants"].values()))["num_frames"]
     command = shlex.join(sys.argv[1:] if argv is None else argv)
     lines = [
         "## How these results were produced",
