@@ -11,24 +11,34 @@ For each model config (default: every config under ``cfgs/atlas/synthetic/`` who
 whole run appended to ``report.md`` and written to ``run.json``. The injection variants' trace
 library is built from the dataset's train split first if it is missing. The dataset:
 docs/synthetic.md "A larger validation split".
+
+``--jobs N`` evaluates N models at once, each a ``tools/test.py`` process with ``--threads``
+torch threads (default: the cores divided among the jobs); its output goes to ``reproduce.log``
+in the folder above the model's ``reproduce/results.json``. The run resumes: ``run.json`` in
+``--out`` records each model when it finishes, and a later call with the same data, variants and
+``--set`` skips the models it lists whose ``results.json`` is still there (``--overwrite``
+evaluates them again).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import shlex
+import subprocess
 import sys
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-
-import torch
 
 from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.evaluation.results import collect_results, write_report
 from pcdet_atlas.train_utils.atlas_eval import resolve_variants
+from pcdet_atlas.train_utils.setup import load_cfg, output_dir_for
 from pcdet_atlas.utils.common import load_tool
 
 DEFAULT_DATA = REPO_ROOT / "data" / "synthetic_waymo_val6"
@@ -53,12 +63,20 @@ def parse_args(argv=None):
     p.add_argument("--cfgs", nargs="+", default=None, help="model configs (default: shipped)")
     p.add_argument("--device", default=None, help="cpu / cuda (default: auto)")
     p.add_argument("--workers", default="2", help="loader workers of tools/test.py")
+    p.add_argument("--jobs", type=int, default=1, help="models evaluated at once")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads per job (default: CPU cores // jobs)")  # fmt: skip
     p.add_argument("--output_root", default=None, help="tools/test.py's output root")
     p.add_argument("--no_reuse", action="store_true", help="run the model on every frame")
+    p.add_argument("--overwrite", action="store_true",
+                   help="evaluate every model again (default: resume)")  # fmt: skip
     p.add_argument("--attacks", default="all", help="variants of tools/test.py (default: all)")
     p.add_argument("--set", nargs=argparse.REMAINDER, default=[], dest="set_cfgs",
                    help="KEY VALUE pairs passed on to tools/test.py's --set")  # fmt: skip
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if args.jobs < 1 or (args.threads is not None and args.threads < 1):
+        p.error(f"--jobs {args.jobs} / --threads {args.threads}: expected positive counts")
+    return args
 
 
 def ensure_trace_libraries(root: Path, cfgs: list[Path], attacks: str) -> None:
@@ -76,6 +94,31 @@ def ensure_trace_libraries(root: Path, cfgs: list[Path], attacks: str) -> None:
                 build_trace_library(root, TraceFilter.from_config(library)).save(path)
 
 
+def test_argv(cfg: Path, args, root: Path, threads: int) -> list[str]:
+    """The ``tools/test.py`` arguments that evaluate one model config."""
+    argv = ["--cfg", str(cfg), "--attacks", args.attacks, "--extra_tag", TAG, "--eval_tag", TAG,
+            "--overwrite", "--no_progress", "--workers", args.workers,
+            "--threads", str(threads)]  # fmt: skip
+    if args.output_root:
+        argv += ["--output_root", args.output_root]
+    if args.device:
+        argv += ["--device", args.device]
+    if args.no_reuse:
+        argv.append("--no_reuse")
+    return argv + ["--set", "DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs]
+
+
+def results_path(cfg: Path, args, root: Path) -> Path:
+    """Where ``tools/test.py`` (:func:`test_argv`) writes the config's ``results.json``."""
+    test = load_tool("test")
+    model_cfg = load_cfg(str(cfg), ["DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs])
+    output_root = args.output_root or str(REPO_ROOT / "output")
+    ckpt = test.resolve_checkpoint(None, model_cfg.get("ATLAS", {}))
+    split = str(model_cfg.DATA_CONFIG.DATA_SPLIT["test"])
+    eval_dir = output_dir_for(model_cfg, output_root, TAG) / "eval" / test.eval_name(ckpt)
+    return eval_dir / split / TAG / "results.json"
+
+
 def main(argv=None) -> dict:
     args = parse_args(argv)
     root = Path(args.data_path)
@@ -86,48 +129,67 @@ def main(argv=None) -> dict:
         )
     cfgs = [Path(c) for c in args.cfgs] if args.cfgs else shipped_configs()
     ensure_trace_libraries(root, cfgs, args.attacks)
-    test = load_tool("test")
+    threads = args.threads or max(1, (os.cpu_count() or 1) // args.jobs)
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    run_file = out_dir / "run.json"
+    setting = {"data_path": str(root.resolve()), "attacks": args.attacks,
+               "set": list(args.set_cfgs), "no_reuse": args.no_reuse}  # fmt: skip
+    done, elapsed_before = {}, 0.0
+    if run_file.is_file() and not args.overwrite:
+        previous = json.loads(run_file.read_text())
+        if previous.get("setting") == setting:
+            done = {r["config"]: r for r in previous["runs"] if Path(r["results"]).is_file()}
+            elapsed_before = float(previous.get("total_wall_s", 0.0))
+    state = {"setting": setting, "jobs": args.jobs, "threads": threads,
+             "device": None, "total_wall_s": elapsed_before, "runs": []}  # fmt: skip
+    lock = threading.Lock()
     start = time.perf_counter()
-    runs = []
-    for cfg in cfgs:
+
+    def record(run: dict) -> None:
+        with lock:
+            state["runs"].append(run)
+            state["total_wall_s"] = round(elapsed_before + time.perf_counter() - start, 1)
+            run_file.write_text(json.dumps(state, indent=2) + "\n")
+
+    def evaluate(cfg: Path) -> None:
+        if str(cfg) in done:
+            print(f"{cfg}: done in an earlier call, {done[str(cfg)]['results']}", flush=True)
+            record(done[str(cfg)])
+            return
+        results = results_path(cfg, args, root)
+        command = [sys.executable, str(REPO_ROOT / "tools" / "test.py"),
+                   *test_argv(cfg, args, root, threads)]  # fmt: skip
+        print("$ " + shlex.join(command[1:]), flush=True)
+        log = results.parent.parent / "reproduce.log"
+        log.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
-        argv_test = [
-            "--cfg",
-            str(cfg),
-            "--attacks",
-            args.attacks,
-            "--extra_tag",
-            TAG,
-            "--eval_tag",
-            TAG,
-            "--overwrite",
-            "--no_progress",
-            "--workers",
-            args.workers,
-        ]
-        if args.output_root:
-            argv_test += ["--output_root", args.output_root]
-        if args.device:
-            argv_test += ["--device", args.device]
-        if args.no_reuse:
-            argv_test.append("--no_reuse")
-        argv_test += ["--set", "DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs]
-        print("$ python tools/test.py " + shlex.join(argv_test), flush=True)
-        ret = test.main(argv_test)
-        runs.append({"config": str(cfg), "results": str(ret["output_dir"] / "results.json"),
-                     "wall_s": round(time.perf_counter() - t0, 1)})  # fmt: skip
-    total = round(time.perf_counter() - start, 1)
+        with log.open("w") as stream:
+            code = subprocess.run(command, stdout=stream, stderr=subprocess.STDOUT).returncode
+        if code != 0:
+            raise RuntimeError(f"{cfg}: tools/test.py exited with {code}; its output: {log}")
+        wall = round(time.perf_counter() - t0, 1)
+        print(f"{cfg}: {wall / 60:.1f} min, {results}", flush=True)
+        record({"config": str(cfg), "results": str(results), "wall_s": wall})
+
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        for future in [pool.submit(evaluate, cfg) for cfg in cfgs]:
+            future.result()
+    order = {str(cfg): i for i, cfg in enumerate(cfgs)}
+    runs = sorted(state["runs"], key=lambda r: order[r["config"]])
     found = collect_results([r["results"] for r in runs])
     results = [r for _, r in found]
     device = str(results[0].get("extra", {}).get("device", "?"))
     frames = next(iter(results[0]["variants"].values()))["num_frames"]
+    total = state["total_wall_s"]
     command = shlex.join(sys.argv[1:] if argv is None else argv)
     lines = [
         "## How these results were produced",
         "",
         f"`python tools/reproduce.py {command}` on `{root.name}` ({frames} val frames), device "
-        f"{device}, {torch.get_num_threads()} torch threads, {platform.machine()}; total wall "
-        f"time **{total / 60:.1f} min**.",
+        f"{device}, {args.jobs} model(s) at a time with {threads} torch thread(s) each, "
+        f"{os.cpu_count()} CPU cores, {platform.machine()}; total wall time "
+        f"**{total / 60:.1f} min**.",
         "",
         "| Model | Wall time (min) | Frames recomputed | Frames reused |",
         "|:---|---:|---:|---:|",
@@ -140,10 +202,10 @@ def main(argv=None) -> dict:
         results, args.out, sources=[r["results"] for r in runs], latex=True,
         command=None, appendix="\n".join(lines),
     )  # fmt: skip
-    run_info = {"data_path": str(root), "device": device, "total_wall_s": total, "runs": runs}
-    (Path(args.out) / "run.json").write_text(json.dumps(run_info, indent=2) + "\n")
+    state.update(device=device, runs=runs)
+    run_file.write_text(json.dumps(state, indent=2) + "\n")
     print(f"report: {out['report']}  total {total / 60:.1f} min")
-    return {**out, "run": run_info}
+    return {**out, "run": state}
 
 
 if __name__ == "__main__":

@@ -196,6 +196,7 @@ def evaluate_checkpoint(
     atlas_cfg = cfg.get("ATLAS", {})
     entries: dict = {}
     clean_annos = None
+    clean_proposals: dict = {}  # the clean run's proposal bank (PTT), seeding the others'
     path = None
     for variant, attack in attacks.items():
         entry, det_annos = evaluate_variant(
@@ -204,7 +205,7 @@ def evaluate_checkpoint(
             seed=args.seed, temporal_window=atlas_cfg.get("TEMPORAL_WINDOW"),
             clean_det_annos=clean_annos, out_dir=out_dir / variant, logger=logger,
             show_progress=not args.no_progress, save_to_file=args.save_to_file,
-            reuse_clean=not args.no_reuse,
+            reuse_clean=not args.no_reuse, clean_proposals=clean_proposals,
         )  # fmt: skip
         if variant == "clean":
             clean_annos = det_annos

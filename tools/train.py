@@ -72,11 +72,6 @@ def parse_args(argv=None):
     parser.add_argument("--use_amp", action="store_true", default=False)
     parser.add_argument("--no_progress", action="store_true", default=False, help="no tqdm bars")
     parser.add_argument(
-        "--threads", type=count_arg(1), default=None,
-        help="torch CPU threads of the training process (default: torch's, one per core); "
-        "1 is faster on a 2-core CPU shared with other jobs or with --workers",
-    )  # fmt: skip
-    parser.add_argument(
         "--default_malloc", action="store_true", default=False,
         help="on CPU, leave glibc malloc as it is (default: keep freed memory for reuse, "
         "pcdet_atlas.train_utils.cpu_memory; faster CPU steps, same results: docs/benchmarks.md)",
@@ -90,8 +85,6 @@ def main(argv=None) -> dict:
     require_dataset(cfg, args.cfg_file)  # before anything is built or written
     dist, rank, world, device = setup_runtime(args)
     retained = device.type == "cpu" and not args.default_malloc and retain_freed_cpu_memory()
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
     optim_cfg = cfg.OPTIMIZATION
     require_keys(optim_cfg, ["BATCH_SIZE_PER_GPU", "NUM_EPOCHS"], "OPTIMIZATION")  # types: load_cfg
     batch_size = (

@@ -42,6 +42,7 @@ __all__ = [
     "build_attack_loader",
     "evaluate_variant",
     "frames_to_compute",
+    "input_attacked",
     "input_reach",
 ]
 
@@ -121,10 +122,14 @@ def input_reach(model: torch.nn.Module, data_cfg: Mapping) -> int:
     """How many frames before the current one a prediction of ``model`` on data of ``data_cfg``
     reads: the point history of a multi-frame input (``SEQUENCE_CONFIG``), plus, for a model
     reading earlier frames' proposals (PTT), those frames and each one's own point history."""
-    core = model.module if isinstance(model, torch.nn.parallel.DistributedDataParallel) else model
     sequence_cfg = SequenceConfig.from_config(data_cfg.get("SEQUENCE_CONFIG"))
     points = sequence_cfg.num_frames - 1 if sequence_cfg is not None else 0
-    return points + int(getattr(core, "proposal_history", 0) or 0)
+    return points + int(getattr(core_model(model), "proposal_history", 0) or 0)
+
+
+def core_model(model: torch.nn.Module) -> torch.nn.Module:
+    """The model inside a ``DistributedDataParallel`` wrapper (the model itself otherwise)."""
+    return model.module if isinstance(model, torch.nn.parallel.DistributedDataParallel) else model
 
 
 def frames_to_compute(dataset, reach: int) -> np.ndarray:
@@ -137,13 +142,18 @@ def frames_to_compute(dataset, reach: int) -> np.ndarray:
     out = np.zeros(len(dataset.infos), dtype=bool)
     for i, info in enumerate(dataset.infos):
         sequence = info["point_cloud"]["lidar_sequence"]
-        idx = int(info["point_cloud"]["sample_idx"])
-        num_frames = dataset.sequence_data(sequence).num_frames
-        out[i] = any(
-            dataset.attack.needs_simulation(j, num_frames)
-            for j in range(max(0, idx - reach), idx + 1)
-        )
+        out[i] = input_attacked(dataset, sequence, int(info["point_cloud"]["sample_idx"]), reach)
     return out
+
+
+def input_attacked(dataset, sequence_name: str, sample_idx: int, reach: int) -> bool:
+    """Whether the variant's attack changes a frame or one of the ``reach`` frames before it
+    (clipped at the sequence start), from the schedule alone."""
+    num_frames = dataset.sequence_data(sequence_name).num_frames
+    return any(
+        dataset.attack.needs_simulation(j, num_frames)
+        for j in range(max(0, sample_idx - reach), sample_idx + 1)
+    )
 
 
 def build_attack_loader(
@@ -203,6 +213,7 @@ def evaluate_variant(
     show_progress: bool = True,
     save_to_file: bool = False,
     reuse_clean: bool = False,
+    clean_proposals: dict | None = None,
 ) -> tuple[dict | None, list[dict]]:
     """Predict one variant and score it.
 
@@ -212,6 +223,10 @@ def evaluate_variant(
     model; only the batches holding an attacked input run, in their full-run composition, so
     the result is bitwise that of a full run (docs/evaluation.md "Reusing clean predictions").
     The entry's ``num_reused_frames`` / ``num_recomputed_frames`` count both kinds.
+    ``clean_proposals`` (a dict; models with a proposal history, PTT): the clean variant
+    fills it with its proposal bank's frames, and a reusing run of another variant seeds its
+    bank with those of the frames whose RPN input the attack leaves untouched, so that only the
+    frames it changes go through the RPN again (:class:`ProposalBank`; still bitwise a full run).
 
     Returns:
         ``(entry, det_annos)``: the ``results.json`` variant entry (None on ranks > 0) and the
@@ -226,13 +241,24 @@ def evaluate_variant(
         data_cfg, class_names, attack, batch_size=batch_size, dist=dist, workers=workers,
         seed=seed, logger=logger, reuse_reach=reach,
     )  # fmt: skip
+    proposal_seed = proposals_out = None
+    if clean_proposals is not None and dataset.attack.family == "clean":
+        proposals_out = clean_proposals
+    elif clean_proposals and reuse:
+        rpn_reach = reach - int(getattr(core_model(model), "proposal_history", 0) or 0)
+        proposal_seed = {
+            frame: rows for frame, rows in clean_proposals.items()
+            if not input_attacked(dataset, *frame, rpn_reach)
+        }  # fmt: skip
     timings: dict = {}
     t0 = time.perf_counter()
     det_annos, extras = predict_dataset(
         model, loader, device=device, desc=variant, show_progress=show_progress, timings=timings,
-        reuse=clean_det_annos if reuse else None,
+        reuse=clean_det_annos if reuse else None, proposal_seed=proposal_seed,
+        proposals_out=proposals_out,
     )  # fmt: skip
     timings["predict_wall"] = time.perf_counter() - t0
+    bank_stats = timings.pop("bank", None)
     if rank != 0:
         return None, det_annos
     reused = np.array([e["reused"] for e in extras], dtype=bool)
@@ -258,7 +284,8 @@ def evaluate_variant(
         variant, family=family, num_frames=len(det_annos), metrics=ap_dict,
         class_names=class_names, attack=attack_metrics, rank_group=dataset.attack.RANK_GROUP,
         num_reused_frames=int(reused.sum()),
-        extra={"timing_s": {k: round(v, 3) for k, v in timings.items()}},
+        extra={"timing_s": {k: round(v, 3) for k, v in timings.items()},
+               **({"proposal_bank": bank_stats} if bank_stats is not None else {})},
     )  # fmt: skip
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import copy
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
@@ -29,6 +29,8 @@ def predict_dataset(
     show_progress: bool = True,
     timings: dict | None = None,
     reuse: Sequence[dict] | None = None,
+    proposal_seed: Mapping | None = None,
+    proposals_out: dict | None = None,
 ) -> tuple[list[dict], list[dict]]:
     """Run the model over the loader; gather every rank's results in dataset order.
 
@@ -38,6 +40,10 @@ def predict_dataset(
     prediction and, from an ``AtlasWaymoDataset``, its attack record (no simulation: the frame
     is clean). A frame neither yielded nor in ``reuse`` is an error.
 
+    For a model reading earlier frames' proposals (its :class:`ProposalBank`):
+    ``proposal_seed`` seeds the bank (:meth:`ProposalBank.seed`), and ``proposals_out``
+    receives what the bank held at the end (:meth:`ProposalBank.held`).
+
     Returns:
         ``(det_annos, extras)``: one OpenPCDet anno dict per frame of ``dataloader.dataset``
         (``frame_id`` order of ``dataset.infos``), and per frame ``{'frame_id', 'attack',
@@ -45,7 +51,8 @@ def predict_dataset(
         dataset; whether the prediction came from ``reuse``).
         ``timings`` (if given) accumulates seconds under ``'data'`` (loading, attack
         simulation included) and ``'model'`` (for a model with a proposal history, PTT, the
-        proposal bank's RPN passes included: :class:`ProposalBank`).
+        proposal bank's RPN passes included: :class:`ProposalBank`), and then gets the bank's
+        ``stats()`` under ``'bank'``.
     """
     dataset = dataloader.dataset
     rank, world = get_dist_info()
@@ -55,6 +62,8 @@ def predict_dataset(
         ProposalBank(core, dataset, device=device)
         if getattr(core, "proposal_history", 0) else None
     )  # fmt: skip
+    if bank is not None and proposal_seed:
+        bank.seed(proposal_seed)
     local: list[tuple[str, dict, dict]] = []
     bar = tqdm.tqdm(
         total=len(dataloader), desc=desc, leave=False, dynamic_ncols=True,
@@ -81,6 +90,10 @@ def predict_dataset(
         bar.update()
         t_end = time.perf_counter()
     bar.close()
+    if bank is not None and proposals_out is not None:
+        proposals_out.update(bank.held())
+    if bank is not None and timings is not None:
+        timings["bank"] = bank.stats()
     gathered = all_gather_objects(local) if world > 1 else [local]
     by_frame: dict[str, tuple[dict, dict]] = {}
     for part in gathered:

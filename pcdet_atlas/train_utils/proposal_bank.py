@@ -12,6 +12,12 @@ banked yet), any other frame from ``dataset.frame_sample`` (frames ``SAMPLED_INT
 or the history before a worker's first frame). ``rpn_frames`` counts the frames computed; with
 a capacity that holds a window's frames, each frame is computed exactly once.
 
+Seeding (:meth:`ProposalBank.seed`): an attack variant's bank may start with the clean run's
+proposals of the frames whose RPN input the attack leaves untouched, so that only the frames
+it changes go through the RPN again. A seeded frame that turns up among a batch's current
+frames is computed again with its batch, as a full run computes it (the CPU RPN's output can
+depend on its batch at float32 rounding), so that a seeded run stays bitwise a full run.
+
 Memory: one float32 row of 11 values per proposal (44 bytes); a frame of ~250 proposals is
 ~11 KB, a 198-frame sequence ~2.2 MB. The bank holds at most ``capacity`` frames (default 4096,
 under 100 MB at 500 proposals a frame) and drops the oldest-inserted frame beyond that, so a
@@ -80,19 +86,38 @@ class ProposalBank:
         self.variant = str(attack.variant) if attack is not None else "clean"
         self.rpn_sha256 = model.rpn_info["sha256"]
         self._frames: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._seeded: set[tuple] = set()  # keys holding seeded rows, not yet computed here
         self.rpn_frames = 0  # frames whose proposals were computed
+        self.seeded = 0  # frames seeded (seed())
         self.rpn_calls = 0  # RPN forward passes (a batch's current frames share one)
         self.hits = 0
 
     def key(self, sequence_name: str, sample_idx: int) -> tuple:
         return (self.variant, str(sequence_name), int(sample_idx), self.rpn_sha256)
 
-    def _store(self, key: tuple, rows: np.ndarray) -> None:
+    def _store(self, key: tuple, rows: np.ndarray, *, computed: bool = True) -> None:
         rows.flags.writeable = False
+        self._frames.pop(key, None)  # a recomputed seeded frame counts as newest
         self._frames[key] = rows
-        self.rpn_frames += 1
+        if computed:
+            self.rpn_frames += 1
+            self._seeded.discard(key)
+        else:
+            self._seeded.add(key)
+            self.seeded += 1
         while len(self._frames) > self.capacity:
-            self._frames.popitem(last=False)
+            self._seeded.discard(self._frames.popitem(last=False)[0])
+
+    def seed(self, rows_by_frame: Mapping[tuple[str, int], np.ndarray]) -> None:
+        """Start from given proposals ``{(sequence_name, sample_idx): (R, 11) rows}``: those of
+        frames whose RPN input is the same in this bank's dataset (the caller's check; the clean
+        run's :meth:`held` for the frames an attack leaves untouched, module docstring)."""
+        for (sequence_name, sample_idx), rows in rows_by_frame.items():
+            self._store(self.key(sequence_name, sample_idx), rows, computed=False)
+
+    def held(self) -> dict[tuple[str, int], np.ndarray]:
+        """The proposals held, ``{(sequence_name, sample_idx): (R, 11) rows}`` (read-only)."""
+        return {(key[1], key[2]): rows for key, rows in self._frames.items()}
 
     def frame(self, sequence_name: str, sample_idx: int) -> np.ndarray:
         """The proposals ``(R, 11)`` of a frame, in its own vehicle frame (computed if not
@@ -115,7 +140,8 @@ class ProposalBank:
         batch on the host (its ``sequence_name``, ``sample_idx``)."""
         frames = list(zip(batch["sequence_name"], (int(i) for i in batch["sample_idx"])))
         keys = [self.key(seq, idx) for seq, idx in frames]
-        if all(k not in self._frames for k in keys) and len(set(keys)) == len(keys):
+        fresh = all(k not in self._frames or k in self._seeded for k in keys)
+        if fresh and len(set(keys)) == len(keys):  # the batch's frames as a full run has them
             self.rpn_calls += 1
             for key, proposal in zip(keys, self.model.propose(batch_dev)):
                 self._store(key, proposal_rows(proposal))
@@ -137,9 +163,10 @@ class ProposalBank:
         return {**batch_dev, **extra}
 
     def stats(self) -> dict:
-        """``{'rpn_frames', 'rpn_calls', 'hits', 'frames_held', 'bytes_held'}``."""
+        """``{'rpn_frames', 'seeded', 'rpn_calls', 'hits', 'frames_held', 'bytes_held'}``."""
         return {
             "rpn_frames": self.rpn_frames,
+            "seeded": self.seeded,
             "rpn_calls": self.rpn_calls,
             "hits": self.hits,
             "frames_held": len(self._frames),

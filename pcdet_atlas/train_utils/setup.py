@@ -72,6 +72,11 @@ def add_common_args(parser: argparse.ArgumentParser) -> None:
         help="master port of --launcher slurm (torchrun sets its own)",
     )  # fmt: skip
     parser.add_argument("--local_rank", type=int, default=None, help="unused: from LOCAL_RANK")
+    parser.add_argument(
+        "--threads", type=count_arg(1), default=None,
+        help="torch CPU threads of the process (default: torch's, one per core); 1 is faster "
+        "on a 2-core CPU shared with other jobs or with --workers",
+    )  # fmt: skip
     parser.add_argument("--fix_random_seed", action="store_true", default=False)
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of every draw")
     parser.add_argument(
@@ -149,7 +154,7 @@ def device_arg(text: str) -> str:
 
 
 def setup_runtime(args) -> tuple[bool, int, int, torch.device]:
-    """Device, process group (``--launcher pytorch`` / ``slurm``) and seeds.
+    """Device, process group (``--launcher pytorch`` / ``slurm``), CPU threads and seeds.
 
     Returns:
         ``(dist, rank, world_size, device)``. Model initialisation uses the global torch RNG,
@@ -164,6 +169,8 @@ def setup_runtime(args) -> tuple[bool, int, int, torch.device]:
     else:
         world, rank, local_rank = 1, 0, 0
     device = resolve_device(args.device, local_rank)
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     if args.fix_random_seed:
         torch.use_deterministic_algorithms(True, warn_only=True)

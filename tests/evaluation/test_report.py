@@ -4,6 +4,7 @@ LOT ablation only with both models; LaTeX tables; clear errors)."""
 
 from __future__ import annotations
 
+import json
 import sys
 import zlib
 from pathlib import Path
@@ -192,24 +193,44 @@ def test_the_tool_reads_files_and_folders_and_refuses_duplicates(models, tmp_pat
 
 @pytest.mark.slow
 def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
-    """tools/reproduce.py end to end on the fixture data: one model, clean and one removal
-    variant on 5 frames; the report and its run record with the wall time and reuse counts."""
+    """tools/reproduce.py end to end on the fixture data: two models evaluated at once, clean and
+    one removal variant on 5 frames; the report and its run record with the wall time and reuse
+    counts; a second call resumes (evaluates nothing), a changed --set evaluates again."""
     reproduce = load_tool("reproduce")
-    cfg = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml"
-    out = reproduce.main([
-        "--data_path", str(synthetic_root), "--out", str(tmp_path / "report"), "--cfgs", str(cfg),
-        "--attacks", "clean,rem_30", "--workers", "0", "--device", "cpu",
-        "--output_root", str(tmp_path / "output"),
-        "--set", "DATA_CONFIG.SAMPLED_INTERVAL", "train:1,test:14",
-        "DATA_CONFIG.POINT_CLOUD_RANGE", "-20.48,-20.48,-2,20.48,20.48,4",
-    ])  # fmt: skip
+    cfgs = [REPO_ROOT / "cfgs" / "atlas" / "synthetic" / f"{name}.yaml"
+            for name in ("centerpoint", "cp4f")]  # fmt: skip
+
+    def argv(interval: int) -> list[str]:
+        return [
+            "--data_path", str(synthetic_root), "--out", str(tmp_path / "report"),
+            "--cfgs", *map(str, cfgs), "--attacks", "clean,rem_30", "--workers", "0",
+            "--device", "cpu", "--jobs", "2", "--threads", "1",
+            "--output_root", str(tmp_path / "output"),
+            "--set", "DATA_CONFIG.SAMPLED_INTERVAL", f"train:1,test:{interval}",
+            "DATA_CONFIG.POINT_CLOUD_RANGE", "-20.48,-20.48,-2,20.48,20.48,4",
+        ]  # fmt: skip
+
+    out = reproduce.main(argv(14))
     text = out["report"].read_text()
     assert "## How these results were produced" in text and "| CenterPoint |" in text
+    assert "2 model(s) at a time with 1 torch thread(s) each" in text
     run = out["run"]
-    assert run["total_wall_s"] > 0 and len(run["runs"]) == 1
+    assert run["total_wall_s"] > 0 and [r["config"] for r in run["runs"]] == list(map(str, cfgs))
+    assert json.loads((tmp_path / "report" / "run.json").read_text())["runs"] == run["runs"]
     results = collect_results([run["runs"][0]["results"]])[0][1]
     rem = results["variants"]["rem_30"]
     # frames 0, 14, 28, 42, 56: the run 32..63 spoofs 42 and 56, the other three are reused
     assert rem["num_reused_frames"] == 3 and rem["num_recomputed_frames"] == 2
     assert (tmp_path / "report" / "report.tex").is_file()
     assert not list(synthetic_root.glob("*.npz"))  # no trace library needed, none built
+    log = Path(run["runs"][1]["results"]).parent.parent / "reproduce.log"
+    assert "cp4f" in log.read_text()
+
+    stamps = [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]]
+    again = reproduce.main(argv(14))  # resumes: both models are done
+    assert again["run"]["runs"] == run["runs"]
+    assert again["run"]["total_wall_s"] >= run["total_wall_s"]
+    assert [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]] == stamps
+    changed = reproduce.main(argv(20))  # another setting: evaluated again
+    assert all(Path(r["results"]).stat().st_mtime_ns > s
+               for r, s in zip(changed["run"]["runs"], stamps))  # fmt: skip

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from pcdet_atlas.models.model_utils.motion_sampler import (
+    cylinder_pairs,
     frame_of_points,
     propagate_boxes,
     sample_cylinder_points,
@@ -83,6 +84,33 @@ def test_sampler_matches_brute_force(growth):
     assert torch.equal(out, ref_out)
     full = valid.all(-1)  # some cylinders hold more than 64 points, some fewer
     assert full.any() and not full.all()
+
+
+@pytest.mark.parametrize("spread", ["equal", "one_large", "tiny_median", "far_box"])
+def test_cylinder_pairs_match_brute_force(spread):
+    """Every (box, point) pair within the radius, once, sorted by box, whatever the radii (the
+    grid's cell follows the median radius; a large or far box must still find all its points)."""
+    g = torch.Generator().manual_seed(3)
+    xy = (torch.rand(4000, 2, generator=g) - 0.5) * 80.0
+    xy[:500] = xy[:500] * 0.05  # a dense cluster, as the ground near the sensor
+    centers = (torch.rand(40, 2, generator=g) - 0.5) * 70.0
+    centers[0] = 0.0
+    radius = torch.full((40,), 2.5)
+    if spread == "one_large":
+        radius[0] = 30.0
+    elif spread == "tiny_median":
+        radius = torch.full((40,), 1e-4)
+        radius[:3] = torch.tensor([4.0, 8.0, 0.0])
+    elif spread == "far_box":
+        centers[1] = torch.tensor([500.0, -300.0])
+        radius[1] = 600.0
+    box_id, point_id = cylinder_pairs(xy, centers, radius)
+    d2 = ((xy[None] - centers[:, None]) ** 2).sum(-1)
+    want = torch.nonzero(d2 <= radius[:, None] ** 2)
+    got = torch.stack([box_id, point_id], 1)
+    assert sorted(map(tuple, got.tolist())) == sorted(map(tuple, want.tolist()))
+    assert len(set(map(tuple, got.tolist()))) == got.shape[0] > 0
+    assert bool((box_id[1:] >= box_id[:-1]).all())
 
 
 def test_radius_grows_with_the_frame_age():

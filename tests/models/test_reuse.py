@@ -47,13 +47,13 @@ def setup_model(name: str, root):
     return model.eval(), cfg
 
 
-def run(model, cfg, attack, clean, *, reuse: bool, batch_size: int = 1):
+def run(model, cfg, attack, clean, *, reuse: bool, batch_size: int = 1, proposals=None):
     variant = attack.stem if hasattr(attack, "stem") else attack.VARIANT
     return evaluate_variant(
         model, variant, attack, data_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES,
         device=CPU, batch_size=batch_size, dist=False, workers=0, seed=0,
         temporal_window=cfg.ATLAS.get("TEMPORAL_WINDOW"), clean_det_annos=clean, out_dir=None,
-        show_progress=False, reuse_clean=reuse,
+        show_progress=False, reuse_clean=reuse, clean_proposals=proposals,
     )  # fmt: skip
 
 
@@ -86,6 +86,17 @@ def strip(entry: dict) -> dict:
     return out
 
 
+def check_variant(model, cfg, attack, clean, proposals, *, batch_size: int) -> tuple[dict, dict]:
+    """A full run and a reusing run of one variant, bitwise equal; their entries."""
+    full_entry, full = run(model, cfg, attack, clean, reuse=False, batch_size=batch_size)
+    reuse_entry, reused = run(model, cfg, attack, clean, reuse=True, batch_size=batch_size,
+                              proposals=proposals)  # fmt: skip
+    assert_annos_equal(reused, full)
+    assert strip(reuse_entry) == strip(full_entry)
+    assert full_entry["num_reused_frames"] == 0
+    return full_entry, reuse_entry
+
+
 @pytest.fixture(scope="module")
 def removal():
     return cfg_from_yaml_file(ATTACKS / "rem_30.yaml")
@@ -104,15 +115,20 @@ CASES = {
 @pytest.mark.parametrize("name", list(CASES))
 def test_reuse_equals_a_full_run_bitwise(name, synthetic_root, injection, removal):
     model, cfg = setup_model(name, synthetic_root)
-    _, clean = run(model, cfg, ATTACKS / "clean.yaml", None, reuse=False)
+    proposals = {}  # the clean run's proposal bank (PTT), seeding the reusing runs'
+    _, clean = run(model, cfg, ATTACKS / "clean.yaml", None, reuse=False, proposals=proposals)
     assert sum(len(a["score"]) for a in clean) > 0  # real detections to compare
+    assert bool(proposals) == (name == "ptt_32f")
     variants = [injection] + ([removal] if name == "centerpoint" else [])
     for attack in variants:
-        full_entry, full = run(model, cfg, attack, clean, reuse=False)
-        reuse_entry, reused = run(model, cfg, attack, clean, reuse=True)
-        assert_annos_equal(reused, full)
-        assert strip(reuse_entry) == strip(full_entry)
-        assert full_entry["num_reused_frames"] == 0
+        full_entry, reuse_entry = check_variant(model, cfg, attack, clean, proposals, batch_size=1)
+        if proposals:  # frames 0..31 from the clean bank (RPN input 28..31 clean); 32..65 not
+            full_bank, bank = (
+                full_entry["extra"]["proposal_bank"],
+                reuse_entry["extra"]["proposal_bank"],
+            )
+            assert full_bank["seeded"] == 0 and full_bank["rpn_frames"] == 66
+            assert bank["seeded"] == 32 and bank["rpn_frames"] == 66 - 32
         expected = len(FRAMES) - len(CASES[name])
         assert reuse_entry["num_reused_frames"] == expected
         assert reuse_entry["num_recomputed_frames"] == len(CASES[name])
@@ -184,3 +200,19 @@ def test_batch_composition_and_reuse_at_batch_size_3(name, synthetic_root, injec
     assert strip(reuse_entry) == strip(full_entry)
     # batches [30, 35, 40] and [60, 65] run whole: 30 and (single-frame) 65 are recomputed
     assert 0 < reuse_entry["num_reused_frames"] < len(FRAMES) - len(CASES[name])
+
+
+@pytest.mark.slow
+def test_ptt_seeded_bank_at_batch_size_3(synthetic_root, injection):
+    """PTT at batch size 3: a reusing run whose proposal bank starts from the clean run's
+    (frames whose RPN input the attack leaves untouched) is bitwise a full run; the batch that
+    straddles the run start (30, 35, 40) goes through the RPN whole, its seeded frame 30 too."""
+    model, cfg = setup_model("ptt_32f", synthetic_root)
+    proposals = {}
+    _, clean = run(model, cfg, ATTACKS / "clean.yaml", None, reuse=False, batch_size=3,
+                   proposals=proposals)  # fmt: skip
+    full_entry, reuse_entry = check_variant(model, cfg, injection, clean, proposals, batch_size=3)
+    bank = reuse_entry["extra"]["proposal_bank"]
+    assert full_entry["extra"]["proposal_bank"]["rpn_frames"] == 66
+    # seeded 0..31; through the RPN: 32..65, and 30 again with its batch
+    assert bank["seeded"] == 32 and bank["rpn_frames"] == 34 + 1

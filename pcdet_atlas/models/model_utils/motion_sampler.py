@@ -114,22 +114,36 @@ def cylinder_pairs(
     xy: torch.Tensor, centers: torch.Tensor, radius: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Every (box, point) pair with the point's XY within ``radius`` of the box centre, as two
-    ``(P,)`` long index tensors sorted by box. Points are bucketed on a BEV grid of cells the
-    size of the largest radius, so only the 3 x 3 cells around a centre are measured."""
+    ``(P,)`` long index tensors sorted by box.
+
+    Points are bucketed on a BEV grid whose cell is about half the median radius; a box measures
+    only the points of the ``(2k + 1)^2`` cells around its centre, ``k = ceil(radius / cell)``,
+    so its candidates cover about twice its cylinder's area whatever the spread of the radii."""
+    empty = torch.zeros(0, dtype=torch.long, device=xy.device)
     if xy.shape[0] == 0 or centers.shape[0] == 0:
-        empty = torch.zeros(0, dtype=torch.long, device=xy.device)
         return empty, empty
-    cell = float(radius.max().clamp_min(1e-3))
-    origin = torch.minimum(xy.min(0).values, centers.min(0).values) - cell
+    low = torch.minimum(xy.min(0).values, centers.min(0).values)
+    high = torch.maximum(xy.max(0).values, centers.max(0).values)
+    # half the median radius; coarser only to bound the grid (4096 cells a side) and the window
+    # of the largest box (64 cells each side)
+    cell = max(float(radius.median()) / 2, float(radius.max()) / 64,
+               float((high - low).max()) / 4096, 1e-3)  # fmt: skip
+    reach = torch.ceil(radius / cell).long().clamp_min(1)  # (R,) cells on each side
+    margin = cell * (int(reach.max()) + 1)
+    origin = low - margin
+    width = int(torch.floor((high + margin - origin) / cell).max()) + 1
     point_cell = torch.floor((xy - origin) / cell).long()
-    width = int(torch.floor((torch.maximum(xy.max(0).values, centers.max(0).values) - origin)
-                            / cell).max()) + 3  # fmt: skip
     point_key = point_cell[:, 0] * width + point_cell[:, 1]
     center_cell = torch.floor((centers - origin) / cell).long()
-    offsets = torch.tensor([-1, 0, 1], device=xy.device)
-    nx = center_cell[:, 0, None, None] + offsets[None, :, None]
-    ny = center_cell[:, 1, None, None] + offsets[None, None, :]
-    cell_key = (nx * width + ny).reshape(-1)  # (R * 9,)
+    # the window of each box, flattened: box b owns side_b^2 consecutive entries
+    side = 2 * reach + 1
+    cells_per_box = side * side
+    cell_box = torch.arange(centers.shape[0], device=xy.device).repeat_interleave(cells_per_box)
+    first = torch.cumsum(cells_per_box, 0) - cells_per_box
+    local = torch.arange(cell_box.numel(), device=xy.device) - first[cell_box]
+    dx = torch.div(local, side[cell_box], rounding_mode="floor") - reach[cell_box]
+    dy = local % side[cell_box] - reach[cell_box]
+    cell_key = (center_cell[cell_box, 0] + dx) * width + center_cell[cell_box, 1] + dy
     needed = torch.zeros(width * width, dtype=torch.bool, device=xy.device)
     needed[cell_key] = True
     near = torch.nonzero(needed[point_key]).squeeze(1)  # points in a cell some box looks at
@@ -137,12 +151,10 @@ def cylinder_pairs(
     sorted_point = near[order]
     start = torch.searchsorted(sorted_key, cell_key, right=False)
     count = torch.searchsorted(sorted_key, cell_key, right=True) - start
-    pair_box = torch.arange(centers.shape[0], device=xy.device).repeat_interleave(9)
     total = int(count.sum())
     if total == 0:
-        empty = torch.zeros(0, dtype=torch.long, device=xy.device)
         return empty, empty
-    box_id = pair_box.repeat_interleave(count)
+    box_id = cell_box.repeat_interleave(count)
     base = torch.cumsum(count, 0) - count
     within = torch.arange(total, device=xy.device) - base.repeat_interleave(count)
     point_id = sorted_point[start.repeat_interleave(count) + within]
