@@ -20,7 +20,7 @@ VAL6 = data/synthetic_waymo_val6
 reproduce: install
 	$(PYTHON) tools/create_synthetic_waymo.py --root $(VAL6) --train-sequences 12 \
 		--train-frames 60 --val-sequences 6 --val-frames 198 --seed 0 --workers 2
-	$(PYTHON) tools/reproduce.py --data_path $(VAL6) --out docs/results
+	$(PYTHON) tools/reproduce.py --data_path $(VAL6) --out docs/results --jobs 2
 
 lint:
 	$(PYTHON) -m ruff check . && $(PYTHON) -m ruff format --check .

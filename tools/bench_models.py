@@ -5,15 +5,17 @@
 
 Frames come from the synthetic dataset (``--data_path``, default ``data/synthetic_waymo``; a tiny
 one is generated in a temporary folder if it is missing) through each config's own
-``WaymoDataset`` pipeline (test mode, 1 or 4 frames), so the models see realistic clouds. Every
+``WaymoDataset`` pipeline (test mode, 1 to 8 frames), so the models see realistic clouds. Every
 model runs ``predict`` on the same frames, batch size 1, after one warm-up frame; the models take
-turns frame by frame so that machine load hits them alike. Latency covers voxelization to NMS
-(not data loading); for a two-stage model (MSF, PTT) it is split into the RPN's proposals and the
-second stage, and its parameter count is the second stage's (the RPN's is its CP-4f row); a
-two-stage config whose RPN checkpoint is missing (the real-Waymo ones) is listed as not built.
-PTT is timed on frames from 31 on, with the proposal bank holding the previous frames: its RPN
-column is the bank's one RPN pass for the new frame (plus reading the history), and the bank's
-memory is printed below the table.
+turns frame by frame so that machine load hits them alike. The frames start where no model's
+input is padded at the sequence start (frame 3 with a 4-frame input, 7 with MSF-8f's, 31 with
+PTT's proposal history), so that a multi-frame model reads as many points as it will mid-run.
+Latency covers voxelization to NMS (not data loading); for a two-stage model (MSF, PTT) it is
+split into the RPN's proposals and the second stage, and its parameter count is the second
+stage's (the RPN's is its CP-4f row); a two-stage config whose RPN checkpoint is missing (the
+real-Waymo ones) is listed as not built. PTT is timed with the proposal bank holding the
+previous frames: its RPN column is the bank's one RPN pass for the new frame (plus reading the
+history), and the bank's memory is printed below the table.
 Peak memory of one ``predict`` is measured in a fresh process per model (so no
 model reuses memory another freed): CUDA ``max_memory_allocated``, or on CPU the rise of the
 process's peak resident set (``VmHWM``, reset through ``/proc/self/clear_refs``).
@@ -72,6 +74,7 @@ import torch
 
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import build_dataloader
+from pcdet_atlas.datasets.multiframe import SequenceConfig
 from pcdet_atlas.models import build_network_from_config, load_data_to_device
 from pcdet_atlas.models.detectors import PTT, TwoStageDetector
 from pcdet_atlas.registry import DETECTORS
@@ -105,8 +108,10 @@ def _rss_kib() -> int:
     return 0
 
 
-def _peak_memory_mib(cfg_file: str, data_path: str, device: str, trained: bool) -> float:
-    """Peak memory of one ``predict`` on the first val frame (PTT: frame 31, with a full
+def _peak_memory_mib(
+    cfg_file: str, data_path: str, device: str, trained: bool, start: int
+) -> float:
+    """Peak memory of one ``predict`` on val frame ``start`` (PTT: with the bank holding its
     proposal history), in a fresh process (MiB).
 
     CUDA: ``max_memory_allocated`` above what model and batch hold. CPU: rise of the process's
@@ -114,15 +119,14 @@ def _peak_memory_mib(cfg_file: str, data_path: str, device: str, trained: bool) 
     """
     cfg = cfg_from_yaml_file(cfg_file)
     dev = torch.device(device)
-    start = _history_of(cfg)
     cfg, batches, dataset = _config_frames(cfg_file, Path(data_path), 1, dev, start)
     batch = batches[0]
     torch.manual_seed(0)
     model = build_network_from_config(cfg).to(dev).eval()
     if trained:
         model.load_params_from_file(REPO_ROOT / cfg.ATLAS.CHECKPOINT)
-    if start:  # the bank holds the 31 previous frames' proposals; the frame's own RPN pass
-        batch = _warm_bank(model, dataset, batch, dev).attach(batch, batch)  # is not counted
+    if _reads_proposal_history(cfg):  # the bank holds the previous frames' proposals; the
+        batch = _warm_bank(model, dataset, batch, dev).attach(batch, batch)  # RPN's not counted
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
         torch.cuda.reset_peak_memory_stats(dev)
@@ -381,9 +385,9 @@ def reuse_table(cfg_files: list[str], data_path: Path, args, device: torch.devic
     )
 
     print(f"\nevaluation suite with and without reuse, {data_path.name}, batch 1, {device}")
-    print("| config | variants | frames | recomputed (reuse) | s without reuse | s with reuse | "
-          "ratio |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|")
+    print("| config | variants | frames | recomputed (reuse) | RPN frames without / with reuse | "
+          "s without reuse | s with reuse | ratio |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|")
     for cfg_file in cfg_files:
         cfg = cfg_from_yaml_file(cfg_file)
         cfg.DATA_CONFIG.DATA_PATH = str(data_path)
@@ -393,8 +397,10 @@ def reuse_table(cfg_files: list[str], data_path: Path, args, device: torch.devic
         variants = resolve_variants(args.reuse_attacks, cfg.get("ATLAS", {}))
         attacks = build_variant_attacks(variants, data_path)
         seconds = {False: 0.0, True: 0.0}
+        rpn = {False: 0, True: 0}  # frames through a proposal bank's RPN (PTT)
         frames = recomputed = 0
         clean = None
+        proposals: dict = {}  # the clean run's proposal bank, seeding the reusing runs
         for name, attack in attacks.items():
             entries = {}
             for reuse in (False, True) if clean is not None else (False,):
@@ -404,17 +410,22 @@ def reuse_table(cfg_files: list[str], data_path: Path, args, device: torch.devic
                     device=device, batch_size=1, dist=False, workers=args.workers, seed=0,
                     temporal_window=cfg.ATLAS.get("TEMPORAL_WINDOW"), clean_det_annos=clean,
                     out_dir=None, show_progress=False, reuse_clean=reuse,
+                    clean_proposals=proposals,
                 )  # fmt: skip
                 elapsed = time.perf_counter() - t0
                 entries[reuse] = entry
+                bank = entry["extra"].get("proposal_bank", {}).get("rpn_frames", 0)
                 if clean is None:  # the clean run is the same in both suites
                     seconds[False] += elapsed
                     seconds[True] += elapsed
+                    rpn[False] += bank
+                    rpn[True] += bank
                     frames += entry["num_frames"]
                     recomputed += entry["num_frames"]
                     clean = annos
                 else:
                     seconds[reuse] += elapsed
+                    rpn[reuse] += bank
             if True in entries:
                 frames += entries[False]["num_frames"]
                 recomputed += entries[True]["num_recomputed_frames"]
@@ -423,8 +434,9 @@ def reuse_table(cfg_files: list[str], data_path: Path, args, device: torch.devic
                         for e in (entries[False], entries[True]))  # fmt: skip
                 if a != b:
                     raise SystemExit(f"{cfg_file} {name}: reuse changed the results")
+        passes = f"{rpn[False]:,} / {rpn[True]:,}" if rpn[False] else "-"
         print(f"| {Path(cfg_file).relative_to(REPO_ROOT / 'cfgs')} | {len(attacks)} | {frames:,} | "
-              f"{recomputed:,} | {seconds[False]:.0f} | {seconds[True]:.0f} | "
+              f"{recomputed:,} | {passes} | {seconds[False]:.0f} | {seconds[True]:.0f} | "
               f"{seconds[False] / seconds[True]:.2f}x |")  # fmt: skip
 
 
@@ -447,11 +459,18 @@ def _config_frames(
     return cfg, batches, dataset
 
 
-def _history_of(cfg) -> int:
-    """Previous frames of proposals a config's model reads (PTT: ``NUM_HISTORY``; others 0)."""
-    if DETECTORS.get(cfg.MODEL.NAME) is not PTT:
-        return 0
-    return int(cfg.MODEL.ROI_HEAD.get("NUM_HISTORY", 31))
+def _reads_proposal_history(cfg) -> bool:
+    return DETECTORS.get(cfg.MODEL.NAME) is PTT
+
+
+def _first_full_frame(cfg) -> int:
+    """The first val frame whose model input is all real frames, none padded at the sequence
+    start: the point history of a multi-frame input, PTT's ``NUM_HISTORY`` previous frames."""
+    sequence_cfg = SequenceConfig.from_config(cfg.DATA_CONFIG.get("SEQUENCE_CONFIG"))
+    points = sequence_cfg.num_frames - 1 if sequence_cfg is not None else 0
+    if not _reads_proposal_history(cfg):
+        return points
+    return max(points, int(cfg.MODEL.ROI_HEAD.get("NUM_HISTORY", 31)))
 
 
 def _warm_bank(model, dataset, batch, device: torch.device) -> ProposalBank:
@@ -522,8 +541,9 @@ def vfe_forms_table(cfg_files: list[str], data_path: Path, args, device: torch.d
 def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.device) -> None:
     """Print latency / peak memory / L2 mAP of each config, models taking turns per frame."""
     runs, unbuilt = [], []
+    # every model on the same frames, from the first one whose input no model pads
+    start = max(_first_full_frame(cfg_from_yaml_file(c)) for c in cfg_files)
     for cfg_file in cfg_files:
-        start = _history_of(cfg_from_yaml_file(cfg_file))
         cfg, batches, dataset = _config_frames(cfg_file, data_path, args.frames + 1, device, start)
         torch.manual_seed(0)
         try:
@@ -543,14 +563,14 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
         )  # fmt: skip
         if getattr(model, "lot", None) is not None:  # time LOT inside the frames
             runs[-1]["lot_times"] = _time_module(model.lot)
-        if start:  # PTT: frames from 31 on, the bank already holding their history
+        if _reads_proposal_history(cfg):  # PTT: the bank already holding the frames' history
             runs[-1]["bank"] = _warm_bank(model, dataset, batches[0], device)
 
     ctx = multiprocessing.get_context("spawn")
     for run in runs:  # peak memory in a fresh process per model (no allocator reuse), warm-up
         with ctx.Pool(1) as pool:
             run["peak_mib"] = pool.apply(
-                _peak_memory_mib, (run["cfg"], str(data_path), str(device), run["trained"])
+                _peak_memory_mib, (run["cfg"], str(data_path), str(device), run["trained"], start)
             )
         warm = run["batches"][0]
         run["model"].predict(run["bank"].attach(warm, warm) if "bank" in run else warm)
@@ -761,7 +781,7 @@ def main() -> None:
         print(f"no dataset at {args.data_path}: generating a tiny one in {data_path}")
         create_synthetic_waymo(
             data_path, num_sequences={"train": 1, "val": 1},
-            frames_per_sequence={"train": 10, "val": max(args.frames + 2, 34 + args.share_frames)},
+            frames_per_sequence={"train": 10, "val": max(args.frames + 33, 34 + args.share_frames)},
             seed=0,
         )  # fmt: skip
 
