@@ -25,6 +25,7 @@ from pcdet_atlas.evaluation.results.report import (
     FIGURES,
     centre_gap_table,
     collect_results,
+    confident_phantom_table,
     lot_ablation_table,
     summary_table,
     write_report,
@@ -126,6 +127,7 @@ def test_report_has_every_table_row_and_figure(models, tmp_path):
     text = out["report"].read_text()
     for section in ("## Models", "## Point injection (paper Table 3)",
                     "## Point removal (paper Table 4)", "## LOT ablation: PHiM vs PHiM+LOT",
+                    "## Phantoms detected with confidence above 0.7 (paper Fig. 5)",
                     "## Centre gap under removal", "## Robustness ranks", "## Figures",
                     "## Per-model results"):  # fmt: skip
         assert section in text, section
@@ -141,7 +143,7 @@ def test_report_has_every_table_row_and_figure(models, tmp_path):
         assert f"]({name})" in text
     assert set(out["figures"]) == set(FIGURES)
     tex = out["latex"].read_text()
-    assert tex.count("\\begin{tabular}") == 5 and "\\textbf{" in tex and "PHiM+LOT" in tex
+    assert tex.count("\\begin{tabular}") == 6 and "\\textbf{" in tex and "PHiM+LOT" in tex
     assert "rem\\_40" not in tex or "missing" in tex
 
 
@@ -158,6 +160,13 @@ def test_summary_lot_and_centre_gap_tables(models):
     a, b = models[2]["variants"]["inj_rel_easy"], models[3]["variants"]["inj_rel_easy"]
     assert inj[-2].strip() == f"{b['asr'] - a['asr']:+.2f}"
     assert inj[3].strip().startswith(f"{a['asr']:.2f} [")  # with its interval
+    confident = confident_phantom_table(models).splitlines()
+    assert confident[0] == "| Model | Rel-Fixed Easy | Global Hard |"
+    conf = models[0]["variants"]["inj_global_hard"]["confidence"]
+    assert conf["num_detected"] > 0  # scores drawn in [0.3, 1): some above 0.7, some not
+    want = f"{conf['fraction_above']:.2f} ({conf['num_above']}/{conf['num_detected']})"
+    assert want in next(r for r in confident if r.startswith("| CenterPoint |"))
+    assert 0 < conf["num_above"] < conf["num_detected"]
     gap = centre_gap_table(models).splitlines()
     assert gap[0] == "| Model | Removal 10 | Removal 40 |"
     cp4f = next(r for r in gap if r.startswith("| CP-4f |"))

@@ -4,9 +4,10 @@
 Tables: a model summary (clean L2 mAP/mAPH, input frames, clean rank, model time per frame,
 mean ASR per family), the injection table (paper Table 3) and the removal table (Table 4) with
 per-variant L2 mAP and ASR with its run-level interval (best and second best marked), the LOT
-ablation (Tables 5 and 6) when both models of the pair are given, the centre-gap table, the
-robustness ranks, and each model's full table with its runs and targets. A model that was not
-evaluated on a variant shows ``missing`` there, never a zero.
+ablation (Tables 5 and 6) when both models of the pair are given, the share of phantoms
+detected with confidence above 0.7 (Fig. 5), the centre-gap table, the robustness ranks, and
+each model's full table with its runs and targets. A model that was not evaluated on a
+variant shows ``missing`` there, never a zero.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ __all__ = [
     "FIGURES",
     "centre_gap_table",
     "collect_results",
+    "confident_phantom_table",
     "lot_ablation_table",
     "summary_table",
     "write_report",
@@ -198,6 +200,40 @@ def centre_gap_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> 
     return _render(fmt, None, header, rows)
 
 
+def confident_phantom_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str | None:
+    """Per model and injection variant, the share of detected phantoms scoring above the
+    confidence threshold (0.7, the paper's Fig. 5 statement), with the counts, and the median
+    phantom score; None when no model has an injection variant with confidence data."""
+    names = ordered_variants(
+        {
+            n
+            for r in results_list
+            for n, v in r["variants"].items()
+            if (v["confidence"] or {}).get("kind") == "injection"
+        }  # fmt: skip
+    )
+    if not names:
+        return None
+    header = ["Model", *(variant_label(n) for n in names)]
+    rows = []
+    for r in results_list:
+        row = [r["model"]]
+        for n in names:
+            entry = r["variants"].get(n)
+            conf = None if entry is None else entry["confidence"]
+            if entry is None:
+                row.append(MISSING)
+            elif conf is None or not conf["num_detected"]:
+                row.append("-")
+            else:
+                share = f"{conf['fraction_above']:.2f} ({conf['num_above']}/{conf['num_detected']})"
+                row.append(f"{share}, median {conf['median_score']:.2f}")
+        rows.append(row)
+    if fmt == "latex":
+        rows = [[latex_escape(c) for c in row] for row in rows]
+    return _render(fmt, None, header, rows)
+
+
 def _families_present(results_list: Sequence[Mapping]) -> list[str]:
     fams = {v["family"] for r in results_list for v in r["variants"].values()}
     return [f for f in ("injection", "removal") if f in fams] + sorted(
@@ -221,6 +257,9 @@ def _table_sections(results_list, fmt, lot_pair) -> list[tuple[str, str]]:
             f"LOT ablation: {lot_pair[0]} vs {lot_pair[1]} (paper Tables 5 and 6)",
             lot_ablation_table(by_name[lot_pair[0]], by_name[lot_pair[1]], fmt),
         ))  # fmt: skip
+    confident = confident_phantom_table(results_list, fmt)
+    if confident is not None:
+        sections.append(("Phantoms detected with confidence above 0.7 (paper Fig. 5)", confident))
     gap = centre_gap_table(results_list, fmt)
     if gap is not None:
         sections.append(("Centre gap under removal (clean peak - attacked peak)", gap))
