@@ -26,6 +26,7 @@ from pcdet_atlas.evaluation.results.report import (
     centre_gap_table,
     collect_results,
     confident_phantom_table,
+    lifecycle_table,
     lot_ablation_table,
     summary_table,
     write_report,
@@ -127,6 +128,7 @@ def test_report_has_every_table_row_and_figure(models, tmp_path):
     text = out["report"].read_text()
     for section in ("## Models", "## Point injection (paper Table 3)",
                     "## Point removal (paper Table 4)", "## LOT ablation: PHiM vs PHiM+LOT",
+                    "## Attack onset and decay (paper Finding 3)",
                     "## Phantoms detected with confidence above 0.7 (paper Fig. 5)",
                     "## Centre gap under removal", "## Robustness ranks", "## Figures",
                     "## Per-model results"):  # fmt: skip
@@ -143,7 +145,7 @@ def test_report_has_every_table_row_and_figure(models, tmp_path):
         assert f"]({name})" in text
     assert set(out["figures"]) == set(FIGURES)
     tex = out["latex"].read_text()
-    assert tex.count("\\begin{tabular}") == 6 and "\\textbf{" in tex and "PHiM+LOT" in tex
+    assert tex.count("\\begin{tabular}") == 7 and "\\textbf{" in tex and "PHiM+LOT" in tex
     assert "rem\\_40" not in tex or "missing" in tex
 
 
@@ -160,6 +162,17 @@ def test_summary_lot_and_centre_gap_tables(models):
     a, b = models[2]["variants"]["inj_rel_easy"], models[3]["variants"]["inj_rel_easy"]
     assert inj[-2].strip() == f"{b['asr'] - a['asr']:+.2f}"
     assert inj[3].strip().startswith(f"{a['asr']:.2f} [")  # with its interval
+    lifecycle = lifecycle_table(models).splitlines()
+    assert lifecycle[0] == ("| Model | W | injection k=0 | injection k=1 | injection k=W | "
+                            "injection k=W+1 | removal k=0 | removal k=1 | removal k=W | "
+                            "removal k=W+1 |")  # fmt: skip
+    row = next(r for r in lifecycle if r.startswith("| CP-4f |")).split("|")[2:-1]
+    lcs = [models[1]["variants"][n]["lifecycle"] for n in ("rem_10",)]  # rem_40 not evaluated
+    for cell, k in zip(row[5:], (0, 1, WINDOW, WINDOW + 1)):
+        hits = sum(lc["num_success"][k] for lc in lcs)
+        total = sum(lc["num_targets"][k] for lc in lcs)
+        assert cell.strip() == f"{hits / total:.2f} ({hits}/{total})" and total == 4
+    assert row[0].strip() == str(WINDOW)
     confident = confident_phantom_table(models).splitlines()
     assert confident[0] == "| Model | Rel-Fixed Easy | Global Hard |"
     conf = models[0]["variants"]["inj_global_hard"]["confidence"]

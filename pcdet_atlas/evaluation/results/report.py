@@ -4,10 +4,11 @@
 Tables: a model summary (clean L2 mAP/mAPH, input frames, clean rank, model time per frame,
 mean ASR per family), the injection table (paper Table 3) and the removal table (Table 4) with
 per-variant L2 mAP and ASR with its run-level interval (best and second best marked), the LOT
-ablation (Tables 5 and 6) when both models of the pair are given, the share of phantoms
-detected with confidence above 0.7 (Fig. 5), the centre-gap table, the robustness ranks, and
-each model's full table with its runs and targets. A model that was not evaluated on a
-variant shows ``missing`` there, never a zero.
+ablation (Tables 5 and 6) when both models of the pair are given, the lifecycle's onset and
+decay (Finding 3: ASR at k = 0, 1, W, W + 1), the share of phantoms detected with confidence above
+0.7 (Fig. 5), the centre-gap table, the robustness ranks, and each model's full table with its
+runs and targets. A model that was not evaluated on a variant shows ``missing`` there, never a
+zero.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ __all__ = [
     "centre_gap_table",
     "collect_results",
     "confident_phantom_table",
+    "lifecycle_table",
     "lot_ablation_table",
     "summary_table",
     "write_report",
@@ -234,6 +236,43 @@ def confident_phantom_table(results_list: Sequence[Mapping], fmt: str = "markdow
     return _render(fmt, None, header, rows)
 
 
+def lifecycle_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str | None:
+    """The attack lifecycle at the positions the paper's Finding 3 compares, per model and family
+    (the family's variants pooled): k = 0 (the last clean frame: the clean model's own rate, a
+    missed removal target or a detection where the phantom will be), k = 1 (only the current
+    frame spoofed), k = W (the whole W-frame input spoofed) and k = W + 1 (the current frame
+    clean again, the rest of the input still spoofed), as ASR with the successes and targets
+    behind it (pooling repeats the clean k = 0 frames, which every variant shares); None
+    without lifecycle data."""
+    families = [f for f in _families_present(results_list)
+                if any(figures.family_variants(r, f) for r in results_list)]  # fmt: skip
+    header, rows = ["Model", "W"], []
+    positions = (("k=0", lambda w: 0), ("k=1", lambda w: 1), ("k=W", lambda w: w),
+                 ("k=W+1", lambda w: w + 1))  # fmt: skip
+    for family in families:
+        header += [f"{family} {label}" for label, _ in positions]
+    for r in results_list:
+        window, row = None, [r["model"]]
+        for family in families:
+            lcs = [r["variants"][n]["lifecycle"] for n in figures.family_variants(r, family)]
+            lcs = [lc for lc in lcs if lc is not None]
+            if not lcs:
+                row += ["-"] * len(positions)
+                continue
+            window = int(lcs[0]["window"])
+            for _, position in positions:
+                k = position(window)
+                hits = sum(lc["num_success"][lc["k"].index(k)] for lc in lcs if k in lc["k"])
+                total = sum(lc["num_targets"][lc["k"].index(k)] for lc in lcs if k in lc["k"])
+                row.append("-" if not total else f"{hits / total:.2f} ({hits}/{total})")
+        rows.append(row[:1] + ["-" if window is None else str(window)] + row[1:])
+    if not families or all(c == "-" for row in rows for c in row[2:]):
+        return None
+    if fmt == "latex":
+        rows = [[latex_escape(c) for c in row] for row in rows]
+    return _render(fmt, None, header, rows)
+
+
 def _families_present(results_list: Sequence[Mapping]) -> list[str]:
     fams = {v["family"] for r in results_list for v in r["variants"].values()}
     return [f for f in ("injection", "removal") if f in fams] + sorted(
@@ -257,6 +296,9 @@ def _table_sections(results_list, fmt, lot_pair) -> list[tuple[str, str]]:
             f"LOT ablation: {lot_pair[0]} vs {lot_pair[1]} (paper Tables 5 and 6)",
             lot_ablation_table(by_name[lot_pair[0]], by_name[lot_pair[1]], fmt),
         ))  # fmt: skip
+    lifecycle = lifecycle_table(results_list, fmt)
+    if lifecycle is not None:
+        sections.append(("Attack onset and decay (paper Finding 3)", lifecycle))
     confident = confident_phantom_table(results_list, fmt)
     if confident is not None:
         sections.append(("Phantoms detected with confidence above 0.7 (paper Fig. 5)", confident))
