@@ -223,10 +223,10 @@ def evaluate_variant(
     model; only the batches holding an attacked input run, in their full-run composition, so
     the result is bitwise that of a full run (docs/evaluation.md "Reusing clean predictions").
     The entry's ``num_reused_frames`` / ``num_recomputed_frames`` count both kinds.
-    ``clean_proposals`` (a dict; models with a proposal history, PTT): the clean variant
-    fills it with its proposal bank's frames, and a reusing run of another variant seeds its
-    bank with those of the frames whose RPN input the attack leaves untouched, so that only the
-    frames it changes go through the RPN again (:class:`ProposalBank`; still bitwise a full run).
+    ``clean_proposals`` (a dict; models with a proposal history, PTT): the clean variant fills it
+    with the frames its proposal bank proposed alone, and a reusing run of another variant seeds
+    its bank with those whose RPN input the attack leaves untouched, so that only the frames it
+    changes go through the RPN again (:class:`ProposalBank`; still bitwise a full run).
 
     Returns:
         ``(entry, det_annos)``: the ``results.json`` variant entry (None on ranks > 0) and the

@@ -42,7 +42,7 @@ def predict_dataset(
 
     For a model reading earlier frames' proposals (its :class:`ProposalBank`):
     ``proposal_seed`` seeds the bank (:meth:`ProposalBank.seed`), and ``proposals_out``
-    receives what the bank held at the end (:meth:`ProposalBank.held`).
+    receives the bank's seedable frames at the end (:meth:`ProposalBank.seedable`).
 
     Returns:
         ``(det_annos, extras)``: one OpenPCDet anno dict per frame of ``dataloader.dataset``
@@ -91,7 +91,7 @@ def predict_dataset(
         t_end = time.perf_counter()
     bar.close()
     if bank is not None and proposals_out is not None:
-        proposals_out.update(bank.held())
+        proposals_out.update(bank.seedable())
     if bank is not None and timings is not None:
         timings["bank"] = bank.stats()
     gathered = all_gather_objects(local) if world > 1 else [local]

@@ -14,9 +14,11 @@ a capacity that holds a window's frames, each frame is computed exactly once.
 
 Seeding (:meth:`ProposalBank.seed`): an attack variant's bank may start with the clean run's
 proposals of the frames whose RPN input the attack leaves untouched, so that only the frames
-it changes go through the RPN again. A seeded frame that turns up among a batch's current
-frames is computed again with its batch, as a full run computes it (the CPU RPN's output can
-depend on its batch at float32 rounding), so that a seeded run stays bitwise a full run.
+it changes go through the RPN again. Only frames the clean run proposed alone (a batch of one,
+or a history frame) are offered (:meth:`ProposalBank.seedable`): the CPU RPN's output can
+depend on its batch at float32 rounding, and a full run of the variant proposes such a frame
+alone too (it makes the same requests in the same order), so a seeded run stays bitwise a
+full run. At batch size 1 that is every frame.
 
 Memory: one float32 row of 11 values per proposal (44 bytes); a frame of ~250 proposals is
 ~11 KB, a 198-frame sequence ~2.2 MB. The bank holds at most ``capacity`` frames (default 4096,
@@ -86,7 +88,7 @@ class ProposalBank:
         self.variant = str(attack.variant) if attack is not None else "clean"
         self.rpn_sha256 = model.rpn_info["sha256"]
         self._frames: OrderedDict[tuple, np.ndarray] = OrderedDict()
-        self._seeded: set[tuple] = set()  # keys holding seeded rows, not yet computed here
+        self._alone: set[tuple] = set()  # keys whose proposals came from a batch of one
         self.rpn_frames = 0  # frames whose proposals were computed
         self.seeded = 0  # frames seeded (seed())
         self.rpn_calls = 0  # RPN forward passes (a batch's current frames share one)
@@ -95,29 +97,27 @@ class ProposalBank:
     def key(self, sequence_name: str, sample_idx: int) -> tuple:
         return (self.variant, str(sequence_name), int(sample_idx), self.rpn_sha256)
 
-    def _store(self, key: tuple, rows: np.ndarray, *, computed: bool = True) -> None:
+    def _store(self, key: tuple, rows: np.ndarray, *, alone: bool) -> None:
         rows.flags.writeable = False
-        self._frames.pop(key, None)  # a recomputed seeded frame counts as newest
         self._frames[key] = rows
-        if computed:
-            self.rpn_frames += 1
-            self._seeded.discard(key)
-        else:
-            self._seeded.add(key)
-            self.seeded += 1
+        if alone:
+            self._alone.add(key)
         while len(self._frames) > self.capacity:
-            self._seeded.discard(self._frames.popitem(last=False)[0])
+            self._alone.discard(self._frames.popitem(last=False)[0])
 
     def seed(self, rows_by_frame: Mapping[tuple[str, int], np.ndarray]) -> None:
-        """Start from given proposals ``{(sequence_name, sample_idx): (R, 11) rows}``: those of
-        frames whose RPN input is the same in this bank's dataset (the caller's check; the clean
-        run's :meth:`held` for the frames an attack leaves untouched, module docstring)."""
+        """Start from given proposals ``{(sequence_name, sample_idx): (R, 11) rows}`` of frames
+        proposed alone whose RPN input is the same in this bank's dataset (the caller's check:
+        the clean run's :meth:`seedable` for the frames an attack leaves untouched)."""
         for (sequence_name, sample_idx), rows in rows_by_frame.items():
-            self._store(self.key(sequence_name, sample_idx), rows, computed=False)
+            self._store(self.key(sequence_name, sample_idx), rows, alone=True)
+            self.seeded += 1
 
-    def held(self) -> dict[tuple[str, int], np.ndarray]:
-        """The proposals held, ``{(sequence_name, sample_idx): (R, 11) rows}`` (read-only)."""
-        return {(key[1], key[2]): rows for key, rows in self._frames.items()}
+    def seedable(self) -> dict[tuple[str, int], np.ndarray]:
+        """The proposals held that were proposed for their frame alone,
+        ``{(sequence_name, sample_idx): (R, 11) rows}`` (read-only; module docstring)."""
+        return {(key[1], key[2]): rows for key, rows in self._frames.items()
+                if key in self._alone}  # fmt: skip
 
     def frame(self, sequence_name: str, sample_idx: int) -> np.ndarray:
         """The proposals ``(R, 11)`` of a frame, in its own vehicle frame (computed if not
@@ -131,7 +131,8 @@ class ProposalBank:
         batch = load_data_to_device(self.dataset.collate_batch([sample]), self.device)
         self.rpn_calls += 1
         rows = proposal_rows(self.model.propose(batch)[0])
-        self._store(key, rows)
+        self._store(key, rows, alone=True)
+        self.rpn_frames += 1
         return rows
 
     def attach(self, batch: Mapping, batch_dev: Mapping) -> dict:
@@ -140,11 +141,11 @@ class ProposalBank:
         batch on the host (its ``sequence_name``, ``sample_idx``)."""
         frames = list(zip(batch["sequence_name"], (int(i) for i in batch["sample_idx"])))
         keys = [self.key(seq, idx) for seq, idx in frames]
-        fresh = all(k not in self._frames or k in self._seeded for k in keys)
-        if fresh and len(set(keys)) == len(keys):  # the batch's frames as a full run has them
+        if all(k not in self._frames for k in keys) and len(set(keys)) == len(keys):
             self.rpn_calls += 1
             for key, proposal in zip(keys, self.model.propose(batch_dev)):
-                self._store(key, proposal_rows(proposal))
+                self._store(key, proposal_rows(proposal), alone=len(keys) == 1)
+                self.rpn_frames += 1
         samples = []
         for seq, idx in frames:
             current = self.frame(seq, idx)

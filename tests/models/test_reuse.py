@@ -205,8 +205,9 @@ def test_batch_composition_and_reuse_at_batch_size_3(name, synthetic_root, injec
 @pytest.mark.slow
 def test_ptt_seeded_bank_at_batch_size_3(synthetic_root, injection):
     """PTT at batch size 3: a reusing run whose proposal bank starts from the clean run's
-    (frames whose RPN input the attack leaves untouched) is bitwise a full run; the batch that
-    straddles the run start (30, 35, 40) goes through the RPN whole, its seeded frame 30 too."""
+    (frames whose RPN input the attack leaves untouched, proposed alone) is bitwise a full run.
+    The clean run proposed the loader's frames (0, 5, ..) in batches of 3: they are not seeded,
+    and the batch that straddles the run start (30, 35, 40) goes through the RPN whole."""
     model, cfg = setup_model("ptt_32f", synthetic_root)
     proposals = {}
     _, clean = run(model, cfg, ATTACKS / "clean.yaml", None, reuse=False, batch_size=3,
@@ -214,5 +215,6 @@ def test_ptt_seeded_bank_at_batch_size_3(synthetic_root, injection):
     full_entry, reuse_entry = check_variant(model, cfg, injection, clean, proposals, batch_size=3)
     bank = reuse_entry["extra"]["proposal_bank"]
     assert full_entry["extra"]["proposal_bank"]["rpn_frames"] == 66
-    # seeded 0..31; through the RPN: 32..65, and 30 again with its batch
-    assert bank["seeded"] == 32 and bank["rpn_frames"] == 34 + 1
+    # seeded: the history frames 1..31 that are not loader frames (25); through the RPN: 32..65
+    # and the loader frames 0, 5, .., 30 (7)
+    assert bank["seeded"] == 25 and bank["rpn_frames"] == 34 + 7
