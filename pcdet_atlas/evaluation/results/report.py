@@ -170,16 +170,15 @@ def lot_ablation_table(base: Mapping, defended: Mapping, fmt: str = "markdown") 
     return _render(fmt, None, header, rows)
 
 
-def centre_gap_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str | None:
-    """Per model and removal variant, the centre gap: the peak of the clean run's scores of the
-    surviving targets minus the peak of their attacked scores (docs/evaluation.md
-    "Confidence"); None when no model has a removal variant with confidence data."""
+def _confidence_table(results_list, kind: str, cell, fmt: str) -> str | None:
+    """A row per model, a column per variant with ``kind`` confidence data (``injection`` /
+    ``removal``); ``cell(confidence)`` writes an entry's cell. None without such a variant."""
     names = ordered_variants(
         {
             n
             for r in results_list
             for n, v in r["variants"].items()
-            if (v["confidence"] or {}).get("kind") == "removal"
+            if (v["confidence"] or {}).get("kind") == kind
         }  # fmt: skip
     )
     if not names:
@@ -190,50 +189,38 @@ def centre_gap_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> 
         row = [r["model"]]
         for n in names:
             entry = r["variants"].get(n)
-            if entry is None:
-                row.append(MISSING)
-            elif entry["confidence"] is None or entry["confidence"]["peak_gap"] is None:
-                row.append("-")
-            else:
-                row.append(f"{entry['confidence']['peak_gap']:.3f}")
+            row.append(MISSING if entry is None else cell(entry["confidence"]))
         rows.append(row)
     if fmt == "latex":
         rows = [[latex_escape(c) for c in row] for row in rows]
     return _render(fmt, None, header, rows)
+
+
+def centre_gap_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str | None:
+    """Per model and removal variant, the centre gap: the peak of the clean run's scores of the
+    surviving targets minus the peak of their attacked scores (docs/evaluation.md
+    "Confidence"); None when no model has a removal variant with confidence data."""
+
+    def cell(conf):
+        if conf is None or conf["peak_gap"] is None:
+            return "-"
+        return f"{conf['peak_gap']:.3f}"
+
+    return _confidence_table(results_list, "removal", cell, fmt)
 
 
 def confident_phantom_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str | None:
     """Per model and injection variant, the share of detected phantoms scoring above the
     confidence threshold (0.7, the paper's Fig. 5 statement), with the counts, and the median
     phantom score; None when no model has an injection variant with confidence data."""
-    names = ordered_variants(
-        {
-            n
-            for r in results_list
-            for n, v in r["variants"].items()
-            if (v["confidence"] or {}).get("kind") == "injection"
-        }  # fmt: skip
-    )
-    if not names:
-        return None
-    header = ["Model", *(variant_label(n) for n in names)]
-    rows = []
-    for r in results_list:
-        row = [r["model"]]
-        for n in names:
-            entry = r["variants"].get(n)
-            conf = None if entry is None else entry["confidence"]
-            if entry is None:
-                row.append(MISSING)
-            elif conf is None or not conf["num_detected"]:
-                row.append("-")
-            else:
-                share = f"{conf['fraction_above']:.2f} ({conf['num_above']}/{conf['num_detected']})"
-                row.append(f"{share}, median {conf['median_score']:.2f}")
-        rows.append(row)
-    if fmt == "latex":
-        rows = [[latex_escape(c) for c in row] for row in rows]
-    return _render(fmt, None, header, rows)
+
+    def cell(conf):
+        if conf is None or not conf["num_detected"]:
+            return "-"
+        share = f"{conf['fraction_above']:.2f} ({conf['num_above']}/{conf['num_detected']})"
+        return f"{share}, median {conf['median_score']:.2f}"
+
+    return _confidence_table(results_list, "injection", cell, fmt)
 
 
 def lifecycle_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str | None:
