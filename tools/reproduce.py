@@ -52,8 +52,14 @@ def shipped_configs() -> list[Path]:
     for path in sorted((REPO_ROOT / "cfgs" / "atlas" / "synthetic").rglob("*.yaml")):
         ckpt = cfg_from_yaml_file(path).get("ATLAS", {}).get("CHECKPOINT")
         if ckpt and (REPO_ROOT / ckpt).is_file():
-            out.append(path)
+            out.append(path.relative_to(REPO_ROOT))  # as results.json and the report name it
     return out
+
+
+def repo_relative(path: Path) -> Path:
+    """``path`` relative to the repository root when it lies inside it (absolute otherwise)."""
+    path = path.resolve()
+    return path.relative_to(REPO_ROOT) if path.is_relative_to(REPO_ROOT) else path
 
 
 def parse_args(argv=None):
@@ -82,7 +88,7 @@ def parse_args(argv=None):
 def ensure_trace_libraries(root: Path, cfgs: list[Path], attacks: str) -> None:
     """Build the trace library of every requested injection variant that lacks one."""
     for cfg_path in cfgs:
-        atlas_cfg = cfg_from_yaml_file(cfg_path).get("ATLAS", {})
+        atlas_cfg = cfg_from_yaml_file(REPO_ROOT / cfg_path).get("ATLAS", {})
         for _, attack_path in resolve_variants(attacks, atlas_cfg):
             library = cfg_from_yaml_file(attack_path).get("TRACE_LIBRARY")
             if library is None:
@@ -111,7 +117,7 @@ def test_argv(cfg: Path, args, root: Path, threads: int) -> list[str]:
 def results_path(cfg: Path, args, root: Path) -> Path:
     """Where ``tools/test.py`` (:func:`test_argv`) writes the config's ``results.json``."""
     test = load_tool("test")
-    model_cfg = load_cfg(str(cfg), ["DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs])
+    model_cfg = load_cfg(str(REPO_ROOT / cfg), ["DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs])
     output_root = args.output_root or str(REPO_ROOT / "output")
     ckpt = test.resolve_checkpoint(None, model_cfg.get("ATLAS", {}))
     split = str(model_cfg.DATA_CONFIG.DATA_SPLIT["test"])
@@ -121,13 +127,13 @@ def results_path(cfg: Path, args, root: Path) -> Path:
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
-    root = Path(args.data_path)
+    root = Path(args.data_path).resolve()  # the tools/test.py processes run in the repo root
     if not (root / "ImageSets").is_dir():
         raise FileNotFoundError(
             f"{root}: no synthetic dataset there (generate it: see docs/synthetic.md "
             "'A larger validation split', or run make reproduce)"
         )
-    cfgs = [Path(c) for c in args.cfgs] if args.cfgs else shipped_configs()
+    cfgs = [repo_relative(Path(c)) for c in args.cfgs] if args.cfgs else shipped_configs()
     ensure_trace_libraries(root, cfgs, args.attacks)
     threads = args.threads or max(1, (os.cpu_count() or 1) // args.jobs)
     out_dir = Path(args.out)
@@ -165,7 +171,9 @@ def main(argv=None) -> dict:
         log.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
         with log.open("w") as stream:
-            code = subprocess.run(command, stdout=stream, stderr=subprocess.STDOUT).returncode
+            code = subprocess.run(
+                command, stdout=stream, stderr=subprocess.STDOUT, cwd=REPO_ROOT
+            ).returncode
         if code != 0:
             raise RuntimeError(f"{cfg}: tools/test.py exited with {code}; its output: {log}")
         wall = round(time.perf_counter() - t0, 1)

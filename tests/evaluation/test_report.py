@@ -237,7 +237,10 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     assert "## How these results were produced" in text and "| CenterPoint |" in text
     assert "2 model(s) at a time with 1 torch thread(s) each" in text
     run = out["run"]
-    assert run["total_wall_s"] > 0 and [r["config"] for r in run["runs"]] == list(map(str, cfgs))
+    # configs named from the repository root, as results.json and the report name them
+    want = [f"cfgs/atlas/synthetic/{name}.yaml" for name in ("centerpoint", "cp4f")]
+    assert run["total_wall_s"] > 0 and [r["config"] for r in run["runs"]] == want
+    assert "| `cfgs/atlas/synthetic/cp4f.yaml` |" in text
     assert json.loads((tmp_path / "report" / "run.json").read_text())["runs"] == run["runs"]
     results = collect_results([run["runs"][0]["results"]])[0][1]
     rem = results["variants"]["rem_30"]
