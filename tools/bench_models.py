@@ -74,11 +74,11 @@ import torch
 
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import build_dataloader
-from pcdet_atlas.datasets.multiframe import SequenceConfig
 from pcdet_atlas.models import build_network_from_config, load_data_to_device
 from pcdet_atlas.models.detectors import PTT, TwoStageDetector
 from pcdet_atlas.registry import DETECTORS
 from pcdet_atlas.train_utils import eval_one_epoch
+from pcdet_atlas.train_utils.atlas_eval import point_history
 from pcdet_atlas.train_utils.proposal_bank import ProposalBank
 from pcdet_atlas.train_utils.setup import device_arg
 
@@ -466,8 +466,7 @@ def _reads_proposal_history(cfg) -> bool:
 def _first_full_frame(cfg) -> int:
     """The first val frame whose model input is all real frames, none padded at the sequence
     start: the point history of a multi-frame input, PTT's ``NUM_HISTORY`` previous frames."""
-    sequence_cfg = SequenceConfig.from_config(cfg.DATA_CONFIG.get("SEQUENCE_CONFIG"))
-    points = sequence_cfg.num_frames - 1 if sequence_cfg is not None else 0
+    points = point_history(cfg.DATA_CONFIG)
     if not _reads_proposal_history(cfg):
         return points
     return max(points, int(cfg.MODEL.ROI_HEAD.get("NUM_HISTORY", 31)))

@@ -16,13 +16,14 @@ docs/synthetic.md "A larger validation split".
 torch threads (default: the cores divided among the jobs); its output goes to ``reproduce.log``
 in the folder above the model's ``reproduce/results.json``. The run resumes: ``run.json`` in
 ``--out`` records each model when it finishes, and a later call with the same data, variants and
-``--set`` skips the models it lists whose ``results.json`` is still there (``--overwrite``
-evaluates them again).
+``--set`` skips the models it lists whose ``results.json`` is still there and whose merged
+config and checkpoint are unchanged (``--overwrite`` evaluates them all again).
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -37,8 +38,9 @@ from pathlib import Path
 from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.evaluation.results import collect_results, write_report
+from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.train_utils.atlas_eval import resolve_variants
-from pcdet_atlas.train_utils.setup import load_cfg, output_dir_for
+from pcdet_atlas.train_utils.setup import load_cfg
 from pcdet_atlas.utils.common import load_tool
 
 DEFAULT_DATA = REPO_ROOT / "data" / "synthetic_waymo_val6"
@@ -114,15 +116,18 @@ def test_argv(cfg: Path, args, root: Path, threads: int) -> list[str]:
     return argv + ["--set", "DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs]
 
 
-def results_path(cfg: Path, args, root: Path) -> Path:
-    """Where ``tools/test.py`` (:func:`test_argv`) writes the config's ``results.json``."""
+def evaluation_of(cfg: Path, args, root: Path) -> tuple[Path, dict]:
+    """Where ``tools/test.py`` (:func:`test_argv`) writes the config's ``results.json``, and what
+    the results depend on beyond the run's setting: the merged config and the checkpoint's
+    bytes (SHA-256 each), so that a resumed run never keeps results of another model."""
     test = load_tool("test")
     model_cfg = load_cfg(str(REPO_ROOT / cfg), ["DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs])
     output_root = args.output_root or str(REPO_ROOT / "output")
     ckpt = test.resolve_checkpoint(None, model_cfg.get("ATLAS", {}))
-    split = str(model_cfg.DATA_CONFIG.DATA_SPLIT["test"])
-    eval_dir = output_dir_for(model_cfg, output_root, TAG) / "eval" / test.eval_name(ckpt)
-    return eval_dir / split / TAG / "results.json"
+    merged = json.dumps(model_cfg, sort_keys=True, default=str).encode()
+    model = {"config_sha256": hashlib.sha256(merged).hexdigest(),
+             "checkpoint_sha256": file_sha256(ckpt)}  # fmt: skip
+    return test.eval_dir(model_cfg, output_root, TAG, ckpt, TAG) / "results.json", model
 
 
 def main(argv=None) -> dict:
@@ -139,7 +144,7 @@ def main(argv=None) -> dict:
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     run_file = out_dir / "run.json"
-    setting = {"data_path": str(root.resolve()), "attacks": args.attacks,
+    setting = {"data_path": str(root), "attacks": args.attacks,
                "set": list(args.set_cfgs), "no_reuse": args.no_reuse}  # fmt: skip
     done, elapsed_before = {}, 0.0
     if run_file.is_file() and not args.overwrite:
@@ -159,11 +164,12 @@ def main(argv=None) -> dict:
             run_file.write_text(json.dumps(state, indent=2) + "\n")
 
     def evaluate(cfg: Path) -> None:
-        if str(cfg) in done:
-            print(f"{cfg}: done in an earlier call, {done[str(cfg)]['results']}", flush=True)
-            record(done[str(cfg)])
+        results, model = evaluation_of(cfg, args, root)
+        earlier = done.get(str(cfg))
+        if earlier is not None and earlier.get("model") == model:
+            print(f"{cfg}: done in an earlier call, {earlier['results']}", flush=True)
+            record(earlier)
             return
-        results = results_path(cfg, args, root)
         command = [sys.executable, str(REPO_ROOT / "tools" / "test.py"),
                    *test_argv(cfg, args, root, threads)]  # fmt: skip
         print("$ " + shlex.join(command[1:]), flush=True)
@@ -178,7 +184,7 @@ def main(argv=None) -> dict:
             raise RuntimeError(f"{cfg}: tools/test.py exited with {code}; its output: {log}")
         wall = round(time.perf_counter() - t0, 1)
         print(f"{cfg}: {wall / 60:.1f} min, {results}", flush=True)
-        record({"config": str(cfg), "results": str(results), "wall_s": wall})
+        record({"config": str(cfg), "results": str(results), "wall_s": wall, "model": model})
 
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         for future in [pool.submit(evaluate, cfg) for cfg in cfgs]:

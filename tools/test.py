@@ -117,6 +117,14 @@ def eval_name(ckpt: Path) -> str:
     return f"epoch_{m.group(1)}" if m else ckpt.stem
 
 
+def eval_dir(cfg, output_root: str, extra_tag: str, ckpt: Path, eval_tag: str) -> Path:
+    """Where one checkpoint's evaluation is written (module docstring):
+    ``<output_root>/<group>/<tag>/<extra_tag>/eval/<name>/<split>/<eval_tag>/``."""
+    split = str(cfg.DATA_CONFIG.DATA_SPLIT["test"])
+    eval_root = output_dir_for(cfg, output_root, extra_tag) / "eval"
+    return eval_root / eval_name(ckpt) / split / eval_tag
+
+
 def checkpoints_to_evaluate(args, cfg, atlas_cfg) -> list[Path]:
     """The one checkpoint of ``--ckpt``, or those of ``--eval_all`` in epoch order."""
     if not args.eval_all:
@@ -157,9 +165,8 @@ def main(argv=None) -> dict:
     if batch_size % world:
         raise ValueError(f"--batch_size {batch_size} is not divisible by {world} processes")
 
-    split = str(cfg.DATA_CONFIG.DATA_SPLIT["test"])
-    eval_root = output_dir_for(cfg, args.output_root, args.extra_tag) / "eval"
-    out_dirs = [eval_root / eval_name(ckpt) / split / args.eval_tag for ckpt in checkpoints]
+    out_dirs = [eval_dir(cfg, args.output_root, args.extra_tag, ckpt, args.eval_tag)
+                for ckpt in checkpoints]  # fmt: skip
     for out_dir in out_dirs:
         check_eval_dir(out_dir, args.overwrite)
     if dist:  # every rank has checked before rank 0 writes

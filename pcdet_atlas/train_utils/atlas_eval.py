@@ -31,7 +31,7 @@ from pcdet_atlas.datasets.loader import ContiguousBatchSampler, worker_init_fn
 from pcdet_atlas.datasets.multiframe import SequenceConfig
 from pcdet_atlas.evaluation import build_variant_result, evaluate_attack
 from pcdet_atlas.registry import DATASETS
-from pcdet_atlas.train_utils.dist import get_dist_info
+from pcdet_atlas.train_utils.dist import get_dist_info, unwrap_model
 from pcdet_atlas.train_utils.eval_utils import predict_dataset, write_prediction_files
 
 __all__ = [
@@ -44,6 +44,7 @@ __all__ = [
     "frames_to_compute",
     "input_attacked",
     "input_reach",
+    "point_history",
 ]
 
 ATLAS_KEYS = ("MODEL_NAME", "ATTACKS", "CHECKPOINT", "TEMPORAL_WINDOW")
@@ -122,14 +123,14 @@ def input_reach(model: torch.nn.Module, data_cfg: Mapping) -> int:
     """How many frames before the current one a prediction of ``model`` on data of ``data_cfg``
     reads: the point history of a multi-frame input (``SEQUENCE_CONFIG``), plus, for a model
     reading earlier frames' proposals (PTT), those frames and each one's own point history."""
+    return point_history(data_cfg) + int(getattr(unwrap_model(model), "proposal_history", 0) or 0)
+
+
+def point_history(data_cfg: Mapping) -> int:
+    """Frames before the current one whose points a sample of ``data_cfg`` holds (its
+    ``SEQUENCE_CONFIG``; 0 for a single-frame input)."""
     sequence_cfg = SequenceConfig.from_config(data_cfg.get("SEQUENCE_CONFIG"))
-    points = sequence_cfg.num_frames - 1 if sequence_cfg is not None else 0
-    return points + int(getattr(core_model(model), "proposal_history", 0) or 0)
-
-
-def core_model(model: torch.nn.Module) -> torch.nn.Module:
-    """The model inside a ``DistributedDataParallel`` wrapper (the model itself otherwise)."""
-    return model.module if isinstance(model, torch.nn.parallel.DistributedDataParallel) else model
+    return sequence_cfg.num_frames - 1 if sequence_cfg is not None else 0
 
 
 def frames_to_compute(dataset, reach: int) -> np.ndarray:
@@ -245,7 +246,7 @@ def evaluate_variant(
     if clean_proposals is not None and dataset.attack.family == "clean":
         proposals_out = clean_proposals
     elif clean_proposals and reuse:
-        rpn_reach = reach - int(getattr(core_model(model), "proposal_history", 0) or 0)
+        rpn_reach = point_history(data_cfg)  # the RPN reads the sample's points only
         proposal_seed = {
             frame: rows for frame, rows in clean_proposals.items()
             if not input_attacked(dataset, *frame, rpn_reach)

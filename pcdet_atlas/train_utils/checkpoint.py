@@ -20,6 +20,7 @@ from pcdet_atlas.models.detectors.detector3d_template import (
     load_state_dict_checked,
     read_checkpoint,
 )
+from pcdet_atlas.train_utils.dist import unwrap_model
 from pcdet_atlas.version import __version__
 
 __all__ = [
@@ -35,10 +36,6 @@ __all__ = [
 CHECKPOINT_NAME = re.compile(r"checkpoint_epoch_(\d+)\.pth")
 
 
-def _unwrap(model: nn.Module) -> nn.Module:
-    return model.module if isinstance(model, nn.parallel.DistributedDataParallel) else model
-
-
 def checkpoint_state(
     model: nn.Module,
     optimizer: torch.optim.Optimizer | None = None,
@@ -50,8 +47,8 @@ def checkpoint_state(
     train_settings: Mapping | None = None,
 ) -> dict:
     """The checkpoint dict (tensors moved to CPU)."""
-    state = {k: v.detach().cpu() for k, v in _unwrap(model).state_dict().items()}
-    info = getattr(_unwrap(model), "checkpoint_info", None)
+    state = {k: v.detach().cpu() for k, v in unwrap_model(model).state_dict().items()}
+    info = getattr(unwrap_model(model), "checkpoint_info", None)
     return {
         "epoch": int(epoch),
         "it": int(it),
@@ -93,8 +90,8 @@ def load_checkpoint(
     """
     ckpt = read_checkpoint(path)
     state = ckpt["model_state"] if "model_state" in ckpt else ckpt
-    load_state_dict_checked(_unwrap(model), state, strict=strict, source=str(path))
-    check_info = getattr(_unwrap(model), "check_checkpoint_info", None)
+    load_state_dict_checked(unwrap_model(model), state, strict=strict, source=str(path))
+    check_info = getattr(unwrap_model(model), "check_checkpoint_info", None)
     if check_info is not None:  # e.g. a two-stage model resumed with another RPN
         check_info(ckpt, path)
     for obj, key in ((optimizer, "optimizer_state"), (scheduler, "scheduler_state")):

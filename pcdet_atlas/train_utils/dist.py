@@ -17,6 +17,7 @@ __all__ = [
     "first_slurm_host",
     "get_dist_info",
     "all_gather_objects",
+    "unwrap_model",
 ]
 
 
@@ -119,3 +120,8 @@ def all_gather_objects(obj) -> list:
     out: list = [None] * world
     dist.all_gather_object(out, obj)
     return out
+
+
+def unwrap_model(model: torch.nn.Module) -> torch.nn.Module:
+    """The model inside a ``DistributedDataParallel`` wrapper (the model itself otherwise)."""
+    return model.module if isinstance(model, torch.nn.parallel.DistributedDataParallel) else model

@@ -13,7 +13,7 @@ import tqdm
 from torch import nn
 
 from pcdet_atlas.models.batch import load_data_to_device
-from pcdet_atlas.train_utils.dist import all_gather_objects, get_dist_info
+from pcdet_atlas.train_utils.dist import all_gather_objects, get_dist_info, unwrap_model
 from pcdet_atlas.train_utils.proposal_bank import ProposalBank
 
 __all__ = ["predict_dataset", "eval_one_epoch", "write_prediction_files"]
@@ -57,7 +57,7 @@ def predict_dataset(
     dataset = dataloader.dataset
     rank, world = get_dist_info()
     model.eval()
-    core = model.module if isinstance(model, nn.parallel.DistributedDataParallel) else model
+    core = unwrap_model(model)
     bank = (  # models reading earlier frames' proposals: each frame's computed once
         ProposalBank(core, dataset, device=device)
         if getattr(core, "proposal_history", 0) else None

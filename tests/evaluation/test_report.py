@@ -256,6 +256,15 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     assert again["run"]["runs"] == run["runs"]
     assert again["run"]["total_wall_s"] >= run["total_wall_s"]
     assert [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]] == stamps
+    assert all(len(r["model"]["checkpoint_sha256"]) == 64 for r in run["runs"])
+    # a model whose checkpoint differs from the recorded one is evaluated again, the other not
+    record = json.loads((tmp_path / "report" / "run.json").read_text())
+    record["runs"][0]["model"]["checkpoint_sha256"] = "0" * 64
+    (tmp_path / "report" / "run.json").write_text(json.dumps(record))
+    reproduce.main(argv(14))
+    now = [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]]
+    assert now[0] > stamps[0] and now[1] == stamps[1]
+    stamps = now
     changed = reproduce.main(argv(20))  # another setting: evaluated again
     assert all(Path(r["results"]).stat().st_mtime_ns > s
                for r, s in zip(changed["run"]["runs"], stamps))  # fmt: skip
