@@ -17,7 +17,11 @@ torch threads (default: the cores divided among the jobs); its output goes to ``
 in the folder above the model's ``reproduce/results.json``. The run resumes: ``run.json`` in
 ``--out`` records each model when it finishes, and a later call with the same data, variants and
 ``--set`` skips the models it lists whose ``results.json`` is still there and whose merged
-config and checkpoint are unchanged (``--overwrite`` evaluates them all again).
+config and checkpoint are unchanged; a model left unfinished goes on from its last finished
+variant (``tools/test.py --resume``). ``--overwrite`` evaluates everything again. The total
+wall time adds up every call's (``run.json`` is updated each minute, so a call that is killed
+still counts, with the work it lost); a model's time is the sum of its variants' evaluation
+times, whichever calls ran them.
 """
 
 from __future__ import annotations
@@ -102,11 +106,12 @@ def ensure_trace_libraries(root: Path, cfgs: list[Path], attacks: str) -> None:
                 build_trace_library(root, TraceFilter.from_config(library)).save(path)
 
 
-def test_argv(cfg: Path, args, root: Path, threads: int) -> list[str]:
-    """The ``tools/test.py`` arguments that evaluate one model config."""
+def test_argv(cfg: Path, args, root: Path, threads: int, resume: bool) -> list[str]:
+    """The ``tools/test.py`` arguments that evaluate one model config (``resume``: keep the
+    variants an earlier call finished; otherwise evaluate them all again)."""
     argv = ["--cfg", str(cfg), "--attacks", args.attacks, "--extra_tag", TAG, "--eval_tag", TAG,
-            "--overwrite", "--no_progress", "--workers", args.workers,
-            "--threads", str(threads)]  # fmt: skip
+            "--resume" if resume else "--overwrite", "--no_progress",
+            "--workers", args.workers, "--threads", str(threads)]  # fmt: skip
     if args.output_root:
         argv += ["--output_root", args.output_root]
     if args.device:
@@ -116,10 +121,11 @@ def test_argv(cfg: Path, args, root: Path, threads: int) -> list[str]:
     return argv + ["--set", "DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs]
 
 
-def evaluation_of(cfg: Path, args, root: Path) -> tuple[Path, dict]:
-    """Where ``tools/test.py`` (:func:`test_argv`) writes the config's ``results.json``, and what
-    the results depend on beyond the run's setting: the merged config and the checkpoint's
-    bytes (SHA-256 each), so that a resumed run never keeps results of another model."""
+def evaluation_of(cfg: Path, args, root: Path) -> tuple[Path, dict, bool]:
+    """Where ``tools/test.py`` (:func:`test_argv`) writes the config's ``results.json``, what
+    the results depend on beyond the run's setting (the merged config and the checkpoint's
+    bytes, SHA-256 each, so that a resumed run never keeps results of another model), and
+    whether the variants already there may be kept (``tools/test.py --resume`` accepts them)."""
     test = load_tool("test")
     model_cfg = load_cfg(str(REPO_ROOT / cfg), ["DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs])
     output_root = args.output_root or str(REPO_ROOT / "output")
@@ -127,7 +133,22 @@ def evaluation_of(cfg: Path, args, root: Path) -> tuple[Path, dict]:
     merged = json.dumps(model_cfg, sort_keys=True, default=str).encode()
     model = {"config_sha256": hashlib.sha256(merged).hexdigest(),
              "checkpoint_sha256": file_sha256(ckpt)}  # fmt: skip
-    return test.eval_dir(model_cfg, output_root, TAG, ckpt, TAG) / "results.json", model
+    out_dir = test.eval_dir(model_cfg, output_root, TAG, ckpt, TAG)
+    try:  # the setting tools/test.py gets from test_argv: one process, batch size 1
+        test.finished_variants(
+            out_dir, model_cfg, model["checkpoint_sha256"], (), batch_size=1, world=1
+        )
+        resumable = not args.overwrite
+    except ValueError:
+        resumable = False
+    return out_dir / "results.json", model, resumable
+
+
+def evaluation_time(results: dict) -> float:
+    """Seconds a model's evaluation took: its variants' prediction and metric times (from
+    ``extra.timing_s`` of each variant), whichever calls of ``tools/test.py`` ran them."""
+    timing = [v.get("extra", {}).get("timing_s", {}) for v in results["variants"].values()]
+    return round(sum(t.get("predict_wall", 0.0) + t.get("metric", 0.0) for t in timing), 1)
 
 
 def main(argv=None) -> dict:
@@ -146,49 +167,60 @@ def main(argv=None) -> dict:
     run_file = out_dir / "run.json"
     setting = {"data_path": str(root), "attacks": args.attacks,
                "set": list(args.set_cfgs), "no_reuse": args.no_reuse}  # fmt: skip
-    done, elapsed_before = {}, 0.0
+    done, elapsed_before, calls = {}, 0.0, 1
     if run_file.is_file() and not args.overwrite:
         previous = json.loads(run_file.read_text())
         if previous.get("setting") == setting:
             done = {r["config"]: r for r in previous["runs"] if Path(r["results"]).is_file()}
             elapsed_before = float(previous.get("total_wall_s", 0.0))
-    state = {"setting": setting, "jobs": args.jobs, "threads": threads,
-             "device": None, "total_wall_s": elapsed_before, "runs": []}  # fmt: skip
+            calls += int(previous.get("calls", 1))
+    state = {"setting": setting, "jobs": args.jobs, "threads": threads, "device": None,
+             "total_wall_s": elapsed_before, "calls": calls, "runs": []}  # fmt: skip
     lock = threading.Lock()
     start = time.perf_counter()
+    finished = threading.Event()
 
-    def record(run: dict) -> None:
+    def save_state(run: dict | None = None) -> None:
         with lock:
-            state["runs"].append(run)
+            if run is not None:
+                state["runs"].append(run)
             state["total_wall_s"] = round(elapsed_before + time.perf_counter() - start, 1)
-            run_file.write_text(json.dumps(state, indent=2) + "\n")
+            tmp = run_file.with_suffix(".json.tmp")
+            tmp.write_text(json.dumps(state, indent=2) + "\n")
+            tmp.replace(run_file)  # a call killed while writing keeps the previous state
+
+    def heartbeat() -> None:  # the wall time of a call that is killed still counts
+        while not finished.wait(60):
+            save_state()
 
     def evaluate(cfg: Path) -> None:
-        results, model = evaluation_of(cfg, args, root)
+        results, model, resumable = evaluation_of(cfg, args, root)
         earlier = done.get(str(cfg))
         if earlier is not None and earlier.get("model") == model:
             print(f"{cfg}: done in an earlier call, {earlier['results']}", flush=True)
-            record(earlier)
+            save_state(earlier)
             return
         command = [sys.executable, str(REPO_ROOT / "tools" / "test.py"),
-                   *test_argv(cfg, args, root, threads)]  # fmt: skip
+                   *test_argv(cfg, args, root, threads, resumable)]  # fmt: skip
         print("$ " + shlex.join(command[1:]), flush=True)
         log = results.parent.parent / "reproduce.log"
         log.parent.mkdir(parents=True, exist_ok=True)
-        t0 = time.perf_counter()
-        with log.open("w") as stream:
+        with log.open("a" if resumable else "w") as stream:
             code = subprocess.run(
                 command, stdout=stream, stderr=subprocess.STDOUT, cwd=REPO_ROOT
             ).returncode
         if code != 0:
             raise RuntimeError(f"{cfg}: tools/test.py exited with {code}; its output: {log}")
-        wall = round(time.perf_counter() - t0, 1)
+        wall = evaluation_time(json.loads(results.read_text()))
         print(f"{cfg}: {wall / 60:.1f} min, {results}", flush=True)
-        record({"config": str(cfg), "results": str(results), "wall_s": wall, "model": model})
+        save_state({"config": str(cfg), "results": str(results), "wall_s": wall, "model": model})
 
+    threading.Thread(target=heartbeat, daemon=True).start()
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         for future in [pool.submit(evaluate, cfg) for cfg in cfgs]:
             future.result()
+    finished.set()
+    save_state()
     order = {str(cfg): i for i, cfg in enumerate(cfgs)}
     runs = sorted(state["runs"], key=lambda r: order[r["config"]])
     found = collect_results([r["results"] for r in runs])
@@ -203,7 +235,13 @@ def main(argv=None) -> dict:
         f"`python tools/reproduce.py {command}` on `{root.name}` ({frames} val frames), device "
         f"{device}, {args.jobs} model(s) at a time with {threads} torch thread(s) each, "
         f"{os.cpu_count()} CPU cores, {platform.machine()}; total wall time "
-        f"**{total / 60:.1f} min**.",
+        f"**{total / 60:.1f} min**"
+        + (
+            f" over {calls} calls (a resumed run counts the work its interrupted calls lost)."
+            if calls > 1
+            else "."
+        )
+        + " A model's time is the sum of its variants' evaluation times.",
         "",
         "| Model | Wall time (min) | Frames recomputed | Frames reused |",
         "|:---|---:|---:|---:|",

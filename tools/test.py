@@ -22,21 +22,28 @@ the clean run's prediction, which is bitwise what the model would return
 Every variant YAML (its ``VARIANT`` must be its file name), the test split, the (first)
 checkpoint and the evaluation directories are checked before anything is written: an evaluation
 directory that already holds files is an error unless ``--overwrite`` is given, which deletes it
-first.
+first, or ``--resume``, which keeps the requested variants an earlier call finished there (its
+``results.json`` entry and ``<variant>/result.pkl``) and evaluates the others, provided that call
+had the same merged config, checkpoint (SHA-256), batch size and process count; the results are
+those of one uninterrupted call.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import json
+import pickle
 import shutil
 from pathlib import Path
 
 import torch.distributed as torch_dist
+import yaml
 
-from pcdet_atlas.config import REPO_ROOT, ConfigError, save_config
+from pcdet_atlas.config import REPO_ROOT, ConfigError, save_config, to_plain
 from pcdet_atlas.evaluation import build_results, format_table, save_results
 from pcdet_atlas.models import build_network_from_config
+from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.train_utils.atlas_eval import (
     build_variant_attacks,
     check_test_split,
@@ -81,6 +88,11 @@ def parse_args(argv=None):
         help="delete an existing evaluation directory first (default: refuse to run)",
     )  # fmt: skip
     parser.add_argument(
+        "--resume", action="store_true", default=False,
+        help="keep the requested variants an earlier call with the same config, checkpoint, "
+        "batch size and processes finished in the evaluation directory; evaluate the rest",
+    )  # fmt: skip
+    parser.add_argument(
         "--no_reuse", action="store_true", default=False,
         help="run the model on every frame of every variant (default: a frame whose input the "
         "attack leaves untouched takes the clean run's prediction, bitwise the same)",
@@ -91,6 +103,8 @@ def parse_args(argv=None):
         parser.error("--eval_all evaluates the checkpoints of --ckpt_dir; drop --ckpt")
     if not args.eval_all and (args.ckpt_dir is not None or args.start_epoch):
         parser.error("--ckpt_dir and --start_epoch apply to --eval_all only")
+    if args.resume and args.overwrite:
+        parser.error("--resume keeps an earlier call's variants, --overwrite deletes them")
     if args.eval_tag in ("", ".", "..") or "/" in args.eval_tag or "\\" in args.eval_tag:
         parser.error(f"--eval_tag {args.eval_tag!r}: expected a folder name")
     return args
@@ -150,6 +164,35 @@ def check_eval_dir(out_dir: Path, overwrite: bool) -> None:
     )
 
 
+def finished_variants(
+    out_dir: Path, cfg, ckpt_sha256: str, requested, *, batch_size: int, world: int
+) -> dict[str, dict]:
+    """``--resume``: the ``results.json`` entries of the requested variants an earlier call
+    finished in ``out_dir`` (entry and ``<variant>/result.pkl`` both there). That call must have
+    had the same merged config, checkpoint bytes, batch size and process count, or this is an
+    error naming what differs."""
+    path = out_dir / "results.json"
+    if not path.is_file():
+        return {}
+    earlier = json.loads(path.read_text())
+    extra = earlier.get("extra", {})
+    config_file = out_dir / f"{cfg.TAG}.yaml"
+    now = {"checkpoint_sha256": ckpt_sha256, "batch_size": batch_size, "processes": world}
+    differs = [f"{key} {extra.get(key)!r} (now {value!r})"
+               for key, value in now.items() if extra.get(key) != value]  # fmt: skip
+    if not config_file.is_file():
+        differs.append(f"merged config: {config_file} is missing")
+    elif config_file.read_text() != yaml.safe_dump(to_plain(cfg), sort_keys=False):
+        differs.append(f"merged config ({config_file} differs from this call's)")
+    if differs:
+        raise ValueError(
+            f"--resume: {path} was written by a call with another setting: {'; '.join(differs)}; "
+            "pass --overwrite to evaluate again, or another --eval_tag / --extra_tag"
+        )
+    return {name: entry for name, entry in earlier["variants"].items()
+            if name in requested and (out_dir / name / "result.pkl").is_file()}  # fmt: skip
+
+
 def main(argv=None) -> dict:
     args = parse_args(argv)
     cfg = load_cfg(args.cfg_file, args.set_cfgs)
@@ -167,8 +210,14 @@ def main(argv=None) -> dict:
 
     out_dirs = [eval_dir(cfg, args.output_root, args.extra_tag, ckpt, args.eval_tag)
                 for ckpt in checkpoints]  # fmt: skip
-    for out_dir in out_dirs:
-        check_eval_dir(out_dir, args.overwrite)
+    ckpt_sha256 = {ckpt: file_sha256(ckpt) for ckpt in checkpoints}
+    finished = {}
+    for ckpt, out_dir in zip(checkpoints, out_dirs):
+        check_eval_dir(out_dir, args.overwrite or args.resume)
+        if args.resume:
+            finished[out_dir] = finished_variants(
+                out_dir, cfg, ckpt_sha256[ckpt], attacks, batch_size=batch_size, world=world
+            )
     if dist:  # every rank has checked before rank 0 writes
         torch_dist.barrier()
     model = build_network_from_config(cfg)
@@ -177,7 +226,7 @@ def main(argv=None) -> dict:
         model.load_params_from_file(ckpt)  # strict: CheckpointMismatchError names what differs
         model.to(device).eval()
         if rank == 0:
-            if out_dir.exists():  # --overwrite: no stale per-variant file survives
+            if out_dir.exists() and not args.resume:  # --overwrite: no stale file survives
                 shutil.rmtree(out_dir)
             save_config(cfg, out_dir / f"{cfg.TAG}.yaml")
         stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -189,6 +238,7 @@ def main(argv=None) -> dict:
             evaluate_checkpoint(
                 model, ckpt, out_dir, args, cfg, attacks, dist=dist, rank=rank, world=world,
                 device=device, batch_size=batch_size, logger=logger,
+                finished=finished.get(out_dir, {}), ckpt_sha256=ckpt_sha256[ckpt],
             )
         )  # fmt: skip
     if rank != 0:
@@ -197,25 +247,45 @@ def main(argv=None) -> dict:
 
 
 def evaluate_checkpoint(
-    model, ckpt, out_dir, args, cfg, attacks, *, dist, rank, world, device, batch_size, logger
+    model,
+    ckpt,
+    out_dir,
+    args,
+    cfg,
+    attacks,
+    *,
+    dist,
+    rank,
+    world,
+    device,
+    batch_size,
+    logger,
+    finished,
+    ckpt_sha256,
 ) -> dict:
-    """Every variant of one checkpoint; ``results.json`` is rewritten after each variant."""
+    """Every variant of one checkpoint; ``results.json`` is rewritten after each variant.
+    ``finished``: the entries of the variants an earlier call finished (``--resume``), kept."""
     atlas_cfg = cfg.get("ATLAS", {})
     entries: dict = {}
     clean_annos = None
     clean_proposals: dict = {}  # the clean run's proposal bank (PTT), seeding the others'
     path = None
     for variant, attack in attacks.items():
-        entry, det_annos = evaluate_variant(
-            model, variant, attack, data_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES,
-            device=device, batch_size=batch_size // world, dist=dist, workers=args.workers,
-            seed=args.seed, temporal_window=atlas_cfg.get("TEMPORAL_WINDOW"),
-            clean_det_annos=clean_annos, out_dir=out_dir / variant, logger=logger,
-            show_progress=not args.no_progress, save_to_file=args.save_to_file,
-            reuse_clean=not args.no_reuse, clean_proposals=clean_proposals,
-        )  # fmt: skip
-        if variant == "clean":
-            clean_annos = det_annos
+        if variant in finished:
+            entry = finished[variant]
+            if variant == "clean":  # the predictions reused, and proposals seeding, as below
+                with open(out_dir / variant / "result.pkl", "rb") as f:
+                    clean_annos = pickle.load(f)
+                for part in sorted((out_dir / variant).glob("proposals_rank*.pkl")):
+                    with open(part, "rb") as f:
+                        clean_proposals.update(pickle.load(f))
+            logger.info(f"{variant}: kept from an earlier call (--resume)")
+        else:
+            entry, clean_annos, clean_proposals = run_variant(
+                model, variant, attack, out_dir, args, cfg, dist=dist, rank=rank, world=world,
+                device=device, batch_size=batch_size, logger=logger, clean_annos=clean_annos,
+                clean_proposals=clean_proposals,
+            )  # fmt: skip
         if rank != 0:
             continue
         entries[variant] = entry
@@ -223,7 +293,7 @@ def evaluate_checkpoint(
             model=atlas_cfg.get("MODEL_NAME", cfg.TAG), config=str(args.cfg_file),
             checkpoint=str(ckpt), class_names=cfg.CLASS_NAMES, variants=entries,
             extra={"processes": world, "device": str(device), "batch_size": batch_size,
-                   "variants_requested": list(attacks)},
+                   "checkpoint_sha256": ckpt_sha256, "variants_requested": list(attacks)},
         )  # fmt: skip
         path = save_results(results, out_dir / "results.json")  # atomic: temp file + rename
     if rank != 0:
@@ -231,6 +301,43 @@ def evaluate_checkpoint(
     print("\n" + format_table(results))
     logger.info(f"results: {path}")
     return {"results": results, "output_dir": out_dir, "checkpoint": ckpt}
+
+
+def run_variant(
+    model,
+    variant,
+    attack,
+    out_dir,
+    args,
+    cfg,
+    *,
+    dist,
+    rank,
+    world,
+    device,
+    batch_size,
+    logger,
+    clean_annos,
+    clean_proposals,
+):
+    """Evaluate one variant: ``(entry, clean_annos, clean_proposals)``, the last two filled by
+    the clean variant (its proposals saved per rank beside its ``result.pkl`` for ``--resume``)."""
+    atlas_cfg = cfg.get("ATLAS", {})
+    entry, det_annos = evaluate_variant(
+            model, variant, attack, data_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES,
+            device=device, batch_size=batch_size // world, dist=dist, workers=args.workers,
+            seed=args.seed, temporal_window=atlas_cfg.get("TEMPORAL_WINDOW"),
+            clean_det_annos=clean_annos, out_dir=out_dir / variant, logger=logger,
+            show_progress=not args.no_progress, save_to_file=args.save_to_file,
+            reuse_clean=not args.no_reuse, clean_proposals=clean_proposals,
+        )  # fmt: skip
+    if variant == "clean":
+        clean_annos = det_annos
+        if clean_proposals:
+            (out_dir / variant).mkdir(parents=True, exist_ok=True)
+            with open(out_dir / variant / f"proposals_rank{rank}.pkl", "wb") as f:
+                pickle.dump(clean_proposals, f)
+    return entry, clean_annos, clean_proposals
 
 
 if __name__ == "__main__":

@@ -217,7 +217,8 @@ def test_the_tool_reads_files_and_folders_and_refuses_duplicates(models, tmp_pat
 def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     """tools/reproduce.py end to end on the fixture data: two models evaluated at once, clean and
     one removal variant on 5 frames; the report and its run record with the wall time and reuse
-    counts; a second call resumes (evaluates nothing), a changed --set evaluates again."""
+    counts; a second call resumes (evaluates nothing), a model stopped mid-way goes on from its
+    last finished variant, a retrained checkpoint or a changed --set evaluates again."""
     reproduce = load_tool("reproduce")
     cfgs = [REPO_ROOT / "cfgs" / "atlas" / "synthetic" / f"{name}.yaml"
             for name in ("centerpoint", "cp4f")]  # fmt: skip
@@ -257,11 +258,32 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     assert again["run"]["total_wall_s"] >= run["total_wall_s"]
     assert [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]] == stamps
     assert all(len(r["model"]["checkpoint_sha256"]) == 64 for r in run["runs"])
-    # a model whose checkpoint differs from the recorded one is evaluated again, the other not
+    # a model stopped after its clean variant goes on from there (tools/test.py --resume)
+    record = json.loads((tmp_path / "report" / "run.json").read_text())
+    results_file = Path(record["runs"][0]["results"])
+    stopped = json.loads(results_file.read_text())
+    del stopped["variants"]["rem_30"], record["runs"][0]
+    results_file.write_text(json.dumps(stopped))
+    (tmp_path / "report" / "run.json").write_text(json.dumps(record))
+    pkl = {v: results_file.parent / v / "result.pkl" for v in ("clean", "rem_30")}
+    pkl_stamps = {v: p.stat().st_mtime_ns for v, p in pkl.items()}
+    resumed = reproduce.main(argv(14))
+    assert pkl["clean"].stat().st_mtime_ns == pkl_stamps["clean"]
+    assert pkl["rem_30"].stat().st_mtime_ns > pkl_stamps["rem_30"]
+    assert resumed["run"]["calls"] == 3 and "over 3 calls" in resumed["report"].read_text()
+    assert resumed["run"]["runs"][0]["wall_s"] > 0
+    stamps = [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]]
+    # a retrained checkpoint (its SHA-256 differs from the recorded one) is evaluated again
+    # from scratch, the other model not
     record = json.loads((tmp_path / "report" / "run.json").read_text())
     record["runs"][0]["model"]["checkpoint_sha256"] = "0" * 64
     (tmp_path / "report" / "run.json").write_text(json.dumps(record))
+    stale = json.loads(results_file.read_text())
+    stale["extra"]["checkpoint_sha256"] = "0" * 64
+    results_file.write_text(json.dumps(stale))
+    pkl_stamps = {v: p.stat().st_mtime_ns for v, p in pkl.items()}
     reproduce.main(argv(14))
+    assert all(p.stat().st_mtime_ns > pkl_stamps[v] for v, p in pkl.items())
     now = [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]]
     assert now[0] > stamps[0] and now[1] == stamps[1]
     stamps = now

@@ -93,3 +93,26 @@ def two_stage_batch(num_frames: int) -> dict:
         extra[:, -1] = 0.6
         batch["points"] = torch.cat([batch["points"], extra])
     return batch
+
+
+def assert_same(a, b, where: str) -> None:
+    """Bitwise equality of nested dicts / lists / arrays / scalars (dtypes included)."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), where
+        for key in a:
+            assert_same(a[key], b[key], f"{where}[{key!r}]")
+    elif isinstance(a, (list, tuple)):
+        assert type(a) is type(b) and len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same(x, y, f"{where}[{i}]")
+    elif isinstance(a, np.ndarray):
+        assert isinstance(b, np.ndarray) and a.dtype == b.dtype, where
+        np.testing.assert_array_equal(a, b, err_msg=where)
+    else:
+        assert type(a) is type(b) and (a == b or (a != a and b != b)), where
+
+
+def assert_annos_equal(got: list[dict], want: list[dict]) -> None:
+    assert len(got) == len(want)
+    for a, b in zip(got, want):
+        assert_same(a, b, str(a["frame_id"]))

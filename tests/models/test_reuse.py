@@ -7,13 +7,17 @@ composition does not change a prediction."""
 from __future__ import annotations
 
 import copy
+import pickle
+import shutil
 
 import numpy as np
 import pytest
 import torch
+from model_batches import assert_annos_equal, load_tool
 
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets.loader import ContiguousBatchSampler
+from pcdet_atlas.evaluation import load_results, save_results
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.train_utils.atlas_eval import (
     build_attack_loader,
@@ -55,29 +59,6 @@ def run(model, cfg, attack, clean, *, reuse: bool, batch_size: int = 1, proposal
         temporal_window=cfg.ATLAS.get("TEMPORAL_WINDOW"), clean_det_annos=clean, out_dir=None,
         show_progress=False, reuse_clean=reuse, clean_proposals=proposals,
     )  # fmt: skip
-
-
-def assert_same(a, b, where: str) -> None:
-    """Bitwise equality of nested dicts / lists / arrays / scalars (dtypes included)."""
-    if isinstance(a, dict):
-        assert isinstance(b, dict) and a.keys() == b.keys(), where
-        for key in a:
-            assert_same(a[key], b[key], f"{where}[{key!r}]")
-    elif isinstance(a, (list, tuple)):
-        assert type(a) is type(b) and len(a) == len(b), where
-        for i, (x, y) in enumerate(zip(a, b)):
-            assert_same(x, y, f"{where}[{i}]")
-    elif isinstance(a, np.ndarray):
-        assert isinstance(b, np.ndarray) and a.dtype == b.dtype, where
-        np.testing.assert_array_equal(a, b, err_msg=where)
-    else:
-        assert type(a) is type(b) and (a == b or (a != a and b != b)), where
-
-
-def assert_annos_equal(got: list[dict], want: list[dict]) -> None:
-    assert len(got) == len(want)
-    for a, b in zip(got, want):
-        assert_same(a, b, str(a["frame_id"]))
 
 
 def strip(entry: dict) -> dict:
@@ -218,3 +199,45 @@ def test_ptt_seeded_bank_at_batch_size_3(synthetic_root, injection):
     # seeded: the history frames 1..31 that are not loader frames (25); through the RPN: 32..65
     # and the loader frames 0, 5, .., 30 (7)
     assert bank["seeded"] == 25 and bank["rpn_frames"] == 34 + 7
+
+
+@pytest.mark.slow
+def test_ptt_resume_seeds_from_the_saved_clean_bank(synthetic_root, injection, tmp_path):
+    """``tools/test.py --resume`` on PTT: the clean variant's proposals, saved beside its
+    ``result.pkl``, seed the bank of the injection variant evaluated by a later call, as in one
+    uninterrupted call (same frames through the RPN, bitwise the same detections)."""
+    test = load_tool("test")
+    variant = tmp_path / "inj_global_hard.yaml"
+    variant.write_text(
+        f"_BASE_CONFIG_: {ATTACKS / 'inj_global_hard.yaml'}\n"
+        f"TRACE_LIBRARY:\n  PATH: {injection.TRACE_LIBRARY.PATH}\n  MIN_POINTS: 100\n"
+    )
+    args = [
+        "--cfg", str(CFGS / "ptt_32f.yaml"), "--attacks", f"clean,{variant}",
+        "--output_root", str(tmp_path), "--workers", "0", "--no_progress", "--device", "cpu",
+        "--set", "DATA_CONFIG.DATA_PATH", str(synthetic_root),
+        "DATA_CONFIG.SAMPLED_INTERVAL", f"train:1,test:{INTERVAL}",
+        "DATA_CONFIG.POINT_CLOUD_RANGE", "-20.48,-20.48,-2,20.48,20.48,4",
+    ]  # fmt: skip
+    whole = test.main(args)
+    eval_dir = whole["output_dir"]
+    assert (eval_dir / "clean" / "proposals_rank0.pkl").is_file()
+    want = whole["results"]["variants"]["inj_global_hard"]
+    want_pkl = (eval_dir / "inj_global_hard" / "result.pkl").read_bytes()
+    # as if the call had stopped after the clean variant
+    stopped = load_results(eval_dir / "results.json")
+    del stopped["variants"]["inj_global_hard"]
+    save_results(stopped, eval_dir / "results.json")
+    shutil.rmtree(eval_dir / "inj_global_hard")
+
+    got = test.main([*args[:-7], "--resume", *args[-7:]])["results"]["variants"]["inj_global_hard"]
+    assert got["extra"]["proposal_bank"]["seeded"] == 32
+    assert got["extra"]["proposal_bank"]["rpn_frames"] == 66 - 32
+    assert want["extra"]["proposal_bank"] == got["extra"]["proposal_bank"]
+    assert {k: v for k, v in got.items() if k != "extra"} == {
+        k: v for k, v in want.items() if k != "extra"
+    }  # fmt: skip
+    assert_annos_equal(
+        pickle.loads((eval_dir / "inj_global_hard" / "result.pkl").read_bytes()),
+        pickle.loads(want_pkl),
+    )

@@ -1,6 +1,7 @@
 """tools/test.py end to end: two ATLAS variants -> complete results.json; torchrun (gloo, 2
 processes) gives the same numbers as one process; bad input fails before anything is written;
-results survive a failing variant; reruns; --eval_all, --save_to_file and --launcher slurm."""
+results survive a failing variant; reruns and --resume; --eval_all, --save_to_file and
+--launcher slurm."""
 
 import copy
 import json
@@ -12,7 +13,7 @@ import sys
 
 import pytest
 import torch
-from model_batches import load_tool
+from model_batches import assert_annos_equal, load_tool
 
 from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
@@ -175,6 +176,72 @@ def test_results_survive_a_failing_variant_and_reruns_need_overwrite(
     assert list(load_results(eval_dir / "results.json")["variants"]) == ["inj_global_hard"]
     assert not (eval_dir / "clean").exists()  # no stale variant of the earlier run
     assert len(list(eval_dir.glob("log_eval_*.txt"))) == 1
+
+
+def test_resume_goes_on_from_the_last_finished_variant(eval_setup, tmp_path, monkeypatch):
+    """A call stopped after the clean variant; ``--resume`` evaluates only the injection variant
+    (its frames untouched by the attack taking the saved clean predictions) and ends with the
+    results of one uninterrupted call. Another checkpoint, config or batch size is refused."""
+    test = load_tool("test")
+    ckpt = tmp_path / "random.pth"  # a copy, rewritten below
+    ckpt.write_bytes(eval_setup["ckpt"].read_bytes())
+    setup = {**eval_setup, "ckpt": ckpt}
+    whole = test.main(tool_args(setup, tmp_path, "whole"))
+    args = tool_args(setup, tmp_path, "resume")
+    eval_dir = tmp_path / "atlas/synthetic/centerpoint/resume/eval/random/val/default"
+    real = test.evaluate_variant
+    called = []
+
+    def fail_on_injection(model, variant, *a, **kw):
+        called.append(variant)
+        if variant == "inj_global_hard":
+            raise RuntimeError("interrupted")
+        return real(model, variant, *a, **kw)
+
+    monkeypatch.setattr(test, "evaluate_variant", fail_on_injection)
+    with pytest.raises(RuntimeError, match="interrupted"):
+        test.main(args)
+    assert list(load_results(eval_dir / "results.json")["variants"]) == ["clean"]
+    monkeypatch.setattr(test, "evaluate_variant", real)
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        test.main(args)  # neither --resume nor --overwrite
+
+    called.clear()
+    monkeypatch.setattr(
+        test, "evaluate_variant", lambda model, variant, *a, **kw: (
+            called.append(variant) or real(model, variant, *a, **kw)
+        ),
+    )  # fmt: skip
+    ret = test.main(with_flags(args, "--resume"))
+    assert called == ["inj_global_hard"]
+    assert strip_runtime(ret["results"]) == strip_runtime(whole["results"])
+    inj = ret["results"]["variants"]["inj_global_hard"]
+    assert inj["num_reused_frames"] == whole["results"]["variants"]["inj_global_hard"][
+        "num_reused_frames"] > 0  # fmt: skip
+    for variant in ("clean", "inj_global_hard"):
+        got, want = (pickle.loads((d / variant / "result.pkl").read_bytes())
+                     for d in (eval_dir, whole["output_dir"]))  # fmt: skip
+        assert len(got[0]) > 1
+        assert_annos_equal(got, want)
+    logs = "".join(p.read_text() for p in eval_dir.glob("log_eval_*.txt"))
+    assert "clean: kept from an earlier call (--resume)" in logs  # the calls' logs are kept
+
+    called.clear()
+    ret = test.main(with_flags(args, "--resume"))  # everything finished: nothing runs
+    assert called == [] and strip_runtime(ret["results"]) == strip_runtime(whole["results"])
+
+    torch.save({**torch.load(ckpt), "epoch": 1}, ckpt)  # the same name, other bytes
+    with pytest.raises(ValueError, match="--resume: .*results.json .*checkpoint_sha256"):
+        test.main(with_flags(args, "--resume"))
+    ckpt.write_bytes(eval_setup["ckpt"].read_bytes())
+    with pytest.raises(ValueError, match="--resume: .*merged config"):
+        thresh = "MODEL.DENSE_HEAD.POST_PROCESSING.SCORE_THRESH"
+        test.main([*with_flags(args, "--resume"), thresh, "0.2"])
+    with pytest.raises(ValueError, match="--resume: .*batch_size 1 \\(now 2\\)"):
+        test.main(with_flags(args, "--resume", "--batch_size", "2"))
+    with pytest.raises(SystemExit):
+        test.main(with_flags(args, "--resume", "--overwrite"))
+    assert called == []
 
 
 def test_eval_all_from_start_epoch_and_save_to_file(eval_setup, tmp_path):
