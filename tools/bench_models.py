@@ -44,6 +44,13 @@ backward, at ``--ssm_lengths`` steps (b 2, d 64, n 16, Mamba's sizes), alternati
 
     python tools/bench_models.py --cfgs --ssm --threads 1
 
+``--spconv CFG`` times each sparse conv layer of a voxel config's 3D backbone (random weights) on
+val frame ``--spconv_frame``: building its index pairs, its gather-GEMM-scatter forward and
+forward + backward, beside ``conv3d`` with the same weights on the dense grid, then the whole
+backbone:
+
+    python tools/bench_models.py --cfgs --spconv cfgs/atlas/synthetic/cp4f_voxel.yaml --frames 3
+
 ``--train_step`` instead times training steps (batch ``--batch_size``, the configs' own train
 pipeline with GT sampling and augmentation, AdamW + one-cycle, gradient clipping: what
 ``tools/train.py`` does per iteration) of each ``--train_cfgs`` config, in a fresh process per
@@ -171,6 +178,15 @@ def parse_args():
     )  # fmt: skip
     p.add_argument("--reuse_attacks", default="all", help="variants of --reuse_cfgs' suite")
     p.add_argument("--ssm", action="store_true", help="time selective_scan against the loop")
+    p.add_argument(
+        "--spconv", default=None, metavar="CFG",
+        help="time each sparse conv layer of this voxel config's 3D backbone against dense conv3d",
+    )  # fmt: skip
+    p.add_argument("--spconv_frame", type=int, default=40, help="the val frame of --spconv")
+    p.add_argument(
+        "--spconv_crop", type=float, default=0.0,
+        help="--spconv on the voxels within this many metres of the sensor (0: the whole frame)",
+    )  # fmt: skip
     p.add_argument("--ssm_lengths", type=int, nargs="+", default=[1024, 16384])
     t = p.add_argument_group("training step (--train_step)")
     t.add_argument("--train_step", action="store_true", help="time training steps instead")
@@ -760,6 +776,143 @@ def ssm_table(lengths: list[int], frames: int, device: torch.device) -> None:
             )
 
 
+def _dense_conv(conv, dense: torch.Tensor) -> torch.Tensor:
+    """``torch.nn.functional.conv3d`` with a sparse conv layer's weights on its dense input
+    ``(B, C, D, H, W)`` (a submanifold layer centred, as it is)."""
+    weight = conv.weight.permute(0, 4, 1, 2, 3)  # (out, kD, kH, kW, in) -> (out, in, kD, kH, kW)
+    padding = (
+        tuple((k - 1) // 2 * d for k, d in zip(conv.kernel_size, conv.dilation))
+        if conv.subm
+        else conv.padding
+    )
+    return torch.nn.functional.conv3d(dense, weight, conv.bias, conv.stride, padding, conv.dilation)
+
+
+def _timed(fn, device: torch.device, repeats: int) -> float:
+    """Median seconds of ``fn()`` over ``repeats`` calls after one warm-up."""
+    times = []
+    for i in range(repeats + 1):
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        t0 = time.perf_counter()
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        if i:
+            times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def spconv_table(cfg_file: str, data_path: Path, args, device: torch.device) -> None:
+    """Each sparse conv layer of a voxel config's 3D backbone on one val frame: rule building,
+    the gather-GEMM-scatter forward and forward + backward, beside ``conv3d`` on the dense grid
+    with the same weights; then the whole backbone."""
+    from pcdet_atlas.ops.spconv import _SparseConvNd as SparseConv
+
+    cfg, batches, _ = _config_frames(cfg_file, data_path, 1, device, start=args.spconv_frame)
+    torch.manual_seed(0)
+    model = build_network_from_config(cfg).to(device).eval()
+    backbone = getattr(model, "backbone_3d", None)
+    if backbone is None or not any(isinstance(m, SparseConv) for m in backbone.modules()):
+        raise SystemExit(f"--spconv: {cfg_file} has no sparse conv 3D backbone")
+    with torch.no_grad():
+        batch = model.vfe(dict(batches[0]))
+    if args.spconv_crop:  # the voxels within +-crop m of the sensor, on a grid of that size
+        half = 8 * round(args.spconv_crop / cfg.MODEL.VFE.VOXEL_SIZE[0] / 8)
+        coords = batch["voxel_coords"].clone()
+        ny, nx = backbone.sparse_shape[1:]
+        keep = ((coords[:, 2] - ny // 2).abs() < half) & ((coords[:, 3] - nx // 2).abs() < half)
+        coords = coords[keep]
+        coords[:, 2] -= ny // 2 - half
+        coords[:, 3] -= nx // 2 - half
+        batch.update(voxel_coords=coords, voxel_features=batch["voxel_features"][keep])
+        backbone.sparse_shape = [backbone.sparse_shape[0], 2 * half, 2 * half]
+    inputs = {}  # the input each layer sees in one forward, captured by hooks
+
+    def capture(name):
+        def hook(module, args):
+            inputs.setdefault(name, (module, args[0]))  # returns None: the input is unchanged
+
+        return hook
+
+    hooks = [m.register_forward_pre_hook(capture(name))
+             for name, m in backbone.named_modules() if isinstance(m, SparseConv)]  # fmt: skip
+    with torch.no_grad():
+        backbone(dict(batch))
+    for hook in hooks:
+        hook.remove()
+    repeats = args.frames
+    name = str(Path(cfg_file).resolve().relative_to(REPO_ROOT / "cfgs"))
+    print(
+        f"\nsparse conv layers of {name} ({type(backbone).__name__}, random weights) on val frame "
+        f"{args.spconv_frame}{f' (within {args.spconv_crop:g} m)' if args.spconv_crop else ''}, "
+        f"grid {backbone.sparse_shape}, device {device}, {torch.get_num_threads()} threads, "
+        f"median of {repeats} (after 1 warm-up); dense: conv3d on the (B, C, D, H, W) grid"
+    )
+    print(
+        "| layer | kind | sites in -> out | channels | pairs | rules ms | forward ms "
+        "| fwd + bwd ms | dense forward ms | dense fwd + bwd ms | forward ratio |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+
+    totals = {"sparse": 0.0, "dense": 0.0}
+    keys = set()  # a submanifold layer reuses the rules of the first layer with its indice_key
+    for layer, (conv, x) in inputs.items():
+        t = _spconv_layer_times(conv, x, device, repeats)
+        built = not conv.subm or conv.indice_key is None or conv.indice_key not in keys
+        keys.add(conv.indice_key)
+        totals["sparse"] += t["rules"] * built + t["forward"]
+        totals["dense"] += t["dense"]
+        kind = "subm" if conv.subm else "spconv"
+        kernel = "x".join(map(str, conv.kernel_size))
+        stride = "" if conv.subm else " /" + "x".join(map(str, conv.stride))
+        print(
+            f"| {layer} | {kind} {kernel}{stride} | {x.indices.shape[0]:,} -> {t['out_sites']:,} "
+            f"| {conv.in_channels} -> {conv.out_channels} | {t['pairs']:,} "
+            f"| {t['rules'] * 1e3:,.1f} | {t['forward'] * 1e3:,.1f} | {t['backward'] * 1e3:,.1f} "
+            f"| {t['dense'] * 1e3:,.1f} | {t['dense_backward'] * 1e3:,.1f} "
+            f"| {t['dense'] / (t['rules'] + t['forward']):.1f}x |"
+        )
+    with torch.no_grad():
+        whole_s = _timed(lambda: backbone(dict(batch)), device, repeats)
+    print(
+        f"\nwhole backbone forward (rules, convs, BatchNorm, ReLU): {whole_s * 1e3:,.1f} ms; "
+        f"its conv layers' forward and the rules they build (a submanifold layer reuses its "
+        f"indice_key's) {totals['sparse'] * 1e3:,.1f} ms against "
+        f"{totals['dense'] * 1e3:,.1f} ms dense ({totals['dense'] / totals['sparse']:.1f}x)"
+    )
+
+
+def _spconv_layer_times(conv, x, device: torch.device, repeats: int) -> dict:
+    """Seconds of one sparse conv layer on its input ``x`` (rules from scratch, forward, forward
+    + backward to the features and weights) and of ``conv3d`` on ``x.dense()``."""
+    from pcdet_atlas.ops.spconv import SparseConvTensor
+
+    def fresh():  # no cached rules
+        return SparseConvTensor(x.features, x.indices, x.spatial_shape, x.batch_size)
+
+    def backward(fn, leaf):
+        def run():
+            leaf.grad = conv.weight.grad = None
+            fn(leaf).square().mean().backward()
+
+        return run
+
+    rules = conv._rules(fresh())
+    out = {"rules": _timed(lambda: conv._rules(fresh()), device, repeats)}
+    with torch.no_grad():
+        out["forward"] = _timed(lambda: conv.apply_rules(x.features, rules), device, repeats)
+    feats = x.features.detach().clone().requires_grad_(True)
+    out["backward"] = _timed(backward(lambda f: conv.apply_rules(f, rules), feats), device, repeats)
+    dense = x.dense().detach().clone().requires_grad_(True)
+    with torch.no_grad():
+        out["dense"] = _timed(lambda: _dense_conv(conv, dense), device, repeats)
+    out["dense_backward"] = _timed(backward(lambda d: _dense_conv(conv, d), dense), device, repeats)
+    out["pairs"] = sum(int(i.numel()) for i, _ in rules.pairs)
+    out["out_sites"] = int(rules.out_indices.shape[0])
+    return out
+
+
 def main() -> None:
     args = parse_args()
     if args.threads:
@@ -796,6 +949,8 @@ def main() -> None:
         bank_table(args.bank_cfg, data_path, args, device)
     if args.ssm:
         ssm_table(args.ssm_lengths, args.frames, device)
+    if args.spconv is not None:
+        spconv_table(args.spconv, data_path, args, device)
     if args.reuse_cfgs:
         reuse_table([str(Path(c).resolve()) for c in args.reuse_cfgs], data_path, args, device)
     if tmp is not None:

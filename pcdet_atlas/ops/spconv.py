@@ -324,18 +324,26 @@ class _SparseConvNd(SparseModule):
                 f"{x.features.shape[1]}"
             )
         rules = self._rules(x)
+        return SparseConvTensor(
+            self.apply_rules(x.features, rules), rules.out_indices, rules.out_spatial_shape,
+            x.batch_size, x.indice_dict,
+        )  # fmt: skip
+
+    def apply_rules(self, features: torch.Tensor, rules: IndicePairs) -> torch.Tensor:
+        """The output features ``(N_out, out)`` of ``features`` ``(N_in, in)`` under ``rules``:
+        per kernel offset, gather its input rows, one GEMM, scatter-add into its output rows."""
         weight = self.weight.reshape(self.out_channels, -1, self.in_channels)  # (out, K, in)
-        out = x.features.new_zeros((rules.out_indices.shape[0], self.out_channels))
+        out = features.new_zeros((rules.out_indices.shape[0], self.out_channels))
         for k, (in_rows, out_rows) in enumerate(rules.pairs):
             if in_rows.numel() == 0:
                 continue
-            # out_rows has no repeats within one offset, so index_add_ is deterministic
-            out = out.index_add(0, out_rows, x.features[in_rows] @ weight[:, k].t())
+            # out_rows has no repeats within one offset, so index_add_ is deterministic; in
+            # place, as its backward needs no copy of ``out`` (the out-of-place form costs a
+            # copy of it per offset, forward and backward)
+            out.index_add_(0, out_rows, features[in_rows] @ weight[:, k].t())
         if self.bias is not None:
             out = out + self.bias
-        return SparseConvTensor(
-            out, rules.out_indices, rules.out_spatial_shape, x.batch_size, x.indice_dict
-        )
+        return out
 
 
 class SubMConv3d(_SparseConvNd):
