@@ -179,9 +179,12 @@ class AtlasWaymoDataset(WaymoDataset):
         if self.attack.needs_simulation(sample_idx, seq.num_frames):
             cached = self._frame_cache.get((sequence_name, int(sample_idx)))
             if cached is not None:
-                return copy.deepcopy(cached[1])
-            return self.simulate_frame(sequence_name, sample_idx)[1].meta
-        return self.attack.frame_meta(seq, sample_idx)
+                meta = copy.deepcopy(cached[1])
+            else:
+                meta = self.simulate_frame(sequence_name, sample_idx)[1].meta
+        else:
+            meta = self.attack.frame_meta(seq, sample_idx)
+        return {**meta, "sequence_name": sequence_name}
 
     # ------------------------------------------------------------------ samples
     def get_sample(self, info: Mapping, epoch: int | None = None) -> dict:
@@ -201,5 +204,5 @@ class AtlasWaymoDataset(WaymoDataset):
                     f"{info['frame_id']} is spoofed but was not simulated through get_lidar"
                 )
             meta = self.attack.frame_meta(seq, sample_idx)
-        data["attack"] = meta
+        data["attack"] = {**meta, "sequence_name": sequence_name}  # a run is (sequence, run_id)
         return data

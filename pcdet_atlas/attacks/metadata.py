@@ -3,9 +3,11 @@
 One plain dict per frame, consumed by the evaluation (ASR, confidence, lifecycle)::
 
     {'variant': str, 'family': 'clean' | 'injection' | 'removal' | <new family>,
+     'sequence_name': str or None,  # the frame's sequence (set by AtlasWaymoDataset)
      'spoofed': bool,            # the schedule spoofs this frame
      'run_id': int,              # the run this frame is spoofed by, or (clean lifecycle frames)
-                                 #   whose shadow it carries; -1 otherwise
+                                 #   whose shadow it carries; -1 otherwise; runs are numbered
+                                 #   per sequence, so a run is (sequence_name, run_id)
      'run_position': int,        # 0-based index within the run, -1 if not in a run
      'lifecycle_k': int,         # 0 = last clean frame before onset, 1..W spoofed,
                                  #   W+1..2W clean frames after the run, -1 otherwise
@@ -39,6 +41,7 @@ __all__ = ["CONFIDENCE_ANALYSES", "META_KEYS", "make_meta", "validate_meta"]
 META_KEYS = (
     "variant",
     "family",
+    "sequence_name",
     "spoofed",
     "run_id",
     "run_position",
@@ -65,6 +68,7 @@ def make_meta(
     variant: str,
     family: str,
     spoofed: bool = False,
+    sequence_name: str | None = None,
     run_id: int = -1,
     run_position: int = -1,
     lifecycle_k: int = -1,
@@ -89,6 +93,7 @@ def make_meta(
     return {
         "variant": str(variant),
         "family": str(family),
+        "sequence_name": None if sequence_name is None else str(sequence_name),
         "spoofed": bool(spoofed),
         "run_id": int(run_id),
         "run_position": int(run_position),

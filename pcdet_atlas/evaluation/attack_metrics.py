@@ -70,7 +70,8 @@ class TargetMatches:
     """One row per recorded target box (attacked and shadow), in frame order.
 
     Arrays of length T: ``frame_index`` (int, index into the input lists), ``frame_id`` (str, ''
-    if unknown), ``run_id``, ``lifecycle_k`` (int), ``is_shadow`` (bool), ``target_box`` (T, 7)
+    if unknown), ``sequence`` (str, the metadata's ``sequence_name``, '' if None), ``run_id``
+    (int, numbered per sequence), ``lifecycle_k`` (int), ``is_shadow`` (bool), ``target_box`` (T, 7)
     float64, ``max_iou`` (float64, best 3D IoU of an eligible prediction, 0 if none),
     ``matched_score`` (float64, best score among eligible predictions with IoU >= ``iou_threshold``,
     NaN if none) and ``overlap_score`` (same for IoU > 0). ``num_spoofed``: the spoofed frames of
@@ -90,6 +91,7 @@ class TargetMatches:
     num_untargeted: int
     frame_index: np.ndarray
     frame_id: np.ndarray
+    sequence: np.ndarray
     run_id: np.ndarray
     lifecycle_k: np.ndarray
     is_shadow: np.ndarray
@@ -100,6 +102,7 @@ class TargetMatches:
     _ROW_FIELDS: ClassVar[tuple[str, ...]] = (
         "frame_index",
         "frame_id",
+        "sequence",
         "run_id",
         "lifecycle_k",
         "is_shadow",
@@ -121,6 +124,15 @@ class TargetMatches:
     def detected_lenient(self) -> np.ndarray:
         """(T,) bool: some prediction overlaps the target at all (IoU > 0)."""
         return self.max_iou > 0.0
+
+    @property
+    def run(self) -> np.ndarray:
+        """(T,) int64: one id per spoof run, a run being ``(sequence, run_id)`` (``run_id`` is
+        numbered per sequence)."""
+        seq = np.unique(self.sequence, return_inverse=True)[1].reshape(-1)
+        runs = np.unique(self.run_id, return_inverse=True)[1].reshape(-1)
+        pairs = seq.astype(np.int64) * max(int(runs.max(initial=0)) + 1, 1) + runs
+        return np.unique(pairs, return_inverse=True)[1].reshape(-1).astype(np.int64)
 
     @property
     def success(self) -> np.ndarray:
@@ -344,9 +356,8 @@ def match_targets(
         success_if_detected = found["success_if_detected"].pop()
     confidence = found["confidence"].pop()
 
-    rows: dict[str, list] = {
-        k: [] for k in ("frame_index", "frame_id", "run_id", "lifecycle_k", "is_shadow", "box")
-    }
+    fields = ("frame_index", "frame_id", "sequence", "run_id", "lifecycle_k", "is_shadow", "box")
+    rows: dict[str, list] = {k: [] for k in fields}
     batch = _PairBatch()
     num_spoofed = num_untargeted = 0
     for i, (anno, info) in enumerate(zip(det_annos, attack_infos)):
@@ -372,6 +383,7 @@ def match_targets(
         fid = anno.get("frame_id", info.get("frame_id"))
         rows["frame_index"].append(i)
         rows["frame_id"].append("" if fid is None else str(fid))
+        rows["sequence"].append(str(info.get("sequence_name") or ""))
         rows["run_id"].append(int(info.get("run_id", -1)))
         rows["lifecycle_k"].append(int(info["lifecycle_k"]))
         rows["is_shadow"].append(bool(info["target_is_shadow"]))
@@ -391,6 +403,7 @@ def match_targets(
         num_untargeted=num_untargeted,
         frame_index=np.asarray(rows["frame_index"], dtype=np.int64),
         frame_id=np.asarray(rows["frame_id"], dtype=str),
+        sequence=np.asarray(rows["sequence"], dtype=str),
         run_id=np.asarray(rows["run_id"], dtype=np.int64),
         lifecycle_k=np.asarray(rows["lifecycle_k"], dtype=np.int64),
         is_shadow=np.asarray(rows["is_shadow"], dtype=bool),
@@ -452,11 +465,12 @@ def asr_from_matches(matches: TargetMatches) -> dict:
     n = len(attacked)
     n_ok, n_len = int(attacked.success.sum()), int(attacked.success_lenient.sum())
     gen = np.random.default_rng([CI_SEED, zlib.crc32(matches.variant.encode())])
-    ci = run_bootstrap_interval(attacked.run_id, attacked.success, generator=gen)
+    runs = attacked.run  # (sequence, run_id): run ids repeat across sequences
+    ci = run_bootstrap_interval(runs, attacked.success, generator=gen)
     return {
         "asr": _rate(n_ok, n),
         "asr_ci": None if ci is None else list(ci),
-        "num_runs": int(np.unique(attacked.run_id).size),
+        "num_runs": int(np.unique(runs).size),
         "num_targets": n,
         "num_success": n_ok,
         "asr_lenient": _rate(n_len, n),

@@ -57,6 +57,8 @@ def test_registered_and_clean_frames_do_no_work(synthetic_root, library_path):
     assert work["history_frames_resimulated"] == 0
     assert sample["attack"]["spoofed"] and sample["attack"]["num_visible"] > 0
     assert len(sample["points"]) != len(clean[40]["points"])
+    # a run is (sequence, run_id): run ids are numbered per sequence
+    assert sample["attack"]["sequence_name"] == ds.infos[40]["point_cloud"]["lidar_sequence"]
 
 
 @pytest.mark.parametrize("index,simulated,history", [(31, 0, 0), (33, 2, 1), (34, 3, 2), (40, 4, 3),
@@ -143,6 +145,7 @@ def test_lifecycle_metadata_over_a_run(synthetic_root):
              for k in range(len(ds.infos))]  # fmt: skip
     for k, m in enumerate(metas):
         validate_meta(m)
+        assert m["sequence_name"] == ds.infos[0]["point_cloud"]["lidar_sequence"]
         assert m["spoofed"] == (32 <= k <= 63)
         assert m["lifecycle_k"] == (k - 31 if 31 <= k <= 69 else -1)
         assert m["target_is_shadow"] == ((k == 31 or k >= 64) and m["tracked"])

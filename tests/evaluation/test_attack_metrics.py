@@ -531,3 +531,22 @@ def test_asr_interval_is_seeded_per_variant():
     a, b = attack_success_rate(dets, infos), attack_success_rate(dets, infos)
     assert a["num_runs"] == 3 and a["asr_ci"] == b["asr_ci"]  # reproducible
     assert a["asr_ci"][0] <= a["asr"] <= a["asr_ci"][1]
+
+
+def test_a_run_is_its_sequence_and_run_id():
+    """Run ids are numbered per sequence: run 0 of two sequences are two runs (two clusters of
+    the bootstrap), whatever order the frames come in."""
+    dets, infos = [], []
+    for seq, hits in (("seq_a", [True] * 4), ("seq_b", [False] * 4)):
+        for i, hit in enumerate(hits):
+            fid = f"{seq}_{i:03d}"
+            dets.append(anno(fid, [TARGET] if hit else []))
+            infos.append({**info(TARGET, run_id=0), "frame_id": fid, "sequence_name": seq})
+    out = attack_success_rate(dets, infos)
+    assert out["num_runs"] == 2 and out["num_targets"] == 8 and out["asr"] == 0.5
+    assert out["asr_ci"] == [0.0, 1.0]  # two runs that disagree: resamples 0, 1/2, 1
+    merged = attack_success_rate(dets, [{**i, "sequence_name": None} for i in infos])
+    assert merged["num_runs"] == 1 and merged["asr_ci"] is None  # no sequence: one run
+    order = [0, 4, 1, 5, 2, 6, 3, 7]
+    shuffled = attack_success_rate([dets[i] for i in order], [infos[i] for i in order])
+    assert shuffled["num_runs"] == 2 and shuffled["asr_ci"] == out["asr_ci"]
