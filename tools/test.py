@@ -247,22 +247,9 @@ def main(argv=None) -> dict:
 
 
 def evaluate_checkpoint(
-    model,
-    ckpt,
-    out_dir,
-    args,
-    cfg,
-    attacks,
-    *,
-    dist,
-    rank,
-    world,
-    device,
-    batch_size,
-    logger,
-    finished,
-    ckpt_sha256,
-) -> dict:
+    model, ckpt, out_dir, args, cfg, attacks, *, dist, rank, world, device, batch_size, logger,
+    finished, ckpt_sha256
+) -> dict:  # fmt: skip
     """Every variant of one checkpoint; ``results.json`` is rewritten after each variant.
     ``finished``: the entries of the variants an earlier call finished (``--resume``), kept."""
     atlas_cfg = cfg.get("ATLAS", {})
@@ -273,7 +260,7 @@ def evaluate_checkpoint(
     for variant, attack in attacks.items():
         if variant in finished:
             entry = finished[variant]
-            if variant == "clean":  # the predictions reused, and proposals seeding, as below
+            if variant == "clean":  # its predictions are reused, its proposals seed (below)
                 with open(out_dir / variant / "result.pkl", "rb") as f:
                     clean_annos = pickle.load(f)
                 for part in sorted((out_dir / variant).glob("proposals_rank*.pkl")):
@@ -281,11 +268,20 @@ def evaluate_checkpoint(
                         clean_proposals.update(pickle.load(f))
             logger.info(f"{variant}: kept from an earlier call (--resume)")
         else:
-            entry, clean_annos, clean_proposals = run_variant(
-                model, variant, attack, out_dir, args, cfg, dist=dist, rank=rank, world=world,
-                device=device, batch_size=batch_size, logger=logger, clean_annos=clean_annos,
-                clean_proposals=clean_proposals,
+            entry, det_annos = evaluate_variant(
+                model, variant, attack, data_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES,
+                device=device, batch_size=batch_size // world, dist=dist, workers=args.workers,
+                seed=args.seed, temporal_window=atlas_cfg.get("TEMPORAL_WINDOW"),
+                clean_det_annos=clean_annos, out_dir=out_dir / variant, logger=logger,
+                show_progress=not args.no_progress, save_to_file=args.save_to_file,
+                reuse_clean=not args.no_reuse, clean_proposals=clean_proposals,
             )  # fmt: skip
+            if variant == "clean":
+                clean_annos = det_annos
+                if clean_proposals:  # each rank's part, for a later --resume
+                    (out_dir / variant).mkdir(parents=True, exist_ok=True)
+                    with open(out_dir / variant / f"proposals_rank{rank}.pkl", "wb") as f:
+                        pickle.dump(clean_proposals, f)
         if rank != 0:
             continue
         entries[variant] = entry
@@ -301,43 +297,6 @@ def evaluate_checkpoint(
     print("\n" + format_table(results))
     logger.info(f"results: {path}")
     return {"results": results, "output_dir": out_dir, "checkpoint": ckpt}
-
-
-def run_variant(
-    model,
-    variant,
-    attack,
-    out_dir,
-    args,
-    cfg,
-    *,
-    dist,
-    rank,
-    world,
-    device,
-    batch_size,
-    logger,
-    clean_annos,
-    clean_proposals,
-):
-    """Evaluate one variant: ``(entry, clean_annos, clean_proposals)``, the last two filled by
-    the clean variant (its proposals saved per rank beside its ``result.pkl`` for ``--resume``)."""
-    atlas_cfg = cfg.get("ATLAS", {})
-    entry, det_annos = evaluate_variant(
-            model, variant, attack, data_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES,
-            device=device, batch_size=batch_size // world, dist=dist, workers=args.workers,
-            seed=args.seed, temporal_window=atlas_cfg.get("TEMPORAL_WINDOW"),
-            clean_det_annos=clean_annos, out_dir=out_dir / variant, logger=logger,
-            show_progress=not args.no_progress, save_to_file=args.save_to_file,
-            reuse_clean=not args.no_reuse, clean_proposals=clean_proposals,
-        )  # fmt: skip
-    if variant == "clean":
-        clean_annos = det_annos
-        if clean_proposals:
-            (out_dir / variant).mkdir(parents=True, exist_ok=True)
-            with open(out_dir / variant / f"proposals_rank{rank}.pkl", "wb") as f:
-                pickle.dump(clean_proposals, f)
-    return entry, clean_annos, clean_proposals
 
 
 if __name__ == "__main__":
