@@ -18,7 +18,9 @@ in the folder above the model's ``reproduce/results.json``. The run resumes: ``r
 ``--out`` records each model when it finishes, and a later call with the same data, variants and
 ``--set`` skips the models it lists whose ``results.json`` is still there and whose merged
 config and checkpoint are unchanged; a model left unfinished goes on from its last finished
-variant (``tools/test.py --resume``). ``--overwrite`` evaluates everything again. The total
+variant (``tools/test.py --resume``). ``--overwrite`` evaluates everything again. Models start
+longest first by the times of earlier runs that ``run.json`` keeps (``model_wall_s``), so
+that the jobs end close together; the report lists them in the given order. The total
 wall time adds up every call's (``run.json`` is updated each minute, so a call that is killed
 still counts, with the work it lost); a model's time is the sum of its variants' evaluation
 times, whichever calls ran them.
@@ -29,6 +31,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import math
 import os
 import platform
 import shlex
@@ -144,6 +147,19 @@ def evaluation_of(cfg: Path, args, root: Path) -> tuple[Path, dict, bool]:
     return out_dir / "results.json", model, resumable
 
 
+def known_times(run: dict) -> dict[str, float]:
+    """Each model's evaluation time (s) an earlier ``run.json`` knows, from any setting."""
+    known = dict(run.get("model_wall_s", {}))
+    known.update({r["config"]: r["wall_s"] for r in run.get("runs", [])})
+    return known
+
+
+def longest_first(cfgs: list[Path], known: dict[str, float]) -> list[Path]:
+    """The order the models start in: longest first by the earlier times ``known``, so that the
+    ``--jobs`` lanes end close together; models without a time first, in the given order."""
+    return sorted(cfgs, key=lambda cfg: -known.get(str(cfg), math.inf))
+
+
 def evaluation_time(results: dict) -> float:
     """Seconds a model's evaluation took: its variants' prediction and metric times (from
     ``extra.timing_s`` of each variant), whichever calls of ``tools/test.py`` ran them."""
@@ -168,14 +184,16 @@ def main(argv=None) -> dict:
     setting = {"data_path": str(root), "attacks": args.attacks,
                "set": list(args.set_cfgs), "no_reuse": args.no_reuse}  # fmt: skip
     done, elapsed_before, calls = {}, 0.0, 1
-    if run_file.is_file() and not args.overwrite:
-        previous = json.loads(run_file.read_text())
+    previous = json.loads(run_file.read_text()) if run_file.is_file() else {}
+    known = known_times(previous)
+    if previous and not args.overwrite:
         if previous.get("setting") == setting:
             done = {r["config"]: r for r in previous["runs"] if Path(r["results"]).is_file()}
             elapsed_before = float(previous.get("total_wall_s", 0.0))
             calls += int(previous.get("calls", 1))
     state = {"setting": setting, "jobs": args.jobs, "threads": threads, "device": None,
-             "total_wall_s": elapsed_before, "calls": calls, "runs": []}  # fmt: skip
+             "total_wall_s": elapsed_before, "calls": calls, "runs": [],
+             "model_wall_s": known}  # fmt: skip
     lock = threading.Lock()
     start = time.perf_counter()
     finished = threading.Event()
@@ -184,6 +202,7 @@ def main(argv=None) -> dict:
         with lock:
             if run is not None:
                 state["runs"].append(run)
+                state["model_wall_s"][run["config"]] = run["wall_s"]
             state["total_wall_s"] = round(elapsed_before + time.perf_counter() - start, 1)
             tmp = run_file.with_suffix(".json.tmp")
             tmp.write_text(json.dumps(state, indent=2) + "\n")
@@ -217,7 +236,7 @@ def main(argv=None) -> dict:
 
     threading.Thread(target=heartbeat, daemon=True).start()
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        for future in [pool.submit(evaluate, cfg) for cfg in cfgs]:
+        for future in [pool.submit(evaluate, cfg) for cfg in longest_first(cfgs, known)]:
             future.result()
     finished.set()
     save_state()

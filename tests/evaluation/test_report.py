@@ -243,6 +243,7 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     assert run["total_wall_s"] > 0 and [r["config"] for r in run["runs"]] == want
     assert "| `cfgs/atlas/synthetic/cp4f.yaml` |" in text
     assert json.loads((tmp_path / "report" / "run.json").read_text())["runs"] == run["runs"]
+    assert run["model_wall_s"] == {r["config"]: r["wall_s"] for r in run["runs"]}
     results = collect_results([run["runs"][0]["results"]])[0][1]
     rem = results["variants"]["rem_30"]
     # frames 0, 14, 28, 42, 56: the run 32..63 spoofs 42 and 56, the other three are reused
@@ -290,3 +291,17 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     changed = reproduce.main(argv(20))  # another setting: evaluated again
     assert all(Path(r["results"]).stat().st_mtime_ns > s
                for r, s in zip(changed["run"]["runs"], stamps))  # fmt: skip
+
+
+def test_reproduce_starts_the_longest_models_first():
+    """The times an earlier run.json knows (its runs, and those it carried from before) order the
+    models longest first; models without a time start first, in the given order."""
+    reproduce = load_tool("reproduce")
+    earlier = {"model_wall_s": {"a.yaml": 10.0, "b.yaml": 50.0, "c.yaml": 1.0},
+               "runs": [{"config": "c.yaml", "wall_s": 90.0}]}  # fmt: skip
+    known = reproduce.known_times(earlier)
+    assert known == {"a.yaml": 10.0, "b.yaml": 50.0, "c.yaml": 90.0}
+    cfgs = [Path(name) for name in ("a.yaml", "b.yaml", "new.yaml", "c.yaml", "other.yaml")]
+    order = reproduce.longest_first(cfgs, known)
+    assert [str(c) for c in order] == ["new.yaml", "other.yaml", "c.yaml", "b.yaml", "a.yaml"]
+    assert reproduce.known_times({}) == {}
