@@ -130,9 +130,8 @@ class TargetMatches:
         """(T,) int64: one id per spoof run, a run being ``(sequence, run_id)`` (``run_id`` is
         numbered per sequence)."""
         seq = np.unique(self.sequence, return_inverse=True)[1].reshape(-1)
-        runs = np.unique(self.run_id, return_inverse=True)[1].reshape(-1)
-        pairs = seq.astype(np.int64) * max(int(runs.max(initial=0)) + 1, 1) + runs
-        return np.unique(pairs, return_inverse=True)[1].reshape(-1).astype(np.int64)
+        pairs = np.stack([seq, self.run_id], axis=1)  # (T, 2)
+        return np.unique(pairs, axis=0, return_inverse=True)[1].reshape(-1).astype(np.int64)
 
     @property
     def success(self) -> np.ndarray:
