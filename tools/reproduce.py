@@ -14,22 +14,21 @@ docs/synthetic.md "A larger validation split".
 
 ``--jobs N`` evaluates N models at once, each a ``tools/test.py`` process with ``--threads``
 torch threads (default: the cores divided among the jobs); its output goes to ``reproduce.log``
-in the folder above the model's ``reproduce/results.json``. The run resumes: ``run.json`` in
-``--out`` records each model when it finishes, and a later call with the same data, variants and
-``--set`` skips the models it lists whose ``results.json`` is still there and whose merged
-config and checkpoint are unchanged; a model left unfinished goes on from its last finished
-variant (``tools/test.py --resume``). ``--overwrite`` evaluates everything again. Models start
-longest first by the times of earlier runs that ``run.json`` keeps (``model_wall_s``), so
-that the jobs end close together; the report lists them in the given order. The total
-wall time adds up every call's (``run.json`` is updated each minute, so a call that is killed
-still counts, with the work it lost); a model's time is the sum of its variants' evaluation
-times, whichever calls ran them.
+in the folder above the model's ``reproduce/results.json``. The run resumes: a later call
+with the same data, variants, ``--set`` and ``--no_reuse`` as the one ``run.json`` in ``--out``
+records skips each model whose variants ``tools/test.py --resume`` would all keep (same merged
+config, checkpoint bytes and setting) and lets a model left unfinished go on from its last
+finished variant; any other model, or a call with another setting, is evaluated again.
+``--overwrite`` evaluates everything again. Models start longest first by the times of earlier
+runs that ``run.json`` keeps (``model_wall_s``), so that the jobs end close together; the
+report lists them in the given order. The total wall time adds up every call's (``run.json``
+is updated each minute, so a call that is killed still counts, with the work it lost); a
+model's time is the sum of its variants' evaluation times, whichever calls ran them.
 """
 
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import math
 import os
@@ -124,27 +123,26 @@ def test_argv(cfg: Path, args, root: Path, threads: int, resume: bool) -> list[s
     return argv + ["--set", "DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs]
 
 
-def evaluation_of(cfg: Path, args, root: Path) -> tuple[Path, dict, bool]:
-    """Where ``tools/test.py`` (:func:`test_argv`) writes the config's ``results.json``, what
-    the results depend on beyond the run's setting (the merged config and the checkpoint's
-    bytes, SHA-256 each, so that a resumed run never keeps results of another model), and
-    whether the variants already there may be kept (``tools/test.py --resume`` accepts them)."""
+def evaluation_of(cfg: Path, args, root: Path) -> tuple[Path, set[str], set[str] | None]:
+    """Where ``tools/test.py`` (:func:`test_argv`) writes the config's ``results.json``, the
+    variants the call evaluates, and those an earlier call already finished there with the same
+    merged config, checkpoint bytes and setting (``tools/test.py --resume`` keeps them), or
+    ``None`` when that folder cannot be resumed (another model or setting wrote it)."""
     test = load_tool("test")
     model_cfg = load_cfg(str(REPO_ROOT / cfg), ["DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs])
     output_root = args.output_root or str(REPO_ROOT / "output")
     ckpt = test.resolve_checkpoint(None, model_cfg.get("ATLAS", {}))
-    merged = json.dumps(model_cfg, sort_keys=True, default=str).encode()
-    model = {"config_sha256": hashlib.sha256(merged).hexdigest(),
-             "checkpoint_sha256": file_sha256(ckpt)}  # fmt: skip
+    wanted = {name for name, _ in resolve_variants(args.attacks, model_cfg.get("ATLAS", {}))}
     out_dir = test.eval_dir(model_cfg, output_root, TAG, ckpt, TAG)
     try:  # the setting tools/test.py gets from test_argv: one process, batch size 1
-        test.finished_variants(
-            out_dir, model_cfg, model["checkpoint_sha256"], (), batch_size=1, world=1
+        finished = set(
+            test.finished_variants(
+                out_dir, model_cfg, file_sha256(ckpt), wanted, batch_size=1, world=1
+            )
         )
-        resumable = not args.overwrite
     except ValueError:
-        resumable = False
-    return out_dir / "results.json", model, resumable
+        finished = None
+    return out_dir / "results.json", wanted, finished
 
 
 def known_times(run: dict) -> dict[str, float]:
@@ -183,14 +181,13 @@ def main(argv=None) -> dict:
     run_file = out_dir / "run.json"
     setting = {"data_path": str(root), "attacks": args.attacks,
                "set": list(args.set_cfgs), "no_reuse": args.no_reuse}  # fmt: skip
-    done, elapsed_before, calls = {}, 0.0, 1
+    elapsed_before, calls = 0.0, 1
     previous = json.loads(run_file.read_text()) if run_file.is_file() else {}
     known = known_times(previous)
-    if previous and not args.overwrite:
-        if previous.get("setting") == setting:
-            done = {r["config"]: r for r in previous["runs"] if Path(r["results"]).is_file()}
-            elapsed_before = float(previous.get("total_wall_s", 0.0))
-            calls += int(previous.get("calls", 1))
+    resume = not args.overwrite and previous.get("setting") == setting
+    if resume:
+        elapsed_before = float(previous.get("total_wall_s", 0.0))
+        calls += int(previous.get("calls", 1))
     state = {"setting": setting, "jobs": args.jobs, "threads": threads, "device": None,
              "total_wall_s": elapsed_before, "calls": calls, "runs": [],
              "model_wall_s": known}  # fmt: skip
@@ -213,11 +210,12 @@ def main(argv=None) -> dict:
             save_state()
 
     def evaluate(cfg: Path) -> None:
-        results, model, resumable = evaluation_of(cfg, args, root)
-        earlier = done.get(str(cfg))
-        if earlier is not None and earlier.get("model") == model:
-            print(f"{cfg}: done in an earlier call, {earlier['results']}", flush=True)
-            save_state(earlier)
+        results, wanted, finished = evaluation_of(cfg, args, root)
+        resumable = resume and finished is not None
+        if resumable and wanted <= finished:
+            print(f"{cfg}: done in an earlier call, {results}", flush=True)
+            wall = evaluation_time(json.loads(results.read_text()))
+            save_state({"config": str(cfg), "results": str(results), "wall_s": wall})
             return
         command = [sys.executable, str(REPO_ROOT / "tools" / "test.py"),
                    *test_argv(cfg, args, root, threads, resumable)]  # fmt: skip
@@ -232,7 +230,7 @@ def main(argv=None) -> dict:
             raise RuntimeError(f"{cfg}: tools/test.py exited with {code}; its output: {log}")
         wall = evaluation_time(json.loads(results.read_text()))
         print(f"{cfg}: {wall / 60:.1f} min, {results}", flush=True)
-        save_state({"config": str(cfg), "results": str(results), "wall_s": wall, "model": model})
+        save_state({"config": str(cfg), "results": str(results), "wall_s": wall})
 
     threading.Thread(target=heartbeat, daemon=True).start()
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
