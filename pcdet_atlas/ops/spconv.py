@@ -333,17 +333,47 @@ class _SparseConvNd(SparseModule):
         """The output features ``(N_out, out)`` of ``features`` ``(N_in, in)`` under ``rules``:
         per kernel offset, gather its input rows, one GEMM, scatter-add into its output rows."""
         weight = self.weight.reshape(self.out_channels, -1, self.in_channels)  # (out, K, in)
-        out = features.new_zeros((rules.out_indices.shape[0], self.out_channels))
-        for k, (in_rows, out_rows) in enumerate(rules.pairs):
-            if in_rows.numel() == 0:
-                continue
-            # out_rows has no repeats within one offset, so index_add_ is deterministic; in
-            # place, as its backward needs no copy of ``out`` (the out-of-place form costs a
-            # copy of it per offset, forward and backward)
-            out.index_add_(0, out_rows, features[in_rows] @ weight[:, k].t())
+        out = _GatherGemmScatter.apply(features, weight, rules.pairs, rules.out_indices.shape[0])
         if self.bias is not None:
             out = out + self.bias
         return out
+
+
+class _GatherGemmScatter(torch.autograd.Function):
+    """``out[o] = sum_k W_k x[i]`` over the pairs ``(i, o)`` of each kernel offset ``k``, with
+    its own backward: the gradients go to one ``(N_in, in)`` buffer and one weight buffer, offset
+    by offset (autograd through the gathers would allocate a full-size gradient per offset and
+    sum them, plus an accumulating ``index_put_`` each).
+
+    Within one offset an output row receives at most one input row and an input row feeds at
+    most one output row, so every ``index_add_`` is collision-free and deterministic."""
+
+    @staticmethod
+    def forward(ctx, features, weight, pairs, num_out):  # weight (out, K, in)
+        out = features.new_zeros((num_out, weight.shape[0]))
+        for k, (in_rows, out_rows) in enumerate(pairs):
+            if in_rows.numel():
+                out.index_add_(0, out_rows, features.index_select(0, in_rows) @ weight[:, k].t())
+        ctx.save_for_backward(features, weight)
+        ctx.pairs = pairs
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out):
+        features, weight = ctx.saved_tensors
+        need_features, need_weight = ctx.needs_input_grad[:2]
+        grad_features = torch.zeros_like(features) if need_features else None
+        grad_weight = torch.zeros_like(weight) if need_weight else None
+        for k, (in_rows, out_rows) in enumerate(ctx.pairs):
+            if not in_rows.numel():
+                continue
+            grad = grad_out.index_select(0, out_rows)  # (n, out)
+            if need_features:
+                grad_features.index_add_(0, in_rows, grad @ weight[:, k])
+            if need_weight:
+                grad_weight[:, k] = grad.t() @ features.index_select(0, in_rows)
+        return grad_features, grad_weight, None, None
 
 
 class SubMConv3d(_SparseConvNd):

@@ -173,11 +173,18 @@ def test_gradients_match_dense_reference(subm):
 
 
 @pytest.mark.parametrize("conv_cls", [SubMConv3d, SparseConv3d])
-def test_gradcheck_features(conv_cls):
+def test_gradcheck_features_and_weight(conv_cls):
+    """The conv's own backward against finite differences, for the features and the weight."""
     x = random_sparse((4, 4, 4), 1, 2, 8, seed=7)
     conv = conv_cls(2, 2, 3, padding=1, bias=True).double()
     feats = x.features.clone().requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda f: conv(x.replace_feature(f)).features, (feats,))
+    weight = conv.weight.detach().clone().requires_grad_(True)
+
+    def run(f, w):
+        params = {"weight": w, "bias": conv.bias}
+        return torch.func.functional_call(conv, params, (x.replace_feature(f),)).features
+
+    assert torch.autograd.gradcheck(run, (feats, weight))
 
 
 @pytest.mark.parametrize("conv_cls", [SubMConv3d, SparseConv3d])
