@@ -142,24 +142,39 @@ def _subm_pairs(
     kernel_size: tuple[int, int, int],
     dilation: tuple[int, int, int],
 ) -> IndicePairs:
-    """Submanifold rules: output sites are the input sites; kernel centred on each site."""
+    """Submanifold rules: output sites are the input sites; kernel centred on each site.
+
+    With odd kernel sizes the offsets pair up around the centre: when site ``i`` feeds site ``o``
+    through offset ``d``, ``o`` feeds ``i`` through ``-d``, so only half the offsets are searched
+    (the mirror of flat offset ``k`` is ``K - 1 - k``) and the centre maps every site to itself.
+    """
     device = indices.device
     shape = torch.tensor(spatial_shape, device=device)
     keys = _linear_keys(indices, spatial_shape)
     sorted_keys, order = torch.sort(keys)
     centre = torch.tensor([(k - 1) // 2 for k in kernel_size], device=device)
-    dil = torch.tensor(dilation, device=device)
+    deltas = (_kernel_offsets(kernel_size, device) - centre) * torch.tensor(dilation, device=device)
+    mirrored = all(k % 2 == 1 for k in kernel_size)
     idx = indices.long()
-    pairs = []
-    for offset in _kernel_offsets(kernel_size, device):
+    pairs: list = [None] * deltas.shape[0]
+    for k, delta in enumerate(deltas):
+        if pairs[k] is not None:
+            continue
+        if mirrored and k == len(pairs) // 2:  # the centre
+            rows = torch.arange(len(keys), device=device)
+            pairs[k] = (rows, rows)
+            continue
         nb = idx.clone()
-        nb[:, 1:] += (offset - centre) * dil  # the input site this offset reads for each output
+        nb[:, 1:] += delta  # the input site this offset reads for each output
         inside = ((nb[:, 1:] >= 0) & (nb[:, 1:] < shape)).all(dim=1)
         nb_keys = _linear_keys(nb, spatial_shape)
         pos = torch.searchsorted(sorted_keys, nb_keys).clamp_max(max(len(keys) - 1, 0))
         found = inside & (sorted_keys[pos] == nb_keys) if len(keys) else inside
         out_rows = torch.nonzero(found, as_tuple=True)[0]
-        pairs.append((order[pos[out_rows]], out_rows))
+        in_rows = order[pos[out_rows]]
+        pairs[k] = (in_rows, out_rows)
+        if mirrored:
+            pairs[len(pairs) - 1 - k] = (out_rows, in_rows)
     return IndicePairs(
         indices, indices, spatial_shape, spatial_shape, kernel_size, True, tuple(pairs)
     )

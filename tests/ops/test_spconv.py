@@ -84,6 +84,29 @@ def test_subm_matches_dense_conv_masked_to_input_sites(
     torch.testing.assert_close(out.features, expected)
 
 
+@pytest.mark.parametrize("kernel,dilation", [(3, 1), ((3, 1, 5), (1, 1, 2)), ((2, 3, 3), 1)])
+def test_subm_rules_are_every_neighbour_pair(kernel, dilation):
+    """The submanifold rules against a site dictionary: per kernel offset, exactly the pairs
+    (input row, output row) whose sites differ by that offset (the mirrored half of an odd
+    kernel, and the even kernel searched offset by offset)."""
+    x = random_sparse((6, 7, 8), 2, 1, 60, seed=11)
+    conv = SubMConv3d(1, 1, kernel, dilation=dilation)
+    rules = conv._rules(x)
+    site_row = {tuple(site): row for row, site in enumerate(x.indices.tolist())}
+    centre = [(k - 1) // 2 for k in conv.kernel_size]
+    kd, kh, kw = conv.kernel_size
+    for k, (in_rows, out_rows) in enumerate(rules.pairs):
+        offset = (k // (kh * kw), k // kw % kh, k % kw)
+        delta = [(o - c) * d for o, c, d in zip(offset, centre, conv.dilation)]
+        want = set()
+        for out_row, (b, z, y, w) in enumerate(x.indices.tolist()):
+            in_row = site_row.get((b, z + delta[0], y + delta[1], w + delta[2]))
+            if in_row is not None:
+                want.add((in_row, out_row))
+        assert set(zip(in_rows.tolist(), out_rows.tolist())) == want, offset
+        assert len(want) == in_rows.numel()  # no pair twice
+
+
 REGULAR_CASES = [
     # shape, batch, kernel, stride, padding, dilation
     ((5, 7, 6), 1, 3, 1, 0, 1),
