@@ -212,18 +212,27 @@ def _regular_pairs(
     """Regular sparse conv rules: every output site some input reaches, sorted by linear index."""
     device = indices.device
     out_shape = conv_output_shape(spatial_shape, kernel_size, stride, padding, dilation)
-    offsets = _kernel_offsets(kernel_size, device)  # (K, 3)
-    s = torch.tensor(stride, device=device)
-    p = torch.tensor(padding, device=device)
-    d = torch.tensor(dilation, device=device)
     idx = indices.long()
-    # input i feeds output o through offset k when o * s - p + k * d == i
-    num = idx[None, :, 1:] + p - offsets[:, None, :] * d  # (K, N, 3)
-    out_zyx = torch.div(num, s, rounding_mode="floor")
-    valid = ((num % s) == 0).all(-1) & (out_zyx >= 0).all(-1)
-    valid &= (out_zyx < torch.tensor(out_shape, device=device)).all(-1)  # (K, N)
+    # per axis (each on its own): input coordinate i reaches output o through kernel position
+    # k when o * s - p + k * d == i
+    out_axis, valid_axis = [], []
+    for axis, (k, s, p, d, n_out) in enumerate(
+        zip(kernel_size, stride, padding, dilation, out_shape)
+    ):
+        num = idx[None, :, 1 + axis] + p - torch.arange(k, device=device)[:, None] * d  # (k, N)
+        o = torch.div(num, s, rounding_mode="floor")
+        out_axis.append(o)
+        valid_axis.append((num % s == 0) & (o >= 0) & (o < n_out))
+    kd, kh, kw = kernel_size
+    valid = (
+        valid_axis[0][:, None, None] & valid_axis[1][None, :, None] & valid_axis[2][None, None, :]
+    ).reshape(kd * kh * kw, -1)  # (K, N), K in the weight's (kD, kH, kW) order
     k_ids, in_rows = torch.nonzero(valid, as_tuple=True)
-    out_sites = torch.cat([idx[in_rows, :1], out_zyx[k_ids, in_rows]], dim=1)  # (P, 4)
+    kz, ky, kx = k_ids // (kh * kw), k_ids // kw % kh, k_ids % kw
+    out_sites = torch.stack(  # (P, 4)
+        [idx[in_rows, 0], out_axis[0][kz, in_rows], out_axis[1][ky, in_rows],
+         out_axis[2][kx, in_rows]], dim=1,
+    )  # fmt: skip
     out_keys, out_rows = torch.unique(
         _linear_keys(out_sites, out_shape), sorted=True, return_inverse=True
     )
@@ -238,7 +247,9 @@ def _regular_pairs(
         ],
         dim=1,
     ).to(torch.int32)
-    pairs = tuple((in_rows[k_ids == k], out_rows[k_ids == k]) for k in range(offsets.shape[0]))
+    # nonzero lists (k, n) row-major: each offset's pairs are one slice
+    counts = torch.bincount(k_ids, minlength=kd * kh * kw).tolist()
+    pairs = tuple(zip(in_rows.split(counts), out_rows.split(counts)))
     return IndicePairs(indices, out_indices, spatial_shape, out_shape, kernel_size, False, pairs)
 
 
