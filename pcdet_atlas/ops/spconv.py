@@ -150,28 +150,28 @@ def _subm_pairs(
     """
     device = indices.device
     shape = torch.tensor(spatial_shape, device=device)
-    keys = _linear_keys(indices, spatial_shape)
-    sorted_keys, order = torch.sort(keys)
+    sorted_keys, order = torch.sort(_linear_keys(indices, spatial_shape))
+    sorted_zyx = indices.long()[order, 1:]
     centre = torch.tensor([(k - 1) // 2 for k in kernel_size], device=device)
     deltas = (_kernel_offsets(kernel_size, device) - centre) * torch.tensor(dilation, device=device)
+    _, h, w = spatial_shape
     mirrored = all(k % 2 == 1 for k in kernel_size)
-    idx = indices.long()
     pairs: list = [None] * deltas.shape[0]
     for k, delta in enumerate(deltas):
         if pairs[k] is not None:
             continue
         if mirrored and k == len(pairs) // 2:  # the centre
-            rows = torch.arange(len(keys), device=device)
+            rows = torch.arange(len(order), device=device)
             pairs[k] = (rows, rows)
             continue
-        nb = idx.clone()
-        nb[:, 1:] += delta  # the input site this offset reads for each output
-        inside = ((nb[:, 1:] >= 0) & (nb[:, 1:] < shape)).all(dim=1)
-        nb_keys = _linear_keys(nb, spatial_shape)
-        pos = torch.searchsorted(sorted_keys, nb_keys).clamp_max(max(len(keys) - 1, 0))
-        found = inside & (sorted_keys[pos] == nb_keys) if len(keys) else inside
-        out_rows = torch.nonzero(found, as_tuple=True)[0]
-        in_rows = order[pos[out_rows]]
+        # the key each site reads through this offset, in key order (a sorted query is a
+        # cache-friendly search); a shift that leaves the grid is masked, not wrapped
+        inside = ((sorted_zyx + delta >= 0) & (sorted_zyx + delta < shape)).all(dim=1)
+        nb_keys = sorted_keys + int((delta[0] * h + delta[1]) * w + delta[2])
+        pos = torch.searchsorted(sorted_keys, nb_keys).clamp_max(max(len(order) - 1, 0))
+        found = inside & (sorted_keys[pos] == nb_keys) if len(order) else inside
+        at = torch.nonzero(found, as_tuple=True)[0]
+        in_rows, out_rows = order[pos[at]], order[at]
         pairs[k] = (in_rows, out_rows)
         if mirrored:
             pairs[len(pairs) - 1 - k] = (out_rows, in_rows)
