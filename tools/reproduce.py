@@ -260,13 +260,16 @@ def main(argv=None) -> dict:
         )
         + " A model's time is the sum of its variants' evaluation times.",
         "",
-        "| Model | Wall time (min) | Frames recomputed | Frames reused |",
-        "|:---|---:|---:|---:|",
+        "| Model | Wall time (min) | Frames recomputed | Frames reused | s per recomputed frame |",
+        "|:---|---:|---:|---:|---:|",
     ]
     for run, r in zip(runs, results):
         recomputed = sum(v["num_recomputed_frames"] or 0 for v in r["variants"].values())
         reused = sum(v["num_reused_frames"] or 0 for v in r["variants"].values())
-        lines.append(f"| {r['model']} | {run['wall_s'] / 60:.1f} | {recomputed} | {reused} |")
+        per_frame = f"{run['wall_s'] / recomputed:.2f}" if recomputed else "-"
+        lines.append(
+            f"| {r['model']} | {run['wall_s'] / 60:.1f} | {recomputed} | {reused} | {per_frame} |"
+        )
     out = write_report(
         results, args.out, sources=[r["results"] for r in runs], latex=True,
         command=None, appendix="\n".join(lines),

@@ -237,6 +237,11 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     text = out["report"].read_text()
     assert "## How these results were produced" in text and "| CenterPoint |" in text
     assert "2 model(s) at a time with 1 torch thread(s) each" in text
+    # clean 5 frames + rem_30 2 recomputed (below) per model, its time spread over them
+    appendix = text.split("## How these results were produced")[1].splitlines()
+    row = next(line for line in appendix if line.startswith("| CP-4f | "))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[2:4] == ["7", "3"] and float(cells[4]) > 0
     run = out["run"]
     # configs named from the repository root, as results.json and the report name them
     want = [f"cfgs/atlas/synthetic/{name}.yaml" for name in ("centerpoint", "cp4f")]
