@@ -155,6 +155,7 @@ def _subm_pairs(
     centre = torch.tensor([(k - 1) // 2 for k in kernel_size], device=device)
     deltas = (_kernel_offsets(kernel_size, device) - centre) * torch.tensor(dilation, device=device)
     _, h, w = spatial_shape
+    shifts = ((deltas[:, 0] * h + deltas[:, 1]) * w + deltas[:, 2]).tolist()  # linear key shifts
     mirrored = all(k % 2 == 1 for k in kernel_size)
     pairs: list = [None] * deltas.shape[0]
     for k, delta in enumerate(deltas):
@@ -167,7 +168,7 @@ def _subm_pairs(
         # the key each site reads through this offset, in key order (a sorted query is a
         # cache-friendly search); a shift that leaves the grid is masked, not wrapped
         inside = ((sorted_zyx + delta >= 0) & (sorted_zyx + delta < shape)).all(dim=1)
-        nb_keys = sorted_keys + int((delta[0] * h + delta[1]) * w + delta[2])
+        nb_keys = sorted_keys + shifts[k]
         pos = torch.searchsorted(sorted_keys, nb_keys).clamp_max(max(len(order) - 1, 0))
         found = inside & (sorted_keys[pos] == nb_keys) if len(order) else inside
         at = torch.nonzero(found, as_tuple=True)[0]
