@@ -169,15 +169,15 @@ def _mean_from_counts(edges, counts) -> float:
 def lifecycle_heatmaps(results_list: Sequence[Mapping], family: str, path: Path) -> Path | str:
     """Per model, the targets' matched scores by lifecycle position (the family's variants
     pooled): each column k is the fraction of that k's targets detected with a score in each
-    bin (a column sums to the detected fraction). The white line is the mean attacked score
-    of the detected targets; the dashed blue line the clean baseline, the mean clean-run
-    score of the same targets at the same frames (paper Figs. 7 and 8)."""
+    bin (a column sums to the detected fraction); one colour scale for all panels, up to the
+    largest cell. The white line is the mean attacked score of the detected targets; the dashed
+    blue line the clean baseline, the mean clean-run score of the same targets at the same
+    frames (paper Figs. 7 and 8)."""
     models = _lifecycle_models(results_list, family)
     if not models:
         return f"no {family} variant with lifecycle data"
-    fig, axes = _figure(len(models), (4.2, 3.2))
-    image = None
-    for ax, (r, names) in zip(axes, models):
+    panels = []
+    for r, names in models:
         lcs = [r["variants"][n]["lifecycle"] for n in names]
         window, edges = lcs[0]["window"], lcs[0]["score_bin_edges"]
         lcs = [lc for lc in lcs if lc["window"] == window and lc["score_bin_edges"] == edges]
@@ -185,8 +185,13 @@ def lifecycle_heatmaps(results_list: Sequence[Mapping], family: str, path: Path)
         targets = np.sum([np.asarray(lc["num_targets"], dtype=float) for lc in lcs], axis=0)
         frac = np.divide(counts, targets[:, None], out=np.zeros_like(counts),
                          where=targets[:, None] > 0)  # fmt: skip
+        panels.append((r, lcs, window, edges, counts, frac))
+    vmax = max(float(frac.max()) for *_, frac in panels) or 1.0
+    fig, axes = _figure(len(models), (4.2, 3.2))
+    image = None
+    for ax, (r, lcs, window, edges, counts, frac) in zip(axes, panels):
         ks = np.asarray(lcs[0]["k"])
-        image = ax.imshow(frac.T, origin="lower", aspect="auto", cmap="magma", vmin=0, vmax=1,
+        image = ax.imshow(frac.T, origin="lower", aspect="auto", cmap="magma", vmin=0, vmax=vmax,
                           extent=(ks[0] - 0.5, ks[-1] + 0.5, edges[0], edges[-1]))  # fmt: skip
         ax.plot(ks, [_mean_from_counts(edges, c) for c in counts], color="white", lw=1.2,
                 marker="o", ms=3, label="attacked (mean)")  # fmt: skip
