@@ -789,7 +789,8 @@ def _dense_conv(conv, dense: torch.Tensor) -> torch.Tensor:
 
 
 def _timed(fn, device: torch.device, repeats: int) -> float:
-    """Median seconds of ``fn()`` over ``repeats`` calls after one warm-up."""
+    """Fewest seconds of ``fn()`` over ``repeats`` calls after one warm-up (the least disturbed
+    call: another job on the same cores only ever adds time to a deterministic kernel)."""
     times = []
     for i in range(repeats + 1):
         if device.type == "cuda":
@@ -800,7 +801,7 @@ def _timed(fn, device: torch.device, repeats: int) -> float:
             torch.cuda.synchronize(device)
         if i:
             times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    return min(times)
 
 
 def spconv_table(cfg_file: str, data_path: Path, args, device: torch.device) -> None:
@@ -847,7 +848,7 @@ def spconv_table(cfg_file: str, data_path: Path, args, device: torch.device) -> 
         f"\nsparse conv layers of {name} ({type(backbone).__name__}, random weights) on val frame "
         f"{args.spconv_frame}{f' (within {args.spconv_crop:g} m)' if args.spconv_crop else ''}, "
         f"grid {backbone.sparse_shape}, device {device}, {torch.get_num_threads()} threads, "
-        f"median of {repeats} (after 1 warm-up); dense: conv3d on the (B, C, D, H, W) grid"
+        f"fastest of {repeats} (after 1 warm-up); dense: conv3d on the (B, C, D, H, W) grid"
     )
     print(
         "| layer | kind | sites in -> out | channels | pairs | rules ms | forward ms "
