@@ -212,24 +212,22 @@ def main(argv=None) -> dict:
     def evaluate(cfg: Path) -> None:
         results, wanted, finished = evaluation_of(cfg, args, root)
         resumable = resume and finished is not None
-        if resumable and wanted <= finished:
-            print(f"{cfg}: done in an earlier call, {results}", flush=True)
-            wall = evaluation_time(json.loads(results.read_text()))
-            save_state({"config": str(cfg), "results": str(results), "wall_s": wall})
-            return
-        command = [sys.executable, str(REPO_ROOT / "tools" / "test.py"),
-                   *test_argv(cfg, args, root, threads, resumable)]  # fmt: skip
-        print("$ " + shlex.join(command[1:]), flush=True)
-        log = results.parent.parent / "reproduce.log"
-        log.parent.mkdir(parents=True, exist_ok=True)
-        with log.open("a" if resumable else "w") as stream:
-            code = subprocess.run(
-                command, stdout=stream, stderr=subprocess.STDOUT, cwd=REPO_ROOT
-            ).returncode
-        if code != 0:
-            raise RuntimeError(f"{cfg}: tools/test.py exited with {code}; its output: {log}")
+        done = resumable and wanted <= finished
+        if not done:
+            command = [sys.executable, str(REPO_ROOT / "tools" / "test.py"),
+                       *test_argv(cfg, args, root, threads, resumable)]  # fmt: skip
+            print("$ " + shlex.join(command[1:]), flush=True)
+            log = results.parent.parent / "reproduce.log"
+            log.parent.mkdir(parents=True, exist_ok=True)
+            with log.open("a" if resumable else "w") as stream:
+                code = subprocess.run(
+                    command, stdout=stream, stderr=subprocess.STDOUT, cwd=REPO_ROOT
+                ).returncode
+            if code != 0:
+                raise RuntimeError(f"{cfg}: tools/test.py exited with {code}; its output: {log}")
         wall = evaluation_time(json.loads(results.read_text()))
-        print(f"{cfg}: {wall / 60:.1f} min, {results}", flush=True)
+        when = "done in an earlier call, " if done else ""
+        print(f"{cfg}: {when}{wall / 60:.1f} min, {results}", flush=True)
         save_state({"config": str(cfg), "results": str(results), "wall_s": wall})
 
     threading.Thread(target=heartbeat, daemon=True).start()

@@ -167,7 +167,8 @@ def _subm_pairs(
             continue
         # the key each site reads through this offset, in key order (a sorted query is a
         # cache-friendly search); a shift that leaves the grid is masked, not wrapped
-        inside = ((sorted_zyx + delta >= 0) & (sorted_zyx + delta < shape)).all(dim=1)
+        nb_zyx = sorted_zyx + delta
+        inside = ((nb_zyx >= 0) & (nb_zyx < shape)).all(dim=1)
         nb_keys = sorted_keys + shifts[k]
         pos = torch.searchsorted(sorted_keys, nb_keys).clamp_max(max(len(order) - 1, 0))
         found = inside & (sorted_keys[pos] == nb_keys) if len(order) else inside
