@@ -40,7 +40,7 @@ def maps_from_targets(head, targets):
     B = targets.heatmap.shape[0]
     H, W = head.feature_map_size
     hm = torch.where(targets.heatmap == 1, 12.0, -12.0)
-    reg = torch.zeros(B, head.code_size, H * W)
+    reg = torch.zeros(B, head.code_size, H * W, device=targets.heatmap.device)
     for b in range(B):
         m = targets.mask[b]
         reg[b][:, targets.inds[b][m]] = targets.box_targets[b][m].T
