@@ -268,9 +268,9 @@ def main(argv=None) -> dict:
         lines.append(
             f"| {r['model']} | {run['wall_s'] / 60:.1f} | {recomputed} | {reused} | {per_frame} |"
         )
+    sources = [str(repo_relative(Path(r["results"]))) for r in runs]
     out = write_report(
-        results, args.out, sources=[r["results"] for r in runs], latex=True,
-        command=None, appendix="\n".join(lines),
+        results, args.out, sources=sources, latex=True, command=None, appendix="\n".join(lines),
     )  # fmt: skip
     state.update(device=device, runs=runs)
     run_file.write_text(json.dumps(state, indent=2) + "\n")
