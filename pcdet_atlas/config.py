@@ -29,6 +29,13 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 _SOURCES_ATTR = "_key_sources"
 
 
+def repo_relative(path: str | Path) -> Path:
+    """``path`` relative to the repository root when it lies inside it (absolute otherwise), as
+    reports and ``results.json`` name configs and files, independent of where the clone is."""
+    path = Path(path).resolve()
+    return path.relative_to(REPO_ROOT) if path.is_relative_to(REPO_ROOT) else path
+
+
 class ConfigError(ValueError):
     """A config that cannot be loaded, merged or overridden as asked."""
 

@@ -11,6 +11,7 @@ from pcdet_atlas.config import (
     cfg_from_yaml_file,
     check_known_keys,
     key_source,
+    repo_relative,
     save_config,
 )
 
@@ -181,3 +182,12 @@ def test_detector_config_sections_and_value_types(tmp_path, body, key):
     with pytest.raises(ConfigError, match=re.escape(key)) as info:
         load_cfg(str(path), None)
     assert "mine.yaml" in str(info.value)
+
+
+def test_repo_relative_names_files_from_the_repository_root(tmp_path, monkeypatch):
+    name = Path("cfgs/atlas/synthetic/cp4f.yaml")
+    assert repo_relative(REPO_ROOT / name) == name
+    monkeypatch.chdir(REPO_ROOT / "tools")  # a relative path resolves from the working folder
+    assert repo_relative(Path("..") / name) == name
+    outside = tmp_path / "results.json"
+    assert repo_relative(outside) == outside.resolve()  # outside the clone: kept absolute

@@ -16,7 +16,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from pcdet_atlas.config import REPO_ROOT
+from pcdet_atlas.config import repo_relative
 from pcdet_atlas.evaluation.results.report import DEFAULT_LOT_PAIR, collect_results, write_report
 
 
@@ -32,19 +32,12 @@ def parse_args(argv=None):
     return p.parse_args(argv)
 
 
-def _shown(path: Path) -> str:
-    try:
-        return str(path.resolve().relative_to(REPO_ROOT))
-    except ValueError:
-        return str(path)
-
-
 def main(argv=None) -> dict:
     args = parse_args(argv)
     found = collect_results(args.results)
     command = "python tools/report.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     out = write_report(
-        [r for _, r in found], args.out, sources=[_shown(p) for p, _ in found],
+        [r for _, r in found], args.out, sources=[str(repo_relative(p)) for p, _ in found],
         latex=args.latex, lot_pair=tuple(args.lot_pair), command=command,
     )  # fmt: skip
     print(f"report: {out['report']}" + (f"  latex: {out['latex']}" if out["latex"] else ""))

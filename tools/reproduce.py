@@ -42,7 +42,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
-from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, repo_relative
 from pcdet_atlas.evaluation.results import collect_results, write_report
 from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.train_utils.atlas_eval import resolve_variants
@@ -62,12 +62,6 @@ def shipped_configs() -> list[Path]:
         if ckpt and (REPO_ROOT / ckpt).is_file():
             out.append(path.relative_to(REPO_ROOT))  # as results.json and the report name it
     return out
-
-
-def repo_relative(path: Path) -> Path:
-    """``path`` relative to the repository root when it lies inside it (absolute otherwise)."""
-    path = path.resolve()
-    return path.relative_to(REPO_ROOT) if path.is_relative_to(REPO_ROOT) else path
 
 
 def parse_args(argv=None):
