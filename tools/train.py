@@ -3,12 +3,14 @@
     python tools/train.py --cfg cfgs/atlas/synthetic/cp4f.yaml
     torchrun --nproc_per_node 2 tools/train.py --cfg ... --launcher pytorch
 
-Output: ``output/<group>/<tag>/<extra_tag>/`` with ``ckpt/checkpoint_epoch_N.pth``, ``train_*.log``,
-the merged ``<tag>.yaml`` (with the ``NUM_EPOCHS`` and ``BATCH_SIZE_PER_GPU`` that ``--epochs`` /
-``--batch_size`` put in effect) and ``tensorboard/``. Training resumes from ``--ckpt`` or, if
-absent, from the newest checkpoint in ``ckpt/`` (exactly: optimizer, schedule and RNG state
-included); a checkpoint trained with other ``OPTIMIZATION`` settings, epochs or total batch size
-is refused, naming what changed. Counts below their minimum (``--epochs 0``) are usage errors.
+Output: ``output/<group>/<tag>/<extra_tag>/`` with ``ckpt/checkpoint_epoch_N.pth`` (and, during
+an epoch, ``ckpt/latest_model.pth``, rewritten every ``--ckpt_save_time_interval`` seconds),
+``train_*.log``, the merged ``<tag>.yaml`` (with the ``NUM_EPOCHS`` and ``BATCH_SIZE_PER_GPU`` that
+``--epochs`` / ``--batch_size`` put in effect) and ``tensorboard/``. Training resumes from
+``--ckpt`` or, if absent, from the newest checkpoint in ``ckpt/``, mid-epoch included (exactly:
+optimizer, schedule, RNG state and the epoch's position in its shuffled order included); a
+checkpoint trained with other ``OPTIMIZATION`` settings, epochs or total batch size is refused,
+naming what changed. Counts below their minimum (``--epochs 0``) are usage errors.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from pcdet_atlas.train_utils import (
     TrainState,
     check_resume_settings,
     eval_one_epoch,
-    find_latest_checkpoint,
+    find_resume_checkpoint,
     load_checkpoint,
     retain_freed_cpu_memory,
     train_model,
@@ -64,6 +66,10 @@ def parse_args(argv=None):
     parser.add_argument("--sync_bn", action="store_true", default=False)
     parser.add_argument("--ckpt_save_interval", type=count_arg(1), default=1)
     parser.add_argument("--max_ckpt_save_num", type=count_arg(1), default=30)
+    parser.add_argument(
+        "--ckpt_save_time_interval", type=count_arg(0), default=300,
+        help="seconds between rewrites of ckpt/latest_model.pth inside an epoch (0: every step)",
+    )  # fmt: skip
     parser.add_argument("--merge_all_iters_to_one_epoch", action="store_true", default=False)
     parser.add_argument(
         "--num_epochs_to_eval", type=count_arg(0), default=0, help=">0: evaluate at the end"
@@ -139,7 +145,7 @@ def main(argv=None) -> dict:
     scaler = torch.amp.GradScaler("cuda") if args.use_amp and device.type == "cuda" else None
 
     state = TrainState()
-    resume = args.ckpt or find_latest_checkpoint(ckpt_dir)
+    resume = args.ckpt or find_resume_checkpoint(ckpt_dir)
     if resume is not None:
         total_steps = getattr(scheduler, "total_steps", None)
         ckpt = load_checkpoint(resume, model, optimizer, scheduler, scaler)
@@ -150,8 +156,17 @@ def main(argv=None) -> dict:
                 f"{total_steps} steps ({epochs} epochs x {len(loader)} iterations): the training "
                 "set or its sampling differs from the checkpoint's"
             )
-        state = TrainState(epoch=ckpt["epoch"], it=ckpt["it"])
-        logger.info(f"resumed from {resume} (epoch {state.epoch}, iteration {state.it})")
+        state = TrainState(
+            epoch=ckpt["epoch"], it=ckpt["it"], epoch_it=ckpt.get("epoch_it", 0),
+            epoch_loss_sums=dict(ckpt.get("epoch_loss_sums") or {}),
+        )  # fmt: skip
+        if state.it != state.epoch * len(loader) + state.epoch_it:
+            raise ValueError(
+                f"{resume}: {state.it} iterations do not make {state.epoch} epochs of "
+                f"{len(loader)} plus {state.epoch_it}: the training set or batch size differs"
+            )
+        into = f"; {state.epoch_it} batches into epoch {state.epoch + 1}" if state.epoch_it else ""
+        logger.info(f"resumed from {resume} (epoch {state.epoch}, iteration {state.it}{into})")
     elif stage is not None:
         try:
             init = stage_init_checkpoint(
@@ -181,7 +196,7 @@ def main(argv=None) -> dict:
         ckpt_save_interval=args.ckpt_save_interval, max_ckpt_save_num=args.max_ckpt_save_num,
         scaler=scaler, use_amp=args.use_amp, tb_log=tb_log, logger=logger,
         logger_iter_interval=args.logger_iter_interval, show_progress=not args.no_progress,
-        train_settings=train_settings,
+        train_settings=train_settings, ckpt_save_time_interval=args.ckpt_save_time_interval,
     )  # fmt: skip
     result = {"output_dir": out_dir, "state": state}
     if args.num_epochs_to_eval > 0:

@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.distributed as torch_dist
-from torch.utils.data import DataLoader, DistributedSampler
+from torch.utils.data import DataLoader, DistributedSampler, RandomSampler
 
 from pcdet_atlas.config import ConfigError
 from pcdet_atlas.registry import DATASETS
 from pcdet_atlas.utils.seeding import derive_seed, torch_generator
 
-__all__ = ["ContiguousBatchSampler", "build_dataloader", "worker_init_fn"]
+__all__ = ["ContiguousBatchSampler", "ResumableSampler", "build_dataloader", "worker_init_fn"]
 
 
 class ContiguousBatchSampler(torch.utils.data.Sampler):
@@ -82,6 +82,41 @@ class ContiguousBatchSampler(torch.utils.data.Sampler):
         return len(self.batches)
 
 
+class ResumableSampler(torch.utils.data.Sampler):
+    """A training sampler whose passes can start part-way, for resuming an epoch mid-way.
+
+    Wraps a sampler (the shuffled ``RandomSampler`` or ``DistributedSampler``). After
+    ``start_at(n)``, every pass draws the wrapped sampler's whole order as usual (so its random
+    generator advances exactly as in an uninterrupted pass) and yields it from position ``n`` on:
+    the indices an interrupted pass had not yet reached. ``start_at(0)`` restores whole passes.
+    ``set_epoch`` is passed on to the wrapped sampler.
+    """
+
+    def __init__(self, sampler: torch.utils.data.Sampler):
+        self.sampler = sampler
+        self.start = 0
+
+    def start_at(self, position: int) -> None:
+        if not 0 <= position <= len(self.sampler):
+            raise ValueError(
+                f"ResumableSampler.start_at({position}): a pass has {len(self.sampler)} indices"
+            )
+        self.start = int(position)
+
+    def set_epoch(self, epoch: int) -> None:
+        if hasattr(self.sampler, "set_epoch"):
+            self.sampler.set_epoch(epoch)
+
+    def __iter__(self):
+        order = iter(self.sampler)
+        for _ in range(self.start):
+            next(order)
+        return order
+
+    def __len__(self) -> int:
+        return len(self.sampler) - self.start
+
+
 def worker_init_fn(worker_id: int, seed: int | None = None) -> None:
     """Seed a worker's global RNGs from ``(seed, 'worker', worker_id)`` for third-party code.
 
@@ -116,8 +151,10 @@ def build_dataloader(
         seed: when given, replaces the dataset's ``SEED`` (augmentation draws), seeds the
             training shuffle order and the workers' global RNGs.
     Returns:
-        ``(dataset, dataloader, sampler)``; ``sampler`` is ``None`` unless ``dist``. Call
-        ``dataset.set_epoch(e)`` (and ``sampler.set_epoch(e)``) before each training epoch.
+        ``(dataset, dataloader, sampler)``. In training, ``sampler`` is a
+        :class:`ResumableSampler` around the shuffled order (a ``DistributedSampler`` when
+        ``dist``); for testing it is the ``DistributedSampler`` when ``dist``, else ``None``.
+        Call ``dataset.set_epoch(e)`` and ``sampler.set_epoch(e)`` before each training epoch.
     """
     if "DATASET" not in dataset_cfg:
         raise ConfigError("DATA_CONFIG has no DATASET name")
@@ -150,12 +187,14 @@ def build_dataloader(
     generator = None
     if seed is not None and sampler is None and training:
         generator = torch_generator(int(seed), "dataloader_shuffle")
+    if training:  # the order DataLoader(shuffle=True) would draw, startable part-way
+        sampler = ResumableSampler(sampler or RandomSampler(dataset, generator=generator))
     dataloader = DataLoader(
         dataset,
         batch_size=batch_size,
         pin_memory=torch.cuda.is_available(),
         num_workers=workers,
-        shuffle=(sampler is None) and training,
+        shuffle=False,
         collate_fn=dataset.collate_batch,
         drop_last=False,
         sampler=sampler,

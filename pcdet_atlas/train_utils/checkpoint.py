@@ -1,10 +1,13 @@
 """OpenPCDet-style checkpoints with everything needed for an exact resume.
 
-A checkpoint is a dict ``{'epoch', 'it', 'model_state', 'optimizer_state', 'scheduler_state',
-'scaler_state', 'rng_state', 'train_settings', 'version'}``; ``epoch`` counts the finished epochs
-and ``it`` the optimizer steps taken; ``train_settings`` holds the optimization settings in effect
-(:func:`check_resume_settings` compares them on resume). ``model_state`` alone is what
-``--pretrained_model`` / ``tools/test.py`` load (strictly, with a readable error on mismatch).
+A checkpoint is a dict ``{'epoch', 'it', 'epoch_it', 'epoch_loss_sums', 'model_state',
+'optimizer_state', 'scheduler_state', 'scaler_state', 'rng_state', 'train_settings', 'version'}``;
+``epoch`` counts the finished epochs and ``it`` the optimizer steps taken; ``epoch_it`` the
+batches of the next epoch already trained (0 at an epoch's end; a ``latest_model.pth`` written
+mid-epoch has more) and ``epoch_loss_sums`` their summed losses; ``train_settings`` holds the
+optimization settings in effect (:func:`check_resume_settings` compares them on resume).
+``model_state`` alone is what ``--pretrained_model`` / ``tools/test.py`` load (strictly, with a
+readable error on mismatch).
 """
 
 from __future__ import annotations
@@ -28,12 +31,14 @@ __all__ = [
     "save_checkpoint",
     "load_checkpoint",
     "find_latest_checkpoint",
+    "find_resume_checkpoint",
     "list_epoch_checkpoints",
     "check_resume_settings",
     "export_model_checkpoint",
 ]
 
 CHECKPOINT_NAME = re.compile(r"checkpoint_epoch_(\d+)\.pth")
+LATEST_NAME = "latest_model.pth"  # the mid-epoch checkpoint (OpenPCDet's name)
 
 
 def checkpoint_state(
@@ -44,6 +49,8 @@ def checkpoint_state(
     *,
     epoch: int,
     it: int,
+    epoch_it: int = 0,
+    epoch_loss_sums: Mapping[str, float] | None = None,
     train_settings: Mapping | None = None,
 ) -> dict:
     """The checkpoint dict (tensors moved to CPU)."""
@@ -52,6 +59,8 @@ def checkpoint_state(
     return {
         "epoch": int(epoch),
         "it": int(it),
+        "epoch_it": int(epoch_it),
+        "epoch_loss_sums": dict(epoch_loss_sums or {}),
         "model_state": state,
         "model_info": info() if info is not None else {},  # e.g. a two-stage model's RPN
         "optimizer_state": None if optimizer is None else optimizer.state_dict(),
@@ -120,6 +129,20 @@ def find_latest_checkpoint(ckpt_dir: str | Path) -> Path | None:
     """The ``checkpoint_epoch_N.pth`` with the largest N in ``ckpt_dir`` (None if there is none)."""
     found = list_epoch_checkpoints(ckpt_dir)
     return found[-1][1] if found else None
+
+
+def find_resume_checkpoint(ckpt_dir: str | Path) -> Path | None:
+    """Where an interrupted training run goes on from: ``latest_model.pth`` (written mid-epoch)
+    when it is ahead of every ``checkpoint_epoch_N.pth``, else the newest of those (None if
+    ``ckpt_dir`` holds neither)."""
+    newest = find_latest_checkpoint(ckpt_dir)
+    latest = Path(ckpt_dir) / LATEST_NAME
+    if latest.is_file():
+        ckpt = read_checkpoint(latest)
+        ahead = (ckpt["epoch"], ckpt.get("epoch_it", 0))
+        if newest is None or ahead > (int(CHECKPOINT_NAME.fullmatch(newest.name).group(1)), 0):
+            return latest
+    return newest
 
 
 def _flatten(node, prefix: str = "") -> dict:

@@ -4,7 +4,10 @@ Determinism: the shuffle order of epoch ``e`` is a function of ``(seed, e)`` (th
 generator is re-seeded, or the ``DistributedSampler`` gets ``set_epoch(e)``), augmentation draws
 are keyed by the dataset's ``set_epoch(e)``, and the checkpoint carries the optimizer, schedule,
 AMP scaler and torch RNG state, so training N epochs in one go or in two resumed parts gives the
-same weights bit for bit on CPU.
+same weights bit for bit on CPU. Besides the per-epoch checkpoints, ``latest_model.pth`` is
+rewritten every ``ckpt_save_time_interval`` seconds inside an epoch; a run resumed from it
+starts the epoch's shuffled order at the first batch not yet trained
+(:class:`~pcdet_atlas.datasets.loader.ResumableSampler`), so it too ends bit for bit the same.
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,7 +24,7 @@ import tqdm
 from torch import nn
 
 from pcdet_atlas.models.batch import load_data_to_device
-from pcdet_atlas.train_utils.checkpoint import checkpoint_state, save_checkpoint
+from pcdet_atlas.train_utils.checkpoint import LATEST_NAME, checkpoint_state, save_checkpoint
 from pcdet_atlas.train_utils.cpu_memory import trim_cpu_memory
 from pcdet_atlas.train_utils.dist import get_dist_info
 from pcdet_atlas.utils.seeding import derive_seed
@@ -31,15 +34,18 @@ __all__ = ["TrainState", "train_one_epoch", "train_model"]
 
 @dataclass
 class TrainState:
-    """Where training stands: finished epochs, optimizer steps taken, and the mean losses of
-    the epochs trained in this process."""
+    """Where training stands: finished epochs, optimizer steps taken, the batches of the next
+    epoch already trained (``epoch_it``, non-zero only when resumed mid-epoch) with their summed
+    losses, and the mean losses of the epochs finished in this process."""
 
     epoch: int = 0
     it: int = 0
+    epoch_it: int = 0
+    epoch_loss_sums: dict[str, float] = field(default_factory=dict)
     history: list[dict[str, float]] = field(default_factory=list)
 
 
-def _set_loader_epoch(dataloader, sampler, seed: int, epoch: int) -> None:
+def _set_loader_epoch(dataloader, sampler, seed: int, epoch: int, start_batch: int = 0) -> None:
     dataset = dataloader.dataset
     if hasattr(dataset, "set_epoch"):
         dataset.set_epoch(epoch)
@@ -47,6 +53,13 @@ def _set_loader_epoch(dataloader, sampler, seed: int, epoch: int) -> None:
         sampler.set_epoch(epoch)
     if getattr(dataloader, "generator", None) is not None:
         dataloader.generator.manual_seed(derive_seed(seed, "dataloader_shuffle", epoch))
+    if hasattr(sampler, "start_at"):
+        sampler.start_at(start_batch * dataloader.batch_size)
+    elif start_batch:
+        raise ValueError(
+            f"resuming mid-epoch (after batch {start_batch}) needs a sampler with start_at "
+            f"(build_dataloader(training=True) gives one), not {type(sampler).__name__}"
+        )
 
 
 def train_one_epoch(
@@ -64,19 +77,24 @@ def train_one_epoch(
     logger: logging.Logger | None = None,
     logger_iter_interval: int = 50,
     show_progress: bool = True,
+    after_step: Callable[[], None] | None = None,
 ) -> dict[str, float]:
-    """One pass over ``dataloader``; updates ``state.it``. Returns the epoch's mean losses."""
+    """One pass over ``dataloader`` (the rest of the epoch when ``state.epoch_it`` batches of it
+    were trained before a resume; the loader then yields only the others); updates ``state.it``,
+    ``state.epoch_it`` and ``state.epoch_loss_sums``, and calls ``after_step()`` after every
+    optimizer step. Returns the epoch's mean losses over all its batches."""
     rank, _ = get_dist_info()
     model.train()
-    sums: dict[str, float] = {}
-    n = 0
+    sums = state.epoch_loss_sums
+    start = state.epoch_it
+    total = start + len(dataloader)
     amp_dtype = torch.float16 if device.type == "cuda" else torch.bfloat16
     bar = tqdm.tqdm(
-        total=len(dataloader), leave=False, desc="train", dynamic_ncols=True,
+        total=total, initial=start, leave=False, desc="train", dynamic_ncols=True,
         disable=not show_progress or rank != 0,
     )  # fmt: skip
     t_end = time.perf_counter()
-    for i, batch in enumerate(dataloader):
+    for batch in dataloader:
         t_data = time.perf_counter() - t_end
         batch = load_data_to_device(batch, device)
         optimizer.zero_grad(set_to_none=True)
@@ -103,7 +121,7 @@ def train_one_epoch(
         lr = optimizer.param_groups[0]["lr"]
         scheduler.step()
         state.it += 1
-        n += 1
+        state.epoch_it += 1
         for k, v in tb_dict.items():
             sums[k] = sums.get(k, 0.0) + float(v)
         if tb_log is not None and rank == 0:
@@ -114,14 +132,16 @@ def train_one_epoch(
                 tb_log.add_scalar(f"train/{k}", float(v), state.it)
         bar.set_postfix(loss=f"{loss_value:.3f}", lr=f"{lr:.2e}", data=f"{t_data:.2f}s")
         bar.update()
-        if logger is not None and rank == 0 and (i + 1) % logger_iter_interval == 0:
+        if logger is not None and rank == 0 and state.epoch_it % logger_iter_interval == 0:
             logger.info(
-                f"epoch {state.epoch + 1} iter {i + 1}/{len(dataloader)} (total {state.it}): "
+                f"epoch {state.epoch + 1} iter {state.epoch_it}/{total} (total {state.it}): "
                 f"loss {loss_value:.4f} lr {lr:.3e} grad_norm {float(grad_norm):.2f}"
             )
+        if after_step is not None:
+            after_step()
         t_end = time.perf_counter()
     bar.close()
-    return {k: v / max(n, 1) for k, v in sums.items()}
+    return {k: v / max(state.epoch_it, 1) for k, v in sums.items()}
 
 
 def train_model(
@@ -146,24 +166,47 @@ def train_model(
     logger_iter_interval: int = 50,
     show_progress: bool = True,
     train_settings: Mapping | None = None,
+    ckpt_save_time_interval: float | None = 300.0,
 ) -> TrainState:
-    """Train from ``state.epoch`` to ``total_epochs``; saves ``checkpoint_epoch_N.pth`` every
-    ``ckpt_save_interval`` epochs (and at the end), keeping the newest ``max_ckpt_save_num``.
-    ``train_settings`` (the optimization settings in effect) is stored in each checkpoint."""
+    """Train from where ``state`` stands to ``total_epochs``; saves ``checkpoint_epoch_N.pth``
+    every ``ckpt_save_interval`` epochs (and at the end), keeping the newest
+    ``max_ckpt_save_num``, and rewrites ``latest_model.pth`` once at least
+    ``ckpt_save_time_interval`` seconds have passed since the last save (0: after every step;
+    None: never), removing it when an epoch checkpoint supersedes it. ``train_settings`` (the
+    optimization settings in effect) is stored in each checkpoint."""
     rank, _ = get_dist_info()
     ckpt_dir = Path(ckpt_dir)
+    last_save = time.monotonic()
+
+    def state_dict() -> dict:
+        return checkpoint_state(
+            model, optimizer, scheduler, scaler, epoch=state.epoch, it=state.it,
+            epoch_it=state.epoch_it, epoch_loss_sums=state.epoch_loss_sums,
+            train_settings=train_settings,
+        )  # fmt: skip
+
+    def save_latest() -> None:
+        nonlocal last_save
+        if rank != 0 or ckpt_save_time_interval is None:
+            return
+        if time.monotonic() - last_save >= ckpt_save_time_interval:
+            save_checkpoint(state_dict(), ckpt_dir / LATEST_NAME)
+            last_save = time.monotonic()
+
     epochs = tqdm.trange(
         state.epoch, total_epochs, desc="epochs", dynamic_ncols=True,
         disable=not show_progress or rank != 0,
     )  # fmt: skip
     for epoch in epochs:
-        _set_loader_epoch(dataloader, sampler, seed, epoch)
+        _set_loader_epoch(dataloader, sampler, seed, epoch, start_batch=state.epoch_it)
         means = train_one_epoch(
             model, optimizer, scheduler, dataloader, state=state, device=device,
             grad_norm_clip=grad_norm_clip, scaler=scaler, use_amp=use_amp, tb_log=tb_log,
             logger=logger, logger_iter_interval=logger_iter_interval, show_progress=show_progress,
+            after_step=save_latest,
         )  # fmt: skip
         state.epoch = epoch + 1
+        state.epoch_it, state.epoch_loss_sums = 0, {}
         state.history.append(means)
         if device.type == "cpu":  # bound the heap that retain_freed_cpu_memory keeps
             trim_cpu_memory()
@@ -178,18 +221,9 @@ def train_model(
             )
             for old in existing[: max(0, len(existing) - max_ckpt_save_num + 1)]:
                 old.unlink()
-            path = save_checkpoint(
-                checkpoint_state(
-                    model,
-                    optimizer,
-                    scheduler,
-                    scaler,
-                    epoch=state.epoch,
-                    it=state.it,
-                    train_settings=train_settings,
-                ),  # fmt: skip
-                ckpt_dir / f"checkpoint_epoch_{state.epoch}.pth",
-            )
+            path = save_checkpoint(state_dict(), ckpt_dir / f"checkpoint_epoch_{state.epoch}.pth")
+            (ckpt_dir / LATEST_NAME).unlink(missing_ok=True)
+            last_save = time.monotonic()
             if logger is not None:
                 logger.info(f"saved {path}")
     return state

@@ -9,6 +9,7 @@ import types
 import numpy as np
 import pytest
 import torch
+from torch.utils.data import DataLoader
 from waymo_tiny_data import (
     CLASS_NAMES,
     DATASET_CFG,
@@ -23,6 +24,7 @@ from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import WaymoDataset, build_dataloader
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.datasets.dataset import resolve_data_path
+from pcdet_atlas.datasets.loader import ResumableSampler
 from pcdet_atlas.datasets.multiframe import (
     history_sample_indices,
     outside_ego_mask,
@@ -30,6 +32,7 @@ from pcdet_atlas.datasets.multiframe import (
 )
 from pcdet_atlas.ops.boxes import points_in_boxes_mask, transform_points
 from pcdet_atlas.registry import DATASETS
+from pcdet_atlas.utils.seeding import derive_seed
 
 SEQ_A = "segment-111_with_camera_labels"
 SEQ_B = "segment-222_with_camera_labels"
@@ -417,7 +420,7 @@ def test_build_dataloader_is_independent_of_workers(tiny_root):
             seed=7,
             training=True,
         )
-        assert sampler is None and ds.seed == 7
+        assert isinstance(sampler, ResumableSampler) and ds.seed == 7
         ds.set_epoch(2)
         return list(loader)
 
@@ -427,6 +430,36 @@ def test_build_dataloader_is_independent_of_workers(tiny_root):
         assert x["frame_id"].tolist() == y["frame_id"].tolist()
         np.testing.assert_array_equal(x["points"], y["points"])
         np.testing.assert_array_equal(x["gt_boxes"], y["gt_boxes"])
+
+
+def test_training_order_is_torch_shuffle_and_resumes_part_way(tiny_root):
+    """The training sampler draws the order DataLoader(shuffle=True) draws from the seeded
+    generator (checkpoints trained before it stay reproducible), and a pass started at a batch
+    boundary yields exactly the rest of that epoch's batches."""
+    cfg = dataset_cfg(augment=True, shuffle=True)
+    cfg.DATASET = "WaymoDataset"
+    ds, loader, sampler = build_dataloader(
+        cfg, CLASS_NAMES, batch_size=3, dist=False, root_path=tiny_root, workers=0, seed=7,
+        training=True,
+    )  # fmt: skip
+
+    def order(epoch, start=0):
+        loader.generator.manual_seed(derive_seed(7, "dataloader_shuffle", epoch))
+        sampler.start_at(start)
+        return [int(i) for batch in loader.batch_sampler for i in batch]
+
+    for epoch in (0, 1):
+        torch_order = DataLoader(
+            ds, batch_size=3, shuffle=True,
+            generator=torch.Generator().manual_seed(derive_seed(7, "dataloader_shuffle", epoch)),
+        ).batch_sampler  # fmt: skip
+        whole = order(epoch)
+        assert whole == [int(i) for batch in torch_order for i in batch]
+        assert sorted(whole) == list(range(len(ds))) and len(loader) == 4
+        assert order(epoch, start=6) == whole[6:] and len(loader) == 2  # batches 3 and 4
+    assert len(ds) == 11
+    with pytest.raises(ValueError, match=r"start_at\(12\): a pass has 11 indices"):
+        sampler.start_at(12)
 
 
 def test_merge_all_iters_to_one_epoch(tiny_root):

@@ -9,6 +9,7 @@ from model_batches import load_tool
 
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.models import build_network_from_config
+from pcdet_atlas.train_utils import checkpoint_state, save_checkpoint
 
 CFG = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml"
 
@@ -178,3 +179,77 @@ def test_staged_training_chains_through_train_py(synthetic_root, tmp_path):
     assert all(torch.equal(m0[k], m1[k]) for k in m0 if k.startswith("backbone_3d."))
     with pytest.raises(SystemExit, match=r"stage2_ssm.*stage1_score"):
         train.main(args("stage2_ssm.yaml", "other"))
+
+
+class Killed(Exception):
+    """Stands for the job being killed."""
+
+
+@pytest.mark.slow
+def test_training_killed_mid_epoch_resumes_from_latest_model_bit_exactly(
+    synthetic_root, tmp_path, monkeypatch
+):
+    from pcdet_atlas.train_utils import trainer
+
+    train = load_tool("train")
+    out = tmp_path / "output"
+    full = train.main(train_args(synthetic_root, out, 2, "full"))  # 2 steps per epoch
+
+    # a run killed while loading its 4th batch: epoch 1 and the first batch of epoch 2 trained,
+    # latest_model.pth rewritten after every step
+    loads = []
+
+    def load_or_die(batch, device):
+        loads.append(batch["frame_id"])
+        if len(loads) == 4:
+            raise Killed
+        return to_device(batch, device)
+
+    to_device = trainer.load_data_to_device
+    monkeypatch.setattr(trainer, "load_data_to_device", load_or_die)
+    args = ["--ckpt_save_time_interval", "0", *train_args(synthetic_root, out, 2, "killed")]
+    with pytest.raises(Killed):
+        train.main(args)
+    ckpt_dir = out / "atlas" / "synthetic" / "centerpoint" / "killed" / "ckpt"
+    assert sorted(p.name for p in ckpt_dir.iterdir()) == [
+        "checkpoint_epoch_1.pth", "latest_model.pth"
+    ]  # fmt: skip
+    latest = torch.load(ckpt_dir / "latest_model.pth", weights_only=False)
+    assert (latest["epoch"], latest["it"], latest["epoch_it"]) == (1, 3, 1)
+    assert set(latest["epoch_loss_sums"]) == set(full["state"].history[-1])
+
+    monkeypatch.undo()
+    resumed = train.main(args)  # goes on with epoch 2's second batch
+    state = resumed["state"]
+    assert (state.epoch, state.it, state.epoch_it) == (2, 4, 0)
+    assert state.history == [full["state"].history[-1]]  # epoch 2's mean over both its batches
+    assert sorted(p.name for p in ckpt_dir.iterdir()) == [
+        "checkpoint_epoch_1.pth", "checkpoint_epoch_2.pth"
+    ]  # fmt: skip
+    a = torch.load(full["output_dir"] / "ckpt" / "checkpoint_epoch_2.pth", weights_only=False)
+    b = torch.load(ckpt_dir / "checkpoint_epoch_2.pth", weights_only=False)
+    for k in a["model_state"]:
+        assert torch.equal(a["model_state"][k], b["model_state"][k]), k
+    assert a["optimizer_state"]["state"].keys() == b["optimizer_state"]["state"].keys()
+    for k, v in a["optimizer_state"]["state"].items():
+        assert all(torch.equal(v[s], b["optimizer_state"]["state"][k][s]) for s in v), k
+
+
+def test_resume_point_is_the_most_advanced_checkpoint(tmp_path):
+    from pcdet_atlas.train_utils import find_resume_checkpoint
+
+    model = torch.nn.Linear(2, 1)
+    assert find_resume_checkpoint(tmp_path) is None
+    for epoch in (1, 2):
+        save_checkpoint(checkpoint_state(model, epoch=epoch, it=2 * epoch),
+                        tmp_path / f"checkpoint_epoch_{epoch}.pth")  # fmt: skip
+    latest = tmp_path / "latest_model.pth"
+    save_checkpoint(checkpoint_state(model, epoch=2, it=5, epoch_it=1), latest)
+    assert find_resume_checkpoint(tmp_path) == latest  # one batch into epoch 3
+    # a run killed between writing epoch 3's checkpoint and removing latest_model.pth
+    save_checkpoint(checkpoint_state(model, epoch=3, it=6), tmp_path / "checkpoint_epoch_3.pth")
+    assert find_resume_checkpoint(tmp_path) == tmp_path / "checkpoint_epoch_3.pth"
+    (tmp_path / "checkpoint_epoch_3.pth").unlink()
+    (tmp_path / "checkpoint_epoch_2.pth").unlink()
+    (tmp_path / "checkpoint_epoch_1.pth").unlink()
+    assert find_resume_checkpoint(tmp_path) == latest
