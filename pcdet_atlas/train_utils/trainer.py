@@ -82,7 +82,8 @@ def train_one_epoch(
     """One pass over ``dataloader`` (the rest of the epoch when ``state.epoch_it`` batches of it
     were trained before a resume; the loader then yields only the others); updates ``state.it``,
     ``state.epoch_it`` and ``state.epoch_loss_sums``, and calls ``after_step()`` after every
-    optimizer step. Returns the epoch's mean losses over all its batches."""
+    optimizer step but the epoch's last (the epoch's end is the caller's to record). Returns the
+    epoch's mean losses over all its batches."""
     rank, _ = get_dist_info()
     model.train()
     sums = state.epoch_loss_sums
@@ -137,7 +138,7 @@ def train_one_epoch(
                 f"epoch {state.epoch + 1} iter {state.epoch_it}/{total} (total {state.it}): "
                 f"loss {loss_value:.4f} lr {lr:.3e} grad_norm {float(grad_norm):.2f}"
             )
-        if after_step is not None:
+        if after_step is not None and state.epoch_it < total:
             after_step()
         t_end = time.perf_counter()
     bar.close()
@@ -172,7 +173,9 @@ def train_model(
     every ``ckpt_save_interval`` epochs (and at the end), keeping the newest
     ``max_ckpt_save_num``, and rewrites ``latest_model.pth`` once at least
     ``ckpt_save_time_interval`` seconds have passed since the last save (0: after every step;
-    None: never), removing it when an epoch checkpoint supersedes it. ``train_settings`` (the
+    None: never), inside an epoch or at the end of one that writes no epoch checkpoint; an epoch
+    checkpoint supersedes it (it is removed). It never records an epoch's last batch as
+    pending: a resume always starts inside an epoch or at its beginning. ``train_settings`` (the
     optimization settings in effect) is stored in each checkpoint."""
     rank, _ = get_dist_info()
     ckpt_dir = Path(ckpt_dir)
@@ -226,4 +229,6 @@ def train_model(
             last_save = time.monotonic()
             if logger is not None:
                 logger.info(f"saved {path}")
+        else:
+            save_latest()
     return state

@@ -185,54 +185,88 @@ class Killed(Exception):
     """Stands for the job being killed."""
 
 
-@pytest.mark.slow
-def test_training_killed_mid_epoch_resumes_from_latest_model_bit_exactly(
-    synthetic_root, tmp_path, monkeypatch
-):
+def kill_and_resume(monkeypatch, root, out, tag, kill_at_load, *flags):
+    """Train 2 epochs with ``latest_model.pth`` rewritten after every step, kill the run while it
+    loads batch ``kill_at_load``, and run the same command again. Returns the ckpt folder, the
+    ``latest_model.pth`` the killed run left, and the resumed run's result."""
     from pcdet_atlas.train_utils import trainer
 
-    train = load_tool("train")
-    out = tmp_path / "output"
-    full = train.main(train_args(synthetic_root, out, 2, "full"))  # 2 steps per epoch
-
-    # a run killed while loading its 4th batch: epoch 1 and the first batch of epoch 2 trained,
-    # latest_model.pth rewritten after every step
+    to_device = trainer.load_data_to_device
     loads = []
 
     def load_or_die(batch, device):
         loads.append(batch["frame_id"])
-        if len(loads) == 4:
+        if len(loads) == kill_at_load:
             raise Killed
         return to_device(batch, device)
 
-    to_device = trainer.load_data_to_device
     monkeypatch.setattr(trainer, "load_data_to_device", load_or_die)
-    args = ["--ckpt_save_time_interval", "0", *train_args(synthetic_root, out, 2, "killed")]
+    args = ["--ckpt_save_time_interval", "0", *flags, *train_args(root, out, 2, tag)]
+    train = load_tool("train")
     with pytest.raises(Killed):
         train.main(args)
-    ckpt_dir = out / "atlas" / "synthetic" / "centerpoint" / "killed" / "ckpt"
-    assert sorted(p.name for p in ckpt_dir.iterdir()) == [
-        "checkpoint_epoch_1.pth", "latest_model.pth"
-    ]  # fmt: skip
+    ckpt_dir = out / "atlas" / "synthetic" / "centerpoint" / tag / "ckpt"
     latest = torch.load(ckpt_dir / "latest_model.pth", weights_only=False)
-    assert (latest["epoch"], latest["it"], latest["epoch_it"]) == (1, 3, 1)
-    assert set(latest["epoch_loss_sums"]) == set(full["state"].history[-1])
-
     monkeypatch.undo()
-    resumed = train.main(args)  # goes on with epoch 2's second batch
-    state = resumed["state"]
-    assert (state.epoch, state.it, state.epoch_it) == (2, 4, 0)
-    assert state.history == [full["state"].history[-1]]  # epoch 2's mean over both its batches
-    assert sorted(p.name for p in ckpt_dir.iterdir()) == [
-        "checkpoint_epoch_1.pth", "checkpoint_epoch_2.pth"
-    ]  # fmt: skip
-    a = torch.load(full["output_dir"] / "ckpt" / "checkpoint_epoch_2.pth", weights_only=False)
-    b = torch.load(ckpt_dir / "checkpoint_epoch_2.pth", weights_only=False)
+    return ckpt_dir, latest, train.main(args)
+
+
+def assert_same_training(a_path, b_path):
+    a, b = (torch.load(p, weights_only=False) for p in (a_path, b_path))
     for k in a["model_state"]:
         assert torch.equal(a["model_state"][k], b["model_state"][k]), k
     assert a["optimizer_state"]["state"].keys() == b["optimizer_state"]["state"].keys()
     for k, v in a["optimizer_state"]["state"].items():
         assert all(torch.equal(v[s], b["optimizer_state"]["state"][k][s]) for s in v), k
+
+
+@pytest.mark.slow
+def test_training_killed_mid_epoch_resumes_from_latest_model_bit_exactly(
+    synthetic_root, tmp_path, monkeypatch
+):
+    out = tmp_path / "output"
+    full = load_tool("train").main(train_args(synthetic_root, out, 2, "full"))  # 2 steps/epoch
+
+    # killed while loading its 4th batch: epoch 1 and the first batch of epoch 2 trained
+    ckpt_dir, latest, resumed = kill_and_resume(monkeypatch, synthetic_root, out, "killed", 4)
+    assert (latest["epoch"], latest["it"], latest["epoch_it"]) == (1, 3, 1)
+    assert set(latest["epoch_loss_sums"]) == set(full["state"].history[-1])
+    state = resumed["state"]  # went on with epoch 2's second batch
+    assert (state.epoch, state.it, state.epoch_it) == (2, 4, 0)
+    assert state.history == [full["state"].history[-1]]  # epoch 2's mean over both its batches
+    assert sorted(p.name for p in ckpt_dir.iterdir()) == [
+        "checkpoint_epoch_1.pth", "checkpoint_epoch_2.pth"
+    ]  # fmt: skip
+    assert_same_training(
+        full["output_dir"] / "ckpt" / "checkpoint_epoch_2.pth", ckpt_dir / "checkpoint_epoch_2.pth"
+    )
+
+
+@pytest.mark.slow
+def test_epoch_end_without_epoch_checkpoint_is_a_resume_point(
+    synthetic_root, tmp_path, monkeypatch
+):
+    """With --ckpt_save_interval 2, epoch 1 writes no epoch checkpoint: latest_model.pth then
+    records the epoch's end, not its last batch as pending (the last batch holds 1 of 3 frames:
+    a position of 2 x 3 samples would lie past the epoch's 4)."""
+    out = tmp_path / "output"
+    batch3 = ("--batch_size", "3", "--ckpt_save_interval", "2")
+    args = [*batch3, *train_args(synthetic_root, out, 2, "full")]
+    full = load_tool("train").main(args)
+    assert full["state"].it == 4  # 2 batches per epoch: 3 frames and 1
+
+    # killed while loading its 3rd batch, the first of epoch 2
+    ckpt_dir, latest, resumed = kill_and_resume(
+        monkeypatch, synthetic_root, out, "killed", 3, *batch3
+    )  # fmt: skip
+    assert (latest["epoch"], latest["it"], latest["epoch_it"]) == (1, 2, 0)
+    assert latest["epoch_loss_sums"] == {}
+    assert (resumed["state"].epoch, resumed["state"].it) == (2, 4)
+    assert resumed["state"].history == [full["state"].history[-1]]
+    assert sorted(p.name for p in ckpt_dir.iterdir()) == ["checkpoint_epoch_2.pth"]
+    assert_same_training(
+        full["output_dir"] / "ckpt" / "checkpoint_epoch_2.pth", ckpt_dir / "checkpoint_epoch_2.pth"
+    )
 
 
 def test_resume_point_is_the_most_advanced_checkpoint(tmp_path):
