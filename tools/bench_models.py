@@ -62,11 +62,19 @@ processes and prints both side by side, with the losses of both trees on the sam
 ``tools/train.py`` applies on CPU). Needs a dataset with its GT databases (``--data_path``):
 
     python tools/bench_models.py --train_step --baseline_src /tmp/old --rounds 2 --steps 4
+
+``--baseline_src DIR`` without ``--train_step`` times the latency of each ``--cfgs`` config in
+the older tree and in this one, ``--rounds`` alternating processes each, and says whether both
+trees' predictions on the timed frames are bitwise equal; the older tree needs the same
+checkpoints (``git archive <commit> pcdet_atlas cfgs checkpoints | tar -x -C DIR``):
+
+    python tools/bench_models.py --cfgs cfgs/atlas/synthetic/msf_8f.yaml --baseline_src /tmp/old
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import multiprocessing
 import os
@@ -195,12 +203,16 @@ def parse_args():
     t.add_argument("--rounds", type=int, default=2, help="processes per tree and config")
     t.add_argument("--batch_size", type=int, default=4)
     t.add_argument("--workers", type=int, default=0, help="loader workers")
-    t.add_argument("--baseline_src", default=None, help="older source tree to compare against")
+    t.add_argument(
+        "--baseline_src", default=None,
+        help="older source tree to compare against (training steps, or the latency table)",
+    )  # fmt: skip
     t.add_argument(
         "--default_malloc", action="store_true",
         help="also time this tree with glibc malloc left as it is (no retain_freed_cpu_memory)",
     )  # fmt: skip
     t.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--latency_child", action="store_true", help=argparse.SUPPRESS)
     return p.parse_args()
 
 
@@ -553,8 +565,13 @@ def vfe_forms_table(cfg_files: list[str], data_path: Path, args, device: torch.d
         )
 
 
-def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.device) -> None:
-    """Print latency / peak memory / L2 mAP of each config, models taking turns per frame."""
+def _timed_runs(
+    cfg_files: list[str], data_path: Path, args, device: torch.device, *, peak_memory: bool
+) -> tuple[list[dict], list[tuple[str, str]]]:
+    """Build each config's model, time ``args.frames`` frames of each (models taking turns
+    frame by frame, after one warm-up frame) and, with ``peak_memory``, measure its peak memory.
+    Returns the runs (``times``, ``rpn_times``, ``digest`` of the timed frames' predictions, ...)
+    and the configs whose model could not be built, with the reason."""
     runs, unbuilt = [], []
     # every model on the same frames, from the first one whose input no model pads
     start = max(_first_full_frame(cfg_from_yaml_file(c)) for c in cfg_files)
@@ -583,10 +600,13 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
 
     ctx = multiprocessing.get_context("spawn")
     for run in runs:  # peak memory in a fresh process per model (no allocator reuse), warm-up
-        with ctx.Pool(1) as pool:
-            run["peak_mib"] = pool.apply(
-                _peak_memory_mib, (run["cfg"], str(data_path), str(device), run["trained"], start)
-            )
+        if peak_memory:
+            with ctx.Pool(1) as pool:
+                run["peak_mib"] = pool.apply(
+                    _peak_memory_mib,
+                    (run["cfg"], str(data_path), str(device), run["trained"], start),
+                )  # fmt: skip
+        run["digest"] = hashlib.sha256()
         warm = run["batches"][0]
         run["model"].predict(run["bank"].attach(warm, warm) if "bank" in run else warm)
     for i in range(1, args.frames + 1):  # models take turns frame by frame
@@ -600,19 +620,103 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
                 if device.type == "cuda":
                     torch.cuda.synchronize(device)
                 run["rpn_times"].append(time.perf_counter() - t0)
-                run["model"].predict(batch)
+                preds = run["model"].predict(batch)
             elif isinstance(run["model"], TwoStageDetector):  # RPN and second stage apart
                 proposals = run["model"].propose(batch)
                 if device.type == "cuda":
                     torch.cuda.synchronize(device)
                 run["rpn_times"].append(time.perf_counter() - t0)
-                run["model"].refine(batch, proposals)
+                preds = run["model"].refine(batch, proposals)
             else:
-                run["model"].predict(batch)
+                preds = run["model"].predict(batch)
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             run["times"].append(time.perf_counter() - t0)
+            for pred in preds:  # outside the timing
+                for key in sorted(pred):
+                    if isinstance(pred[key], torch.Tensor):
+                        run["digest"].update(pred[key].detach().cpu().contiguous().numpy())
+    for run in runs:
+        run["digest"] = run["digest"].hexdigest()
+    return runs, unbuilt
 
+
+def _latency_child(cfg_files: list[str], data_path: Path, args, device: torch.device) -> dict:
+    """One ``--baseline_src`` latency process: the timed frames of every config, no memory."""
+    import pcdet_atlas
+
+    runs, unbuilt = _timed_runs(cfg_files, data_path, args, device, peak_memory=False)
+    keys = ("cfg", "times", "rpn_times", "digest", "trained", "points")
+    return {
+        "package": str(Path(pcdet_atlas.__file__).parent), "threads": torch.get_num_threads(),
+        "runs": [{k: run[k] for k in keys} for run in runs], "unbuilt": unbuilt,
+    }  # fmt: skip
+
+
+def latency_compare_table(
+    cfg_files: list[str], data_path: Path, args, device: torch.device
+) -> None:
+    """The latency of each config in the ``--baseline_src`` tree and in this one, timed in
+    ``args.rounds`` alternating processes per tree, with whether both trees predicted the same
+    (bitwise) on the timed frames."""
+    trees = {"baseline": Path(args.baseline_src).resolve(), "this tree": REPO_ROOT}
+    if not (trees["baseline"] / "pcdet_atlas" / "__init__.py").is_file():
+        raise SystemExit(f"--baseline_src: no pcdet_atlas package under {trees['baseline']}")
+    results: dict = {(t, c): [] for t in trees for c in cfg_files}
+    loads, threads = [os.getloadavg()[0]], None
+    for _ in range(args.rounds):
+        for tree, src in trees.items():
+            env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(src), str(REPO_ROOT)]))
+            cfgs = [str(src / c) if (src / c).is_file() else c for c in cfg_files]
+            cmd = [
+                sys.executable, __file__, "--latency_child", "--cfgs", *cfgs,
+                "--data_path", str(data_path), "--frames", str(args.frames),
+                "--device", str(device),
+            ] + (["--threads", str(args.threads)] if args.threads else [])  # fmt: skip
+            out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True)
+            res = json.loads(out.stdout.strip().splitlines()[-1])
+            if not Path(res["package"]).resolve().is_relative_to(src):
+                raise SystemExit(f"{tree}: imported {res['package']}, not {src}")
+            if res["unbuilt"]:
+                raise SystemExit(f"{tree}: could not build {res['unbuilt']}")
+            for cfg_file, run in zip(cfg_files, res["runs"]):
+                results[(tree, cfg_file)].append(run)
+            threads = res["threads"]
+            loads.append(os.getloadavg()[0])
+    print(
+        f"\ndevice {device}, torch {torch.__version__}, {threads} threads, {args.frames} frames "
+        f"per model and process (batch 1, after 1 warm-up), {args.rounds} processes per tree "
+        f"alternating, medians; load average {min(loads):.1f}-{max(loads):.1f}\n"
+    )
+    print("| config | tree | latency ms | RPN + 2nd stage ms | speed-up | predictions |")
+    print("|---|---|---|---|---|---|")
+    for cfg_file in cfg_files:
+        base = None
+        digests = {t: {r["digest"] for r in results[(t, cfg_file)]} for t in trees}
+        for tree in trees:
+            runs = results[(tree, cfg_file)]
+            if len({r["trained"] for t in trees for r in results[(t, cfg_file)]}) > 1:
+                raise SystemExit(
+                    f"{cfg_file}: the checkpoint exists in one tree only (archive the baseline "
+                    f"with its checkpoints/)"
+                )
+            med = statistics.median(t for r in runs for t in r["times"])
+            base = base or med
+            split = "-"
+            if runs[0]["rpn_times"]:
+                rpn = statistics.median(t for r in runs for t in r["rpn_times"])
+                split = f"{rpn * 1e3:,.0f} + {(med - rpn) * 1e3:,.0f}"
+            same = "-" if tree == "baseline" else (
+                "bitwise equal" if digests["baseline"] == digests[tree] and len(digests[tree]) == 1
+                else "differ"
+            )  # fmt: skip
+            name = str(Path(cfg_file)).replace("cfgs/atlas/", "")
+            print(f"| {name} | {tree} | {med * 1e3:,.0f} | {split} | {base / med:.2f}x | {same} |")
+
+
+def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.device) -> None:
+    """Print latency / peak memory / L2 mAP of each config, models taking turns per frame."""
+    runs, unbuilt = _timed_runs(cfg_files, data_path, args, device, peak_memory=True)
     if args.eval:
         for run in runs:
             if run["trained"]:
@@ -922,6 +1026,9 @@ def main() -> None:
         print(json.dumps(_train_step_child(args.train_cfgs[0], args.data_path, args)))
         return
     device = torch.device(args.device)
+    if args.latency_child:  # one --baseline_src latency process (see latency_compare_table)
+        print(json.dumps(_latency_child(args.cfgs, Path(args.data_path), args, device)))
+        return
     all_cfgs = sorted(str(p) for p in (REPO_ROOT / "cfgs" / "atlas").rglob("*.yaml"))
     cfg_files = all_cfgs if args.cfgs is None else args.cfgs
     data_path = Path(args.data_path)
@@ -942,6 +1049,8 @@ def main() -> None:
         train_step_table(args, data_path)
     elif args.vfe_forms:
         vfe_forms_table(cfg_files, data_path, args, device)
+    elif cfg_files and args.baseline_src:
+        latency_compare_table(cfg_files, data_path, args, device)
     elif cfg_files:
         latency_table(cfg_files, data_path, args, device)
     if args.share_cfg is not None:

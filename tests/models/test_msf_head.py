@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from pcdet_atlas.models.model_utils.motion_sampler import (
+    _sort_within_slots,
     cylinder_pairs,
     frame_of_points,
     propagate_boxes,
@@ -111,6 +112,42 @@ def test_cylinder_pairs_match_brute_force(spread):
     assert sorted(map(tuple, got.tolist())) == sorted(map(tuple, want.tolist()))
     assert len(set(map(tuple, got.tolist()))) == got.shape[0] > 0
     assert bool((box_id[1:] >= box_id[:-1]).all())
+
+
+def test_cylinder_pairs_keep_to_their_group():
+    """With groups (MSF: frames), a box pairs only with its own group's points; a point of
+    group -1, or of a group no box has, pairs with none."""
+    g = torch.Generator().manual_seed(4)
+    xy = (torch.rand(3000, 2, generator=g) - 0.5) * 40.0
+    point_group = torch.randint(-1, 4, (3000,), generator=g)  # group 3: no box
+    centers = (torch.rand(30, 2, generator=g) - 0.5) * 36.0
+    box_group = torch.arange(3).repeat_interleave(10)
+    radius = 2.0 + 4.0 * torch.rand(30, generator=g)
+    box_id, point_id = cylinder_pairs(
+        xy, centers, radius, point_group=point_group, box_group=box_group
+    )
+    d2 = ((xy[None] - centers[:, None]) ** 2).sum(-1)
+    same = box_group[:, None] == point_group[None]
+    want = torch.nonzero((d2 <= radius[:, None] ** 2) & same)
+    got = torch.stack([box_id, point_id], 1)
+    assert sorted(map(tuple, got.tolist())) == sorted(map(tuple, want.tolist()))
+    assert got.shape[0] == want.shape[0] > 0
+    assert bool((box_id[1:] >= box_id[:-1]).all())
+    with pytest.raises(ValueError, match="both point_group and box_group"):
+        cylinder_pairs(xy, centers, radius, point_group=point_group)
+
+
+@pytest.mark.parametrize("num_slots", [7, 1024, 3000])
+def test_sort_within_slots_is_a_lexicographic_sort(num_slots):
+    """Sorted by (slot, key), equal keys in their given order, across the 2^10-slot runs."""
+    g = torch.Generator().manual_seed(num_slots)
+    slot = torch.sort(torch.randint(0, num_slots, (5000,), generator=g)).values
+    key = torch.rand(5000, generator=g, dtype=torch.float64)
+    key[100:110] = key[100]  # ties, kept in their order
+    key[-5:] = key[-1]
+    order = _sort_within_slots(slot, key, num_slots)
+    want = sorted(range(5000), key=lambda i: (int(slot[i]), float(key[i]), i))
+    assert order.tolist() == want
 
 
 def test_radius_grows_with_the_frame_age():

@@ -89,45 +89,88 @@ def sample_cylinder_points(
     keys = keys.to(points.device)
     out = points.new_zeros(num_boxes, num_frames, num_sample, points.shape[1])
     valid = torch.zeros(num_boxes, num_frames, num_sample, dtype=torch.bool, device=points.device)
-    for frame in range(num_frames):
-        members = torch.nonzero(frame_index == frame).squeeze(1)
-        if members.numel() == 0 or num_boxes == 0:
-            continue
-        boxes = trajectories[frame]
-        radius = sampling_radius(boxes, frame, gamma, radius_growth)
-        box_id, point_id = cylinder_pairs(points[members, 0:2], boxes[:, 0:2], radius)
-        point_id = members[point_id]
-        # per box, its candidates in increasing key order; the first num_sample are drawn
-        order = torch.argsort(keys[point_id], stable=True)
-        order = order[torch.argsort(box_id[order], stable=True)]
-        box_id, point_id = box_id[order], point_id[order]
-        first = torch.searchsorted(box_id, box_id, right=False)
-        rank = torch.arange(box_id.numel(), device=box_id.device) - first
-        take = rank < num_sample
-        box_id, point_id, rank = box_id[take], point_id[take], rank[take]
-        out[box_id, frame, rank] = points[point_id]
-        valid[box_id, frame, rank] = True
+    if points.shape[0] == 0 or num_boxes * num_frames == 0:
+        return out, valid
+    # all frames at once: box slot f * R + r is box r of frame f and pairs with frame f's points
+    radius = torch.cat(
+        [sampling_radius(trajectories[f], f, gamma, radius_growth) for f in range(num_frames)]
+    )
+    slot_frame = torch.arange(num_frames, device=points.device).repeat_interleave(num_boxes)
+    slot, point_id = cylinder_pairs(
+        points[:, 0:2], trajectories[..., 0:2].reshape(-1, 2), radius,
+        point_group=frame_index, box_group=slot_frame,
+    )  # fmt: skip
+    # per slot, its candidates in increasing key order (ties: candidate order); the first
+    # num_sample are drawn
+    order = _sort_within_slots(slot, keys.index_select(0, point_id), num_frames * num_boxes)
+    slot, point_id = slot.index_select(0, order), point_id.index_select(0, order)
+    count = torch.bincount(slot, minlength=num_frames * num_boxes)
+    first = torch.cumsum(count, 0) - count
+    rank = torch.arange(slot.numel(), device=slot.device) - first.index_select(0, slot)
+    take = torch.nonzero(rank < num_sample).squeeze(1)
+    slot, point_id, rank = (t.index_select(0, take) for t in (slot, point_id, rank))
+    frame, box = torch.div(slot, num_boxes, rounding_mode="floor"), slot % num_boxes
+    out[box, frame, rank] = points.index_select(0, point_id)
+    valid[box, frame, rank] = True
     return out, valid
 
 
+#: Bits of a sampling key: ``torch.rand`` draws float64 on a ``2^-53`` grid, so ``key * 2^53``
+#: is an exact integer below ``2^53``; the slot takes the 10 bits above it in one int64.
+_KEY_BITS = 53
+_SLOT_BITS = 63 - _KEY_BITS
+
+
+def _sort_within_slots(slot: torch.Tensor, key: torch.Tensor, num_slots: int) -> torch.Tensor:
+    """The permutation of pairs that sorts them by ``(slot, key)``, ties in their given order;
+    ``slot`` ``(P,)`` long non-decreasing, ``key`` ``(P,)`` float64 in ``[0, 1)`` on the
+    ``2^-53`` grid. One stable sort of ``slot << 53 | key * 2^53`` per run of ``2^10`` slots."""
+    key_int = (key * float(2**_KEY_BITS)).long()
+    order = torch.empty_like(slot)
+    step = 1 << _SLOT_BITS
+    bounds = torch.arange(0, num_slots + step, step, device=slot.device).clamp_max(num_slots)
+    edges = torch.searchsorted(slot, bounds).tolist()
+    for chunk, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        if hi > lo:
+            local = (slot[lo:hi] - chunk * step) << _KEY_BITS | key_int[lo:hi]
+            order[lo:hi] = torch.sort(local, stable=True).indices + lo
+    return order
+
+
 def cylinder_pairs(
-    xy: torch.Tensor, centers: torch.Tensor, radius: torch.Tensor
+    xy: torch.Tensor,
+    centers: torch.Tensor,
+    radius: torch.Tensor,
+    *,
+    point_group: torch.Tensor | None = None,
+    box_group: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Every (box, point) pair with the point's XY within ``radius`` of the box centre, as two
     ``(P,)`` long index tensors sorted by box.
 
+    ``point_group`` ``(N,)`` / ``box_group`` ``(R,)`` (long, both or neither): a box pairs only
+    with the points of its own group (MSF: a frame); a point of group -1 pairs with none.
+
     Points are bucketed on a BEV grid whose cell is about half the median radius; a box measures
     only the points of the ``(2k + 1)^2`` cells around its centre, ``k = ceil(radius / cell)``,
-    so its candidates cover about twice its cylinder's area whatever the spread of the radii."""
+    so its candidates cover about twice its cylinder's area whatever the spread of the radii.
+    Candidates of a box come cell by cell, each cell's points in index order.
+
+    Gathers here are ``index_select`` on contiguous tensors: on the CPU, advanced indexing of a
+    strided ``(N, 2)`` view is an order of magnitude slower (docs/benchmarks.md)."""
     empty = torch.zeros(0, dtype=torch.long, device=xy.device)
     if xy.shape[0] == 0 or centers.shape[0] == 0:
         return empty, empty
+    if (point_group is None) != (box_group is None):
+        raise ValueError("cylinder_pairs: pass both point_group and box_group, or neither")
+    num_groups = 1 if box_group is None else int(box_group.max()) + 1
+    xy, centers = xy.contiguous(), centers.contiguous()
     low = torch.minimum(xy.min(0).values, centers.min(0).values)
     high = torch.maximum(xy.max(0).values, centers.max(0).values)
-    # half the median radius; coarser only to bound the grid (4096 cells a side) and the window
-    # of the largest box (64 cells each side)
+    # half the median radius; coarser only to bound the grids (2^24 cells over all groups) and
+    # the window of the largest box (64 cells each side)
     cell = max(float(radius.median()) / 2, float(radius.max()) / 64,
-               float((high - low).max()) / 4096, 1e-3)  # fmt: skip
+               float((high - low).max()) * num_groups**0.5 / 4096, 1e-3)  # fmt: skip
     reach = torch.ceil(radius / cell).long().clamp_min(1)  # (R,) cells on each side
     margin = cell * (int(reach.max()) + 1)
     origin = low - margin
@@ -135,20 +178,29 @@ def cylinder_pairs(
     point_cell = torch.floor((xy - origin) / cell).long()
     point_key = point_cell[:, 0] * width + point_cell[:, 1]
     center_cell = torch.floor((centers - origin) / cell).long()
+    center_key = center_cell[:, 0] * width + center_cell[:, 1]
+    grid = width * width
+    if box_group is not None:
+        # group g's grid follows group g - 1's; a point of no box's group gets the spare cell
+        outside = (point_group < 0) | (point_group >= num_groups)
+        point_key = torch.where(outside, num_groups * grid, point_group * grid + point_key)
+        center_key = center_key + box_group * grid
     # the window of each box, flattened: box b owns side_b^2 consecutive entries
     side = 2 * reach + 1
     cells_per_box = side * side
     cell_box = torch.arange(centers.shape[0], device=xy.device).repeat_interleave(cells_per_box)
     first = torch.cumsum(cells_per_box, 0) - cells_per_box
-    local = torch.arange(cell_box.numel(), device=xy.device) - first[cell_box]
-    dx = torch.div(local, side[cell_box], rounding_mode="floor") - reach[cell_box]
-    dy = local % side[cell_box] - reach[cell_box]
-    cell_key = (center_cell[cell_box, 0] + dx) * width + center_cell[cell_box, 1] + dy
-    needed = torch.zeros(width * width, dtype=torch.bool, device=xy.device)
+    local = torch.arange(cell_box.numel(), device=xy.device) - first.index_select(0, cell_box)
+    box_side, box_reach = side.index_select(0, cell_box), reach.index_select(0, cell_box)
+    dx = torch.div(local, box_side, rounding_mode="floor") - box_reach
+    dy = local % box_side - box_reach
+    cell_key = center_key.index_select(0, cell_box) + dx * width + dy
+    needed = torch.zeros(num_groups * grid + 1, dtype=torch.bool, device=xy.device)
     needed[cell_key] = True
-    near = torch.nonzero(needed[point_key]).squeeze(1)  # points in a cell some box looks at
-    sorted_key, order = torch.sort(point_key[near], stable=True)
-    sorted_point = near[order]
+    # points in a cell some box looks at
+    near = torch.nonzero(needed.index_select(0, point_key)).squeeze(1)
+    sorted_key, order = torch.sort(point_key.index_select(0, near), stable=True)
+    sorted_point = near.index_select(0, order)
     start = torch.searchsorted(sorted_key, cell_key, right=False)
     count = torch.searchsorted(sorted_key, cell_key, right=True) - start
     total = int(count.sum())
@@ -157,10 +209,11 @@ def cylinder_pairs(
     box_id = cell_box.repeat_interleave(count)
     base = torch.cumsum(count, 0) - count
     within = torch.arange(total, device=xy.device) - base.repeat_interleave(count)
-    point_id = sorted_point[start.repeat_interleave(count) + within]
-    delta = xy[point_id] - centers[box_id]
-    inside = (delta * delta).sum(1) <= radius[box_id] ** 2
-    return box_id[inside], point_id[inside]
+    point_id = sorted_point.index_select(0, start.repeat_interleave(count) + within)
+    delta = xy.index_select(0, point_id) - centers.index_select(0, box_id)
+    inside = (delta * delta).sum(1) <= radius.index_select(0, box_id) ** 2
+    inside = torch.nonzero(inside).squeeze(1)
+    return box_id.index_select(0, inside), point_id.index_select(0, inside)
 
 
 def sample_batch_points(
@@ -188,7 +241,7 @@ def sample_batch_points(
         batch, num_boxes, num_frames, num_sample, dtype=torch.bool, device=points.device
     )
     for b in range(batch):
-        rows = points[points[:, 0] == b]
+        rows = points.index_select(0, torch.nonzero(points[:, 0] == b).squeeze(1))
         frame_index = frame_of_points(rows[:, -1], num_frames)
         out[b], valid[b] = sample_cylinder_points(
             rows[:, 1:-1], frame_index, trajectories[b], num_sample=num_sample, gamma=gamma,
