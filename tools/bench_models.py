@@ -63,10 +63,10 @@ processes and prints both side by side, with the losses of both trees on the sam
 
     python tools/bench_models.py --train_step --baseline_src /tmp/old --rounds 2 --steps 4
 
-``--baseline_src DIR`` without ``--train_step`` times the latency of each ``--cfgs`` config in
-the older tree and in this one, ``--rounds`` alternating processes each, and says whether both
-trees' predictions on the timed frames are bitwise equal; the older tree needs the same
-checkpoints (``git archive <commit> pcdet_atlas cfgs checkpoints | tar -x -C DIR``):
+``--baseline_src DIR`` without ``--train_step`` times the latency and peak memory of each
+``--cfgs`` config in the older tree and in this one, ``--rounds`` alternating processes each,
+and says whether both trees' predictions on the timed frames are bitwise equal; the older tree
+needs the same checkpoints (``git archive <commit> pcdet_atlas cfgs checkpoints | tar -x -C DIR``):
 
     python tools/bench_models.py --cfgs cfgs/atlas/synthetic/msf_8f.yaml --baseline_src /tmp/old
 """
@@ -642,11 +642,12 @@ def _timed_runs(
 
 
 def _latency_child(cfg_files: list[str], data_path: Path, args, device: torch.device) -> dict:
-    """One ``--baseline_src`` latency process: the timed frames of every config, no memory."""
+    """One ``--baseline_src`` latency process: the timed frames and peak memory of every
+    config."""
     import pcdet_atlas
 
-    runs, unbuilt = _timed_runs(cfg_files, data_path, args, device, peak_memory=False)
-    keys = ("cfg", "times", "rpn_times", "digest", "trained", "points")
+    runs, unbuilt = _timed_runs(cfg_files, data_path, args, device, peak_memory=True)
+    keys = ("cfg", "times", "rpn_times", "digest", "trained", "peak_mib")
     return {
         "package": str(Path(pcdet_atlas.__file__).parent), "threads": torch.get_num_threads(),
         "runs": [{k: run[k] for k in keys} for run in runs], "unbuilt": unbuilt,
@@ -656,20 +657,25 @@ def _latency_child(cfg_files: list[str], data_path: Path, args, device: torch.de
 def latency_compare_table(
     cfg_files: list[str], data_path: Path, args, device: torch.device
 ) -> None:
-    """The latency of each config in the ``--baseline_src`` tree and in this one, timed in
-    ``args.rounds`` alternating processes per tree, with whether both trees predicted the same
-    (bitwise) on the timed frames."""
+    """The latency and peak memory of each config in the ``--baseline_src`` tree and in this
+    one, timed in ``args.rounds`` alternating processes per tree, with whether both trees
+    predicted the same (bitwise) on the timed frames. Each tree reads its own copy of a config
+    (the config's path relative to the repository)."""
     trees = {"baseline": Path(args.baseline_src).resolve(), "this tree": REPO_ROOT}
     if not (trees["baseline"] / "pcdet_atlas" / "__init__.py").is_file():
         raise SystemExit(f"--baseline_src: no pcdet_atlas package under {trees['baseline']}")
-    results: dict = {(t, c): [] for t in trees for c in cfg_files}
+    rel = [Path(c).resolve().relative_to(REPO_ROOT) for c in cfg_files]
+    missing = [str(r) for r in rel if not (trees["baseline"] / r).is_file()]
+    if missing:
+        raise SystemExit(f"--baseline_src: {trees['baseline']} has no {', '.join(missing)}")
+    results: dict = {(t, r): [] for t in trees for r in rel}
+    unbuilt: dict = {}
     loads, threads = [os.getloadavg()[0]], None
     for _ in range(args.rounds):
         for tree, src in trees.items():
             env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(src), str(REPO_ROOT)]))
-            cfgs = [str(src / c) if (src / c).is_file() else c for c in cfg_files]
             cmd = [
-                sys.executable, __file__, "--latency_child", "--cfgs", *cfgs,
+                sys.executable, __file__, "--latency_child", "--cfgs", *(str(src / r) for r in rel),
                 "--data_path", str(data_path), "--frames", str(args.frames),
                 "--device", str(device),
             ] + (["--threads", str(args.threads)] if args.threads else [])  # fmt: skip
@@ -677,10 +683,10 @@ def latency_compare_table(
             res = json.loads(out.stdout.strip().splitlines()[-1])
             if not Path(res["package"]).resolve().is_relative_to(src):
                 raise SystemExit(f"{tree}: imported {res['package']}, not {src}")
-            if res["unbuilt"]:
-                raise SystemExit(f"{tree}: could not build {res['unbuilt']}")
-            for cfg_file, run in zip(cfg_files, res["runs"]):
-                results[(tree, cfg_file)].append(run)
+            for cfg_file, reason in res["unbuilt"]:
+                unbuilt[Path(cfg_file).resolve().relative_to(src)] = f"{tree}: {reason}"
+            for run in res["runs"]:
+                results[(tree, Path(run["cfg"]).resolve().relative_to(src))].append(run)
             threads = res["threads"]
             loads.append(os.getloadavg()[0])
     print(
@@ -688,30 +694,44 @@ def latency_compare_table(
         f"per model and process (batch 1, after 1 warm-up), {args.rounds} processes per tree "
         f"alternating, medians; load average {min(loads):.1f}-{max(loads):.1f}\n"
     )
-    print("| config | tree | latency ms | RPN + 2nd stage ms | speed-up | predictions |")
-    print("|---|---|---|---|---|---|")
-    for cfg_file in cfg_files:
-        base = None
-        digests = {t: {r["digest"] for r in results[(t, cfg_file)]} for t in trees}
+    print(
+        "| config | tree | latency ms | speed-up | RPN + 2nd stage ms | 2nd stage speed-up "
+        "| peak MiB | predictions |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for cfg in rel:
+        name = str(cfg).replace("cfgs/atlas/", "")
+        if cfg in unbuilt:
+            print(f"| {name} | not built ({unbuilt[cfg]}) | | | | | | |")
+            continue
+        if len({r["trained"] for t in trees for r in results[(t, cfg)]}) > 1:
+            raise SystemExit(
+                f"{cfg}: its checkpoint exists in one tree only (archive the baseline with its "
+                f"checkpoints/)"
+            )
+        digests = {t: {r["digest"] for r in results[(t, cfg)]} for t in trees}
+        base = base_second = None
         for tree in trees:
-            runs = results[(tree, cfg_file)]
-            if len({r["trained"] for t in trees for r in results[(t, cfg_file)]}) > 1:
-                raise SystemExit(
-                    f"{cfg_file}: the checkpoint exists in one tree only (archive the baseline "
-                    f"with its checkpoints/)"
-                )
+            runs = results[(tree, cfg)]
             med = statistics.median(t for r in runs for t in r["times"])
             base = base or med
-            split = "-"
+            split = second_ratio = "-"
             if runs[0]["rpn_times"]:
-                rpn = statistics.median(t for r in runs for t in r["rpn_times"])
-                split = f"{rpn * 1e3:,.0f} + {(med - rpn) * 1e3:,.0f}"
+                pairs = [(t, p) for r in runs for t, p in zip(r["times"], r["rpn_times"])]
+                rpn = statistics.median(p for _, p in pairs)
+                second = statistics.median(t - p for t, p in pairs)
+                base_second = base_second or second
+                split = f"{rpn * 1e3:,.0f} + {second * 1e3:,.0f}"
+                second_ratio = f"{base_second / second:.2f}x"
+            peak = max(r["peak_mib"] for r in runs)
             same = "-" if tree == "baseline" else (
                 "bitwise equal" if digests["baseline"] == digests[tree] and len(digests[tree]) == 1
                 else "differ"
             )  # fmt: skip
-            name = str(Path(cfg_file)).replace("cfgs/atlas/", "")
-            print(f"| {name} | {tree} | {med * 1e3:,.0f} | {split} | {base / med:.2f}x | {same} |")
+            print(
+                f"| {name} | {tree} | {med * 1e3:,.0f} | {base / med:.2f}x | {split} | "
+                f"{second_ratio} | {peak:,.0f} | {same} |"
+            )
 
 
 def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.device) -> None:

@@ -135,6 +135,31 @@ def test_cylinder_pairs_keep_to_their_group():
     assert bool((box_id[1:] >= box_id[:-1]).all())
     with pytest.raises(ValueError, match="both point_group and box_group"):
         cylinder_pairs(xy, centers, radius, point_group=point_group)
+    with pytest.raises(ValueError, match="box_group must be >= 0"):
+        cylinder_pairs(xy, centers, radius, point_group=point_group, box_group=box_group - 1)
+
+
+def test_cylinder_pairs_find_a_point_on_the_edge():
+    """A point at exactly the radius is found when the radius is a whole number of grid cells
+    (here the only box's radius is the median: 2 cells) and the point's cell index rounds up
+    across a cell edge."""
+    xy = torch.tensor([[0.2, 0.2], [43.68477249145508, 40.0]])
+    centers = torch.tensor([[39.10742950439453, 40.0]])
+    radius = torch.tensor([4.57734489440918])
+    assert bool(((xy[1] - centers[0]) ** 2).sum() <= radius[0] ** 2)
+    box_id, point_id = cylinder_pairs(xy, centers, radius)
+    assert box_id.tolist() == [0] and point_id.tolist() == [1]
+
+
+def test_sampler_does_not_read_points_of_other_frames():
+    """Points of no sampled frame (a NaN one among them) are never read."""
+    pts = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [float("nan"), 0.0, 0.0]])
+    traj = torch.tensor([[[0.0, 0.0, 0.0, 4.0, 2.0, 1.0, 0.0]]])
+    out, valid = sample_cylinder_points(
+        pts, torch.tensor([0, 0, -1]), traj, num_sample=4, gamma=1.0, radius_growth=False,
+        generator=torch.Generator().manual_seed(0),
+    )  # fmt: skip
+    assert int(valid.sum()) == 2 and torch.isfinite(out).all()
 
 
 @pytest.mark.parametrize("num_slots", [7, 1024, 3000])

@@ -148,30 +148,43 @@ def cylinder_pairs(
     """Every (box, point) pair with the point's XY within ``radius`` of the box centre, as two
     ``(P,)`` long index tensors sorted by box.
 
-    ``point_group`` ``(N,)`` / ``box_group`` ``(R,)`` (long, both or neither): a box pairs only
-    with the points of its own group (MSF: a frame); a point of group -1 pairs with none.
+    ``point_group`` ``(N,)`` / ``box_group`` ``(R,)`` (long, both or neither; boxes' groups
+    ``>= 0``): a box pairs only with the points of its own group (MSF: a frame); the points of
+    no box's group (-1, say) are not read at all.
 
     Points are bucketed on a BEV grid whose cell is about half the median radius; a box measures
-    only the points of the ``(2k + 1)^2`` cells around its centre, ``k = ceil(radius / cell)``,
-    so its candidates cover about twice its cylinder's area whatever the spread of the radii.
-    Candidates of a box come cell by cell, each cell's points in index order.
+    only the points of the ``(2k + 1)^2`` cells around its centre, ``k = ceil(radius / cell +
+    0.01)`` (the hundredth of a cell keeps a point on the cylinder's edge in its box's window
+    whatever the rounding of the cell indices), so its candidates cover about twice its
+    cylinder's area whatever the spread of the radii. Candidates of a box come cell by cell,
+    each cell's points in index order.
 
-    Gathers here are ``index_select`` on contiguous tensors: on the CPU, advanced indexing of a
-    strided ``(N, 2)`` view is an order of magnitude slower (docs/benchmarks.md)."""
+    Gathers are ``index_select`` on contiguous tensors: on the CPU, advanced indexing takes a
+    slower path, most of all on a strided view such as the points' XY columns."""
+    if (point_group is None) != (box_group is None):
+        raise ValueError("cylinder_pairs: pass both point_group and box_group, or neither")
     empty = torch.zeros(0, dtype=torch.long, device=xy.device)
     if xy.shape[0] == 0 or centers.shape[0] == 0:
         return empty, empty
-    if (point_group is None) != (box_group is None):
-        raise ValueError("cylinder_pairs: pass both point_group and box_group, or neither")
-    num_groups = 1 if box_group is None else int(box_group.max()) + 1
     xy, centers = xy.contiguous(), centers.contiguous()
+    num_groups, taken = 1, None  # taken: the points read, when not all of them
+    if box_group is not None:
+        if bool((box_group < 0).any()):
+            raise ValueError("cylinder_pairs: box_group must be >= 0")
+        num_groups = int(box_group.max()) + 1
+        mine = (point_group >= 0) & (point_group < num_groups)
+        if not bool(mine.all()):
+            taken = torch.nonzero(mine).squeeze(1)
+            xy, point_group = xy.index_select(0, taken), point_group.index_select(0, taken)
+            if xy.shape[0] == 0:
+                return empty, empty
     low = torch.minimum(xy.min(0).values, centers.min(0).values)
     high = torch.maximum(xy.max(0).values, centers.max(0).values)
     # half the median radius; coarser only to bound the grids (2^24 cells over all groups) and
     # the window of the largest box (64 cells each side)
     cell = max(float(radius.median()) / 2, float(radius.max()) / 64,
                float((high - low).max()) * num_groups**0.5 / 4096, 1e-3)  # fmt: skip
-    reach = torch.ceil(radius / cell).long().clamp_min(1)  # (R,) cells on each side
+    reach = torch.ceil(radius / cell + 0.01).long().clamp_min(1)  # (R,) cells on each side
     margin = cell * (int(reach.max()) + 1)
     origin = low - margin
     width = int(torch.floor((high + margin - origin) / cell).max()) + 1
@@ -180,10 +193,8 @@ def cylinder_pairs(
     center_cell = torch.floor((centers - origin) / cell).long()
     center_key = center_cell[:, 0] * width + center_cell[:, 1]
     grid = width * width
-    if box_group is not None:
-        # group g's grid follows group g - 1's; a point of no box's group gets the spare cell
-        outside = (point_group < 0) | (point_group >= num_groups)
-        point_key = torch.where(outside, num_groups * grid, point_group * grid + point_key)
+    if box_group is not None:  # group g's grid follows group g - 1's
+        point_key = point_key + point_group * grid
         center_key = center_key + box_group * grid
     # the window of each box, flattened: box b owns side_b^2 consecutive entries
     side = 2 * reach + 1
@@ -195,7 +206,7 @@ def cylinder_pairs(
     dx = torch.div(local, box_side, rounding_mode="floor") - box_reach
     dy = local % box_side - box_reach
     cell_key = center_key.index_select(0, cell_box) + dx * width + dy
-    needed = torch.zeros(num_groups * grid + 1, dtype=torch.bool, device=xy.device)
+    needed = torch.zeros(num_groups * grid, dtype=torch.bool, device=xy.device)
     needed[cell_key] = True
     # points in a cell some box looks at
     near = torch.nonzero(needed.index_select(0, point_key)).squeeze(1)
@@ -213,7 +224,10 @@ def cylinder_pairs(
     delta = xy.index_select(0, point_id) - centers.index_select(0, box_id)
     inside = (delta * delta).sum(1) <= radius.index_select(0, box_id) ** 2
     inside = torch.nonzero(inside).squeeze(1)
-    return box_id.index_select(0, inside), point_id.index_select(0, inside)
+    box_id, point_id = box_id.index_select(0, inside), point_id.index_select(0, inside)
+    if taken is not None:
+        point_id = taken.index_select(0, point_id)
+    return box_id, point_id
 
 
 def sample_batch_points(
