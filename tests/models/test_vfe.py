@@ -85,3 +85,36 @@ def test_training_mode_runs_layerwise():
     vfe.eval()
     with torch.no_grad():
         assert not torch.allclose(vfe(dict(batch))["pillar_features"], train_out.detach())
+
+
+def test_points_outside_the_z_range_enter_their_pillar_unless_dropped():
+    """As OpenPCDet's dynamic VFE (x and y bounds only), a point below or above the z range
+    falls in the pillar under it; DROP_OUTSIDE_Z drops it. Its f_center z is taken from the
+    pillar's fixed centre height either way."""
+    torch.manual_seed(0)
+    pts = torch.tensor(
+        [
+            [0.0, 0.1, 0.1, 1.0, 0.5, 0.5],  # inside
+            [0.0, 0.2, 0.2, 5.0, 0.5, 0.5],  # above z (4.0), same pillar
+            [0.0, 3.1, 3.1, -3.0, 0.5, 0.5],  # below z (-2.0), a pillar of its own
+            [0.0, 9.5, 0.1, 1.0, 0.5, 0.5],  # outside x: never
+        ]
+    )
+    kept = DynamicPillarVFE(
+        num_point_features=5, point_cloud_range=RANGE, voxel_size=(0.5, 0.5, 6.0),
+        num_filters=(8,),
+    ).eval()  # fmt: skip
+    dropped = DynamicPillarVFE.from_config(
+        {"NAME": "DynamicPillarVFE", "VOXEL_SIZE": [0.5, 0.5, 6.0], "NUM_FILTERS": [8],
+         "DROP_OUTSIDE_Z": True},
+        {"num_point_features": 5, "point_cloud_range": RANGE, "voxel_size": None},
+    ).eval()  # fmt: skip
+    dropped.load_state_dict(kept.state_dict())
+    with torch.no_grad():
+        out_kept = kept({"points": pts, "batch_size": 1})
+        out_dropped = dropped({"points": pts, "batch_size": 1})
+        solo = kept({"points": pts[:1], "batch_size": 1})  # the inside point's pillar alone
+    assert out_kept["voxel_coords"].tolist() == [[0, 0, 16, 16], [0, 0, 22, 22]]
+    assert out_dropped["voxel_coords"].tolist() == [[0, 0, 16, 16]]
+    torch.testing.assert_close(out_dropped["pillar_features"], solo["pillar_features"])
+    assert not torch.allclose(out_kept["pillar_features"][:1], solo["pillar_features"])

@@ -100,3 +100,13 @@ def test_scatter_max_gradcheck():
     idx = torch.tensor([0, 0, 1, 2, 2, 2, 4, 4, 1, 0, 2, 4])
     assert torch.autograd.gradcheck(lambda x: scatter_max(x, idx, 5), (src,))
     assert torch.autograd.gradcheck(lambda x: scatter_mean(x, idx, 5), (src,))
+
+
+def test_unbounded_z_needs_a_pillar_grid():
+    points = torch.tensor([[0.0, 0.5, 0.5, 9.0]])
+    pillars = VoxelGrid((0.0, 0.0, -1.0, 2.0, 2.0, 1.0), (1.0, 1.0, 2.0))
+    assert voxelize(points, pillars).voxel_coords.shape[0] == 0
+    assert voxelize(points, pillars, bound_z=False).voxel_coords.tolist() == [[0, 0, 0, 0]]
+    voxels = VoxelGrid((0.0, 0.0, -1.0, 2.0, 2.0, 1.0), (1.0, 1.0, 1.0))
+    with pytest.raises(ValueError, match="pillar grid"):
+        voxelize(points, voxels, bound_z=False)

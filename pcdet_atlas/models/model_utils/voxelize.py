@@ -74,12 +74,15 @@ class Voxelization:
     voxel_num_points: torch.Tensor
 
 
-def voxelize(points: torch.Tensor, grid: VoxelGrid) -> Voxelization:
+def voxelize(points: torch.Tensor, grid: VoxelGrid, *, bound_z: bool = True) -> Voxelization:
     """Group batched points into the cells of ``grid``.
 
     Args:
         points: (N, 1 + C) float, ``[batch_idx, x, y, z, ...]`` (the collate layout).
         grid: the voxel grid.
+        bound_z: False (a pillar grid, one z cell): a point below or above the z range still
+            falls in the pillar under it, as in OpenPCDet's ``DynamicPillarVFE``, which bounds x
+            and y only.
 
     Returns:
         A :class:`Voxelization`. Voxels are sorted by ``(batch, z, y, x)``. A point on the upper
@@ -88,10 +91,14 @@ def voxelize(points: torch.Tensor, grid: VoxelGrid) -> Voxelization:
     if points.dim() != 2 or points.shape[1] < 4:
         raise ValueError(f"voxelize: points must be (N, 1 + C>=3), got {tuple(points.shape)}")
     nx, ny, nz = grid.grid_size
+    if not bound_z and nz != 1:
+        raise ValueError(f"voxelize: bound_z=False needs a pillar grid (1 z cell), got {nz}")
     pc_min = points.new_tensor(grid.point_cloud_range[:3], dtype=torch.float64)
     vsize = points.new_tensor(grid.voxel_size, dtype=torch.float64)
     # float64 cell coordinates (exact cell edges for float32 input), in place on one copy
     cell = points[:, 1:4].to(torch.float64, copy=True).sub_(pc_min).div_(vsize).floor_().long()
+    if not bound_z:
+        cell[:, 2] = 0
     upper = torch.tensor([nx, ny, nz], device=points.device)
     mask = ((cell >= 0) & (cell < upper)).all(dim=1)  # (N,)
     # linear key of every point (garbage outside the range), then one 1-D selection

@@ -3,6 +3,9 @@
 The model pillarizes the raw points itself (:func:`voxelize`), decorates every point with its
 offset from the pillar's mean and from the pillar's geometric centre, and runs PointNet layers
 whose per-pillar max is taken with ``scatter_reduce``. No points are dropped inside the range.
+As in OpenPCDet, the range bounds x and y only: a point below or above the z range falls in the
+pillar under it; ``DROP_OUTSIDE_Z: True`` drops such points instead (the shipped synthetic
+pillar checkpoints were trained so; docs/model_zoo.md).
 
 In eval mode the PFN layers run in an equivalent, cheaper form
 (:meth:`DynamicPillarVFE._pfn_eval`): BatchNorm folded into the linear layers, a layer's input
@@ -73,6 +76,7 @@ class DynamicPillarVFE(nn.Module):
         use_norm: bool = True,
         with_distance: bool = False,
         use_absolute_xyz: bool = True,
+        drop_outside_z: bool = False,
     ):
         """
         Args:
@@ -82,6 +86,7 @@ class DynamicPillarVFE(nn.Module):
             num_filters: output widths of the PFN layers.
             with_distance: add the point's xyz norm as a feature.
             use_absolute_xyz: keep x, y, z themselves as features (else only the offsets).
+            drop_outside_z: drop the points below or above the z range (OpenPCDet keeps them).
         """
         super().__init__()
         self.grid = VoxelGrid(tuple(map(float, point_cloud_range)), tuple(map(float, voxel_size)))
@@ -97,6 +102,7 @@ class DynamicPillarVFE(nn.Module):
         self.num_point_features = num_point_features
         self.with_distance = with_distance
         self.use_absolute_xyz = use_absolute_xyz
+        self.drop_outside_z = bool(drop_outside_z)
         in_ch = num_point_features + 6 - (0 if use_absolute_xyz else 3) + int(with_distance)
         widths = [in_ch, *num_filters]
         self.pfn_layers = nn.ModuleList(
@@ -111,7 +117,15 @@ class DynamicPillarVFE(nn.Module):
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> DynamicPillarVFE:
         check_known_keys(
             cfg,
-            ["NAME", "VOXEL_SIZE", "NUM_FILTERS", "USE_NORM", "WITH_DISTANCE", "USE_ABSLOTE_XYZ"],
+            [
+                "NAME",
+                "VOXEL_SIZE",
+                "NUM_FILTERS",
+                "USE_NORM",
+                "WITH_DISTANCE",
+                "USE_ABSLOTE_XYZ",
+                "DROP_OUTSIDE_Z",
+            ],
             "MODEL.VFE",
         )
         voxel_size = cfg.get("VOXEL_SIZE", model_info.get("voxel_size"))
@@ -134,6 +148,7 @@ class DynamicPillarVFE(nn.Module):
             use_norm=cfg.get("USE_NORM", True),
             with_distance=cfg.get("WITH_DISTANCE", False),
             use_absolute_xyz=cfg.get("USE_ABSLOTE_XYZ", True),
+            drop_outside_z=cfg.get("DROP_OUTSIDE_Z", False),
         )
 
     def get_output_feature_dim(self) -> int:
@@ -142,7 +157,7 @@ class DynamicPillarVFE(nn.Module):
     def forward(self, batch_dict: dict) -> dict:
         points = batch_dict["points"]  # (N, 1 + C)
         check_point_columns(points, self.num_point_features, "DynamicPillarVFE")
-        vox = voxelize(points, self.grid)
+        vox = voxelize(points, self.grid, bound_z=self.drop_outside_z)
         pts = points[vox.point_mask, 1:].float()  # (N_in, C)
         idx = vox.point_voxel_idx
         num_pillars = vox.voxel_coords.shape[0]
