@@ -275,6 +275,20 @@ def _train_step_child(cfg_file: str, data_path: str, args) -> dict:
     return res
 
 
+def _tree_child(tree: str, src: Path, argv: list[str]) -> dict:
+    """Run this script with ``argv`` in a fresh process that imports ``pcdet_atlas`` from the
+    source tree ``src``; returns the JSON of its last output line, whose ``package`` must lie in
+    ``src``."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(src), str(REPO_ROOT)]))
+    out = subprocess.run(
+        [sys.executable, __file__, *argv], env=env, check=True, capture_output=True, text=True
+    )
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    if not Path(res["package"]).resolve().is_relative_to(src):
+        raise SystemExit(f"{tree}: imported {res['package']}, not {src}")
+    return res
+
+
 def train_step_table(args, data_path: Path) -> None:
     """Seconds per training step of each config (and of the baseline tree, if given)."""
     trees = {"this tree": (REPO_ROOT, False)}  # label -> (source tree, default malloc)
@@ -290,19 +304,14 @@ def train_step_table(args, data_path: Path) -> None:
     for _ in range(args.rounds):
         for cfg_file in args.train_cfgs:
             for tree, (src, default_malloc) in trees.items():
-                env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(src), str(REPO_ROOT)]))
                 cmd = [
-                    sys.executable, __file__, "--train_step", "--child", "--train_cfgs",
+                    "--train_step", "--child", "--train_cfgs",
                     str((src / cfg_file) if (src / cfg_file).is_file() else Path(cfg_file)),
                     "--data_path", str(data_path), "--steps", str(args.steps),
                     "--batch_size", str(args.batch_size), "--workers", str(args.workers),
                 ] + (["--threads", str(args.threads)] if args.threads else [])  # fmt: skip
                 cmd += ["--default_malloc"] if default_malloc else []
-                out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True)
-                res = json.loads(out.stdout.strip().splitlines()[-1])
-                if not Path(res["package"]).resolve().is_relative_to(src):
-                    raise SystemExit(f"{tree}: imported {res['package']}, not {src}")
-                results[(tree, cfg_file)].append(res)
+                results[(tree, cfg_file)].append(_tree_child(tree, src, cmd))
                 loads.append(os.getloadavg()[0])
     first = next(iter(results.values()))[0]
     print(
@@ -566,10 +575,10 @@ def vfe_forms_table(cfg_files: list[str], data_path: Path, args, device: torch.d
 
 
 def _timed_runs(
-    cfg_files: list[str], data_path: Path, args, device: torch.device, *, peak_memory: bool
+    cfg_files: list[str], data_path: Path, args, device: torch.device
 ) -> tuple[list[dict], list[tuple[str, str]]]:
-    """Build each config's model, time ``args.frames`` frames of each (models taking turns
-    frame by frame, after one warm-up frame) and, with ``peak_memory``, measure its peak memory.
+    """Build each config's model, measure its peak memory and time ``args.frames`` frames of
+    each (models taking turns frame by frame, after one warm-up frame).
     Returns the runs (``times``, ``rpn_times``, ``digest`` of the timed frames' predictions, ...)
     and the configs whose model could not be built, with the reason."""
     runs, unbuilt = [], []
@@ -600,12 +609,10 @@ def _timed_runs(
 
     ctx = multiprocessing.get_context("spawn")
     for run in runs:  # peak memory in a fresh process per model (no allocator reuse), warm-up
-        if peak_memory:
-            with ctx.Pool(1) as pool:
-                run["peak_mib"] = pool.apply(
-                    _peak_memory_mib,
-                    (run["cfg"], str(data_path), str(device), run["trained"], start),
-                )  # fmt: skip
+        with ctx.Pool(1) as pool:
+            run["peak_mib"] = pool.apply(
+                _peak_memory_mib, (run["cfg"], str(data_path), str(device), run["trained"], start)
+            )
         run["digest"] = hashlib.sha256()
         warm = run["batches"][0]
         run["model"].predict(run["bank"].attach(warm, warm) if "bank" in run else warm)
@@ -646,7 +653,7 @@ def _latency_child(cfg_files: list[str], data_path: Path, args, device: torch.de
     config."""
     import pcdet_atlas
 
-    runs, unbuilt = _timed_runs(cfg_files, data_path, args, device, peak_memory=True)
+    runs, unbuilt = _timed_runs(cfg_files, data_path, args, device)
     keys = ("cfg", "times", "rpn_times", "digest", "trained", "peak_mib")
     return {
         "package": str(Path(pcdet_atlas.__file__).parent), "threads": torch.get_num_threads(),
@@ -673,16 +680,12 @@ def latency_compare_table(
     loads, threads = [os.getloadavg()[0]], None
     for _ in range(args.rounds):
         for tree, src in trees.items():
-            env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(src), str(REPO_ROOT)]))
             cmd = [
-                sys.executable, __file__, "--latency_child", "--cfgs", *(str(src / r) for r in rel),
+                "--latency_child", "--cfgs", *(str(src / r) for r in rel),
                 "--data_path", str(data_path), "--frames", str(args.frames),
                 "--device", str(device),
             ] + (["--threads", str(args.threads)] if args.threads else [])  # fmt: skip
-            out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True)
-            res = json.loads(out.stdout.strip().splitlines()[-1])
-            if not Path(res["package"]).resolve().is_relative_to(src):
-                raise SystemExit(f"{tree}: imported {res['package']}, not {src}")
+            res = _tree_child(tree, src, cmd)
             for cfg_file, reason in res["unbuilt"]:
                 unbuilt[Path(cfg_file).resolve().relative_to(src)] = f"{tree}: {reason}"
             for run in res["runs"]:
@@ -736,7 +739,7 @@ def latency_compare_table(
 
 def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.device) -> None:
     """Print latency / peak memory / L2 mAP of each config, models taking turns per frame."""
-    runs, unbuilt = _timed_runs(cfg_files, data_path, args, device, peak_memory=True)
+    runs, unbuilt = _timed_runs(cfg_files, data_path, args, device)
     if args.eval:
         for run in runs:
             if run["trained"]:
