@@ -280,9 +280,9 @@ def _tree_child(tree: str, src: Path, argv: list[str]) -> dict:
     source tree ``src``; returns the JSON of its last output line, whose ``package`` must lie in
     ``src``."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(src), str(REPO_ROOT)]))
-    out = subprocess.run(
-        [sys.executable, __file__, *argv], env=env, check=True, capture_output=True, text=True
-    )
+    out = subprocess.run([sys.executable, __file__, *argv], env=env, capture_output=True, text=True)
+    if out.returncode:
+        raise SystemExit(f"{tree}: {' '.join(argv)} failed:\n{out.stderr[-4000:]}")
     res = json.loads(out.stdout.strip().splitlines()[-1])
     if not Path(res["package"]).resolve().is_relative_to(src):
         raise SystemExit(f"{tree}: imported {res['package']}, not {src}")
@@ -727,10 +727,12 @@ def latency_compare_table(
                 split = f"{rpn * 1e3:,.0f} + {second * 1e3:,.0f}"
                 second_ratio = f"{base_second / second:.2f}x"
             peak = max(r["peak_mib"] for r in runs)
-            same = "-" if tree == "baseline" else (
-                "bitwise equal" if digests["baseline"] == digests[tree] and len(digests[tree]) == 1
-                else "differ"
-            )  # fmt: skip
+            if len(digests[tree]) > 1:  # its own processes disagree: non-deterministic kernels
+                same = "not reproducible"
+            elif tree == "baseline":
+                same = "-"
+            else:
+                same = "bitwise equal" if digests["baseline"] == digests[tree] else "differ"
             print(
                 f"| {name} | {tree} | {med * 1e3:,.0f} | {base / med:.2f}x | {split} | "
                 f"{second_ratio} | {peak:,.0f} | {same} |"
@@ -1054,7 +1056,8 @@ def main() -> None:
         return
     all_cfgs = sorted(str(p) for p in (REPO_ROOT / "cfgs" / "atlas").rglob("*.yaml"))
     cfg_files = all_cfgs if args.cfgs is None else args.cfgs
-    data_path = Path(args.data_path)
+    # absolute: a --baseline_src tree would resolve a relative path against itself
+    data_path = Path(args.data_path).resolve()
     tmp = None
     if not (data_path / "ImageSets" / "val.txt").is_file():
         from pcdet_atlas.datasets.synthetic import create_synthetic_waymo

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from device_params import DEVICES
 from model_batches import two_stage_batch as training_batch
 
 from pcdet_atlas.attacks import AtlasWaymoDataset
@@ -19,6 +20,8 @@ from pcdet_atlas.datasets.dataset import collate_batch
 from pcdet_atlas.models import build_network_from_config, load_data_to_device
 from pcdet_atlas.models.detectors import MSF, TwoStageDetector
 from pcdet_atlas.models.detectors.detector3d_template import CheckpointMismatchError
+from pcdet_atlas.models.detectors.two_stage import roi_boxes_to_padded
+from pcdet_atlas.models.model_utils.motion_sampler import propagate_boxes
 from pcdet_atlas.ops.iou3d_nms import boxes_iou_bev
 from pcdet_atlas.train_utils import checkpoint_state, export_model_checkpoint, load_checkpoint
 from pcdet_atlas.train_utils.proposals import proposal_cache_file, training_proposals
@@ -74,6 +77,35 @@ def test_build_train_predict(path, real_rpn_checkpoint):
 def synthetic_msf(name: str = "msf_4f.yaml"):
     torch.manual_seed(0)
     return build_network_from_config(cfg_from_yaml_file(CFGS / "synthetic" / name))
+
+
+@pytest.mark.parametrize("device", DEVICES[1:])
+def test_the_head_computes_on_cuda_what_it_computes_on_the_cpu(device):
+    """MSF-8f's second stage on the same proposals: the sampler's keys are drawn on the CPU, so
+    both devices sample the same points, and the refined boxes and logits agree to float32
+    rounding."""
+    model = synthetic_msf("msf_8f.yaml").eval()
+    batch = training_batch(8)
+
+    def outputs(dev):
+        model.to(dev)
+        b = load_data_to_device(batch, dev)
+        rois, _, _, valid = roi_boxes_to_padded(b["roi_boxes"])
+        head = model.roi_head
+        traj = torch.stack([propagate_boxes(r, head.num_frames) for r in rois])
+        with torch.no_grad():
+            out = head({
+                **b, "rois": rois, "roi_valid": valid, "trajectories": traj,
+                "generators": model.sample_generators(b, "msf_points"),
+            })  # fmt: skip
+            boxes, logits = head.decode(out, rois)
+        return boxes.cpu(), logits.cpu(), valid.cpu()
+
+    cpu_boxes, cpu_logits, valid = outputs("cpu")
+    gpu_boxes, gpu_logits, _ = outputs(device)
+    assert valid.sum() >= 4
+    torch.testing.assert_close(gpu_boxes[valid], cpu_boxes[valid], atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(gpu_logits[valid], cpu_logits[valid], atol=1e-4, rtol=1e-4)
 
 
 def test_the_rpn_is_frozen_and_outside_the_trained_state():

@@ -24,6 +24,7 @@ from pcdet_atlas.models.roi_heads.msf_head import (
 )
 from pcdet_atlas.models.roi_heads.roi_head_template import augment_boxes
 from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d
+from tests.device_params import DEVICES
 
 
 def scene(seed: int = 0, num_frames: int = 4, per_frame: int = 3000):
@@ -68,15 +69,18 @@ def brute_force(points, frames, traj, num_sample, gamma, growth, keys):
     return out, valid
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("growth", [True, False])
-def test_sampler_matches_brute_force(growth):
+def test_sampler_matches_brute_force(growth, device):
     points, boxes = scene()
     traj = propagate_boxes(boxes, 4)
     frames = frame_of_points(points[:, -1], 4)
     out, valid = sample_cylinder_points(
-        points[:, :-1], frames, traj, num_sample=64, gamma=1.1, radius_growth=growth,
-        generator=torch.Generator().manual_seed(7),
+        points[:, :-1].to(device), frames.to(device), traj.to(device), num_sample=64, gamma=1.1,
+        radius_growth=growth, generator=torch.Generator().manual_seed(7),
     )  # fmt: skip
+    assert out.device.type == valid.device.type == device
+    out, valid = out.cpu(), valid.cpu()
     keys = torch.rand(
         points.shape[0], generator=torch.Generator().manual_seed(7), dtype=torch.float64
     )
@@ -87,8 +91,9 @@ def test_sampler_matches_brute_force(growth):
     assert full.any() and not full.all()
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("spread", ["equal", "one_large", "tiny_median", "far_box"])
-def test_cylinder_pairs_match_brute_force(spread):
+def test_cylinder_pairs_match_brute_force(spread, device):
     """Every (box, point) pair within the radius, once, sorted by box, whatever the radii (the
     grid's cell follows the median radius; a large or far box must still find all its points)."""
     g = torch.Generator().manual_seed(3)
@@ -105,7 +110,8 @@ def test_cylinder_pairs_match_brute_force(spread):
     elif spread == "far_box":
         centers[1] = torch.tensor([500.0, -300.0])
         radius[1] = 600.0
-    box_id, point_id = cylinder_pairs(xy, centers, radius)
+    box_id, point_id = cylinder_pairs(xy.to(device), centers.to(device), radius.to(device))
+    box_id, point_id = box_id.cpu(), point_id.cpu()
     d2 = ((xy[None] - centers[:, None]) ** 2).sum(-1)
     want = torch.nonzero(d2 <= radius[:, None] ** 2)
     got = torch.stack([box_id, point_id], 1)
@@ -114,7 +120,8 @@ def test_cylinder_pairs_match_brute_force(spread):
     assert bool((box_id[1:] >= box_id[:-1]).all())
 
 
-def test_cylinder_pairs_keep_to_their_group():
+@pytest.mark.parametrize("device", DEVICES)
+def test_cylinder_pairs_keep_to_their_group(device):
     """With groups (MSF: frames), a box pairs only with its own group's points; a point of
     group -1, or of a group no box has, pairs with none."""
     g = torch.Generator().manual_seed(4)
@@ -124,8 +131,10 @@ def test_cylinder_pairs_keep_to_their_group():
     box_group = torch.arange(3).repeat_interleave(10)
     radius = 2.0 + 4.0 * torch.rand(30, generator=g)
     box_id, point_id = cylinder_pairs(
-        xy, centers, radius, point_group=point_group, box_group=box_group
-    )
+        xy.to(device), centers.to(device), radius.to(device),
+        point_group=point_group.to(device), box_group=box_group.to(device),
+    )  # fmt: skip
+    box_id, point_id = box_id.cpu(), point_id.cpu()
     d2 = ((xy[None] - centers[:, None]) ** 2).sum(-1)
     same = box_group[:, None] == point_group[None]
     want = torch.nonzero((d2 <= radius[:, None] ** 2) & same)
@@ -139,7 +148,8 @@ def test_cylinder_pairs_keep_to_their_group():
         cylinder_pairs(xy, centers, radius, point_group=point_group, box_group=box_group - 1)
 
 
-def test_cylinder_pairs_find_a_point_on_the_edge():
+@pytest.mark.parametrize("device", DEVICES)
+def test_cylinder_pairs_find_a_point_on_the_edge(device):
     """A point at exactly the radius is found when the radius is a whole number of grid cells
     (here the only box's radius is the median: 2 cells) and the point's cell index rounds up
     across a cell edge."""
@@ -147,30 +157,33 @@ def test_cylinder_pairs_find_a_point_on_the_edge():
     centers = torch.tensor([[39.10742950439453, 40.0]])
     radius = torch.tensor([4.57734489440918])
     assert bool(((xy[1] - centers[0]) ** 2).sum() <= radius[0] ** 2)
-    box_id, point_id = cylinder_pairs(xy, centers, radius)
+    box_id, point_id = cylinder_pairs(xy.to(device), centers.to(device), radius.to(device))
     assert box_id.tolist() == [0] and point_id.tolist() == [1]
 
 
-def test_sampler_does_not_read_points_of_other_frames():
+@pytest.mark.parametrize("device", DEVICES)
+def test_sampler_does_not_read_points_of_other_frames(device):
     """Points of no sampled frame (a NaN one among them) are never read."""
     pts = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [float("nan"), 0.0, 0.0]])
     traj = torch.tensor([[[0.0, 0.0, 0.0, 4.0, 2.0, 1.0, 0.0]]])
     out, valid = sample_cylinder_points(
-        pts, torch.tensor([0, 0, -1]), traj, num_sample=4, gamma=1.0, radius_growth=False,
+        pts.to(device), torch.tensor([0, 0, -1], device=device), traj.to(device), num_sample=4,
+        gamma=1.0, radius_growth=False,
         generator=torch.Generator().manual_seed(0),
     )  # fmt: skip
     assert int(valid.sum()) == 2 and torch.isfinite(out).all()
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("num_slots", [7, 1024, 3000])
-def test_sort_within_slots_is_a_lexicographic_sort(num_slots):
+def test_sort_within_slots_is_a_lexicographic_sort(num_slots, device):
     """Sorted by (slot, key), equal keys in their given order, across the 2^10-slot runs."""
     g = torch.Generator().manual_seed(num_slots)
     slot = torch.sort(torch.randint(0, num_slots, (5000,), generator=g)).values
     key = torch.rand(5000, generator=g, dtype=torch.float64)
     key[100:110] = key[100]  # ties, kept in their order
     key[-5:] = key[-1]
-    order = _sort_within_slots(slot, key, num_slots)
+    order = _sort_within_slots(slot.to(device), key.to(device), num_slots)
     want = sorted(range(5000), key=lambda i: (int(slot[i]), float(key[i]), i))
     assert order.tolist() == want
 

@@ -10,6 +10,7 @@ import copy
 import numpy as np
 import pytest
 import torch
+from device_params import DEVICES
 from model_batches import two_stage_batch
 
 from pcdet_atlas.attacks import AtlasWaymoDataset
@@ -124,6 +125,18 @@ def test_the_head_masks_frames_before_the_sequence_start_and_reads_the_others():
     shorter["roi_history"][0, :, 1] += (shorter["roi_history"][0, :, 11] == 3) * 0.4
     assert torch.equal(head_outputs(model, shorter), masked)
     assert not torch.allclose(masked[0], ref[0])
+
+
+@pytest.mark.parametrize("device", DEVICES[1:])
+def test_the_head_computes_on_cuda_what_it_computes_on_the_cpu(device):
+    """The same batch and proposal history on both devices (the sampler's keys and the
+    association run on each; the keys are drawn on the CPU): outputs agree to float32
+    rounding."""
+    model = synthetic_ptt()
+    batch = with_history(two_stage_batch(4), counts=(3, 3))
+    ref = head_outputs(model, batch)
+    out = head_outputs(model.to(device), load_data_to_device(batch, device)).cpu()
+    torch.testing.assert_close(out, ref, atol=1e-4, rtol=1e-4)
 
 
 def test_the_dataset_serves_the_history_moved_with_the_boxes(synthetic_root):
