@@ -1,12 +1,14 @@
-"""Build the ATLAS trace library (docs/attacks.md) of a Waymo-format dataset from its train split.
+"""Build the ATLAS trace library (docs/attacks.md) of a Waymo-format dataset from one split.
 
     python tools/build_trace_library.py --cfg cfgs/attacks/inj_rel_easy.yaml \
         --data_path data/synthetic_waymo [--out <file>] [--set TRACE_LIBRARY.MIN_POINTS 100]
 
-Filters come from the ``TRACE_LIBRARY`` section of the injection YAML; the file is written to
+Filters and split (``SPLIT``, train by default) come from the ``TRACE_LIBRARY`` section of the
+injection YAML, the sensor origin from its ``LIDAR`` section; the file is written to
 ``TRACE_LIBRARY.PATH`` (relative: under ``--data_path``) unless ``--out`` is given. Every injection
 variant naming that file shares it, so an existing library built with other filters (or another
-split) is not replaced unless ``--overwrite`` is given: write it to another file instead.
+split, or another ``LIDAR.ORIGIN``) is not replaced unless ``--overwrite`` is given: write it to
+another file instead.
 """
 
 from __future__ import annotations
@@ -50,9 +52,9 @@ def main(argv=None) -> Path:
     out = Path(args.out) if args.out else Path(filters.path)
     if not out.is_absolute():
         out = (Path.cwd() / out) if args.out else (root / out)
-    if out.is_file() and not args.overwrite:
-        check_same_build(out, filters)
     lidar = LidarModel.from_config(cfg.get("LIDAR"))
+    if out.is_file() and not args.overwrite:
+        check_same_build(out, filters, list(lidar.origin_xyz))
     library = build_trace_library(
         root,
         filters,
@@ -70,13 +72,13 @@ def main(argv=None) -> Path:
     return out
 
 
-def check_same_build(path: Path, filters: TraceFilter) -> None:
-    """Refuse to replace the library at ``path`` when it was built with other filters or split:
-    the injection variants that share it would stop loading (or, read by an older copy of their
-    YAML, run on other traces)."""
+def check_same_build(path: Path, filters: TraceFilter, sensor_origin: list[float]) -> None:
+    """Refuse to replace the library at ``path`` when it was built with other filters, split or
+    sensor origin: the injection variants that share it would stop loading (or, read by an older
+    copy of their YAML, run on other traces)."""
     built = TraceLibrary.load(path).build_info
-    want = {"filters": filters.to_dict(), "split": filters.split}
-    have = {"filters": built.get("filters"), "split": built.get("split")}
+    want = {"filters": filters.to_dict(), "split": filters.split, "sensor_origin": sensor_origin}
+    have = {key: built.get(key) for key in want}
     if have != want:
         raise FileExistsError(
             f"{path} holds a trace library built with {have}, not {want}; every injection variant "

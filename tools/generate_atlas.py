@@ -16,9 +16,12 @@ Rows of an attacked frame: the kept source rows in their order (the attack acts 
 the file, NLZ rows included, as ``AtlasWaymoDataset`` does), then the phantom's rows
 ``[x, y, z, intensity, elongation, -1]`` with raw features. Loading the written frame with any
 ``DATA_CONFIG`` therefore gives exactly the points ``AtlasWaymoDataset`` serves on the fly with
-that config. ``num_points_of_each_lidar`` counts the real rows
-kept per LiDAR; ``info['atlas']['num_injected_rows']`` the appended phantom rows. Labels are the
-source labels (attack targets are in the metadata, apart from the ground truth).
+that config. ``num_points_of_each_lidar`` counts the rows kept of each LiDAR, and the phantom
+rows (returns of the TOP LiDAR the raycaster models) in the TOP count, so the counts sum to the
+frame's rows; ``info['atlas']['num_injected_rows']`` is the number of phantom rows, the last rows
+of the file (:func:`~pcdet_atlas.attacks.lidar_fit.top_lidar_points` finds the TOP rows by
+both). Labels are the source labels (attack targets are in the metadata, apart from the ground
+truth).
 
 Resumable: a sequence whose ``<seq>.pkl`` and ``<seq>_atlas.pkl`` exist for the same variant and
 the same merged attack config is skipped; another config (e.g. ``--set SEED 1``) is an error naming
@@ -72,10 +75,13 @@ def _dump_atomic(obj, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def _lidar_counts(keep_rows: np.ndarray, counts: list[int]) -> list[int]:
-    """Kept real rows per LiDAR, from the source's per-LiDAR row counts."""
+def _lidar_counts(keep_rows: np.ndarray, counts: list[int], num_injected: int) -> list[int]:
+    """Rows per LiDAR of an attacked frame: the kept source rows of each (from the source's
+    per-LiDAR row counts), plus the ``num_injected`` phantom rows in the TOP count."""
     edges = np.concatenate([[0], np.cumsum(counts)])
-    return [int(keep_rows[a:b].sum()) for a, b in zip(edges[:-1], edges[1:])]
+    kept = [int(keep_rows[a:b].sum()) for a, b in zip(edges[:-1], edges[1:])]
+    kept[0] += int(num_injected)
+    return kept
 
 
 def _flatten(node, prefix: str = "") -> dict:
@@ -106,7 +112,7 @@ def write_sequence(
             out = result.apply(raw, fill_value=-1.0)  # added rows: not in a no-label zone
             keep_rows = np.ones(len(raw), dtype=bool) if result.keep is None else result.keep
             info["num_points_of_each_lidar"] = _lidar_counts(
-                keep_rows, info["num_points_of_each_lidar"]
+                keep_rows, info["num_points_of_each_lidar"], len(result.added)
             )
             info["atlas"] = {"variant": attack.variant, "num_injected_rows": len(result.added)}
             meta = result.meta

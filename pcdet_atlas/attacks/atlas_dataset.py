@@ -95,6 +95,13 @@ class AtlasWaymoDataset(WaymoDataset):
         self._current_meta: dict | None = None
         self.logger.info(f"ATLAS attack: {self.attack.variant} ({type(self.attack).__name__})")
 
+    def set_split(self, split: str) -> None:
+        """Load the sequences of another split (as :class:`WaymoDataset`) and forget the
+        sequences and attacked frames of the previous one."""
+        super().set_split(split)
+        self._sequences = {}
+        self._frame_cache = {}
+
     # ------------------------------------------------------------------ frames
     def sequence_data(self, sequence_name: str) -> SequenceData:
         """Poses and labels of a sequence of the split, as the attack sees them."""
@@ -103,7 +110,8 @@ class AtlasWaymoDataset(WaymoDataset):
             infos = self.seq_name_to_infos.get(sequence_name)
             if infos is None:
                 raise KeyError(f"sequence {sequence_name!r} is not in split {self.split!r}")
-            seq = self._sequences[sequence_name] = SequenceData(sequence_name, infos)
+            seq = SequenceData(sequence_name, infos, root=str(self.root_path))
+            self._sequences[sequence_name] = seq
         return seq
 
     def simulate_frame(

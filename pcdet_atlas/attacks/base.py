@@ -65,10 +65,13 @@ class SequenceData:
     """What attacks need of a sequence besides points: poses and labels, by frame index.
 
     Labels and inverse poses are computed lazily, frame by frame, so building this is cheap.
+    ``root``: the dataset root the sequence was read from (``None`` for one built by hand); it
+    keeps apart same-named sequences of two roots in an attack's run cache.
     """
 
     name: str
     infos: Sequence[Mapping]
+    root: str | None = None
     _labels: dict[int, FrameLabels] = field(default_factory=dict, repr=False)
     _inverse_poses: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
 
@@ -151,7 +154,7 @@ class FrameAttack:
         self,
         points: np.ndarray,
         feature_fn: Callable[[np.ndarray], np.ndarray] | None = None,
-        fill_value: float = 0.0,
+        fill_value: float = -1.0,
     ) -> np.ndarray:
         """``points[keep]`` followed by the added points as rows of the same width (``points``
         itself when the attack removes and adds nothing).
@@ -159,7 +162,9 @@ class FrameAttack:
         Args:
             points: ``(N, C)`` scene points, ``C >= 5``.
             feature_fn: maps the ``(K, 5)`` raw added points into the dataset's feature space.
-            fill_value: value of the columns beyond the fifth for added rows.
+            fill_value: value of the columns beyond the fifth for added rows (default -1: the
+                NLZ flag of a frame file's sixth column for a point outside any no-label zone,
+                the rows the loader keeps).
         """
         num_added = self.added.shape[0]
         removed = self.removed_rows()
@@ -213,7 +218,7 @@ class BaseAttack(ABC):
         self.window = int(window)
         if self.window < 1:
             raise ValueError(f"schedule window must be >= 1, got {window}")
-        self._run_cache: OrderedDict[tuple[str, int], Any] = OrderedDict()
+        self._run_cache: OrderedDict[tuple, Any] = OrderedDict()
         self._run_cache_size = int(run_cache_size)
         # (frame, num_frames) -> state: a few hundred entries per distinct sequence length
         self._states: dict[tuple[int, int], ScheduleState] = {}
@@ -269,8 +274,9 @@ class BaseAttack(ABC):
         return state
 
     def run_state(self, seq: SequenceData, run_id: int) -> Any:
-        """The prepared state of a run (cached; a pure function of ``(seq, run_id)``)."""
-        key = (seq.name, run_id)
+        """The prepared state of a run (cached; a pure function of ``(seq, run_id)``, keyed by
+        the sequence's root, name and frame count, so one attack serves several datasets)."""
+        key = (seq.root, seq.name, seq.num_frames, run_id)
         if key in self._run_cache:
             self._run_cache.move_to_end(key)
             return self._run_cache[key]

@@ -28,6 +28,8 @@ Fields (all non-negative ints):
     frame_cache_hits: spoofed frames served from ``AtlasWaymoDataset``'s attacked-frame cache.
     frame_cache_misses: spoofed frames simulated and stored in that cache (with the cache off,
         neither counts).
+    ground_fallbacks: injected phantoms set on ``GROUND.FALLBACK_Z`` because neither ground disc
+        held ``GROUND.MIN_POINTS`` scene points (:mod:`pcdet_atlas.attacks.ground`).
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ class AttackCounters:
     removal_points_examined: int = 0
     frame_cache_hits: int = 0
     frame_cache_misses: int = 0
+    ground_fallbacks: int = 0
 
     def reset(self) -> None:
         """Set every counter to zero."""

@@ -8,7 +8,9 @@ minimum, because of range noise and stray low returns.
 Fallback, documented and recorded: when the disc holds fewer than ``min_points`` points the disc
 is widened once to ``fallback_radius``; when that also fails the ground is taken as
 ``fallback_z`` (default 0.0 m, the Waymo vehicle frame's origin lies on the ground under the ego),
-i.e. the ground plane under the ego vehicle is assumed to extend to the phantom.
+i.e. the ground plane under the ego vehicle is assumed to extend to the phantom. The estimate's
+``source`` says which; the injection attack counts its phantoms set on the fallback height in
+the ``ground_fallbacks`` counter (:mod:`pcdet_atlas.attacks.counters`).
 """
 
 from __future__ import annotations
@@ -65,6 +67,8 @@ class GroundEstimator:
             raise ValueError(f"percentile must be in [0, 100], got {percentile}")
         if int(min_points) < 1:
             raise ValueError(f"min_points must be >= 1, got {min_points}")
+        if not max_abs_z > 0:
+            raise ValueError(f"max_abs_z must be > 0, got {max_abs_z}")
         self.radius = float(radius)
         self.percentile = float(percentile)
         self.min_points = int(min_points)
@@ -86,8 +90,13 @@ class GroundEstimator:
             "MAX_ABS_Z": "max_abs_z",
         }
         check_known_keys(cfg, keys, "GROUND")
+        checks = {
+            "MAX_ABS_Z": {"valid": lambda z: z > 0, "expected": "a positive height in metres"}
+        }
         kwargs = {
-            name: config_value(cfg, key, int if key == "MIN_POINTS" else float, "GROUND")
+            name: config_value(
+                cfg, key, int if key == "MIN_POINTS" else float, "GROUND", **checks.get(key, {})
+            )
             for key, name in keys.items()
             if key in cfg
         }

@@ -143,7 +143,8 @@ class InjectionAttack(BaseAttack):
         ground: local ground estimator. intensity: range correction of features.
         p_dual: dual-return probability of the raycaster.
         lidar: sensor model. device: where the raycast runs.
-        trace_filter: the filters the library must have been built with (checked on load).
+        trace_filter: the filters and split the library must have been built with (checked on
+            load, with the sensor origin of ``lidar``).
     """
 
     family = "injection"
@@ -251,16 +252,26 @@ class InjectionAttack(BaseAttack):
 
     @property
     def library(self) -> TraceLibrary:
-        """The trace library (loaded on first use; its build filters must match the config)."""
+        """The trace library (loaded on first use; with ``trace_filter`` its build filters, split
+        and sensor origin must match the config)."""
         if self._library is None:
             lib = TraceLibrary.load(self.library_path)
             if self.trace_filter is not None:
-                built = lib.build_info.get("filters")
-                if built != self.trace_filter.to_dict():
+                want = {
+                    "filters": self.trace_filter.to_dict(),
+                    "split": self.trace_filter.split,
+                    # the recorded source ranges of the intensity correction are from it
+                    "sensor_origin": list(self.lidar.origin_xyz),
+                }
+                stored = {
+                    k: lib.build_info.get(k) for k in want if lib.build_info.get(k) != want[k]
+                }
+                if stored:
+                    expected = {k: want[k] for k in stored}
                     raise ConfigError(
-                        f"{self.library_path}: built with filters {built}, but {self.variant} "
-                        f"asks for {self.trace_filter.to_dict()}; rebuild the library with "
-                        "tools/build_trace_library.py"
+                        f"{self.library_path}: trace library built with {stored}, but "
+                        f"{self.variant} asks for {expected} (its TRACE_LIBRARY and LIDAR.ORIGIN); "
+                        "rebuild the library with tools/build_trace_library.py"
                     )
             self._library = lib
         return self._library
@@ -357,6 +368,8 @@ class InjectionAttack(BaseAttack):
         # ground estimate and the raycaster
         near = self._phantom_sector(scene_t, run, box)
         ground = self.ground(scene_xyz, box[:2], rows=None if near is None else near.cpu().numpy())
+        if ground.source == "fallback":
+            COUNTERS.add(ground_fallbacks=1)
         dz = ground.z + box[5] / 2 - box[2]
         box = box.copy()
         box[2] += dz

@@ -51,6 +51,11 @@ class RangeIntensityModel:
     ):
         if not min_range > 0:
             raise ValueError(f"min_range must be > 0, got {min_range}")
+        if not (max_intensity >= 0 and max_elongation >= 0):
+            raise ValueError(
+                f"max_intensity and max_elongation must be >= 0, got {max_intensity}, "
+                f"{max_elongation}"
+            )
         self.intensity_exponent = float(intensity_exponent)
         self.elongation_exponent = float(elongation_exponent)
         self.min_range = float(min_range)
@@ -70,13 +75,14 @@ class RangeIntensityModel:
             "MAX_ELONGATION": "max_elongation",
         }
         check_known_keys(cfg, keys, "INTENSITY")
-        kwargs = {name: config_value(cfg, key, float, "INTENSITY") for key, name in keys.items()
-                  if key in cfg}  # fmt: skip
-        if "MIN_RANGE" in cfg:
-            kwargs["min_range"] = config_value(
-                cfg, "MIN_RANGE", float, "INTENSITY", valid=lambda r: r > 0,
-                expected="a positive range in metres",
-            )  # fmt: skip
+        clip = {"valid": lambda v: v >= 0, "expected": "a non-negative upper clip (raw)"}
+        checks = {
+            "MIN_RANGE": {"valid": lambda r: r > 0, "expected": "a positive range in metres"},
+            "MAX_INTENSITY": clip,
+            "MAX_ELONGATION": clip,
+        }
+        kwargs = {name: config_value(cfg, key, float, "INTENSITY", **checks.get(key, {}))
+                  for key, name in keys.items() if key in cfg}  # fmt: skip
         try:
             return cls(**kwargs)
         except ValueError as err:

@@ -25,7 +25,11 @@ __all__ = ["top_lidar_points", "fit_lidar_from_sequence"]
 
 
 def top_lidar_points(points: np.ndarray, info: dict, where: str) -> np.ndarray:
-    """The TOP rows ``(n_TOP, C)`` of a frame's ``(N, C)`` points, checked against the info."""
+    """The TOP rows ``(n_TOP, C)`` of a frame's ``(N, C)`` points, checked against the info.
+
+    In a frame written by ``tools/generate_atlas.py`` the TOP count includes the
+    ``info['atlas']['num_injected_rows']`` phantom rows, which are the last rows of the file.
+    """
     counts = info.get("num_points_of_each_lidar")
     if counts is None or len(counts) == 0:
         raise ValueError(f"{where}: frame info has no 'num_points_of_each_lidar'")
@@ -34,7 +38,14 @@ def top_lidar_points(points: np.ndarray, info: dict, where: str) -> np.ndarray:
             f"{where}: num_points_of_each_lidar sums to {sum(map(int, counts))} but the frame "
             f"has {points.shape[0]} points"
         )
-    return points[: int(counts[0])]
+    injected = int(info.get("atlas", {}).get("num_injected_rows", 0))
+    if not 0 <= injected <= int(counts[0]):
+        raise ValueError(
+            f"{where}: atlas.num_injected_rows = {injected}: expected 0 to the TOP count "
+            f"{int(counts[0])}"
+        )
+    top = points[: int(counts[0]) - injected]
+    return np.concatenate([top, points[points.shape[0] - injected :]]) if injected else top
 
 
 def fit_lidar_from_sequence(

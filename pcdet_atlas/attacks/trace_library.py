@@ -26,6 +26,7 @@ Built by ``tools/build_trace_library.py`` from the *train* split with filters ta
 from __future__ import annotations
 
 import json
+import math
 import os
 import pickle
 import zipfile
@@ -36,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from pcdet_atlas.config import ConfigError, check_known_keys
-from pcdet_atlas.config_values import config_value
+from pcdet_atlas.config_values import config_files, config_value
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.ops.boxes import points_in_boxes_mask
 from pcdet_atlas.utils.seeding import numpy_generator
@@ -79,6 +80,13 @@ class Trace:
         return int(self.xyz.shape[0])
 
 
+def _class_names(value) -> tuple[str, ...]:
+    """A YAML list of class names as a tuple (a bare string is no list of classes)."""
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+        raise TypeError(f"expected a list of class names, got {value!r}")
+    return tuple(value)
+
+
 @dataclass(frozen=True)
 class TraceFilter:
     """Which tracks and frames enter the library.
@@ -108,37 +116,34 @@ class TraceFilter:
     def from_config(cls, cfg: Mapping | None) -> TraceFilter:
         cfg = cfg or {}
         check_known_keys(cfg, TRACE_LIBRARY_KEYS, "TRACE_LIBRARY")
-        kwargs: dict = {}
-        names = {
-            "PATH": "path",
-            "SPLIT": "split",
-            "MIN_POINTS": "min_points",
-            "MIN_POINTS_PER_FRAME": "min_points_per_frame",
-            "MIN_FRAMES": "min_frames",
-            "MAX_POINTS_PER_TRACE": "max_points_per_trace",
-            "SEED": "seed",
+        positive = {"valid": lambda n: n >= 1, "expected": "a positive integer"}
+        names = {  # key: (field, cast, checks)
+            "PATH": ("path", str, {}),
+            "SPLIT": ("split", str, {}),
+            "CLASSES": ("classes", _class_names, {
+                "valid": lambda c: len(c) > 0 and set(c) <= set(wf.WAYMO_CLASSES),
+                "expected": f"a non-empty list of classes of {wf.WAYMO_CLASSES}, e.g. [Vehicle]",
+            }),
+            "MIN_POINTS": ("min_points", int, positive),
+            "MIN_POINTS_PER_FRAME": ("min_points_per_frame", int, positive),
+            "MIN_FRAMES": ("min_frames", int, positive),
+            "RANGE_M": ("range_m", lambda b: tuple(float(v) for v in b), {
+                "valid": lambda b: len(b) == 2 and 0 <= b[0] < b[1] < math.inf,
+                "expected": "[lo, hi], two finite numbers with 0 <= lo < hi (m)",
+            }),
+            "MAX_POINTS_PER_TRACE": ("max_points_per_trace", int, positive),
+            "SEED": ("seed", int, {}),
+        }  # fmt: skip
+        kwargs = {
+            name: config_value(cfg, key, cast, "TRACE_LIBRARY", **checks)
+            for key, (name, cast, checks) in names.items()
+            if key in cfg
         }
-        for key, name in names.items():
-            if key in cfg:
-                cast = str if key in ("PATH", "SPLIT") else int
-                kwargs[name] = config_value(cfg, key, cast, "TRACE_LIBRARY")
-        if "CLASSES" in cfg:
-            kwargs["classes"] = tuple(str(c) for c in cfg["CLASSES"])
-        if "RANGE_M" in cfg:
-            band = list(cfg["RANGE_M"])
-            if len(band) != 2 or not 0 <= float(band[0]) < float(band[1]):
-                raise ConfigError(
-                    f"TRACE_LIBRARY.RANGE_M must be [lo, hi] with 0 <= lo < hi, got {band}"
-                )
-            kwargs["range_m"] = (float(band[0]), float(band[1]))
         out = cls(**kwargs)
-        unknown = sorted(set(out.classes) - set(wf.WAYMO_CLASSES))
-        if unknown:
-            raise ConfigError(f"TRACE_LIBRARY.CLASSES: unknown class(es) {unknown}")
-        if out.min_points < 1 or out.max_points_per_trace < out.min_points:
+        if out.max_points_per_trace < out.min_points:
             raise ConfigError(
-                "TRACE_LIBRARY: need 1 <= MIN_POINTS <= MAX_POINTS_PER_TRACE, got "
-                f"{out.min_points}, {out.max_points_per_trace}"
+                f"TRACE_LIBRARY (from {config_files(cfg)}): need MIN_POINTS <= "
+                f"MAX_POINTS_PER_TRACE, got {out.min_points}, {out.max_points_per_trace}"
             )
         return out
 

@@ -198,10 +198,17 @@ class LidarModel:
                 valid=lambda r: r > 0, expected="a positive range in metres",
             ),
         }  # fmt: skip
-        if "INCLINATIONS" in cfg:
-            return cls(list(cfg["INCLINATIONS"]), **kwargs)
-        if "INCLINATIONS_DEG" in cfg:
-            return cls(np.deg2rad(np.asarray(cfg["INCLINATIONS_DEG"], dtype=np.float64)), **kwargs)
+        for key in ("INCLINATIONS", "INCLINATIONS_DEG"):
+            if key in cfg:
+                unit = "radians" if key == "INCLINATIONS" else "degrees"
+                angles = config_value(
+                    cfg, key, lambda a: [float(v) for v in a], "LIDAR",
+                    valid=lambda a: len(a) >= 2 and all(x < y for x, y in zip(a, a[1:])),
+                    expected=f"a list of at least 2 beam inclinations in {unit}, ascending",
+                )  # fmt: skip
+                if key == "INCLINATIONS_DEG":
+                    angles = np.deg2rad(np.asarray(angles, dtype=np.float64))
+                return cls(angles, **kwargs)
         return cls.waymo_top(**kwargs)
 
     # ------------------------------------------------------------------ geometry

@@ -5,9 +5,16 @@ from atlas_helpers import load_tool, synthetic_library, write_tiny_waymo
 
 from pcdet_atlas.attacks import COUNTERS
 from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
+from pcdet_atlas.attacks.base import FrameAttack, build_attack
 from pcdet_atlas.attacks.metadata import validate_meta
+from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import WaymoDataset, collate_batch
+from pcdet_atlas.datasets.waymo_format import (
+    load_sequence_infos,
+    save_sequence_infos,
+    sequence_pkl_path,
+)
 from pcdet_atlas.registry import DATASETS
 
 CLASSES = ["Vehicle", "Pedestrian", "Cyclist"]
@@ -117,11 +124,67 @@ def test_attacked_points_are_the_file_rows_minus_removed_plus_added(synthetic_ro
     rows = load_frame_points(ds.frame_path(seq, frame))
     result = ds.attack.simulate(rows, ds.sequence_data(seq), frame)
     assert result.removed_rows().size > 0 and len(result.added) > 0
-    want = ds.loaded_points(result.apply(rows, fill_value=-1.0))
+    want = ds.loaded_points(result.apply(rows))  # added rows: flag -1, outside any NLZ
     assert 0 < len(result.added) <= ds.attack.max_added_points(ds.sequence_data(seq), frame)
     np.testing.assert_array_equal(ds.get_lidar(seq, frame), want)
     ds.attack.max_added_points = lambda seq, frame_idx: 0  # a bound that is too low
     np.testing.assert_array_equal(ds.get_lidar(seq, frame), want)
+
+
+def test_added_rows_of_apply_are_kept_by_the_nlz_filter(synthetic_root):
+    """``FrameAttack.apply`` on frame-file rows flags the added rows as outside any no-label
+    zone by default, so a loader that drops NLZ rows keeps every phantom row."""
+    cfg = data_cfg(synthetic_root)
+    cfg.DISABLE_NLZ_FLAG_ON_POINTS = False
+    ds = WaymoDataset(cfg, CLASSES, training=False)
+    rows = np.zeros((4, 6), np.float32)
+    rows[:, 5] = [-1, 1, -1, -1]  # one scene row in a no-label zone
+    added = np.full((3, 5), 0.5, np.float32)
+    out = FrameAttack.from_removed(4, np.array([2]), added, {}).apply(rows)
+    np.testing.assert_array_equal(out[3:, 5], [-1, -1, -1])
+    loaded = ds.loaded_points(out)
+    assert len(loaded) == 2 + 3
+    np.testing.assert_array_equal(loaded[2:, :3], added[:, :3])
+
+
+def test_one_attack_shared_by_two_dataset_roots(tmp_path):
+    """A built attack handed to datasets of two roots with the same sequence names gives each
+    root its own runs (the run cache is keyed by the root), as an attack of its own would."""
+    roots = [write_tiny_waymo(tmp_path / name, frames={"train": 6, "val": 66}) for name in "ab"]
+    seq_name = "segment-tinyval_with_camera_labels"
+    pkl = sequence_pkl_path(roots[1], seq_name)
+    infos = load_sequence_infos(pkl)
+    for k, info in enumerate(infos):  # root b: the ego turns faster
+        turn = np.eye(4, dtype=np.float32)
+        turn[:2, :2] = [[np.cos(0.01 * k), -np.sin(0.01 * k)], [np.sin(0.01 * k), np.cos(0.01 * k)]]
+        info["pose"] = info["pose"] @ turn
+    save_sequence_infos(pkl, infos)
+    build_trace_library(roots[0], TraceFilter(min_points=100)).save(tmp_path / "lib.npz")
+    cfg = attack_cfg("inj_global_easy", tmp_path / "lib.npz")
+    cfg.TRACE_LIBRARY.MIN_POINTS = 100
+    shared = build_attack(cfg)
+    got, want = [], []
+    for root in roots:
+        ds = AtlasWaymoDataset(data_cfg(root), CLASSES, shared, root_path=root)
+        own = AtlasWaymoDataset(data_cfg(root), CLASSES, cfg, root_path=root)
+        got.append(ds.frame_attack_meta(seq_name, 40)["target_box"])
+        want.append(own.frame_attack_meta(seq_name, 40)["target_box"])
+        np.testing.assert_array_equal(ds.get_lidar(seq_name, 40), own.get_lidar(seq_name, 40))
+    np.testing.assert_array_equal(got, want)
+    assert not np.array_equal(want[0], want[1])  # the roots' runs do differ
+
+
+def test_set_split_forgets_the_sequences_and_frames_of_the_last_split(synthetic_root):
+    ds = make(synthetic_root, "rem_30", multiframe=True)
+    seq = ds.infos[0]["point_cloud"]["lidar_sequence"]
+    ds[40]
+    assert ds._frame_cache and ds.sequence_data(seq).name == seq
+    ds.set_split("train")
+    assert ds.split == "train" and not ds._frame_cache
+    with pytest.raises(KeyError, match="not in split 'train'"):
+        ds.sequence_data(seq)
+    ds.set_split("val")
+    _assert_same_sample(ds[40], make(synthetic_root, "rem_30", multiframe=True)[40])
 
 
 def test_same_output_with_zero_or_two_workers(synthetic_root, library_path):

@@ -116,6 +116,16 @@ BAD_VALUES = [  # (base variant, YAML body, the key the error must name)
     ("clean", "SEED: 1.7\n", "SEED"),
     ("clean", "SEED: 2.0\n", "SEED"),
     ("rem_10", "SCHEDULE:\n  WINDOW: 32.5\n", "WINDOW"),
+    # values that used to raise a bare error, or pass and change the attack silently
+    ("inj_rel_easy", "TRACE_LIBRARY:\n  RANGE_M: [5.0, abc]\n", "TRACE_LIBRARY.RANGE_M"),
+    ("inj_rel_easy", "TRACE_LIBRARY:\n  CLASSES: Vehicle\n", "TRACE_LIBRARY.CLASSES"),
+    ("inj_rel_easy", "TRACE_LIBRARY:\n  CLASSES: [Car]\n", "TRACE_LIBRARY.CLASSES"),
+    ("inj_rel_easy", "TRACE_LIBRARY:\n  MIN_POINTS_PER_FRAME: -3\n", "MIN_POINTS_PER_FRAME"),
+    ("inj_rel_easy", "TRACE_LIBRARY:\n  MIN_FRAMES: -2\n", "TRACE_LIBRARY.MIN_FRAMES"),
+    ("inj_rel_easy", "LIDAR:\n  INCLINATIONS: 0.1\n", "LIDAR.INCLINATIONS"),
+    ("rem_10", "LIDAR:\n  INCLINATIONS_DEG: [0.0, -10.0]\n", "LIDAR.INCLINATIONS_DEG"),
+    ("inj_rel_easy", "GROUND:\n  MAX_ABS_Z: -1\n", "GROUND.MAX_ABS_Z"),
+    ("inj_rel_easy", "INTENSITY:\n  MAX_INTENSITY: -5\n", "INTENSITY.MAX_INTENSITY"),
 ]
 
 

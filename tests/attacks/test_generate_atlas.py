@@ -1,11 +1,15 @@
-"""tools/generate_atlas.py refuses an --out_dir that would overwrite its own source dataset."""
+"""tools/generate_atlas.py refuses an --out_dir that would overwrite its own source dataset and
+writes per-LiDAR row counts that match the written frames."""
 
 import hashlib
 
+import numpy as np
 import pytest
 from atlas_helpers import load_tool, write_tiny_waymo
 
+from pcdet_atlas.attacks.lidar_fit import top_lidar_points
 from pcdet_atlas.config import REPO_ROOT
+from pcdet_atlas.datasets import waymo_format as wf
 
 ATTACKS = REPO_ROOT / "cfgs" / "attacks"
 
@@ -61,3 +65,47 @@ def test_out_dir_beside_the_source_is_written(source, tmp_path):
     load_tool("generate_atlas").main(gen_args(cfg_path, out_dir))
     assert (out_dir / "atlas_attack_metadata.pkl").is_file()
     assert sorted(p.name for p in (out_dir / "ImageSets").iterdir()) == ["val.txt"]
+
+
+@pytest.mark.parametrize("variant", ["inj_rel_hard", "rem_60"])
+def test_lidar_counts_sum_to_the_written_rows(tmp_path, variant):
+    """``num_points_of_each_lidar`` of a written frame counts the rows kept of each LiDAR, the
+    phantom rows in the TOP count: the counts sum to the frame's rows, and the TOP rows are
+    found again (a source whose last 800 rows are the FRONT LiDAR's)."""
+    root = write_tiny_waymo(tmp_path / "src", frames={"train": 6, "val": 40})
+    seq = "segment-tinyval_with_camera_labels"
+    pkl = wf.sequence_pkl_path(root, seq)
+    infos = wf.load_sequence_infos(pkl)
+    for info in infos:
+        info["num_points_of_each_lidar"] = [info["num_points_of_each_lidar"][0] - 800, 800, 0, 0, 0]
+    wf.save_sequence_infos(pkl, infos)
+    cfg_path = tmp_path / "data.yaml"
+    cfg_path.write_text(
+        f"_BASE_CONFIG_: {REPO_ROOT / 'cfgs/dataset_configs/synthetic_waymo.yaml'}\n"
+        f"DATA_PATH: {root}\n"
+    )
+    attack = ["--attack", str(ATTACKS / f"{variant}.yaml")]
+    fewer = ["--set", "TRACE_LIBRARY.MIN_POINTS", "100"] if variant.startswith("inj") else []
+    if fewer:
+        load_tool("build_trace_library").main(
+            ["--cfg", attack[1], "--data_path", str(root), *fewer]
+        )
+    out = tmp_path / "out"
+    load_tool("generate_atlas").main(
+        ["--data_cfg", str(cfg_path), *attack, "--out_dir", str(out), *fewer]
+    )
+    written = wf.load_sequence_infos(wf.sequence_pkl_path(out, seq))
+    changed = 0
+    for k in range(32, 40):  # the spoofed frames
+        src = wf.load_frame_points(wf.frame_npy_path(root, seq, k))
+        rows = wf.load_frame_points(wf.frame_npy_path(out, seq, k))
+        front = {r.tobytes() for r in src[-800:]}
+        is_front = np.array([r.tobytes() in front for r in rows])
+        counts = written[k]["num_points_of_each_lidar"]
+        assert counts == [int((~is_front).sum()), int(is_front.sum()), 0, 0, 0]
+        top = top_lidar_points(rows, written[k], "f")
+        assert sorted(r.tobytes() for r in top) == sorted(r.tobytes() for r in rows[~is_front])
+        changed += len(rows) != len(src)
+    assert changed > 0
+    if variant.startswith("rem"):
+        assert any(c["num_points_of_each_lidar"][1] < 800 for c in written[32:40])

@@ -8,6 +8,7 @@ from device_params import DEVICES
 
 from pcdet_atlas.attacks import injection as injection_module
 from pcdet_atlas.attacks.base import SequenceData
+from pcdet_atlas.attacks.counters import COUNTERS
 from pcdet_atlas.attacks.ground import GroundEstimator
 from pcdet_atlas.attacks.injection import InjectionAttack, sample_phantom
 from pcdet_atlas.attacks.intensity import RangeIntensityModel
@@ -185,6 +186,62 @@ def test_config_errors_and_library_checks(tiny, tmp_path):
     mismatch = InjectionAttack.from_config(cfg, data_root=tmp_path)
     with pytest.raises(ConfigError, match="rebuild"):
         _ = mismatch.library
+
+
+@pytest.mark.parametrize(
+    "build,stored,expected",
+    [
+        ({"split": "val"}, "'split': 'val'", "'split': 'train'"),
+        ({"sensor_origin": (1.0, 0.0, 2.0)}, "[1.0, 0.0, 2.0]", "[1.43, 0.0, 2.184]"),
+    ],
+    ids=["split", "sensor_origin"],
+)
+def test_library_of_another_split_or_sensor_origin_is_refused(
+    tiny, tmp_path, build, stored, expected
+):
+    """The library at the shared default path is checked at load against the config's split
+    and LIDAR origin (the recorded ranges behind the intensity correction depend on it), not
+    only its filters; a library built as the config says loads."""
+    root = tiny[0]
+    cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs/attacks/inj_rel_easy.yaml")
+    filters = TraceFilter.from_config(cfg.TRACE_LIBRARY)
+    path = build_trace_library(root, filters, **build).save(tmp_path / "atlas_trace_library.npz")
+    with pytest.raises(ConfigError) as info:
+        _ = InjectionAttack.from_config(cfg, data_root=tmp_path).library
+    message = str(info.value)
+    assert str(path) in message and stored in message and expected in message, message
+    build_trace_library(root, filters).save(path)
+    assert len(InjectionAttack.from_config(cfg, data_root=tmp_path).library) > 0
+
+
+def test_phantoms_on_the_fallback_ground_are_counted(tiny):
+    """A phantom with no scene point near it stands on GROUND.FALLBACK_Z, and the attack
+    counters record it; a phantom on the scene's ground is not counted."""
+    root, lib, seq = tiny
+    attack = make_attack(lib, "relative")
+    with COUNTERS.measure() as work:
+        run_frames(attack, seq, root, [40])
+    assert work["frames_simulated"] == 1 and work["ground_fallbacks"] == 0
+    with COUNTERS.measure() as work:
+        meta = attack.simulate(np.zeros((0, 3), np.float32), seq, 40).meta
+    assert work["ground_fallbacks"] == 1
+    box = meta["target_box"]
+    assert box[2] - box[5] / 2 == pytest.approx(attack.ground.fallback_z, abs=1e-5)
+
+
+def test_run_cache_keys_the_root_and_frame_count(tiny):
+    """A run's cached state belongs to one sequence of one root: the same name with another
+    frame count (other run bounds) or another root gets its own run."""
+    root, lib, seq = tiny
+    attack = make_attack(lib, "global")
+    assert attack.run_state(seq, 0).end == 63
+    short = SequenceData(seq.name, seq.infos[:50], root=seq.root)
+    assert attack.run_state(short, 0).end == 49
+    turned = [
+        {**info, "pose": info["pose"] @ np.diag([-1.0, -1.0, 1.0, 1.0])} for info in seq.infos
+    ]
+    other = attack.run_state(SequenceData(seq.name, turned, root="/another/root"), 0)
+    assert not np.array_equal(other.anchor_pose, attack.run_state(seq, 0).anchor_pose)
 
 
 def test_dual_returns_deterministic_per_frame(tiny):

@@ -65,3 +65,14 @@ def test_top_rows_checked_against_info(synthetic_root):
         top_lidar_points(np.zeros((3, 6), np.float32), infos[0], "f")
     with pytest.raises(ValueError, match="out of range"):
         fit_lidar_from_sequence(synthetic_root, seq, frames=[10_000])
+
+
+def test_top_rows_of_a_written_atlas_frame():
+    """In a frame of tools/generate_atlas.py the TOP count includes the phantom rows, which
+    are the last rows of the file (after the other LiDARs' rows)."""
+    rows = np.arange(6 * 6, dtype=np.float32).reshape(6, 6)  # TOP 0-1, FRONT 2-4, phantom 5
+    info = {"num_points_of_each_lidar": [3, 3, 0, 0, 0], "atlas": {"num_injected_rows": 1}}
+    np.testing.assert_array_equal(top_lidar_points(rows, info, "f"), rows[[0, 1, 5]])
+    info["atlas"]["num_injected_rows"] = 4
+    with pytest.raises(ValueError, match="num_injected_rows = 4"):
+        top_lidar_points(rows, info, "f")

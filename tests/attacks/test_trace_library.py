@@ -123,3 +123,10 @@ def test_rebuild_with_other_filters_does_not_replace_the_shared_file(tiny_root, 
     assert out.read_bytes() == before
     tool.main([*other[:-3], "--overwrite", *other[-3:]])
     assert TraceLibrary.load(out).build_info["filters"]["min_points"] == 100
+    # the same filters for another LIDAR.ORIGIN: the variants sharing the file would stop loading
+    moved = tmp_path / "moved.yaml"
+    moved.write_text(f"_BASE_CONFIG_: {yaml}\nLIDAR:\n  ORIGIN: [1.0, 0.0, 2.0]\n")
+    before = out.read_bytes()
+    with pytest.raises(FileExistsError, match=r"'sensor_origin': \[1\.0, 0\.0, 2\.0\]"):
+        tool.main(["--cfg", str(moved), *base[2:], "--set", "TRACE_LIBRARY.MIN_POINTS", "100"])
+    assert out.read_bytes() == before
