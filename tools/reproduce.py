@@ -41,7 +41,6 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, repo_relative
 from pcdet_atlas.evaluation.results import collect_results, write_report
 from pcdet_atlas.models.detectors.two_stage import file_sha256
@@ -79,6 +78,9 @@ def parse_args(argv=None):
     p.add_argument("--overwrite", action="store_true",
                    help="evaluate every model again (default: resume)")  # fmt: skip
     p.add_argument("--attacks", default="all", help="variants of tools/test.py (default: all)")
+    p.add_argument("--report_only", action="store_true",
+                   help="write the report of the run in --out's run.json again, evaluating "
+                        "nothing")  # fmt: skip
     p.add_argument("--set", nargs=argparse.REMAINDER, default=[], dest="set_cfgs",
                    help="KEY VALUE pairs passed on to tools/test.py's --set")  # fmt: skip
     args = p.parse_args(argv)
@@ -97,9 +99,11 @@ def ensure_trace_libraries(root: Path, cfgs: list[Path], attacks: str) -> None:
                 continue
             path = Path(library.PATH)
             path = path if path.is_absolute() else root / path
-            if not path.is_file():
+            if not path.is_file():  # the config's split, filters and LIDAR origin
                 print(f"building the trace library {path}", flush=True)
-                build_trace_library(root, TraceFilter.from_config(library)).save(path)
+                load_tool("build_trace_library").main(
+                    ["--cfg", str(attack_path), "--data_path", str(root)]
+                )
 
 
 def test_argv(cfg: Path, args, root: Path, threads: int, resume: bool) -> list[str]:
@@ -161,6 +165,8 @@ def evaluation_time(results: dict) -> float:
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
+    if args.report_only:
+        return rewrite_report(Path(args.out))
     root = Path(args.data_path).resolve()  # the tools/test.py processes run in the repo root
     if not (root / "ImageSets").is_dir():
         raise FileNotFoundError(
@@ -182,7 +188,9 @@ def main(argv=None) -> dict:
     if resume:
         elapsed_before = float(previous.get("total_wall_s", 0.0))
         calls += int(previous.get("calls", 1))
-    state = {"setting": setting, "jobs": args.jobs, "threads": threads, "device": None,
+    command = shlex.join(sys.argv[1:] if argv is None else argv)
+    state = {"setting": setting, "command": command, "jobs": args.jobs, "threads": threads,
+             "cpu_cores": os.cpu_count(), "machine": platform.machine(), "device": None,
              "total_wall_s": elapsed_before, "calls": calls, "runs": [],
              "model_wall_s": known}  # fmt: skip
     lock = threading.Lock()
@@ -231,19 +239,28 @@ def main(argv=None) -> dict:
     finished.set()
     save_state()
     order = {str(cfg): i for i, cfg in enumerate(cfgs)}
-    runs = sorted(state["runs"], key=lambda r: order[r["config"]])
-    found = collect_results([r["results"] for r in runs])
+    state["runs"] = sorted(state["runs"], key=lambda r: order[r["config"]])
+    out = write_run_report(state, out_dir)
+    run_file.write_text(json.dumps(state, indent=2) + "\n")
+    print(f"report: {out['report']}  total {state['total_wall_s'] / 60:.1f} min")
+    return {**out, "run": state}
+
+
+def write_run_report(state: dict, out_dir: Path) -> dict:
+    """The report of a run (``state``: its ``run.json``) into ``out_dir``, with how it was
+    produced (command, machine, wall times); sets ``state['device']``."""
+    found = collect_results([r["results"] for r in state["runs"]])
     results = [r for _, r in found]
     device = str(results[0].get("extra", {}).get("device", "?"))
     frames = next(iter(results[0]["variants"].values()))["num_frames"]
-    total = state["total_wall_s"]
-    command = shlex.join(sys.argv[1:] if argv is None else argv)
+    total, calls = state["total_wall_s"], state["calls"]
     lines = [
         "## How these results were produced",
         "",
-        f"`python tools/reproduce.py {command}` on `{root.name}` ({frames} val frames), device "
-        f"{device}, {args.jobs} model(s) at a time with {threads} torch thread(s) each, "
-        f"{os.cpu_count()} CPU cores, {platform.machine()}; total wall time "
+        f"`python tools/reproduce.py {state['command']}` on "
+        f"`{Path(state['setting']['data_path']).name}` ({frames} val frames), device {device}, "
+        f"{state['jobs']} model(s) at a time with {state['threads']} torch thread(s) each, "
+        f"{state['cpu_cores']} CPU cores, {state['machine']}; total wall time "
         f"**{total / 60:.1f} min**"
         + (
             f" over {calls} calls (a resumed run counts the work its interrupted calls lost)."
@@ -255,20 +272,36 @@ def main(argv=None) -> dict:
         "| Model | Wall time (min) | Frames recomputed | Frames reused | s per recomputed frame |",
         "|:---|---:|---:|---:|---:|",
     ]
-    for run, r in zip(runs, results):
-        recomputed = sum(v["num_recomputed_frames"] or 0 for v in r["variants"].values())
-        reused = sum(v["num_reused_frames"] or 0 for v in r["variants"].values())
-        per_frame = f"{run['wall_s'] / recomputed:.2f}" if recomputed else "-"
+    for run, r in zip(state["runs"], results):
+        counts = [(v["num_recomputed_frames"], v["num_reused_frames"])
+                  for v in r["variants"].values()]  # fmt: skip
+        if any(c is None for pair in counts for c in pair):  # results.json from before the counts
+            recomputed = reused = per_frame = "-"
+        else:
+            recomputed, reused = (sum(c[i] for c in counts) for i in (0, 1))
+            per_frame = f"{run['wall_s'] / recomputed:.2f}" if recomputed else "-"
         lines.append(
             f"| {r['model']} | {run['wall_s'] / 60:.1f} | {recomputed} | {reused} | {per_frame} |"
         )
-    sources = [str(repo_relative(Path(r["results"]))) for r in runs]
-    out = write_report(
-        results, args.out, sources=sources, latex=True, command=None, appendix="\n".join(lines),
+    sources = [str(repo_relative(Path(r["results"]))) for r in state["runs"]]
+    state["device"] = device
+    return write_report(
+        results, out_dir, sources=sources, latex=True, command=None, appendix="\n".join(lines),
     )  # fmt: skip
-    state.update(device=device, runs=runs)
-    run_file.write_text(json.dumps(state, indent=2) + "\n")
-    print(f"report: {out['report']}  total {total / 60:.1f} min")
+
+
+def rewrite_report(out_dir: Path) -> dict:
+    """``--report_only``: the report of the run recorded in ``out_dir/run.json`` again, from its
+    models' ``results.json`` (after a change to the report, say), evaluating nothing."""
+    run_file = out_dir / "run.json"
+    if not run_file.is_file():
+        raise FileNotFoundError(f"--report_only: no {run_file} (run tools/reproduce.py first)")
+    state = json.loads(run_file.read_text())
+    missing = [k for k in ("runs", "command", "cpu_cores", "machine") if not state.get(k)]
+    if missing:
+        raise ValueError(f"--report_only: {run_file} has no {', '.join(missing)}")
+    out = write_run_report(state, out_dir)
+    print(f"report: {out['report']}")
     return {**out, "run": state}
 
 

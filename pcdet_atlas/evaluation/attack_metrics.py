@@ -7,7 +7,8 @@ Inputs are the two per-frame lists every evaluation run produces, aligned by ind
   frame, z = box centre) and ``score`` (K,) in [0, 1]; ``frame_id`` is used when present.
 * ``attack_infos``: the attack metadata dict of each frame (key ``attack`` of an
   ``AtlasWaymoDataset`` sample; schema in ``docs/evaluation.md``): ``variant``, ``family``,
-  ``spoofed``, ``target_box`` (7,) or None, ``target_is_shadow``, ``lifecycle_k``, ``run_id`` ...
+  ``spoofed``, ``target_box`` (7,) or None, ``target_is_shadow``, ``lifecycle_k``, and on a
+  frame with a target its run, ``sequence_name`` and ``run_id`` ...
   When ``attack_infos`` is None, each det anno must carry its metadata under ``anno['attack']``.
 
 Everything is computed from one pass, :func:`match_targets`, that finds for every recorded target
@@ -70,8 +71,8 @@ class TargetMatches:
     """One row per recorded target box (attacked and shadow), in frame order.
 
     Arrays of length T: ``frame_index`` (int, index into the input lists), ``frame_id`` (str, ''
-    if unknown), ``sequence`` (str, the metadata's ``sequence_name``, '' if None), ``run_id``
-    (int, numbered per sequence), ``lifecycle_k`` (int), ``is_shadow`` (bool), ``target_box`` (T, 7)
+    if unknown), ``sequence`` (str, the metadata's ``sequence_name``), ``run_id`` (int, numbered
+    per sequence), ``lifecycle_k`` (int), ``is_shadow`` (bool), ``target_box`` (T, 7)
     float64, ``max_iou`` (float64, best 3D IoU of an eligible prediction, 0 if none),
     ``matched_score`` (float64, best score among eligible predictions with IoU >= ``iou_threshold``,
     NaN if none) and ``overlap_score`` (same for IoU > 0). ``num_spoofed``: the spoofed frames of
@@ -220,6 +221,20 @@ def _check_attack_info(info: Mapping, where: str) -> np.ndarray | None:
     return box[:7]
 
 
+def _check_run(info: Mapping, where: str) -> tuple[str, int]:
+    """-> the ``(sequence_name, run_id)`` of a frame that records a target: its spoof run, the
+    cluster of the ASR's interval, which a frame without it would silently merge with others."""
+    sequence, run_id = info.get("sequence_name"), info.get("run_id")
+    if not sequence:
+        raise AttackMetricError(
+            f"{where}: a target frame needs its 'sequence_name' (a run is (sequence_name, "
+            f"run_id)), got {sequence!r}"
+        )
+    if run_id is None or int(run_id) < 0:
+        raise AttackMetricError(f"{where}: a target frame needs a 'run_id' >= 0, got {run_id!r}")
+    return str(sequence), int(run_id)
+
+
 class _PairBatch:
     """Candidate (target, prediction) pairs gathered over many frames, scored in one IoU call."""
 
@@ -320,7 +335,8 @@ def match_targets(
 
     Raises:
         AttackMetricError: misaligned inputs, missing keys, bad boxes, several variants,
-            families or scoring rules mixed in one call, or a target without a success rule.
+            families or scoring rules mixed in one call, a target without a success rule, or a
+            target frame without its run (``sequence_name`` and a ``run_id`` >= 0).
     """
     if attack_infos is None:
         attack_infos = []
@@ -379,11 +395,12 @@ def match_targets(
             )
         keep = _eligible(names, scores, target_class, score_threshold)
         batch.add(target, boxes[keep], scores[keep])
+        sequence, run_id = _check_run(info, where)
         fid = anno.get("frame_id", info.get("frame_id"))
         rows["frame_index"].append(i)
         rows["frame_id"].append("" if fid is None else str(fid))
-        rows["sequence"].append(str(info.get("sequence_name") or ""))
-        rows["run_id"].append(int(info.get("run_id", -1)))
+        rows["sequence"].append(sequence)
+        rows["run_id"].append(run_id)
         rows["lifecycle_k"].append(int(info["lifecycle_k"]))
         rows["is_shadow"].append(bool(info["target_is_shadow"]))
         rows["box"].append(target)

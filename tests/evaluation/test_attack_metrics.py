@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import zlib
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ import torch
 
 from pcdet_atlas.attacks import CleanAttack, InjectionAttack, RemovalAttack
 from pcdet_atlas.evaluation.attack_metrics import (
+    CI_SEED,
     AttackMetricError,
     attack_success_rate,
     evaluate_attack,
@@ -65,12 +67,14 @@ def info(
     family="injection",
     variant=None,
     run_id=0,
+    sequence="seq_0",
 ):
     spoofed = (target is not None and not shadow) if spoofed is None else spoofed
     cls = FAMILIES.get(family)  # the attack class says how its targets are scored
     return {
         "variant": variant or ("inj_rel_easy" if family == "injection" else "rem_40"),
         "family": family,
+        "sequence_name": sequence,
         "spoofed": spoofed,
         "run_id": run_id if (spoofed or shadow) else -1,
         "run_position": -1,
@@ -243,6 +247,26 @@ def test_shadow_targets_are_not_counted_by_asr():
         (
             lambda d, i: i.__setitem__(1, {k: v for k, v in i[1].items() if k != "family"}),
             "frame 1: attack metadata lacks key 'family'",
+        ),
+        # a target frame without its run would merge with other runs into one bootstrap cluster
+        (
+            lambda d, i: i.__setitem__(1, {k: v for k, v in i[1].items() if k != "run_id"}),
+            r"frame 1 \(s_001\): a target frame needs a 'run_id' >= 0, got None",
+        ),
+        (lambda d, i: i.__setitem__(2, {**i[2], "run_id": -1}), r"frame 2 .*'run_id' >= 0, got -1"),
+        (
+            lambda d, i: i.__setitem__(0, {**i[0], "sequence_name": None}),
+            r"frame 0 \(s_000\): a target frame needs its 'sequence_name'",
+        ),
+        (
+            lambda d, i: i.__setitem__(0, {k: v for k, v in i[0].items() if k != "sequence_name"}),
+            "frame 0 .*'sequence_name'",
+        ),
+        (
+            lambda d, i: i.__setitem__(
+                0, {**i[0], "sequence_name": "", "target_is_shadow": True, "spoofed": False}
+            ),
+            "frame 0 .*'sequence_name'",
         ),
     ],
 )
@@ -485,6 +509,7 @@ def test_accepts_the_attack_engine_metadata_records():
     from pcdet_atlas.attacks.metadata import make_meta, validate_meta
 
     rem = dict(success_if_detected=False, confidence="removal", rank_group="removal")
+    rem["sequence_name"] = "seq_0"  # AtlasWaymoDataset adds the sequence to the engine's record
     infos = [
         make_meta("rem_40", "removal", lifecycle_k=0, run_id=0, target_box=TARGET,
                   target_is_shadow=True, tracked=True, **rem),
@@ -525,28 +550,64 @@ def test_run_bootstrap_interval_resamples_runs():
     assert wide[1] - wide[0] > 2 * (narrow[1] - narrow[0])
 
 
-def test_asr_interval_is_seeded_per_variant():
-    dets = [anno(f"s_{i:03d}", [TARGET] if i % 3 else []) for i in range(12)]
-    infos = [{**info(TARGET, run_id=i // 4), "frame_id": f"s_{i:03d}"} for i in range(12)]
+#: Targets and successes of 12 runs with unequal rates: the interval depends on the draws.
+RUN_TARGETS = (3, 5, 4, 6, 2, 5, 7, 3, 4, 6, 5, 4)
+RUN_HITS = (0, 5, 1, 6, 2, 0, 3, 3, 1, 2, 5, 4)
+
+
+def spoof_runs(sequence="seq_0", variant="inj_rel_easy", runs=range(12)):
+    """Injection targets of the given runs of one sequence (run r: ``RUN_HITS[r]`` of
+    ``RUN_TARGETS[r]`` phantoms detected); -> dets, infos, successes (T,) bool."""
+    dets, infos, success = [], [], []
+    for run in runs:
+        for j in range(RUN_TARGETS[run]):
+            fid, hit = f"{sequence}_r{run}_{j}", j < RUN_HITS[run]
+            dets.append(anno(fid, [TARGET] if hit else []))
+            infos.append({**info(TARGET, run_id=run, variant=variant, sequence=sequence),
+                          "frame_id": fid})  # fmt: skip
+            success.append(hit)
+    return dets, infos, np.array(success)
+
+
+def interval(run_of_target, success, generator) -> list[float]:
+    return list(run_bootstrap_interval(np.asarray(run_of_target), success, generator=generator))
+
+
+def test_asr_interval_is_seeded_by_ci_seed_and_the_variant():
+    """The documented key: a generator seeded with ``[CI_SEED, crc32(variant)]``; the same
+    interval every call, another for another variant name."""
+    dets, infos, success = spoof_runs()
+    runs = np.repeat(np.arange(12), RUN_TARGETS)  # (T,)
+
+    def keyed(variant):
+        return np.random.default_rng([CI_SEED, zlib.crc32(variant.encode())])
+
     a, b = attack_success_rate(dets, infos), attack_success_rate(dets, infos)
-    assert a["num_runs"] == 3 and a["asr_ci"] == b["asr_ci"]  # reproducible
+    assert a["num_runs"] == 12 and a["asr_ci"] == b["asr_ci"]  # reproducible
+    assert a["asr_ci"] == interval(runs, success, keyed("inj_rel_easy"))
     assert a["asr_ci"][0] <= a["asr"] <= a["asr_ci"][1]
+    # the data pin the draws: another stream gives another interval
+    assert a["asr_ci"] != interval(runs, success, np.random.default_rng(CI_SEED))
+    other = attack_success_rate(dets, [{**i, "variant": "inj_rel_hard"} for i in infos])
+    assert other["asr"] == a["asr"] and other["asr_ci"] != a["asr_ci"]
+    assert other["asr_ci"] == interval(runs, success, keyed("inj_rel_hard"))
 
 
 def test_a_run_is_its_sequence_and_run_id():
-    """Run ids are numbered per sequence: run 0 of two sequences are two runs (two clusters of
-    the bootstrap), whatever order the frames come in."""
-    dets, infos = [], []
-    for seq, hits in (("seq_a", [True] * 4), ("seq_b", [False] * 4)):
-        for i, hit in enumerate(hits):
-            fid = f"{seq}_{i:03d}"
-            dets.append(anno(fid, [TARGET] if hit else []))
-            infos.append({**info(TARGET, run_id=0), "frame_id": fid, "sequence_name": seq})
+    """Run ids are numbered per sequence: runs 0-5 of two sequences are 12 runs (12 clusters of
+    the bootstrap, ordered by sequence and run id), whatever order the frames come in; a target
+    frame without its sequence is refused rather than merged into another run."""
+    d_a, i_a, s_a = spoof_runs("seq_a", runs=range(6))
+    d_b, i_b, s_b = spoof_runs("seq_b", runs=range(6, 12))
+    i_b = [{**i, "run_id": i["run_id"] - 6} for i in i_b]  # seq_b's runs are 0-5 too
+    dets, infos = d_a + d_b, i_a + i_b
     out = attack_success_rate(dets, infos)
-    assert out["num_runs"] == 2 and out["num_targets"] == 8 and out["asr"] == 0.5
-    assert out["asr_ci"] == [0.0, 1.0]  # two runs that disagree: resamples 0, 1/2, 1
-    merged = attack_success_rate(dets, [{**i, "sequence_name": None} for i in infos])
-    assert merged["num_runs"] == 1 and merged["asr_ci"] is None  # no sequence: one run
-    order = [0, 4, 1, 5, 2, 6, 3, 7]
+    assert out["num_runs"] == 12 and out["num_targets"] == sum(RUN_TARGETS)
+    gen = np.random.default_rng([CI_SEED, zlib.crc32(b"inj_rel_easy")])
+    runs = np.repeat(np.arange(12), RUN_TARGETS)  # seq_a's runs 0-5, then seq_b's
+    assert out["asr_ci"] == interval(runs, np.r_[s_a, s_b], gen)
+    order = np.random.default_rng(0).permutation(len(dets))
     shuffled = attack_success_rate([dets[i] for i in order], [infos[i] for i in order])
-    assert shuffled["num_runs"] == 2 and shuffled["asr_ci"] == out["asr_ci"]
+    assert shuffled["num_runs"] == 12 and shuffled["asr_ci"] == out["asr_ci"]
+    with pytest.raises(AttackMetricError, match=r"frame 0 \(seq_a_r0_0\).*'sequence_name'"):
+        attack_success_rate(dets, [{**i, "sequence_name": None} for i in infos])

@@ -4,6 +4,7 @@ LOT ablation only with both models; LaTeX tables; clear errors)."""
 
 from __future__ import annotations
 
+import copy
 import json
 import sys
 import zlib
@@ -19,6 +20,7 @@ from pcdet_atlas.evaluation.results import (
     ResultsError,
     build_results,
     build_variant_result,
+    figures,
     save_results,
 )
 from pcdet_atlas.evaluation.results.report import (
@@ -73,8 +75,8 @@ def attacked_entry(variant: str, family: str, p_detect: float, seed: int, l2: fl
             clean.append({"frame_id": frame_id, "name": np.array(["Vehicle"] * clean_hit),
                           "boxes_lidar": np.array([box] * clean_hit, np.float32).reshape(-1, 7),
                           "score": np.full(int(clean_hit), 0.95, np.float32)})  # fmt: skip
-            infos.append(make_meta(variant, family, spoofed=not shadow, run_id=run,
-                                   run_position=k - 1, lifecycle_k=k, target_box=box,
+            infos.append(make_meta(variant, family, spoofed=not shadow, sequence_name="seq_0",
+                                   run_id=run, run_position=k - 1, lifecycle_k=k, target_box=box,
                                    target_is_shadow=shadow, num_visible=100,
                                    **SCORING[family]))  # fmt: skip
     attack = evaluate_attack(dets, infos, clean_det_annos=clean, window=WINDOW,
@@ -112,6 +114,18 @@ def model(name: str, l2: float, p_inj: float, p_rem: float, ms: float, skip=()) 
     )  # fmt: skip
 
 
+def md_table(table: str) -> dict[str, dict[str, str]]:
+    """A Markdown table as row name -> column name -> cell."""
+    lines = [line for line in table.splitlines() if line.startswith("|")]
+    split = [[c.strip() for c in line.strip("|").split("|")] for line in lines]
+    return {cells[0]: dict(zip(split[0], cells)) for cells in split[2:]}
+
+
+def report_part(text: str, title: str) -> str:
+    """The part of a report from the heading that starts with ``title`` to the next heading."""
+    return text.split(title, 1)[1].split("\n#", 1)[0]
+
+
 @pytest.fixture(scope="module")
 def models():
     return [
@@ -136,9 +150,9 @@ def test_report_has_every_table_row_and_figure(models, tmp_path):
     for name in ("CenterPoint", "CP-4f", "PHiM", "PHiM+LOT"):
         assert f"| {name} |" in text
     # CP-4f lacks rem_40: shown as missing in the removal table, not as zero
-    removal = text.split("## Point removal")[1].split("##")[0]
-    cp4f_row = next(line for line in removal.splitlines() if line.startswith("| CP-4f |"))
-    assert cp4f_row.count("missing") == 2 and " 0.00" not in cp4f_row.split("|")[-3]
+    cp4f = md_table(report_part(text, "## Point removal"))["CP-4f"]
+    assert cp4f["Removal 40 L2 mAP"] == cp4f["Removal 40 ASR"] == "missing"
+    assert f"{models[1]['variants']['rem_10']['asr']:.2f}" in cp4f["Removal 10 ASR"]
     for name, result in out["figures"].items():
         assert isinstance(result, Path), (name, result)
         assert result.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and result.stat().st_size > 5000
@@ -146,7 +160,9 @@ def test_report_has_every_table_row_and_figure(models, tmp_path):
     assert set(out["figures"]) == set(FIGURES)
     tex = out["latex"].read_text()
     assert tex.count("\\begin{tabular}") == 7 and "\\textbf{" in tex and "PHiM+LOT" in tex
-    assert "rem\\_40" not in tex or "missing" in tex
+    removal_tex = tex.split("% Point removal")[1].split("\\end{tabular}")[0].splitlines()
+    cp4f_tex = next(line for line in removal_tex if line.startswith("CP-4f & "))
+    assert cp4f_tex.removesuffix(" \\\\").split(" & ")[3:] == ["missing", "missing"]
 
 
 def test_summary_lot_and_centre_gap_tables(models):
@@ -155,6 +171,16 @@ def test_summary_lot_and_centre_gap_tables(models):
     rows = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[2:-1]] for r in summary[2:]}
     assert rows["CP-4f"][:5] == ["70.0", "69.0", "2", "1", "60"]
     assert rows["CenterPoint"][3] == "4"  # lowest clean mAP of the four
+    # a family mean over every variant of the family in the report, else missing: CP-4f has no
+    # rem_40, PHiM (below) no ASR for inj_rel_easy
+    asr = {n: v["asr"] for n, v in models[0]["variants"].items()}
+    assert rows["CenterPoint"][6:] == [f"{(asr['inj_rel_easy'] + asr['inj_global_hard']) / 2:.2f}",
+                                       f"{(asr['rem_10'] + asr['rem_40']) / 2:.2f}"]  # fmt: skip
+    assert rows["CP-4f"][7] == "missing (1 of 2 variants)"
+    no_asr = copy.deepcopy(models[2])
+    no_asr["variants"]["inj_rel_easy"]["asr"] = None
+    phim = md_table(summary_table([models[0], no_asr]))["PHiM"]
+    assert phim["Mean inj. ASR"] == "missing (1 of 2 variants)" and phim["Mean rem. ASR"] != "-"
     lot = lot_ablation_table(models[2], models[3]).splitlines()
     assert lot[0] == ("| Variant | PHiM L2 mAP | PHiM ASR | PHiM+LOT L2 mAP | PHiM+LOT ASR | "
                       "ΔASR |")  # fmt: skip
@@ -166,13 +192,21 @@ def test_summary_lot_and_centre_gap_tables(models):
     assert lifecycle[0] == ("| Model | W | injection k=0 | injection k=1 | injection k=W | "
                             "injection k=W+1 | removal k=0 | removal k=1 | removal k=W | "
                             "removal k=W+1 |")  # fmt: skip
-    row = next(r for r in lifecycle if r.startswith("| CP-4f |")).split("|")[2:-1]
-    lcs = [models[1]["variants"][n]["lifecycle"] for n in ("rem_10",)]  # rem_40 not evaluated
+    row = next(r for r in lifecycle if r.startswith("| CenterPoint |")).split("|")[2:-1]
+    lcs = [models[0]["variants"][n]["lifecycle"] for n in ("rem_10", "rem_40")]
     for cell, k in zip(row[5:], (0, 1, WINDOW, WINDOW + 1)):
         hits = sum(lc["num_success"][k] for lc in lcs)
         total = sum(lc["num_targets"][k] for lc in lcs)
-        assert cell.strip() == f"{hits / total:.2f} ({hits}/{total})" and total == 4
+        assert cell.strip() == f"{hits / total:.2f} ({hits}/{total})" and total == 8
     assert row[0].strip() == str(WINDOW)
+    # CP-4f was not evaluated on rem_40: its removal lifecycle is not pooled over rem_10 alone
+    cp4f = [c.strip() for c in next(r for r in lifecycle if r.startswith("| CP-4f |")).split("|")]
+    assert cp4f[2:-1] == [str(WINDOW)] + cp4f[3:7] + ["missing (1 of 2 variants)"] * 4
+    assert cp4f[3] != "missing (1 of 2 variants)"
+    no_lifecycle = copy.deepcopy(models[0])
+    no_lifecycle["variants"]["rem_40"]["lifecycle"] = None
+    cells = md_table(lifecycle_table([no_lifecycle, models[2]]))["CenterPoint"]
+    assert cells["removal k=1"] == "missing (1 of 2 variants)"
     confident = confident_phantom_table(models).splitlines()
     assert confident[0] == "| Model | Rel-Fixed Easy | Global Hard |"
     conf = models[0]["variants"]["inj_global_hard"]["confidence"]
@@ -186,6 +220,44 @@ def test_summary_lot_and_centre_gap_tables(models):
     assert cp4f.endswith("| missing |")
     peak = models[0]["variants"]["rem_10"]["confidence"]["peak_gap"]
     assert f"{peak:.3f}" in next(r for r in gap if r.startswith("| CenterPoint |"))
+
+
+def test_ranks_and_figures_name_what_they_leave_out(models, tmp_path):
+    untimed = copy.deepcopy(models[3])
+    del untimed["variants"]["clean"]["extra"]  # no clean timing
+    text = write_report([*models[:3], untimed], tmp_path)["report"].read_text()
+    used = "Ranked over 3 variant(s): inj_rel_easy, inj_global_hard, rem_10."
+    left_out = "Left out of the ranks:\n- rem_40: not evaluated by CP-4f"
+    for title in ("## Robustness ranks", "### Robustness rank correlation"):
+        assert used in report_part(text, title) and left_out in report_part(text, title)
+    accuracy = report_part(text, "### Clean L2 mAP against model time per frame")
+    assert "Left out (no clean timing or clean L2 mAP): PHiM+LOT." in accuracy
+    assert "Hollow grey marker, no mean ASR colour: CP-4f (missing (3 of 4 variants))." in accuracy
+    heatmap = report_part(text, "### Target confidence over the lifecycle")
+    assert "CP-4f: pooled without rem_40 (not evaluated)." in heatmap
+    assert "pooled without" not in report_part(text, "### Phantom confidence over the lifecycle")
+    # the reasons, one by one
+    no_asr = copy.deepcopy(models[2])
+    no_asr["variants"]["inj_rel_easy"]["asr"] = None
+    assert figures.ranked_variants([models[0], models[1], no_asr]) == (
+        ["inj_global_hard", "rem_10"],
+        {"inj_rel_easy": "no ASR from PHiM", "rem_40": "not evaluated by CP-4f"},
+    )
+    mixed, bare = copy.deepcopy(models[0]), copy.deepcopy(models[2])
+    mixed["variants"]["rem_40"]["lifecycle"]["window"] = 1
+    mixed["variants"]["inj_global_hard"]["lifecycle"]["score_bin_edges"] = [0.0, 0.5, 1.0]
+    for entry in bare["variants"].values():
+        entry["lifecycle"] = None
+    notes = []
+    drawn = figures.lifecycle_heatmaps([mixed, bare], "removal", tmp_path / "rem.png", notes)
+    assert isinstance(drawn, Path) and notes == [
+        "No panel (no removal variant with lifecycle data): PHiM.",
+        "CenterPoint: pooled without rem_40 (window 1, not 2).",
+    ]
+    notes = []
+    figures.lifecycle_heatmaps([mixed], "injection", tmp_path / "inj.png", notes)
+    assert notes == ["CenterPoint: pooled without inj_global_hard (score bins differ from "
+                     "inj_rel_easy's)."]  # fmt: skip
 
 
 def test_figures_that_need_more_say_why(models, tmp_path):
@@ -259,6 +331,13 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     assert "cp4f" in log.read_text()
 
     stamps = [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]]
+    # --report_only writes the same report again from run.json and the results, evaluating nothing
+    out["report"].unlink()
+    rewritten = reproduce.main(["--out", str(tmp_path / "report"), "--report_only"])
+    assert rewritten["report"].read_text() == text
+    assert [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]] == stamps
+    with pytest.raises(FileNotFoundError, match="--report_only: no .*run.json"):
+        reproduce.main(["--out", str(tmp_path / "elsewhere"), "--report_only"])
     again = reproduce.main(argv(14))  # resumes: both models are done
     assert again["run"]["runs"] == run["runs"]
     assert again["run"]["total_wall_s"] >= run["total_wall_s"]

@@ -138,6 +138,7 @@ def test_build_variant_result_from_real_attack_metrics():
                 "variant": "inj_rel_hard",
                 "family": "injection",
                 "spoofed": 1 <= k <= 4,
+                "sequence_name": "seq_0",
                 "run_id": 0,
                 "run_position": k - 1 if 1 <= k <= 4 else -1,
                 "lifecycle_k": k,
@@ -252,6 +253,12 @@ def _broken(mutate):
         (lambda r: r["variants"]["rem_10"].update(asr=0.5), r"\['rem_10'\]\['asr'\]"),
         (lambda r: r["variants"]["rem_10"].update(asr=math.nan), r"\['asr'\]"),
         (lambda r: r["variants"]["rem_10"].update(num_success=101), "num_success"),
+        # an interval needs the spread between at least two runs
+        (
+            lambda r: r["variants"]["rem_10"].update(num_runs=1),
+            r"\['rem_10'\]\['asr_ci'\]: must be null with num_runs 1",
+        ),
+        (lambda r: r["variants"]["rem_10"].update(num_runs=None), r"\['asr_ci'\].*num_runs None"),
         (lambda r: r["variants"]["rem_10"].pop("asr_lenient"), "asr_lenient"),
         (
             lambda r: r["variants"]["rem_10"].update(
@@ -284,7 +291,8 @@ def test_validate_checks_nested_confidence_and_lifecycle():
     ]  # fmt: skip
     infos = [
         {"variant": "inj_rel_easy", "family": "injection", "spoofed": k > 0, "lifecycle_k": k,
-         "target_box": TARGET, "target_is_shadow": k == 0, "run_id": 0, **INJECTION_SCORING}
+         "target_box": TARGET, "target_is_shadow": k == 0, "sequence_name": "seq_0", "run_id": 0,
+         **INJECTION_SCORING}
         for k in range(3)
     ]  # fmt: skip
     atk = evaluate_attack(dets, infos, window=1, recorded_window=2)
@@ -388,6 +396,24 @@ def test_comparison_table_models_as_rows():
     assert rows[4] == "| PTT | **75.0** | 0.14 [0.04, 0.24] | **74.9** | 0.50 [0.40, 0.60] |"
 
 
+def test_comparison_marks_rank_ties_by_competition():
+    """Best: no model is better; second: exactly one is. A tie for best leaves no second, a tie
+    for second marks both."""
+    maps = {"A": 0.836, "B": 0.836, "C": 0.821, "D": 0.714}  # higher is better
+    asrs = {"A": 0.30, "B": 0.20, "C": 0.10, "D": 0.20}  # lower is better
+    models = [model_results(m, {"rem_10": maps[m]}, {"rem_10": asrs[m]}) for m in maps]
+    rows = format_comparison_table(models, "markdown").splitlines()[2:]
+    assert rows == [
+        "| A | **83.6** | 0.30 [0.20, 0.40] |",
+        "| B | **83.6** | _0.20_ [0.10, 0.30] |",
+        "| C | 82.1 | **0.10** [0.00, 0.20] |",
+        "| D | 71.4 | _0.20_ [0.10, 0.30] |",
+    ]
+    tex = format_comparison_table(models, "latex").splitlines()
+    assert tex[-4] == "C & 82.1 & \\textbf{0.10} [0.00, 0.20] \\\\"
+    assert tex[-3] == "D & 71.4 & \\underline{0.20} [0.10, 0.30] \\\\"
+
+
 def test_comparison_table_models_as_columns():
     text = format_comparison_table([CP, PTT], models_as="columns")
     lines = text.splitlines()
@@ -404,6 +430,10 @@ def test_comparison_table_models_as_columns():
     shown = format_comparison_table([CP, partial], "markdown", family="removal", missing="show")
     assert (
         shown.splitlines()[-1] == "| PTT | **73.8** | **0.68** [0.58, 0.78] | missing | missing |"
+    )
+    # CenterPoint's rem_60 is the only value of its column: nothing to be best against
+    assert shown.splitlines()[-2] == (
+        "| CenterPoint | _64.3_ | _0.90_ [0.80, 1.00] | 60.7 | 0.77 [0.67, 0.87] |"
     )
     tex = format_comparison_table([CP, MSF, PTT], "latex", family="removal").splitlines()
     assert "\\multicolumn{2}{c}{Removal 10}" in tex[2] and tex[3] == "\\cmidrule(lr){2-3}"
@@ -441,8 +471,8 @@ def test_end_to_end_with_waymo_evaluate_and_engine_metadata(tmp_path):
         {"frame_id": f"s_{i:03d}", **{k: v[: i + 1] for k, v in both.items()}} for i in range(2)
     ]
     infos = [
-        make_meta("inj_rel_easy", "injection", spoofed=True, run_id=0, run_position=i,
-                  lifecycle_k=i + 1, target_box=phantom, **INJECTION_SCORING)
+        make_meta("inj_rel_easy", "injection", spoofed=True, sequence_name="seq_0", run_id=0,
+                  run_position=i, lifecycle_k=i + 1, target_box=phantom, **INJECTION_SCORING)
         for i in range(2)
     ]  # fmt: skip
     entry = build_variant_result(

@@ -22,7 +22,7 @@ Schema (version 4; every key required unless marked optional; unknown keys are e
           "per_class": {<class>: {"L1/AP", "L1/APH", "L2/AP", "L2/APH": float | null}},
           "num_reused_frames", "num_recomputed_frames": int | null,  # clean predictions reused
           "asr", "asr_lenient": float in [0, 1] | null,    # null when num_targets == 0
-          "asr_ci": [lo, hi] | null,     # 95% run-level bootstrap interval (>= 2 runs)
+          "asr_ci": [lo, hi] | null,     # 95% run-level bootstrap interval (null below 2 runs)
           "num_runs": int | null,        # spoof runs the targets come from
           "num_targets", "num_success", "num_success_lenient": int,
           "num_spoofed_frames", "num_untargeted": int | null,  # spoofed frames; those without

@@ -1,7 +1,9 @@
 """The paper's figures from ``results.json`` dicts, drawn headless (matplotlib's ``Figure``, no
 display and no pyplot state). Each function writes one PNG and returns its path, or returns a
 string saying why the figure cannot be drawn from the results it was given (too few models, no
-lifecycle or confidence data, no timing)."""
+lifecycle or confidence data, no timing). What a figure leaves out of the given results (a model,
+a variant, a colour) it appends, with the reason, to ``notes`` when given a list, for the report
+to print under the figure."""
 
 from __future__ import annotations
 
@@ -11,17 +13,20 @@ from pathlib import Path
 import numpy as np
 
 from pcdet_atlas.evaluation.results.build import ranks_from_results
-from pcdet_atlas.evaluation.results.tables import ordered_variants, variant_label
+from pcdet_atlas.evaluation.results.tables import missing_of, ordered_variants, variant_label
 
 __all__ = [
     "accuracy_vs_time",
+    "attack_variants",
     "confidence_histograms",
+    "covered_variants",
     "lifecycle_curves",
     "lifecycle_heatmaps",
     "mean_asr",
     "ms_per_frame",
     "rank_correlation",
     "ranked_variants",
+    "ranked_variants_note",
 ]
 
 DPI = 120
@@ -66,28 +71,70 @@ def ms_per_frame(results: Mapping) -> float | None:
     return 1000.0 * float(model_s) / clean["num_frames"]
 
 
-def mean_asr(results: Mapping, family: str | None = None) -> float | None:
-    """Mean ASR over the attack variants (of ``family``) that have one."""
-    values = [v["asr"] for v in results["variants"].values()
-              if v["asr"] is not None and (family is None or v["family"] == family)]  # fmt: skip
-    return float(np.mean(values)) if values else None
+def attack_variants(results_list: Sequence[Mapping], family: str | None = None) -> list[str]:
+    """The variants of ``family`` (None: of every family but clean) that any of the models has,
+    in the paper's order: what a model's mean or pooled value must cover to compare with the
+    other models'."""
+    names = {n for r in results_list for n, v in r["variants"].items()
+             if (v["family"] != "clean" if family is None else v["family"] == family)}  # fmt: skip
+    return ordered_variants(names)
 
 
-def ranked_variants(results_list: Sequence[Mapping]) -> list[str]:
-    """The ranked variants (with a rank group and an ASR) that every model has."""
-    common = None
-    for r in results_list:
-        names = {n for n, v in r["variants"].items()
-                 if v["rank_group"] is not None and v["asr"] is not None}  # fmt: skip
-        common = names if common is None else common & names
-    return ordered_variants(common or [])
+def covered_variants(
+    results: Mapping, variants: Sequence[str], *, lifecycle: bool = False
+) -> list[str]:
+    """Those of ``variants`` the model has with an ASR (and, with ``lifecycle``, its data)."""
+    entries = [(n, results["variants"].get(n)) for n in variants]
+    return [n for n, v in entries if v is not None and v["asr"] is not None
+            and (not lifecycle or v["lifecycle"] is not None)]  # fmt: skip
+
+
+def mean_asr(results: Mapping, variants: Sequence[str]) -> float | None:
+    """Mean ASR of a model over ``variants`` (:func:`attack_variants` of the models compared);
+    None unless it has every one of them with an ASR: a mean over fewer variants does not
+    compare with the other models' and is shown as missing, never in their place."""
+    if not variants or len(covered_variants(results, variants)) < len(variants):
+        return None
+    return float(np.mean([results["variants"][n]["asr"] for n in variants]))
+
+
+def ranked_variants(results_list: Sequence[Mapping]) -> tuple[list[str], dict[str, str]]:
+    """The ranked variants (with a rank group) that every model has with an ASR, and each other
+    ranked variant of any model with why it is left out (who lacks it, who has no ASR for it)."""
+    names = ordered_variants({n for r in results_list for n, v in r["variants"].items()
+                              if v["rank_group"] is not None})  # fmt: skip
+    used, dropped = [], {}
+    for name in names:
+        entries = [(r["model"], r["variants"].get(name)) for r in results_list]
+        lacking = [m for m, v in entries if v is None]
+        no_asr = [m for m, v in entries if v is not None and v["asr"] is None]
+        why = ([f"not evaluated by {', '.join(lacking)}"] if lacking else []) + (
+            [f"no ASR from {', '.join(no_asr)}"] if no_asr else [])  # fmt: skip
+        if why:
+            dropped[name] = "; ".join(why)
+        else:
+            used.append(name)
+    return used, dropped
+
+
+def ranked_variants_note(variants: Sequence[str], dropped: Mapping[str, str]) -> str:
+    """Markdown: the variants the ranks are over and those left out, with the reason."""
+    lines = [f"Ranked over {len(variants)} variant(s): {', '.join(variants) or 'none'}."]
+    if dropped:
+        lines += ["Left out of the ranks:"] + [f"- {n}: {why}" for n, why in dropped.items()]
+    return "\n".join(lines)
 
 
 # ----------------------------------------------------------------------------- Fig. 3
-def rank_correlation(results_list: Sequence[Mapping], path: Path) -> Path | str:
+def rank_correlation(
+    results_list: Sequence[Mapping], path: Path, notes: list[str] | None = None
+) -> Path | str:
     """Removal rank against injection rank per model, with the least-squares line and R²
-    (paper Fig. "Robustness Correlation"); over the ranked variants every model has."""
-    variants = ranked_variants(results_list)
+    (paper Fig. "Robustness Correlation"); over the ranked variants every model has with an
+    ASR (``notes``: which variants, and those left out)."""
+    variants, dropped = ranked_variants(results_list)
+    if notes is not None:
+        notes.append(ranked_variants_note(variants, dropped))
     groups = {results_list[0]["variants"][n]["rank_group"] for n in variants} if variants else set()
     if len(results_list) < 3 or not {"injection", "removal"} <= groups:
         return (
@@ -118,12 +165,18 @@ def rank_correlation(results_list: Sequence[Mapping], path: Path) -> Path | str:
 
 
 # ----------------------------------------------------------------------------- Figs. 4, 6
-def _lifecycle_models(results_list, family):
-    out = []
+def _lifecycle_models(results_list, family, notes):
+    """(results, its ``family`` variants with lifecycle data) of each model with one; the others
+    are named in ``notes``."""
+    out, without = [], []
     for r in results_list:
         names = [n for n in family_variants(r, family) if r["variants"][n]["lifecycle"]]
         if names:
             out.append((r, names))
+        else:
+            without.append(r["model"])
+    if out and without and notes is not None:
+        notes.append(f"No panel (no {family} variant with lifecycle data): {', '.join(without)}.")
     return out
 
 
@@ -132,11 +185,13 @@ def _shade_attack(ax, window: int) -> None:
     ax.axvline(window + 0.5, color="tab:red", ls="--", lw=1)
 
 
-def lifecycle_curves(results_list: Sequence[Mapping], family: str, path: Path) -> Path | str:
+def lifecycle_curves(
+    results_list: Sequence[Mapping], family: str, path: Path, notes: list[str] | None = None
+) -> Path | str:
     """ASR by lifecycle position k per model (a panel each) and variant (a line each): k = 1..W
     spoofed (shaded), the dashed line the onset/decay boundary, k > W the clean frames after
     the run (paper Figs. 4 and 6)."""
-    models = _lifecycle_models(results_list, family)
+    models = _lifecycle_models(results_list, family, notes)
     if not models:
         return f"no {family} variant with lifecycle data"
     fig, axes = _figure(len(models))
@@ -166,21 +221,47 @@ def _mean_from_counts(edges, counts) -> float:
     return float(counts @ _bin_centres(edges) / counts.sum()) if counts.sum() > 0 else np.nan
 
 
-def lifecycle_heatmaps(results_list: Sequence[Mapping], family: str, path: Path) -> Path | str:
+def _pooled_lifecycles(r, names, family_names):
+    """The lifecycles of ``names`` that pool with the first (same window and score bins), and
+    why each other variant of ``family_names`` is not pooled."""
+    lcs = [r["variants"][n]["lifecycle"] for n in names]
+    window, edges = lcs[0]["window"], lcs[0]["score_bin_edges"]
+    pooled = [lc for lc in lcs if lc["window"] == window and lc["score_bin_edges"] == edges]
+    left = {}
+    for name in family_names:
+        entry = r["variants"].get(name)
+        if entry is None:
+            left[name] = "not evaluated"
+        elif entry["lifecycle"] is None:
+            left[name] = "no lifecycle data"
+        elif entry["lifecycle"]["window"] != window:
+            left[name] = f"window {entry['lifecycle']['window']}, not {window}"
+        elif entry["lifecycle"]["score_bin_edges"] != edges:
+            left[name] = f"score bins differ from {names[0]}'s"
+    return pooled, left
+
+
+def lifecycle_heatmaps(
+    results_list: Sequence[Mapping], family: str, path: Path, notes: list[str] | None = None
+) -> Path | str:
     """Per model, the targets' matched scores by lifecycle position (the family's variants
     pooled): each column k is the fraction of that k's targets detected with a score in each
     bin (a column sums to the detected fraction); one colour scale for all panels, up to the
     largest cell. The white line is the mean attacked score of the detected targets; the dashed
     blue line the clean baseline, the mean clean-run score of the same targets at the same
-    frames (paper Figs. 7 and 8)."""
-    models = _lifecycle_models(results_list, family)
+    frames (paper Figs. 7 and 8). A panel pools what it can (``notes``: the variants of the
+    family that a model's panel leaves out, and why)."""
+    models = _lifecycle_models(results_list, family, notes)
     if not models:
         return f"no {family} variant with lifecycle data"
+    family_names = attack_variants(results_list, family)
     panels = []
     for r, names in models:
-        lcs = [r["variants"][n]["lifecycle"] for n in names]
+        lcs, left = _pooled_lifecycles(r, names, family_names)
         window, edges = lcs[0]["window"], lcs[0]["score_bin_edges"]
-        lcs = [lc for lc in lcs if lc["window"] == window and lc["score_bin_edges"] == edges]
+        if left and notes is not None:
+            notes.append(f"{r['model']}: pooled without "
+                         + ", ".join(f"{n} ({why})" for n, why in left.items()) + ".")  # fmt: skip
         counts = np.sum([np.asarray(lc["score_counts"], dtype=float) for lc in lcs], axis=0)
         targets = np.sum([np.asarray(lc["num_targets"], dtype=float) for lc in lcs], axis=0)
         frac = np.divide(counts, targets[:, None], out=np.zeros_like(counts),
@@ -258,28 +339,48 @@ def confidence_histograms(results_list: Sequence[Mapping], family: str, path: Pa
 
 
 # ----------------------------------------------------------------------------- accuracy/time
-def accuracy_vs_time(results_list: Sequence[Mapping], path: Path) -> Path | str:
+def accuracy_vs_time(
+    results_list: Sequence[Mapping], path: Path, notes: list[str] | None = None
+) -> Path | str:
     """Clean L2 mAP against measured model ms/frame per model, the marker coloured by the mean
-    ASR over its attack variants (models without clean timing or mAP are left out)."""
-    points = []
+    ASR over the attack variants of all the models (:func:`mean_asr`); a model without every one
+    of them has a hollow grey marker. ``notes``: the models left out (no clean timing or mAP)
+    and those drawn hollow."""
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+    from matplotlib.ticker import FormatStrFormatter
+
+    variants = attack_variants(results_list)
+    points, untimed = [], []
     for r in results_list:
         ms, clean = ms_per_frame(r), r["variants"].get("clean")
         if ms is None or clean is None or clean["L2/mAP"] is None:
+            untimed.append(r["model"])
             continue
-        points.append((r["model"], ms, 100.0 * clean["L2/mAP"], mean_asr(r)))
+        points.append((r, ms, 100.0 * clean["L2/mAP"], mean_asr(r, variants)))
     if not points:
         return "no model has a clean variant with timing and L2 mAP"
-    devices = sorted({str(r.get("extra", {}).get("device", "?")) for r in results_list})
+    devices = sorted({str(r.get("extra", {}).get("device", "?")) for r, *_ in points})
     fig, (ax,) = _figure(1, (5.5, 4.2))
-    asr = np.array([np.nan if p[3] is None else p[3] for p in points])
-    sc = ax.scatter([p[1] for p in points], [p[2] for p in points], c=asr, cmap="viridis_r",
-                    vmin=0, vmax=1, s=60, edgecolors="black", zorder=3)  # fmt: skip
-    for name, x, y, _ in points:
-        ax.annotate(name, (x, y), textcoords="offset points", xytext=(5, 4), fontsize=8)
-    fig.colorbar(sc, ax=ax, label="mean ASR over attack variants")
+    colours = ScalarMappable(Normalize(0.0, 1.0), "viridis_r")
+    hollow = [p for p in points if p[3] is None]
+    for r, x, y, asr in points:
+        face = "none" if asr is None else colours.to_rgba(asr)
+        ax.scatter([x], [y], s=60, facecolors=[face], edgecolors="grey" if asr is None else "black",
+                   zorder=3)  # fmt: skip
+        ax.annotate(r["model"], (x, y), textcoords="offset points", xytext=(5, 4), fontsize=8)
+    if hollow:
+        ax.scatter([], [], s=60, facecolors="none", edgecolors="grey",
+                   label="no mean ASR (not every attack variant)")  # fmt: skip
+        ax.legend(fontsize=7, loc="lower right")
+    fig.colorbar(colours, ax=ax, label="mean ASR over attack variants")
+    if notes is not None and untimed:
+        notes.append(f"Left out (no clean timing or clean L2 mAP): {', '.join(untimed)}.")
+    if notes is not None and hollow:
+        cells = [f"{r['model']} ({missing_of(len(covered_variants(r, variants)), len(variants))})"
+                 for r, *_ in hollow]  # fmt: skip
+        notes.append(f"Hollow grey marker, no mean ASR colour: {', '.join(cells)}.")
     ax.set_xscale("log")
-    from matplotlib.ticker import FormatStrFormatter
-
     ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
     ax.xaxis.set_minor_formatter(FormatStrFormatter("%g"))
     ax.set_xlabel(f"model time per frame (ms, {', '.join(devices)})")

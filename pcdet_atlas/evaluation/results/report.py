@@ -8,7 +8,9 @@ ablation (Tables 5 and 6) when both models of the pair are given, the lifecycle'
 decay (Finding 3: ASR at k = 0, 1, W, W + 1), the share of phantoms detected with confidence above
 0.7 (Fig. 5), the centre-gap table, the robustness ranks, and each model's full table with its
 runs and targets. A model that was not evaluated on a variant shows ``missing`` there, never a
-zero.
+zero; a mean or pooled value over a family needs every variant of the family that any model has,
+each with an ASR, and otherwise reads ``missing (n of m variants)``. The ranks name the variants
+they are over and those left out; under each figure the report names what it leaves out.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from pcdet_atlas.evaluation.results.tables import (
     format_ranks,
     format_table,
     latex_escape,
+    missing_of,
     ordered_variants,
     variant_label,
 )
@@ -45,22 +48,23 @@ __all__ = [
 
 #: The model names (``ATLAS.MODEL_NAME``) of the LOT ablation: the detector and its defence.
 DEFAULT_LOT_PAIR = ("PHiM", "PHiM+LOT")
-#: Figure file -> (caption, how it is drawn).
+#: Figure file -> (caption, how it is drawn: ``draw(results_list, path, notes)``, appending to
+#: ``notes`` what the figure leaves out).
 FIGURES = {
     "rank_correlation.png": ("Robustness rank correlation (paper Fig. 3)",
                              figures.rank_correlation),
     "lifecycle_injection.png": ("Injection ASR over the attack lifecycle (paper Fig. 6)",
-                                lambda r, p: figures.lifecycle_curves(r, "injection", p)),
+                                lambda r, p, n: figures.lifecycle_curves(r, "injection", p, n)),
     "lifecycle_removal.png": ("Removal ASR over the attack lifecycle (paper Fig. 4)",
-                              lambda r, p: figures.lifecycle_curves(r, "removal", p)),
+                              lambda r, p, n: figures.lifecycle_curves(r, "removal", p, n)),
     "confidence_injection.png": ("Phantom confidence under injection (paper Fig. 5)",
-                                 lambda r, p: figures.confidence_histograms(r, "injection", p)),
+                                 lambda r, p, n: figures.confidence_histograms(r, "injection", p)),
     "confidence_removal.png": ("Target confidence under removal (paper Fig. 9)",
-                               lambda r, p: figures.confidence_histograms(r, "removal", p)),
+                               lambda r, p, n: figures.confidence_histograms(r, "removal", p)),
     "heatmap_injection.png": ("Phantom confidence over the lifecycle (paper Fig. 7)",
-                              lambda r, p: figures.lifecycle_heatmaps(r, "injection", p)),
+                              lambda r, p, n: figures.lifecycle_heatmaps(r, "injection", p, n)),
     "heatmap_removal.png": ("Target confidence over the lifecycle (paper Fig. 8)",
-                            lambda r, p: figures.lifecycle_heatmaps(r, "removal", p)),
+                            lambda r, p, n: figures.lifecycle_heatmaps(r, "removal", p, n)),
     "accuracy_vs_time.png": ("Clean L2 mAP against model time per frame, coloured by mean ASR",
                              figures.accuracy_vs_time),
 }  # fmt: skip
@@ -118,9 +122,23 @@ def input_frames(results: Mapping) -> int | None:
     return None
 
 
+def _mean_asr_cell(results: Mapping, variants: Sequence[str]) -> str:
+    """A model's mean ASR over ``variants`` (a family's, across the report), or ``missing (n of
+    m variants)`` where it lacks one of them or its ASR."""
+    if not variants:
+        return "-"
+    mean = figures.mean_asr(results, variants)
+    if mean is None:
+        return missing_of(len(figures.covered_variants(results, variants)), len(variants))
+    return _fmt(mean)
+
+
 def summary_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str:
     """A row per model: clean L2 mAP / mAPH (x100), input frames, clean rank (1 = highest clean
-    L2 mAP), model ms/frame on the clean run and its device, mean ASR per family."""
+    L2 mAP), model ms/frame on the clean run and its device, mean ASR per family (over every
+    variant of the family that any of the models has: ``missing (n of m variants)`` for a model
+    without all of them)."""
+    families = {f: figures.attack_variants(results_list, f) for f in ("injection", "removal")}
     maps = [(r["variants"].get("clean") or {}).get("L2/mAP") for r in results_list]
     order = sorted({m for m in maps if m is not None}, reverse=True)
     header = ["Model", "L2 mAP", "L2 mAPH", "Frames", "Clean rank", "ms/frame", "Device",
@@ -138,8 +156,8 @@ def summary_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str
             "-" if l2 is None else str(order.index(l2) + 1),
             "-" if ms is None else f"{ms:.0f}",
             str(r.get("extra", {}).get("device", "-")),
-            _fmt(figures.mean_asr(r, "injection")),
-            _fmt(figures.mean_asr(r, "removal")),
+            _mean_asr_cell(r, families["injection"]),
+            _mean_asr_cell(r, families["removal"]),
         ])  # fmt: skip
     if fmt == "latex":
         rows = [[latex_escape(c) for c in row] for row in rows]
@@ -229,10 +247,16 @@ def lifecycle_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> s
     missed removal target or a detection where the phantom will be), k = 1 (only the current
     frame spoofed), k = W (the whole W-frame input spoofed) and k = W + 1 (the current frame
     clean again, the rest of the input still spoofed), as ASR with the successes and targets
-    behind it (pooling repeats the clean k = 0 frames, which every variant shares); None
-    without lifecycle data."""
+    behind it (pooling repeats the clean k = 0 frames, which every variant shares). A model is
+    pooled over every variant of the family that any of the models has, each with an ASR and
+    lifecycle data, or its cells read ``missing (n of m variants)``; None without lifecycle
+    data."""
     families = [f for f in _families_present(results_list)
-                if any(figures.family_variants(r, f) for r in results_list)]  # fmt: skip
+                if any(v["family"] == f and v["lifecycle"] is not None
+                       for r in results_list for v in r["variants"].values())]  # fmt: skip
+    if not families:
+        return None
+    names = {f: figures.attack_variants(results_list, f) for f in families}
     header, rows = ["Model", "W"], []
     positions = (("k=0", lambda w: 0), ("k=1", lambda w: 1), ("k=W", lambda w: w),
                  ("k=W+1", lambda w: w + 1))  # fmt: skip
@@ -241,11 +265,11 @@ def lifecycle_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> s
     for r in results_list:
         window, row = None, [r["model"]]
         for family in families:
-            lcs = [r["variants"][n]["lifecycle"] for n in figures.family_variants(r, family)]
-            lcs = [lc for lc in lcs if lc is not None]
-            if not lcs:
-                row += ["-"] * len(positions)
+            pooled = figures.covered_variants(r, names[family], lifecycle=True)
+            if len(pooled) < len(names[family]):
+                row += [missing_of(len(pooled), len(names[family]))] * len(positions)
                 continue
+            lcs = [r["variants"][n]["lifecycle"] for n in pooled]
             window = int(lcs[0]["window"])
             for _, position in positions:
                 k = position(window)
@@ -253,8 +277,6 @@ def lifecycle_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> s
                 total = sum(lc["num_targets"][lc["k"].index(k)] for lc in lcs if k in lc["k"])
                 row.append("-" if not total else f"{hits / total:.2f} ({hits}/{total})")
         rows.append(row[:1] + ["-" if window is None else str(window)] + row[1:])
-    if not families or all(c == "-" for row in rows for c in row[2:]):
-        return None
     if fmt == "latex":
         rows = [[latex_escape(c) for c in row] for row in rows]
     return _render(fmt, None, header, rows)
@@ -296,10 +318,14 @@ def _table_sections(results_list, fmt, lot_pair) -> list[tuple[str, str]]:
 
 
 def _ranks_text(results_list) -> str:
-    variants = figures.ranked_variants(results_list)
+    """The ranks over the ranked variants every model has with an ASR, naming them and the
+    variants left out."""
+    variants, dropped = figures.ranked_variants(results_list)
+    note = figures.ranked_variants_note(variants, dropped)
     if len(results_list) < 2 or not variants:
-        return "needs at least 2 models with a common ranked variant"
-    return format_ranks(ranks_from_results(results_list, variants=variants), "markdown")
+        return f"needs at least 2 models with a common ranked variant\n\n{note}"
+    ranks = format_ranks(ranks_from_results(results_list, variants=variants), "markdown")
+    return f"{ranks}\n\n{note}"
 
 
 def write_report(
@@ -316,7 +342,8 @@ def write_report(
     (``appendix``: Markdown added at the end, e.g. how the results were produced).
 
     Returns ``{'report': path, 'latex': path | None, 'figures': {file: path | reason}}``; a
-    figure that cannot be drawn from these results is named in the report with the reason.
+    figure that cannot be drawn from these results is named in the report with the reason, and
+    what a figure leaves out is written under it.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -332,7 +359,9 @@ def write_report(
         "",
         "L2 mAP and mAPH x100; ASR with its 95% run-level bootstrap interval "
         "(docs/evaluation.md); best **bold**, second _italic_ per variant (point estimates); "
-        f"`{MISSING}`: the model was not evaluated on that variant.",
+        f"`{MISSING}`: the model was not evaluated on that variant; `{MISSING} (n of m variants)`: "
+        "a mean or pooled value over a family of m variants, of which the model has n with an "
+        "ASR.",
         "",
     ]
     for title, table in _table_sections(results_list, "markdown", lot_pair):
@@ -341,12 +370,13 @@ def write_report(
     drawn: dict = {}
     lines += ["## Figures", ""]
     for name, (caption, draw) in FIGURES.items():
-        result = draw(results_list, out_dir / name)
+        notes: list[str] = []
+        result = draw(results_list, out_dir / name, notes)
         drawn[name] = result
-        if isinstance(result, Path):
-            lines += [f"### {caption}", "", f"![{caption}]({name})", ""]
-        else:
-            lines += [f"### {caption}", "", f"Not drawn: {result}.", ""]
+        shown = f"![{caption}]({name})" if isinstance(result, Path) else f"Not drawn: {result}."
+        lines += [f"### {caption}", "", shown, ""]
+        for note in notes:
+            lines += [note, ""]
     lines += ["## Per-model results", ""]
     for r in results_list:
         lines += [format_table(r, "markdown"), ""]

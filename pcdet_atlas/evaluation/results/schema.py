@@ -308,6 +308,8 @@ def _variant_invariants(v: Mapping, path: str, class_names: list[str]) -> None:
     ci = v["asr_ci"]
     if ci is not None and (v["asr"] is None or ci[0] > ci[1]):
         _fail(f"{path}['asr_ci']", f"{ci} is not an interval [lo <= hi] of an ASR {v['asr']}")
+    if ci is not None and (v["num_runs"] is None or v["num_runs"] < 2):
+        _fail(f"{path}['asr_ci']", f"must be null with num_runs {v['num_runs']} (< 2 runs)")
     if v["num_runs"] is not None and v["num_runs"] > n:
         _fail(f"{path}['num_runs']", f"{v['num_runs']} runs > num_targets {n}")
     spoofed, untargeted = v["num_spoofed_frames"], v["num_untargeted"]

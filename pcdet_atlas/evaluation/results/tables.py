@@ -15,6 +15,7 @@ __all__ = [
     "format_ranks",
     "format_table",
     "latex_escape",
+    "missing_of",
     "ordered_variants",
     "variant_label",
 ]
@@ -62,6 +63,11 @@ FORMATS = ("text", "markdown", "latex")
 _LATEX_ESCAPES = {"&": r"\&", "%": r"\%", "_": r"\_", "#": r"\#", "$": r"\$", "{": r"\{",
                   "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}", "<": "$<$",
                   ">": "$>$"}  # fmt: skip
+
+
+def missing_of(num: int, total: int) -> str:
+    """The cell of a value over ``total`` variants of which the model has only ``num``."""
+    return f"{MISSING} ({num} of {total} variants)"
 
 
 def latex_escape(text: str) -> str:
@@ -173,18 +179,16 @@ def format_table(
 
 
 def _best_marks(values: list[float | None], higher_is_better: bool) -> list[str]:
-    """'best' / 'second' / '' per value, compared as displayed (ties share the mark)."""
-    shown = sorted({v for v in values if v is not None}, reverse=higher_is_better)
+    """'best' / 'second' / '' per value, compared as displayed, by competition ranking: 'best'
+    where no value is better, 'second' where exactly one is (a tie for best leaves no second);
+    nothing where fewer than two values are known."""
+    known = [v for v in values if v is not None]
+    if len(known) < 2:
+        return [""] * len(values)
     marks = []
     for v in values:
-        if v is None or not shown:
-            marks.append("")
-        elif v == shown[0]:
-            marks.append("best")
-        elif len(shown) > 1 and v == shown[1]:
-            marks.append("second")
-        else:
-            marks.append("")
+        better = None if v is None else sum(u > v if higher_is_better else u < v for u in known)
+        marks.append({0: "best", 1: "second"}.get(better, ""))
     return marks
 
 
@@ -208,7 +212,9 @@ def format_comparison_table(
             'columns' (a row per variant, a column pair per model; narrower for many variants).
         mark_best: Markdown: best **bold**, second-best _italic_; LaTeX: best ``\\textbf``,
             second ``\\underline``; per variant (mAP higher, ASR lower is better), compared at
-            the printed precision.
+            the printed precision: best where no model is better, second where exactly one is
+            (models tied for best leave no second); nothing where fewer than two models have a
+            value.
         missing: 'error' (a model without one of the variants raises :class:`ResultsError`) or
             'show' (its cells read ``missing``: the value is unknown, not zero).
 
