@@ -209,18 +209,28 @@ def collate_batch(batch_list: list[dict]) -> dict:
     * the keys of :data:`STACKED_KEYS` -> ``np.stack`` (``(batch, ...)``);
     * anything else (``gt_names``, ``metadata``, attack metadata, ...) -> a list per key;
     * ``batch_size`` = number of samples.
-    Empty samples (0 points, 0 boxes) are fine.
+    Empty samples (0 points, 0 boxes) are fine. Every sample must have the same keys: a key
+    missing from some samples (``gt_boxes`` of an unlabelled frame batched with labelled ones)
+    raises ``ValueError`` naming the key and those samples.
     """
     data = defaultdict(list)
     for sample in batch_list:
         for key, val in sample.items():
             data[key].append(val)
     batch_size = len(batch_list)
+    partial = [key for key, vals in data.items() if len(vals) != batch_size]
+    if partial:
+        lacking = []
+        for key in partial:
+            idx = [f"{i} ({s.get('frame_id')})" for i, s in enumerate(batch_list) if key not in s]
+            lacking.append(f"{key!r} is missing from sample(s) {', '.join(idx)}")
+        raise ValueError(
+            f"collate_batch: every sample of a batch must have the same keys; in this batch of "
+            f"{batch_size}, {'; '.join(lacking)}"
+        )
     ret: dict = {}
     for key, vals in data.items():
-        if len(vals) != batch_size:
-            ret[key] = vals  # a key only some samples have: keep what there is, as a list
-        elif key == "points":
+        if key == "points":
             widths = {np.shape(v)[1] for v in vals}
             if len(widths) != 1:
                 raise ValueError(f"collate_batch: points of different widths {sorted(widths)}")

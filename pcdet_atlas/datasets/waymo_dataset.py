@@ -424,8 +424,18 @@ class WaymoDataset(DatasetTemplate):
         metric = kwargs.get("eval_metric", "waymo")
         if metric != "waymo":
             raise ValueError(f"eval_metric {metric!r} is not supported (only 'waymo')")
-        if "annos" not in self.infos[0]:
+        unlabelled = [info for info in self.infos if "annos" not in info]
+        if len(unlabelled) == len(self.infos):
             raise WaymoFormatError(f"split {self.split!r} has no ground truth ('annos')")
+        if unlabelled:
+            first = unlabelled[0]["point_cloud"]
+            sequence, sample_idx = first["lidar_sequence"], first["sample_idx"]
+            pkl = find_sequence_pkl(self.root_path, sequence, self.processed_data_tag)
+            raise WaymoFormatError(
+                f"{pkl} [frame {sample_idx}]: frame {unlabelled[0]['frame_id']} of sequence "
+                f"{sequence!r} has no ground truth ('annos'), so split {self.split!r} cannot be "
+                f"evaluated ({len(unlabelled)} of its {len(self.infos)} frames are unlabelled)"
+            )
         if len(det_annos) != len(self.infos):
             raise ValueError(
                 f"{len(det_annos)} detection dicts for {len(self.infos)} frames of {self.split!r}"

@@ -193,7 +193,9 @@ def save_sequence_infos(path: str | Path, infos: list[dict]) -> None:
 
 # ---------------------------------------------------------------------------- checking
 def validate_points(points: np.ndarray, where: str | Path) -> None:
-    """Raise :class:`WaymoFormatError` unless ``points`` is a finite float32 ``(N, 6)`` array."""
+    """Raise :class:`WaymoFormatError` unless ``points`` is a finite float32 ``(N, 6)`` array
+    whose NLZ flag (column 5) is -1 or 1 (any other value would make the loader's NLZ filter
+    keep or drop rows by accident)."""
     if points.ndim != 2 or points.shape[1] != NUM_POINT_COLUMNS:
         raise WaymoFormatError(
             f"{where}: expected a (N, {NUM_POINT_COLUMNS}) array [x, y, z, intensity, elongation, "
@@ -207,6 +209,14 @@ def validate_points(points: np.ndarray, where: str | Path) -> None:
         raise WaymoFormatError(
             f"{where}: {rows.size} point(s) with NaN/inf values (first at row {int(rows[0])}: "
             f"{points[rows[0]].tolist()})"
+        )
+    bad = np.abs(points[:, 5]) != 1
+    if bad.any():
+        rows = np.nonzero(bad)[0]
+        raise WaymoFormatError(
+            f"{where}: the NLZ flag (column 5) must be -1 (outside a no-label zone) or 1 "
+            f"(inside); {rows.size} point(s) have another value (first at row {int(rows[0])}: "
+            f"{points[rows[0], 5].item()!r})"
         )
 
 
@@ -233,7 +243,8 @@ def validate_frame_info(info: dict, where: str, index: int | None = None) -> Non
         boxes = np.asarray(annos["gt_boxes_lidar"])
         if boxes.ndim != 2 or boxes.shape[0] != n or boxes.shape[1] not in (7, 9):
             raise WaymoFormatError(
-                f"{at}: 'annos.gt_boxes_lidar' must be ({n}, 9) for {n} objects, got {boxes.shape}"
+                f"{at}: 'annos.gt_boxes_lidar' must be ({n}, 9) or ({n}, 7) for {n} objects, got "
+                f"{boxes.shape}"
             )
         if not np.isfinite(boxes).all():
             row = int(np.nonzero(~np.isfinite(boxes).all(axis=1))[0][0])

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from pcdet_atlas.evaluation.waymo_metric import compute_waymo_curves
+from pcdet_atlas.evaluation.waymo_metric import compute_waymo_curves, evaluated_gt_mask
 from pcdet_atlas.ops.iou3d_nms import boxes_iou3d
 
 __all__ = [
@@ -193,13 +193,14 @@ def projected_ap(
 ) -> float:
     """L2 AP of ``class_name`` after scaling the errors of the matched predictions.
 
-    Predictions are matched to ground-truth boxes per frame by :func:`match_score_first`
-    (3D IoU >= ``min_iou``); each matched box is moved to ``gt + factor * (pred - gt)`` for the
-    components named in ``factors`` (``center``, ``z``, ``length``, ``width``, ``height``,
-    ``heading``; the heading error is folded to ``[-pi/2, pi/2)`` first, so a flipped box stays
-    flipped). ``factors={'center': 0.5}`` answers "what if the centre error halved";
-    all factors 0 give the AP at ``min_iou``. ``iou_threshold``: the class's official one
-    unless given.
+    Predictions are matched by :func:`match_score_first` (3D IoU >= ``min_iou``) to the
+    ground-truth boxes the metric scores (those with LiDAR points, see
+    :func:`~pcdet_atlas.evaluation.waymo_metric.evaluated_gt_mask`); each matched box is moved
+    to ``gt + factor * (pred - gt)`` for the components named in ``factors`` (``center``,
+    ``z``, ``length``, ``width``, ``height``, ``heading``; the heading error is folded to
+    ``[-pi/2, pi/2)`` first, so a flipped box stays flipped). ``factors={'center': 0.5}``
+    answers "what if the centre error halved"; all factors 0 give the AP at ``min_iou``.
+    ``iou_threshold``: the class's official one unless given.
     """
     unknown = set(factors) - set(_COMPONENT_COLUMNS) - {"heading"}
     if unknown:
@@ -208,8 +209,8 @@ def projected_ap(
             f"{[*_COMPONENT_COLUMNS, 'heading']}"
         )
     moved = []
-    for gt, det in zip(gt_annos, det_annos):
-        g_sel = np.asarray(gt["name"]) == class_name
+    for i, (gt, det) in enumerate(zip(gt_annos, det_annos)):
+        g_sel = evaluated_gt_mask(gt, [class_name], f"gt_annos[{i}]")
         p_idx = np.flatnonzero(np.asarray(det["name"]) == class_name)
         g_boxes = _rows(gt["gt_boxes_lidar"], len(g_sel))[g_sel]
         boxes = _rows(det["boxes_lidar"], len(det["name"])).copy()

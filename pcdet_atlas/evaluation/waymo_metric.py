@@ -7,7 +7,8 @@ Semantics are those of ``waymo-open-dataset`` 1.6.7 (C++ ``detection_metrics``, 
 - GT boxes of the evaluated classes with ``num_points_in_gt > 0`` are kept; an unknown difficulty
   (0) becomes LEVEL_2 if the box has <= 5 points, else LEVEL_1. Boxes farther than 1000.5 m are
   dropped (OpenPCDet's distance mask). Headings go through ``limit_period`` in float32;
-  predictions get a sigmoid if the largest score is > 1.
+  predictions get a sigmoid if the largest score of all predictions within the distance limit,
+  of any class (evaluated or not), is > 1.
 - 101 float32 score cutoffs ``0.00, 0.01, ..., 0.99, 1.0``. For every frame, class and cutoff the
   predictions with ``score >= cutoff`` are matched to all GTs of that class by maximum-weight
   (Hungarian) matching with weights ``round(iou * 1e6)``; a pair can match iff
@@ -45,6 +46,7 @@ __all__ = [
     "WAYMO_IOU_THRESHOLDS",
     "WAYMO_SCORE_CUTOFFS",
     "compute_waymo_curves",
+    "evaluated_gt_mask",
     "summarize_waymo_curves",
     "waymo_average_precision",
     "waymo_evaluate",
@@ -121,30 +123,42 @@ def _in_range(boxes: np.ndarray) -> np.ndarray:
     return np.linalg.norm(boxes[:, 0:2].astype(np.float64), axis=1) < DISTANCE_LIMIT_M
 
 
+def evaluated_gt_mask(anno: Mapping, class_names: Sequence[str], where: str = "gt") -> np.ndarray:
+    """``(M,)`` bool: the GT boxes of one frame's ``anno`` the metric scores (a class of
+    ``class_names``, ``num_points_in_gt > 0``, within the distance limit); the others are
+    dropped before matching. Bad annos raise errors naming ``where``."""
+    return _gt_fields(anno, class_names, where)[3]
+
+
+def _gt_fields(anno: Mapping, class_names: Sequence[str], where: str):
+    """``(cls, boxes, level, keep)`` of one GT anno, all ``(M, ...)``."""
+    names = _field(anno, "name", where).reshape(-1)
+    n = len(names)
+    box = _boxes(anno, "gt_boxes_lidar", where, n)
+    num_points = _field(anno, "num_points_in_gt", where).reshape(-1)
+    difficulty = _field(anno, "difficulty", where).reshape(-1).astype(np.int64)
+    if len(num_points) != n or len(difficulty) != n:
+        raise ValueError(
+            f"{where}: 'num_points_in_gt' ({len(num_points)}) and 'difficulty' "
+            f"({len(difficulty)}) must have one entry per box ({n})"
+        )
+    bad = ~np.isin(difficulty, (0, 1, 2))
+    if bad.any():
+        raise ValueError(
+            f"{where}: 'difficulty' must be 0 (unknown), 1 or 2, got {difficulty[bad][:5]}"
+        )
+    level = difficulty.copy()
+    level[(difficulty == 0) & (num_points > 5)] = 1
+    level[(difficulty == 0) & (num_points <= 5)] = 2
+    cls = _class_index(names, class_names, where)
+    keep = (cls >= 0) & (num_points > 0) & _in_range(box)
+    return cls, box, level, keep
+
+
 def _collect_gt(gt_annos: Sequence[dict], class_names: Sequence[str]) -> _Objects:
     frames, classes, boxes, levels = [], [], [], []
     for i, anno in enumerate(gt_annos):
-        where = f"gt_annos[{i}]"
-        names = _field(anno, "name", where).reshape(-1)
-        n = len(names)
-        box = _boxes(anno, "gt_boxes_lidar", where, n)
-        num_points = _field(anno, "num_points_in_gt", where).reshape(-1)
-        difficulty = _field(anno, "difficulty", where).reshape(-1).astype(np.int64)
-        if len(num_points) != n or len(difficulty) != n:
-            raise ValueError(
-                f"{where}: 'num_points_in_gt' ({len(num_points)}) and 'difficulty' "
-                f"({len(difficulty)}) must have one entry per box ({n})"
-            )
-        bad = ~np.isin(difficulty, (0, 1, 2))
-        if bad.any():
-            raise ValueError(
-                f"{where}: 'difficulty' must be 0 (unknown), 1 or 2, got {difficulty[bad][:5]}"
-            )
-        level = difficulty.copy()
-        level[(difficulty == 0) & (num_points > 5)] = 1
-        level[(difficulty == 0) & (num_points <= 5)] = 2
-        cls = _class_index(names, class_names, where)
-        keep = (cls >= 0) & (num_points > 0) & _in_range(box)
+        cls, box, level, keep = _gt_fields(anno, class_names, f"gt_annos[{i}]")
         frames.append(np.full(int(keep.sum()), i, dtype=np.int64))
         classes.append(cls[keep])
         boxes.append(box[keep])
@@ -160,6 +174,7 @@ def _collect_gt(gt_annos: Sequence[dict], class_names: Sequence[str]) -> _Object
 
 def _collect_det(det_annos: Sequence[dict], class_names: Sequence[str]) -> _Objects:
     frames, classes, boxes, scores = [], [], [], []
+    max_score = -np.inf  # over every prediction in range, of any class (OpenPCDet's rule)
     for i, anno in enumerate(det_annos):
         where = f"det_annos[{i}]"
         names = _field(anno, "name", where).reshape(-1)
@@ -171,13 +186,16 @@ def _collect_det(det_annos: Sequence[dict], class_names: Sequence[str]) -> _Obje
         if not np.isfinite(score).all():
             raise ValueError(f"{where}: 'score' contains non-finite values")
         cls = _class_index(names, class_names, where)
-        keep = (cls >= 0) & _in_range(box)
+        in_range = _in_range(box)
+        if in_range.any():
+            max_score = max(max_score, float(score[in_range].max()))
+        keep = (cls >= 0) & in_range
         frames.append(np.full(int(keep.sum()), i, dtype=np.int64))
         classes.append(cls[keep])
         boxes.append(box[keep])
         scores.append(score[keep])
     score = _cat(scores, np.float32)
-    if score.size and score.max() > 1:  # OpenPCDet: logits are squashed
+    if max_score > 1:  # OpenPCDet: logits are squashed
         score = (1.0 / (1.0 + np.exp(-score.astype(np.float64)))).astype(np.float32)
     return _Objects(_cat(frames, np.int64), _cat(classes, np.int64), _cat_boxes(boxes), score, None)
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import pickle
 
 import numpy as np
@@ -9,6 +10,7 @@ import pytest
 from shapely.geometry import Polygon
 from waymo_tiny_data import CLASS_NAMES, dataset_cfg, write_tiny_waymo
 
+from pcdet_atlas.config import ConfigError
 from pcdet_atlas.datasets import WaymoDataset
 from pcdet_atlas.datasets.augmentor import DataAugmentor
 from pcdet_atlas.datasets.augmentor.box_ops import box_index_of_points
@@ -402,6 +404,43 @@ def test_gt_sampling_rejects_non_finite_object_points(tmp_path, use_shared_memor
     with pytest.raises(WaymoFormatError, match=rf"{where}: 1 point\(s\) with NaN/inf .*row 7, "
                        rf"column {column}"):  # fmt: skip
         sampler(data, np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("key", ["sample_groups", "min_points"])
+def test_gt_sampling_class_names_typo_is_an_error(tmp_path, key):
+    box = [0, 0, 0, 4, 2, 1.6, 0, 0, 0]
+    _write_db(tmp_path, [("Vehicle", box, _obj_points(box, 10, np.random.default_rng(0)))])
+    groups = {"sample_groups": {"Vehicle": 1}, "min_points": {"Vehicle": 5}}
+    groups[key] = {**groups[key], "Pedestrain": 10}
+    name = "SAMPLE_GROUPS" if key == "sample_groups" else "PREPARE.filter_by_min_points"
+    with pytest.raises(
+        ConfigError, match=rf"gt_sampling\.{name} \(my\.yaml\): \['Pedestrain'\] is not a class"
+    ):
+        GTSampling(
+            tmp_path, CLASS_NAMES, ["dbinfos.pkl"], groups["sample_groups"], 5,
+            min_points=groups["min_points"], section="my.yaml",
+        )  # fmt: skip
+
+
+def test_gt_sampling_waymo_class_not_trained_is_left_out_and_logged(tmp_path, caplog):
+    rng = np.random.default_rng(0)
+    box = [0, 0, 0, 4, 2, 1.6, 0, 0, 0]
+    _write_db(tmp_path, [("Vehicle", box, _obj_points(box, 10, rng)),
+                         ("Cyclist", box, _obj_points(box, 10, rng))])  # fmt: skip
+    logger = logging.getLogger("test_gt_sampling_not_trained")
+    with caplog.at_level("INFO", logger=logger.name):
+        sampler = GTSampling(
+            tmp_path, ["Vehicle"], ["dbinfos.pkl"], {"Vehicle": 1, "Cyclist": 2, "Sign": 1}, 5,
+            min_points={"Cyclist": 5}, logger=logger, section="my.yaml",
+        )  # fmt: skip
+    assert sampler.sample_groups == {"Vehicle": 1} and set(sampler.db_infos) == {"Vehicle"}
+    lines = [r.getMessage() for r in caplog.records if "not in CLASS_NAMES" in r.getMessage()]
+    assert lines == [
+        "gt_sampling.PREPARE.filter_by_min_points (my.yaml): ['Cyclist'] not in CLASS_NAMES "
+        "['Vehicle']; left out",
+        "gt_sampling.SAMPLE_GROUPS (my.yaml): ['Cyclist', 'Sign'] not in CLASS_NAMES "
+        "['Vehicle']; left out",
+    ]
 
 
 # ---------------------------------------------------------------------------- determinism

@@ -4,6 +4,7 @@ expected; empty frames are valid (tested in test_waymo_dataset.py)."""
 from __future__ import annotations
 
 import pickle
+import re
 import shutil
 
 import numpy as np
@@ -104,6 +105,28 @@ def test_nan_inf_points(root, bad, column):
         _dataset(root)[3]
 
 
+@pytest.mark.parametrize("flag", [0.0, 2.0, 0.5, -0.0])
+def test_nlz_flag_other_than_plus_minus_one(root, flag):
+    """A converter writing NLZ flags {0, 1} would lose every point to the NLZ filter silently."""
+    npy = wf.frame_npy_path(root, SEQ, 3)
+    pts = np.load(npy)
+    pts[7:, 5] = flag
+    np.save(npy, pts)
+    expected = rf"0003\.npy: the NLZ flag \(column 5\) must be -1 .* or 1 .*; {len(pts) - 7} "
+    expected += rf"point\(s\) have another value \(first at row 7: {re.escape(repr(flag))}\)"
+    for disable in (False, True):
+        with pytest.raises(wf.WaymoFormatError, match=expected):
+            _dataset(root, DISABLE_NLZ_FLAG_ON_POINTS=disable)[3]
+
+
+def test_nlz_flags_of_project_written_frames_pass(root):
+    """Both flag values load; the filter keeps exactly the -1 rows."""
+    rows = wf.load_frame_points(wf.frame_npy_path(root, SEQ, 3))
+    assert set(np.unique(rows[:, 5]).tolist()) == {-1.0, 1.0}
+    kept = _dataset(root, DISABLE_NLZ_FLAG_ON_POINTS=False).get_lidar(SEQ, 3)
+    assert len(kept) == int((rows[:, 5] == -1).sum())
+
+
 # ---------------------------------------------------------------------------- info pkls
 def test_pkl_entry_missing_key(root):
     path = _edit_infos(root, lambda infos: infos[2].pop("pose"))
@@ -191,6 +214,26 @@ def test_missing_image_set(root):
     (root / "ImageSets" / "val.txt").unlink()
     with pytest.raises(wf.WaymoFormatError, match=r"ImageSets/val\.txt: split file not found"):
         _dataset(root)
+
+
+def test_evaluation_names_the_first_unlabelled_frame(root):
+    """Every frame is checked for 'annos', not only the first."""
+    pkl = _edit_infos(root, lambda infos: infos[2].pop("annos"))
+    ds = _dataset(root)
+    det_annos = [
+        {"name": np.array([]), "score": np.zeros(0), "boxes_lidar": np.zeros((0, 7)),
+         "frame_id": info["frame_id"]}
+        for info in ds.infos
+    ]  # fmt: skip
+    expected = (
+        rf"{re.escape(str(pkl))} \[frame 2\]: frame {SEQ}_002 of sequence '{SEQ}' has no ground "
+        rf"truth \('annos'\), so split 'val' cannot be evaluated \(1 of its 4 frames"
+    )
+    with pytest.raises(wf.WaymoFormatError, match=expected):
+        ds.evaluation(det_annos, CLASS_NAMES)
+    _edit_infos(root, lambda infos: [info.pop("annos", None) for info in infos])
+    with pytest.raises(wf.WaymoFormatError, match=r"split 'val' has no ground truth \('annos'\)"):
+        _dataset(root).evaluation(det_annos, CLASS_NAMES)
 
 
 def test_train_with_speed_needs_9_values(root):
@@ -294,6 +337,25 @@ def test_missing_required_augmentation_key(root):
     rotation = next(a for a in augs if a.NAME == "random_world_rotation")
     del rotation["WORLD_ROT_ANGLE"]
     with pytest.raises(ConfigError, match="missing required key 'WORLD_ROT_ANGLE'"):
+        WaymoDataset(cfg, CLASS_NAMES, training=True, root_path=root)
+
+
+@pytest.mark.parametrize("key", ["SAMPLE_GROUPS", "PREPARE.filter_by_min_points"])
+def test_gt_sampling_class_typo_names_key_and_file(root, key):
+    """'Pedestrain:10' is no class: an error before anything is loaded, not a silent no-op."""
+    cfg = dataset_cfg()
+    shipped = cfg_from_yaml_file(DATASET_CFG).DATA_AUGMENTOR.AUG_CONFIG_LIST
+    cfg.DATA_AUGMENTOR.AUG_CONFIG_LIST = shipped[:1]
+    item = cfg.DATA_AUGMENTOR.AUG_CONFIG_LIST[0]
+    if key == "SAMPLE_GROUPS":
+        item.SAMPLE_GROUPS = ["Vehicle:15", "Pedestrain:10"]
+    else:
+        item.PREPARE.filter_by_min_points = ["Vehicle:5", "Pedestrain:5"]
+    expected = (
+        rf"gt_sampling\.{re.escape(key)} \(DATA_AUGMENTOR\.AUG_CONFIG_LIST\[0\] of "
+        rf"{re.escape(str(DATASET_CFG))}\): \['Pedestrain'\] is not a class name"
+    )
+    with pytest.raises(ConfigError, match=expected):
         WaymoDataset(cfg, CLASS_NAMES, training=True, root_path=root)
 
 

@@ -405,6 +405,23 @@ def test_collate_pads_and_keeps_unknown_keys_as_lists(tiny_root):
     assert batch["pose"].shape == (2, 4, 4)
 
 
+def test_collate_refuses_a_key_missing_from_some_samples(tiny_root):
+    """A key only some samples have would give a list shorter than the batch, misaligned with
+    the batch index: an error naming the key and the samples that lack it."""
+    ds = WaymoDataset(dataset_cfg(), CLASS_NAMES, training=False, root_path=tiny_root)
+    samples = [ds[0], ds[1], ds[2]]
+    for i in (0, 2):
+        del samples[i]["gt_boxes"]
+    del samples[1]["metadata"]
+    with pytest.raises(ValueError) as info:
+        WaymoDataset.collate_batch(samples)
+    message = str(info.value)
+    assert "every sample of a batch must have the same keys; in this batch of 3" in message
+    ids = [s["frame_id"] for s in samples]
+    assert f"'gt_boxes' is missing from sample(s) 0 ({ids[0]}), 2 ({ids[2]})" in message
+    assert f"'metadata' is missing from sample(s) 1 ({ids[1]})" in message
+
+
 def test_build_dataloader_is_independent_of_workers(tiny_root):
     cfg = dataset_cfg(augment=True, shuffle=True)
     cfg.DATASET = "WaymoDataset"

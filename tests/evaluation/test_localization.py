@@ -132,6 +132,22 @@ def test_projected_ap_scales_the_chosen_errors():
         projected_ap(gt_annos, [det], "Vehicle", {"yaw": 0.5})
 
 
+def test_projected_ap_matches_only_the_ground_truth_the_metric_scores():
+    """A 0-point GT box (which the metric drops) must not take the prediction: it overlaps the
+    0-point box exactly and the scored box at IoU 3.5 / 5.5 < 0.7; moved onto the scored box
+    (centre error 0), it is a TP."""
+    scored = np.array([[10.0, 0.0, 0.8, 4.5, 2.0, 1.6, 0.0]])
+    empty = shifted(scored, np.array([1.0]))
+    gt_annos = [{
+        "name": np.array(["Vehicle", "Vehicle"]),
+        "gt_boxes_lidar": np.concatenate([scored, empty]),
+        "num_points_in_gt": np.array([50, 0]), "difficulty": np.zeros(2, np.int64),
+    }]  # fmt: skip
+    det = {"name": np.array(["Vehicle"]), "boxes_lidar": empty.copy(), "score": np.array([0.9])}
+    assert projected_ap(gt_annos, [det], "Vehicle", {}) == pytest.approx(0.0)
+    assert projected_ap(gt_annos, [det], "Vehicle", {"center": 0.0}) == pytest.approx(1.0)
+
+
 def test_analyze_boxes_tool_on_a_test_result(synthetic_root, tmp_path, capsys):
     """``tools/analyze_boxes.py`` on a result.pkl of the synthetic val split: predictions that
     are the ground-truth vehicles lengthened by 0.4 m."""

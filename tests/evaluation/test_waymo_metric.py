@@ -354,6 +354,30 @@ def test_logit_scores_get_a_sigmoid():
     assert logits == probs
 
 
+def test_sigmoid_rule_counts_predictions_of_every_class():
+    """OpenPCDet takes the largest score over all predictions (in range) before any class
+    filter: one Pedestrian logit of 3.0 squashes the Vehicle scores too, though only Vehicle is
+    evaluated."""
+    gts = [_gt([CAR, CAR2])]
+    far = [50.0, 50.0, 1.0, 4.5, 2.0, 1.6, 0.0]
+    scores = [0.3, 0.6]  # the TP at 0.3, an FP at 0.6
+    mixed = _det(
+        [CAR, far, CAR2], [scores[0], scores[1], 3.0], ["Vehicle", "Vehicle", "Pedestrian"]
+    )
+    squashed = _det([CAR, far], [1 / (1 + math.exp(-v)) for v in scores])
+    got = compute_waymo_curves(gts, [mixed], ["Vehicle"])["Vehicle/L2"]
+    expected = compute_waymo_curves(gts, [squashed], ["Vehicle"])["Vehicle/L2"]
+    raw = compute_waymo_curves(gts, [_det([CAR, far], scores)], ["Vehicle"])["Vehicle/L2"]
+    for key in ("tp", "fp", "fn"):
+        np.testing.assert_array_equal(got[key], expected[key])
+    assert not np.array_equal(got["tp"], raw["tp"])  # 0.3 -> 0.574: kept by more cutoffs
+    # a prediction beyond the distance limit does not count
+    beyond = _det([CAR, far, [2000.0, 0, 1, 1, 1, 1, 0]], [*scores, 3.0],
+                  ["Vehicle", "Vehicle", "Pedestrian"])  # fmt: skip
+    out = compute_waymo_curves(gts, [beyond], ["Vehicle"])["Vehicle/L2"]
+    np.testing.assert_array_equal(out["tp"], raw["tp"])
+
+
 # ------------------------------------------------------------------------------------------------
 # invariances, empty inputs, errors
 # ------------------------------------------------------------------------------------------------

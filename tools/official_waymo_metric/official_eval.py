@@ -11,7 +11,7 @@ Input ``.npz`` keys (one scene; frames are integers ``0 .. num_frames - 1``):
 The OpenPCDet preprocessing (``waymo_eval.py`` ``generate_waymo_type_results``) is re-implemented
 here, plainly and independently of pcdet_atlas: keep GT of the evaluated classes with > 0 points,
 difficulty 0 -> 2 if <= 5 points else 1, distance mask < 1000.5 m, heading ``limit_period`` in
-float32, sigmoid on scores if their max is > 1.
+float32, sigmoid on scores if their max (in range, any class) is > 1.
 
 CLI: ``python official_eval.py IN.npz OUT.npz [--matcher hungarian|score_first] [--repeat N]``
 writes ``names`` (B,), ``ap``, ``aph`` (B,), ``pr`` (B, 101, 5) = (P, R, TP, FP, FN) per cutoff,
@@ -75,13 +75,14 @@ def openpcdet_preprocess(scene: dict, class_names=CLASS_NAMES) -> dict:
     gt_mask &= np.linalg.norm(gt_boxes[:, 0:2], axis=1) < 1000.5
     gt_boxes[:, 6] = _limit_period(gt_boxes[:, 6])
 
-    det_mask = np.isin(scene["det_name"], wanted)
     det_boxes = scene["det_boxes"].astype(np.float32).copy()
-    det_mask &= np.linalg.norm(det_boxes[:, 0:2], axis=1) < 1000.5
+    in_range = np.linalg.norm(det_boxes[:, 0:2], axis=1) < 1000.5
+    det_mask = in_range & np.isin(scene["det_name"], wanted)
     det_boxes[:, 6] = _limit_period(det_boxes[:, 6])
-    score = scene["det_score"].astype(np.float32)[det_mask]
-    if score.size and score.max() > 1:
+    score = scene["det_score"].astype(np.float32)
+    if in_range.any() and score[in_range].max() > 1:  # over every class, before the class filter
         score = (1.0 / (1.0 + np.exp(-score.astype(np.float64)))).astype(np.float32)
+    score = score[det_mask]
     return {
         "prediction_bbox": det_boxes[det_mask].reshape(-1, 7),
         "prediction_type": scene["det_name"][det_mask].astype(np.uint8),

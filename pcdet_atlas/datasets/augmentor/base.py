@@ -7,6 +7,8 @@ a class with
 * ``CONFIG_KEYS``: the keys its config item may have besides ``NAME`` (others are errors),
 * ``from_config(cfg, **context)``: config -> plain keyword arguments. ``context`` holds what the
   dataset knows: ``root_path``, ``class_names``, ``point_cloud_range``, ``training``, ``logger``,
+  and ``section``, where the item sits (``DATA_AUGMENTOR.AUG_CONFIG_LIST[i] of <file>``, for
+  error messages),
 * ``__call__(data_dict, rng) -> data_dict``: ``rng`` is a ``numpy.random.Generator`` keyed by
   ``(seed, epoch, sequence_name, sample_idx, stage, position, NAME)``, so a frame's draws do not
   depend on worker count, batch order or the other frames.
@@ -58,7 +60,7 @@ def check_transform_config(item: Mapping, section: str) -> None:
 def build_transform(item: Mapping, section: str, **context):
     """Check one config item and build its transform with ``from_config(item, **context)``."""
     check_transform_config(item, section)
-    return _transform_class(item, section).from_config(item, **context)
+    return _transform_class(item, section).from_config(item, section=section, **context)
 
 
 class _Pipeline:

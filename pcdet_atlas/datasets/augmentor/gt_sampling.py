@@ -34,13 +34,15 @@ import numpy as np
 from pcdet_atlas.config import ConfigError, check_known_keys, require_keys
 from pcdet_atlas.datasets.augmentor.box_ops import box_index_of_points, enlarge_boxes
 from pcdet_atlas.datasets.multiframe import compress_rows
-from pcdet_atlas.datasets.waymo_format import WaymoFormatError
+from pcdet_atlas.datasets.waymo_format import WAYMO_CLASSES, WaymoFormatError
 from pcdet_atlas.ops.boxes import boxes_bev_overlap
 from pcdet_atlas.registry import TRANSFORMS
 
 __all__ = ["GTSampling", "parse_class_counts"]
 
 DB_INFO_KEYS = ("name", "path", "box3d_lidar", "num_points_in_gt", "difficulty")
+#: Class names a per-class entry may hold besides ``class_names``: Waymo's object classes.
+OBJECT_CLASSES = tuple(name for name in WAYMO_CLASSES if name != "unknown")
 
 
 def parse_class_counts(items: Sequence[str], key: str) -> dict[str, int]:
@@ -52,6 +54,26 @@ def parse_class_counts(items: Sequence[str], key: str) -> dict[str, int]:
             raise ConfigError(f"gt_sampling.{key}: expected 'ClassName:count', got {item!r}")
         out[name.strip()] = int(count)
     return out
+
+
+def _trained_classes(
+    counts: Mapping[str, int], key: str, class_names: Sequence[str], section: str, logger
+) -> dict[str, int]:
+    """The entries of ``counts`` whose class is trained; other Waymo classes are logged and left
+    out, any other name is an error."""
+    unknown = [name for name in counts if name not in class_names and name not in OBJECT_CLASSES]
+    if unknown:
+        raise ConfigError(
+            f"gt_sampling.{key} ({section}): {unknown} is not a class name; expected one of "
+            f"the Waymo classes {list(OBJECT_CLASSES)}"
+        )
+    ignored = [name for name in counts if name not in class_names]
+    if ignored:
+        logger.info(
+            f"gt_sampling.{key} ({section}): {ignored} not in CLASS_NAMES {list(class_names)}; "
+            f"left out"
+        )
+    return {name: count for name, count in counts.items() if name in class_names}
 
 
 @TRANSFORMS.register("gt_sampling")
@@ -91,6 +113,7 @@ class GTSampling:
         filter_obj_points_by_timestamp: bool = False,
         time_range: Sequence[float] | None = None,
         logger=None,
+        section: str = "<unknown>",
     ):
         """
         Args:
@@ -105,7 +128,13 @@ class GTSampling:
             remove_extra_width: (3,) m added to the pasted boxes when clearing scene points.
             limit_whole_scene: subtract the frame's own GT count from each class target.
             filter_obj_points_by_timestamp / time_range: keep object points with lag in range (s).
+            section: where the config item sits (for error messages).
+
+        A class of ``sample_groups`` / ``min_points`` that is neither in ``class_names`` nor a
+        Waymo object class (a typo) is a :class:`ConfigError`; a Waymo class not trained is
+        ignored, and logged.
         """
+        logger = logger if logger is not None else logging.getLogger(__name__)
         self.root_path = Path(root_path)
         self.class_names = list(class_names)
         self.num_point_features = int(num_point_features)
@@ -126,19 +155,20 @@ class GTSampling:
                 "gt_sampling: USE_SHARED_MEMORY needs one DB_DATA_PATH per DB_INFO_PATH, got "
                 f"{len(self.db_data_paths)} for {len(self.db_info_paths)}"
             )
+        trained = (self.class_names, section, logger)
+        min_points = _trained_classes(min_points or {}, "PREPARE.filter_by_min_points", *trained)
+        sample_groups = _trained_classes(sample_groups, "SAMPLE_GROUPS", *trained)
         self.db_infos = self._load_db_infos()
-        for class_name, count in (min_points or {}).items():
-            if class_name in self.db_infos:
-                self.db_infos[class_name] = [
-                    x for x in self.db_infos[class_name] if x["num_points_in_gt"] >= count
-                ]
+        for class_name, count in min_points.items():
+            self.db_infos[class_name] = [
+                x for x in self.db_infos[class_name] if x["num_points_in_gt"] >= count
+            ]
         removed = set(int(d) for d in removed_difficulty)
         for class_name in self.db_infos:
             self.db_infos[class_name] = [
                 x for x in self.db_infos[class_name] if int(x["difficulty"]) not in removed
             ]
-        self.sample_groups = {k: int(v) for k, v in sample_groups.items() if k in self.class_names}
-        logger = logger if logger is not None else logging.getLogger(__name__)
+        self.sample_groups = {k: int(v) for k, v in sample_groups.items()}
         sizes = {k: len(v) for k, v in self.db_infos.items()}
         logger.info(f"gt_sampling: database objects per class after PREPARE: {sizes}")
         for class_name in self.sample_groups:
@@ -152,7 +182,7 @@ class GTSampling:
     # ------------------------------------------------------------------ config
     @classmethod
     def from_config(
-        cls, cfg: Mapping, *, root_path, class_names, logger=None, **context
+        cls, cfg: Mapping, *, root_path, class_names, logger=None, section="<unknown>", **context
     ) -> GTSampling:
         if cfg.get("USE_ROAD_PLANE", False):
             raise ConfigError(
@@ -199,6 +229,7 @@ class GTSampling:
             filter_obj_points_by_timestamp=cfg.get("FILTER_OBJ_POINTS_BY_TIMESTAMP", False),
             time_range=cfg.get("TIME_RANGE"),
             logger=logger,
+            section=section,
         )
 
     # ------------------------------------------------------------------ database
