@@ -9,14 +9,19 @@ an epoch, ``ckpt/latest_model.pth``, rewritten every ``--ckpt_save_time_interval
 ``--epochs`` / ``--batch_size`` put in effect) and ``tensorboard/``. Training resumes from
 ``--ckpt`` or, if absent, from the newest checkpoint in ``ckpt/``, mid-epoch included (exactly:
 optimizer, schedule, RNG state and the epoch's position in its shuffled order included); a
-checkpoint trained with other ``OPTIMIZATION`` settings, epochs or total batch size is refused,
-naming what changed. Counts below their minimum (``--epochs 0``) are usage errors.
+checkpoint trained with other settings (``OPTIMIZATION``, epochs, total batch size, process
+count, ``--seed``, ``--use_amp``, ``--sync_bn``, ``--merge_all_iters_to_one_epoch``, or another
+merged ``CLASS_NAMES`` / ``DATA_CONFIG`` / ``MODEL`` / ``STAGE``) is refused, naming what changed,
+before any of its state is loaded. Counts below their minimum (``--epochs 0``) are usage errors;
+a bad ``OPTIMIZATION`` value and a missing ``--ckpt`` / ``--pretrained_model`` file are errors
+before anything is built or written.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+from pathlib import Path
 
 import torch
 from tensorboardX import SummaryWriter
@@ -25,18 +30,22 @@ from pcdet_atlas.config import (
     log_config_to_file,
     require_keys,
     save_config,
-    to_plain,
 )
 from pcdet_atlas.datasets import build_dataloader
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.detectors import TwoStageDetector
-from pcdet_atlas.models.optimization import build_optimizer, build_scheduler
+from pcdet_atlas.models.optimization import (
+    build_optimizer,
+    build_scheduler,
+    check_optimization_config,
+)
 from pcdet_atlas.train_utils import (
     TrainState,
-    check_resume_settings,
     eval_one_epoch,
     find_resume_checkpoint,
+    iterations_per_epoch,
     load_checkpoint,
+    resume_settings,
     retain_freed_cpu_memory,
     train_model,
 )
@@ -88,11 +97,17 @@ def parse_args(argv=None):
 def main(argv=None) -> dict:
     args = parse_args(argv)
     cfg = load_cfg(args.cfg_file, args.set_cfgs)
-    require_dataset(cfg, args.cfg_file)  # before anything is built or written
-    dist, rank, world, device = setup_runtime(args)
-    retained = device.type == "cpu" and not args.default_malloc and retain_freed_cpu_memory()
+    # before anything is built or written
+    require_dataset(cfg, args.cfg_file)
+    require_keys(cfg, ["OPTIMIZATION"], "the detector config")
     optim_cfg = cfg.OPTIMIZATION
     require_keys(optim_cfg, ["BATCH_SIZE_PER_GPU", "NUM_EPOCHS"], "OPTIMIZATION")  # types: load_cfg
+    check_optimization_config(optim_cfg)
+    for flag, path in (("--ckpt", args.ckpt), ("--pretrained_model", args.pretrained_model)):
+        if path is not None and not Path(path).is_file():
+            raise FileNotFoundError(f"{flag} {path}: no such checkpoint file")
+    dist, rank, world, device = setup_runtime(args)
+    retained = device.type == "cpu" and not args.default_malloc and retain_freed_cpu_memory()
     batch_size = (
         args.batch_size if args.batch_size is not None else optim_cfg.BATCH_SIZE_PER_GPU * world
     )
@@ -101,10 +116,10 @@ def main(argv=None) -> dict:
     epochs = args.epochs if args.epochs is not None else optim_cfg.NUM_EPOCHS
     # the saved config and the checkpoints state the schedule in effect, flags included
     optim_cfg.NUM_EPOCHS, optim_cfg.BATCH_SIZE_PER_GPU = epochs, batch_size // world
-    train_settings = {
-        "OPTIMIZATION": {k: v for k, v in to_plain(optim_cfg).items() if k != "BATCH_SIZE_PER_GPU"},
-        "batch_size": batch_size,  # total over processes: the schedule does not see the split
-    }
+    train_settings = resume_settings(
+        cfg, batch_size=batch_size, processes=world, seed=args.seed, use_amp=args.use_amp,
+        sync_bn=args.sync_bn, merge_all_iters_to_one_epoch=args.merge_all_iters_to_one_epoch,
+    )  # fmt: skip
 
     out_dir = output_dir_for(cfg, args.output_root, args.extra_tag)
     ckpt_dir = out_dir / "ckpt"
@@ -139,8 +154,9 @@ def main(argv=None) -> dict:
             f"freezing the rest"
         )
     optimizer = build_optimizer(model, optim_cfg)
+    steps_per_epoch = iterations_per_epoch(loader, epochs, args.merge_all_iters_to_one_epoch)
     scheduler = build_scheduler(
-        optimizer, optim_cfg, iters_per_epoch=len(loader), total_epochs=epochs
+        optimizer, optim_cfg, iters_per_epoch=steps_per_epoch, total_epochs=epochs
     )
     scaler = torch.amp.GradScaler("cuda") if args.use_amp and device.type == "cuda" else None
 
@@ -148,22 +164,23 @@ def main(argv=None) -> dict:
     resume = args.ckpt or find_resume_checkpoint(ckpt_dir)
     if resume is not None:
         total_steps = getattr(scheduler, "total_steps", None)
-        ckpt = load_checkpoint(resume, model, optimizer, scheduler, scaler)
-        check_resume_settings(ckpt, train_settings, resume)
+        ckpt = load_checkpoint(
+            resume, model, optimizer, scheduler, scaler, train_settings=train_settings
+        )
         if total_steps is not None and scheduler.total_steps != total_steps:
             raise ValueError(
                 f"{resume} was trained on a {scheduler.total_steps}-step schedule; this run has "
-                f"{total_steps} steps ({epochs} epochs x {len(loader)} iterations): the training "
-                "set or its sampling differs from the checkpoint's"
+                f"{total_steps} steps ({epochs} epochs x {steps_per_epoch} iterations): the "
+                "training set or its sampling differs from the checkpoint's"
             )
         state = TrainState(
             epoch=ckpt["epoch"], it=ckpt["it"], epoch_it=ckpt.get("epoch_it", 0),
             epoch_loss_sums=dict(ckpt.get("epoch_loss_sums") or {}),
         )  # fmt: skip
-        if state.it != state.epoch * len(loader) + state.epoch_it:
+        if state.it != state.epoch * steps_per_epoch + state.epoch_it:
             raise ValueError(
                 f"{resume}: {state.it} iterations do not make {state.epoch} epochs of "
-                f"{len(loader)} plus {state.epoch_it}: the training set or batch size differs"
+                f"{steps_per_epoch} plus {state.epoch_it}: the training set or batch size differs"
             )
         into = f"; {state.epoch_it} batches into epoch {state.epoch + 1}" if state.epoch_it else ""
         logger.info(f"resumed from {resume} (epoch {state.epoch}, iteration {state.it}{into})")
@@ -189,7 +206,10 @@ def main(argv=None) -> dict:
         model = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None
         )
-    logger.info(f"training epochs {state.epoch + 1}..{epochs}, {len(loader)} iterations each")
+    merged = " (one pass over the merged epochs)" if args.merge_all_iters_to_one_epoch else ""
+    logger.info(
+        f"training epochs {state.epoch + 1}..{epochs}, {steps_per_epoch} iterations each{merged}"
+    )
     train_model(
         model, optimizer, scheduler, loader, sampler, state=state, total_epochs=epochs,
         device=device, seed=args.seed, grad_norm_clip=optim_cfg.GRAD_NORM_CLIP, ckpt_dir=ckpt_dir,
@@ -197,6 +217,7 @@ def main(argv=None) -> dict:
         scaler=scaler, use_amp=args.use_amp, tb_log=tb_log, logger=logger,
         logger_iter_interval=args.logger_iter_interval, show_progress=not args.no_progress,
         train_settings=train_settings, ckpt_save_time_interval=args.ckpt_save_time_interval,
+        merge_all_iters_to_one_epoch=args.merge_all_iters_to_one_epoch,
     )  # fmt: skip
     result = {"output_dir": out_dir, "state": state}
     if args.num_epochs_to_eval > 0:

@@ -1,17 +1,23 @@
 """OpenPCDet-style checkpoints with everything needed for an exact resume.
 
 A checkpoint is a dict ``{'epoch', 'it', 'epoch_it', 'epoch_loss_sums', 'model_state',
-'optimizer_state', 'scheduler_state', 'scaler_state', 'rng_state', 'train_settings', 'version'}``;
-``epoch`` counts the finished epochs and ``it`` the optimizer steps taken; ``epoch_it`` the
-batches of the next epoch already trained (0 at an epoch's end; a ``latest_model.pth`` written
-mid-epoch has more) and ``epoch_loss_sums`` their summed losses; ``train_settings`` holds the
-optimization settings in effect (:func:`check_resume_settings` compares them on resume).
-``model_state`` alone is what ``--pretrained_model`` / ``tools/test.py`` load (strictly, with a
-readable error on mismatch).
+'optimizer_state', 'scheduler_state', 'scaler_state', 'rng_state', 'cuda_rng_state',
+'train_settings', 'version'}``; ``epoch`` counts the finished epochs and ``it`` the optimizer
+steps taken; ``epoch_it`` the batches of the next epoch already trained (0 at an epoch's end; a
+``latest_model.pth`` written mid-epoch has more) and ``epoch_loss_sums`` their summed losses;
+``rng_state`` is torch's CPU generator and ``cuda_rng_state`` the CUDA generators (None when the
+process never used CUDA); ``train_settings`` holds the settings in effect
+(:func:`resume_settings`; :func:`check_resume_settings` compares them on resume). Checkpoints
+written before ``cuda_rng_state`` or a setting was recorded lack them: nothing is restored or
+compared for what is absent. ``model_state`` alone is what ``--pretrained_model`` /
+``tools/test.py`` load (strictly, with a readable error on mismatch).
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
+import os
 import re
 from collections.abc import Mapping
 from pathlib import Path
@@ -19,6 +25,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from pcdet_atlas.config import to_plain
 from pcdet_atlas.models.detectors.detector3d_template import (
     load_state_dict_checked,
     read_checkpoint,
@@ -27,6 +34,7 @@ from pcdet_atlas.train_utils.dist import unwrap_model
 from pcdet_atlas.version import __version__
 
 __all__ = [
+    "resume_settings",
     "checkpoint_state",
     "save_checkpoint",
     "load_checkpoint",
@@ -67,18 +75,31 @@ def checkpoint_state(
         "scheduler_state": None if scheduler is None else scheduler.state_dict(),
         "scaler_state": None if scaler is None else scaler.state_dict(),
         "rng_state": torch.get_rng_state(),
+        # e.g. GPU dropout masks: without it they would restart after a resume
+        "cuda_rng_state": torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None,
         "train_settings": None if train_settings is None else dict(train_settings),
         "version": f"pcdet_atlas+{__version__}",
     }
 
 
 def save_checkpoint(state: dict, path: str | Path) -> Path:
-    """Write atomically (a temporary file renamed into place)."""
+    """Write atomically and durably: a temporary file, flushed to disk, renamed into place, and
+    the folder flushed too (where the platform can), so that neither a crash nor a power loss
+    leaves a truncated or empty file under ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(state, tmp)
+    with open(tmp, "wb") as f:
+        torch.save(state, f)
+        f.flush()
+        os.fsync(f.fileno())
     tmp.replace(path)
+    if hasattr(os, "O_DIRECTORY"):  # POSIX: the rename is durable once the folder is synced
+        fd = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
     return path
 
 
@@ -90,14 +111,20 @@ def load_checkpoint(
     scaler: torch.amp.GradScaler | None = None,
     *,
     strict: bool = True,
+    train_settings: Mapping | None = None,
 ) -> dict:
-    """Restore what ``path`` holds into the given objects; returns the checkpoint dict.
+    """Restore what ``path`` holds into the given objects; returns the checkpoint dict. With
+    ``train_settings`` (this run's :func:`resume_settings`), they are compared with the
+    checkpoint's first (:func:`check_resume_settings`), before anything is restored.
 
     Raises:
+        ValueError: ``train_settings`` differ from the checkpoint's.
         CheckpointMismatchError: the parameters do not fit ``model``.
         KeyError: an optimizer/scheduler is given but the checkpoint has no state for it.
     """
     ckpt = read_checkpoint(path)
+    if train_settings is not None:
+        check_resume_settings(ckpt, train_settings, path)
     state = ckpt["model_state"] if "model_state" in ckpt else ckpt
     load_state_dict_checked(unwrap_model(model), state, strict=strict, source=str(path))
     check_info = getattr(unwrap_model(model), "check_checkpoint_info", None)
@@ -112,6 +139,10 @@ def load_checkpoint(
         scaler.load_state_dict(ckpt["scaler_state"])
     if ckpt.get("rng_state") is not None:
         torch.set_rng_state(ckpt["rng_state"])
+    cuda_states = ckpt.get("cuda_rng_state")
+    if cuda_states is not None and torch.cuda.is_available():
+        # the GPUs beyond this machine's are not there to draw from (a CPU run uses none)
+        torch.cuda.set_rng_state_all(list(cuda_states)[: torch.cuda.device_count()])
     return ckpt
 
 
@@ -154,17 +185,66 @@ def _flatten(node, prefix: str = "") -> dict:
     return out
 
 
+def _sha256(node) -> str:
+    text = json.dumps(to_plain(node), sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def resume_settings(
+    cfg: Mapping,
+    *,
+    batch_size: int,
+    processes: int,
+    seed: int,
+    use_amp: bool,
+    sync_bn: bool,
+    merge_all_iters_to_one_epoch: bool,
+) -> dict:
+    """What a training run must share with a checkpoint to go on with the checkpoint's training
+    (stored as its ``train_settings``): the ``OPTIMIZATION`` section (``NUM_EPOCHS`` as in effect;
+    the per-process batch aside), the total ``batch_size``, the number of ``processes``, the
+    ``seed`` (shuffle and augmentation draws), ``use_amp``, ``sync_bn``,
+    ``merge_all_iters_to_one_epoch``, and SHA-256 digests of the merged ``CLASS_NAMES``,
+    ``DATA_CONFIG`` (without ``DATA_PATH``, so a moved dataset still resumes), ``MODEL`` and, when
+    the config has one, ``STAGE``."""
+    data = {k: v for k, v in to_plain(cfg["DATA_CONFIG"]).items() if k != "DATA_PATH"}
+    digests = {
+        "CLASS_NAMES": _sha256(cfg["CLASS_NAMES"]),
+        "DATA_CONFIG": _sha256(data),
+        "MODEL": _sha256(cfg["MODEL"]),
+    }
+    if cfg.get("STAGE") is not None:
+        digests["STAGE"] = _sha256(cfg["STAGE"])
+    optim = to_plain(cfg["OPTIMIZATION"])
+    return {
+        "OPTIMIZATION": {k: v for k, v in optim.items() if k != "BATCH_SIZE_PER_GPU"},
+        "batch_size": int(batch_size),  # total over processes: the schedule does not see the split
+        "processes": int(processes),
+        "seed": int(seed),
+        "use_amp": bool(use_amp),
+        "sync_bn": bool(sync_bn),
+        "merge_all_iters_to_one_epoch": bool(merge_all_iters_to_one_epoch),
+        "config_sha256": digests,
+    }
+
+
 def check_resume_settings(ckpt: Mapping, settings: Mapping, path: str | Path) -> None:
-    """Refuse to resume a checkpoint trained with other optimization settings.
+    """Refuse to resume a checkpoint trained with other settings (:func:`resume_settings`).
+
+    Only the settings the checkpoint records are compared: one written before a setting was
+    recorded (e.g. without ``seed``) is not checked for it, and one without any
+    ``train_settings`` only by the caller's step count.
 
     Raises:
         ValueError: naming every setting that differs, with the checkpoint's and this run's
-            values (a changed schedule or optimizer would silently mix two trainings).
+            values and the checkpoint file (a changed schedule, data order or model would
+            silently mix two trainings).
     """
     saved = ckpt.get("train_settings")
     if saved is None:
         return  # written before settings were recorded: only the step count can be checked
-    old, new = _flatten(saved), _flatten(settings)
+    old = _flatten(saved)
+    new = _flatten({k: v for k, v in settings.items() if k in saved})
     differ = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
     if differ:
         changes = ", ".join(f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in differ)

@@ -8,14 +8,20 @@ same weights bit for bit on CPU. Besides the per-epoch checkpoints, ``latest_mod
 rewritten every ``ckpt_save_time_interval`` seconds inside an epoch; a run resumed from it
 starts the epoch's shuffled order at the first batch not yet trained
 (:class:`~pcdet_atlas.datasets.loader.ResumableSampler`), so it too ends bit for bit the same.
+
+With ``merge_all_iters_to_one_epoch`` (OpenPCDet's option) the dataset is ``E`` passes long
+(``E`` = ``total_epochs``; pass ``p`` of a frame draws its augmentation as epoch ``p``) and is
+read in one shuffled pass: each of the ``E`` epochs takes the next ``len(loader) // E`` batches
+of that one iterator, so the run trains as many steps as ``E`` plain epochs.
 """
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,7 +35,7 @@ from pcdet_atlas.train_utils.cpu_memory import trim_cpu_memory
 from pcdet_atlas.train_utils.dist import get_dist_info
 from pcdet_atlas.utils.seeding import derive_seed
 
-__all__ = ["TrainState", "train_one_epoch", "train_model"]
+__all__ = ["TrainState", "iterations_per_epoch", "train_one_epoch", "train_model"]
 
 
 @dataclass
@@ -43,6 +49,23 @@ class TrainState:
     epoch_it: int = 0
     epoch_loss_sums: dict[str, float] = field(default_factory=dict)
     history: list[dict[str, float]] = field(default_factory=list)
+
+
+def iterations_per_epoch(dataloader, total_epochs: int, merged: bool = False) -> int:
+    """Optimizer steps per epoch: the loader's length, or with ``merged``
+    (``merge_all_iters_to_one_epoch``: the dataset is ``total_epochs`` passes long) that length
+    divided by ``total_epochs``, rounded down (OpenPCDet's ``total_it_each_epoch``). Call it
+    before a resume starts the loader part-way (its length then counts only the rest)."""
+    if not merged:
+        return len(dataloader)
+    per_epoch = len(dataloader) // total_epochs
+    if per_epoch < 1:
+        raise ValueError(
+            f"merge_all_iters_to_one_epoch: {len(dataloader)} batches of the merged dataset "
+            f"cannot make {total_epochs} epochs of at least one step: lower the batch size or "
+            "train without the flag"
+        )
+    return per_epoch
 
 
 def _set_loader_epoch(dataloader, sampler, seed: int, epoch: int, start_batch: int = 0) -> None:
@@ -78,24 +101,37 @@ def train_one_epoch(
     logger_iter_interval: int = 50,
     show_progress: bool = True,
     after_step: Callable[[], None] | None = None,
+    batches: Iterator | None = None,
+    epoch_batches: int | None = None,
 ) -> dict[str, float]:
     """One pass over ``dataloader`` (the rest of the epoch when ``state.epoch_it`` batches of it
-    were trained before a resume; the loader then yields only the others); updates ``state.it``,
-    ``state.epoch_it`` and ``state.epoch_loss_sums``, and calls ``after_step()`` after every
-    optimizer step but the epoch's last (the epoch's end is the caller's to record). Returns the
-    epoch's mean losses over all its batches."""
+    were trained before a resume; the loader then yields only the others), or, when ``batches``
+    is given, the next ``epoch_batches - state.epoch_it`` batches of that iterator (an epoch of
+    ``epoch_batches`` steps taken from a longer pass, as ``merge_all_iters_to_one_epoch`` does);
+    updates ``state.it``, ``state.epoch_it`` and ``state.epoch_loss_sums``, and calls
+    ``after_step()`` after every optimizer step but the epoch's last (the epoch's end is the
+    caller's to record). Returns the epoch's mean losses over all its batches.
+
+    Raises:
+        RuntimeError: ``batches`` ran out before the epoch's ``epoch_batches``.
+    """
+    if (batches is None) != (epoch_batches is None):
+        raise ValueError("train_one_epoch: give both batches and epoch_batches, or neither")
     rank, _ = get_dist_info()
     model.train()
     sums = state.epoch_loss_sums
     start = state.epoch_it
-    total = start + len(dataloader)
+    if batches is None:
+        source, total = dataloader, start + len(dataloader)
+    else:
+        source, total = itertools.islice(batches, epoch_batches - start), epoch_batches
     amp_dtype = torch.float16 if device.type == "cuda" else torch.bfloat16
     bar = tqdm.tqdm(
         total=total, initial=start, leave=False, desc="train", dynamic_ncols=True,
         disable=not show_progress or rank != 0,
     )  # fmt: skip
     t_end = time.perf_counter()
-    for batch in dataloader:
+    for batch in source:
         t_data = time.perf_counter() - t_end
         batch = load_data_to_device(batch, device)
         optimizer.zero_grad(set_to_none=True)
@@ -142,6 +178,10 @@ def train_one_epoch(
             after_step()
         t_end = time.perf_counter()
     bar.close()
+    if state.epoch_it != total:
+        raise RuntimeError(
+            f"the loader ran out after {state.epoch_it} of the epoch's {total} batches"
+        )
     return {k: v / max(state.epoch_it, 1) for k, v in sums.items()}
 
 
@@ -168,6 +208,7 @@ def train_model(
     show_progress: bool = True,
     train_settings: Mapping | None = None,
     ckpt_save_time_interval: float | None = 300.0,
+    merge_all_iters_to_one_epoch: bool = False,
 ) -> TrainState:
     """Train from where ``state`` stands to ``total_epochs``; saves ``checkpoint_epoch_N.pth``
     every ``ckpt_save_interval`` epochs (and at the end), keeping the newest
@@ -176,10 +217,28 @@ def train_model(
     None: never), inside an epoch or at the end of one that writes no epoch checkpoint; an epoch
     checkpoint supersedes it (it is removed). It never records an epoch's last batch as
     pending: a resume always starts inside an epoch or at its beginning. ``train_settings`` (the
-    optimization settings in effect) is stored in each checkpoint."""
+    settings in effect, :func:`~pcdet_atlas.train_utils.checkpoint.resume_settings`) is stored in
+    each checkpoint. ``merge_all_iters_to_one_epoch``: the loader's dataset is merged to
+    ``total_epochs`` passes (``build_dataloader(merge_all_iters_to_one_epoch=True,
+    total_epochs=...)``) and the epochs share one pass over it (module docstring)."""
     rank, _ = get_dist_info()
     ckpt_dir = Path(ckpt_dir)
     last_save = time.monotonic()
+    batches, epoch_batches = None, None
+    if merge_all_iters_to_one_epoch and state.epoch < total_epochs:
+        merged = getattr(dataloader.dataset, "total_epochs", None)
+        if merged != total_epochs:
+            raise ValueError(
+                f"merge_all_iters_to_one_epoch: the loader's dataset is merged to {merged} "
+                f"passes, not total_epochs {total_epochs} (build it with build_dataloader("
+                f"merge_all_iters_to_one_epoch=True, total_epochs={total_epochs}))"
+            )
+        # one pass keyed as epoch 0: the dataset maps index i to pass i // frames as its epoch
+        _set_loader_epoch(dataloader, sampler, seed, 0)
+        epoch_batches = iterations_per_epoch(dataloader, total_epochs, merged=True)
+        done = state.epoch * epoch_batches + state.epoch_it
+        _set_loader_epoch(dataloader, sampler, seed, 0, start_batch=done)
+        batches = iter(dataloader)
 
     def state_dict() -> dict:
         return checkpoint_state(
@@ -201,12 +260,13 @@ def train_model(
         disable=not show_progress or rank != 0,
     )  # fmt: skip
     for epoch in epochs:
-        _set_loader_epoch(dataloader, sampler, seed, epoch, start_batch=state.epoch_it)
+        if batches is None:
+            _set_loader_epoch(dataloader, sampler, seed, epoch, start_batch=state.epoch_it)
         means = train_one_epoch(
             model, optimizer, scheduler, dataloader, state=state, device=device,
             grad_norm_clip=grad_norm_clip, scaler=scaler, use_amp=use_amp, tb_log=tb_log,
             logger=logger, logger_iter_interval=logger_iter_interval, show_progress=show_progress,
-            after_step=save_latest,
+            after_step=save_latest, batches=batches, epoch_batches=epoch_batches,
         )  # fmt: skip
         state.epoch = epoch + 1
         state.epoch_it, state.epoch_loss_sums = 0, {}

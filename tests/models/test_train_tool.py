@@ -287,3 +287,177 @@ def test_resume_point_is_the_most_advanced_checkpoint(tmp_path):
     (tmp_path / "checkpoint_epoch_2.pth").unlink()
     (tmp_path / "checkpoint_epoch_1.pth").unlink()
     assert find_resume_checkpoint(tmp_path) == latest
+
+
+@pytest.mark.slow
+def test_merged_epochs_train_as_many_steps_as_plain_epochs_and_resume_exactly(
+    synthetic_root, tmp_path, monkeypatch
+):
+    """--merge_all_iters_to_one_epoch (OpenPCDet's semantics): the dataset is 2 passes long and
+    each of the 2 epochs takes half of one shuffled pass over it, so the run trains the 4 steps
+    of 2 plain epochs (4 frames, batch 2), each frame once per pass; a run killed mid-epoch 2
+    goes on in the same pass to the same weights."""
+    from pcdet_atlas.train_utils import trainer
+
+    merge = "--merge_all_iters_to_one_epoch"
+    out = tmp_path / "output"
+    to_device = trainer.load_data_to_device
+    frames = []
+
+    def record(batch, device):
+        frames.extend(batch["frame_id"])
+        return to_device(batch, device)
+
+    monkeypatch.setattr(trainer, "load_data_to_device", record)
+    full = load_tool("train").main([merge, *train_args(synthetic_root, out, 2, "full")])
+    monkeypatch.undo()
+    assert (full["state"].epoch, full["state"].it) == (2, 4)  # as 2 plain epochs
+    assert len(full["state"].history) == 2
+    assert len(frames) == 8 and all(frames.count(f) == 2 for f in frames)
+    last = torch.load(full["output_dir"] / "ckpt" / "checkpoint_epoch_2.pth", weights_only=False)
+    assert last["scheduler_state"]["total_steps"] == last["scheduler_state"]["last_epoch"] == 4
+    assert last["train_settings"]["merge_all_iters_to_one_epoch"] is True
+
+    # killed while loading its 4th batch: epoch 1 and the first batch of epoch 2 trained
+    ckpt_dir, latest, resumed = kill_and_resume(
+        monkeypatch, synthetic_root, out, "killed", 4, merge
+    )  # fmt: skip
+    assert (latest["epoch"], latest["it"], latest["epoch_it"]) == (1, 3, 1)
+    state = resumed["state"]
+    assert (state.epoch, state.it, state.epoch_it) == (2, 4, 0)
+    assert state.history == [full["state"].history[-1]]
+    assert_same_training(
+        full["output_dir"] / "ckpt" / "checkpoint_epoch_2.pth", ckpt_dir / "checkpoint_epoch_2.pth"
+    )
+    # a merged checkpoint does not resume as a plain run (same step count, another data order)
+    with pytest.raises(ValueError, match=r"merge_all_iters_to_one_epoch: True -> False"):
+        load_tool("train").main(train_args(synthetic_root, out, 2, "killed"))
+
+
+def test_resume_with_another_seed_process_setup_or_config_is_refused_before_loading(
+    synthetic_root, tmp_path
+):
+    """The seed, --use_amp and the merged DATA_CONFIG / MODEL are part of what a checkpoint
+    records: another value is refused naming the setting, both values and the checkpoint, before
+    any state is loaded (a MODEL with other shapes does not get as far as the weights)."""
+    train = load_tool("train")
+    run_dir = train.main(one_step_args(synthetic_root, tmp_path, "run"))["output_dir"]
+    ckpt = run_dir / "ckpt" / "checkpoint_epoch_1.pth"
+    settings = torch.load(ckpt, weights_only=False)["train_settings"]
+    assert settings["seed"] == 666 and settings["processes"] == 1
+    assert settings["use_amp"] is False and settings["sync_bn"] is False
+    assert set(settings["config_sha256"]) == {"CLASS_NAMES", "DATA_CONFIG", "MODEL"}
+
+    with pytest.raises(ValueError, match=r"seed: 666 -> 7") as exc:
+        train.main(["--seed", "7", *one_step_args(synthetic_root, tmp_path, "run")])
+    assert str(ckpt) in str(exc.value)
+    with pytest.raises(ValueError, match=r"use_amp: False -> True"):
+        train.main(["--use_amp", *one_step_args(synthetic_root, tmp_path, "run")])
+    with pytest.raises(ValueError, match=r"config_sha256\.DATA_CONFIG: '[0-9a-f]{64}' -> '"):
+        train.main(one_step_args(synthetic_root, tmp_path, "run",
+                                 "DATA_CONFIG.FILTER_EMPTY_BOXES_FOR_TRAIN", "False"))  # fmt: skip
+    with pytest.raises(ValueError, match=r"config_sha256\.MODEL: ") as exc:
+        train.main(one_step_args(synthetic_root, tmp_path, "run",
+                                 "MODEL.BACKBONE_2D.NUM_FILTERS", "32,64,96"))  # fmt: skip
+    assert "DATA_CONFIG" not in str(exc.value)
+    # the dataset's folder is not part of it: a moved dataset resumes (here: a finished run)
+    moved = tmp_path / "moved_data"
+    shutil.copytree(synthetic_root, moved)
+    again = train.main(one_step_args(moved, tmp_path, "run"))
+    assert (again["state"].epoch, again["state"].it) == (1, 1)
+
+
+def strip_to_old_format(path):
+    """Rewrite ``path`` as a checkpoint of the code before the seed, process count, AMP, SyncBN,
+    merge flag, config digests and CUDA generator states were recorded."""
+    ckpt = torch.load(path, weights_only=False)
+    settings = ckpt["train_settings"]
+    ckpt["train_settings"] = {k: settings[k] for k in ("OPTIMIZATION", "batch_size")}
+    del ckpt["cuda_rng_state"]
+    torch.save(ckpt, path)
+
+
+@pytest.mark.slow
+def test_checkpoint_without_the_newer_settings_resumes_bit_exactly(synthetic_root, tmp_path):
+    """What an older checkpoint does not record is not compared: it resumes (even with another
+    --seed, which it cannot know) and, with the same arguments, ends as the uninterrupted run."""
+    train = load_tool("train")
+    out = tmp_path / "output"
+    args = one_step_args(synthetic_root, out, "full")
+    args[args.index("--epochs") + 1] = "2"
+    full = train.main(args)
+    old_dir = out / "atlas" / "synthetic" / "centerpoint" / "old" / "ckpt"
+    old_dir.mkdir(parents=True)
+    shutil.copy(full["output_dir"] / "ckpt" / "checkpoint_epoch_1.pth", old_dir)
+    strip_to_old_format(old_dir / "checkpoint_epoch_1.pth")
+    args[args.index("--extra_tag") + 1] = "old"
+    resumed = train.main(args)
+    assert (resumed["state"].epoch, resumed["state"].it) == (2, 2)
+    assert len(resumed["state"].history) == 1
+    assert_same_training(
+        full["output_dir"] / "ckpt" / "checkpoint_epoch_2.pth", old_dir / "checkpoint_epoch_2.pth"
+    )
+    written = torch.load(old_dir / "checkpoint_epoch_2.pth", weights_only=False)
+    assert written["train_settings"]["seed"] == 666  # what it writes from now on records them
+
+
+@pytest.mark.parametrize(
+    "key, value, expected",
+    [("GRAD_NORM_CLIP", "-1", "a number > 0"), ("PCT_START", "1.0", "between 0 and 1"),
+     ("PCT_START", "0.0", "between 0 and 1"), ("MOMS", "0.95", "two numbers in \\[0, 1\\)"),
+     ("MOMS", "0.95,1.5", "two numbers in \\[0, 1\\)"), ("DIV_FACTOR", "0", "a number > 0"),
+     ("OPTIMIZER", "adamw", "one of adam_onecycle")],
+)  # fmt: skip
+def test_bad_optimization_values_are_config_errors_before_anything_is_written(
+    synthetic_root, tmp_path, key, value, expected
+):
+    from pcdet_atlas.config import ConfigError
+
+    train = load_tool("train")
+    args = one_step_args(synthetic_root, tmp_path, "bad", f"OPTIMIZATION.{key}", value)
+    with pytest.raises(ConfigError, match=rf"OPTIMIZATION\.{key} = .* \(from --set\)") as exc:
+        train.main(args)
+    assert expected.replace("\\", "") in str(exc.value)
+    assert not (tmp_path / "atlas").exists()
+
+
+def test_missing_grad_norm_clip_names_the_key_and_the_file(synthetic_root, tmp_path):
+    from pcdet_atlas.config import ConfigError, save_config
+
+    cfg = cfg_from_yaml_file(CFG)
+    del cfg.OPTIMIZATION["GRAD_NORM_CLIP"]
+    cfg_file = save_config(cfg, tmp_path / "no_clip.yaml")
+    args = one_step_args(synthetic_root, tmp_path / "out", "bad")
+    args[args.index("--cfg") + 1] = str(cfg_file)
+    with pytest.raises(
+        ConfigError, match=r"missing required key OPTIMIZATION\.GRAD_NORM_CLIP"
+    ) as e:
+        load_tool("train").main(args)
+    assert str(cfg_file) in str(e.value)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("flag", ["--ckpt", "--pretrained_model"])
+def test_missing_checkpoint_file_is_an_error_before_the_model_is_built(
+    synthetic_root, tmp_path, monkeypatch, flag
+):
+    train = load_tool("train")
+
+    def never(*args, **kwargs):
+        raise AssertionError("built before the checkpoint was checked")
+
+    monkeypatch.setattr(train, "build_dataloader", never)
+    monkeypatch.setattr(train, "build_network_from_config", never)
+    missing = tmp_path / "nope.pth"
+    with pytest.raises(FileNotFoundError, match=f"{flag} {missing}: no such checkpoint file"):
+        train.main([flag, str(missing), *one_step_args(synthetic_root, tmp_path, "x")])
+    assert not (tmp_path / "atlas").exists()
+
+
+def test_every_shipped_training_config_passes_the_optimization_checks():
+    from pcdet_atlas.models.optimization import check_optimization_config
+
+    configs = sorted((REPO_ROOT / "cfgs" / "atlas").rglob("*.yaml"))
+    assert len(configs) > 10
+    for path in configs:
+        check_optimization_config(cfg_from_yaml_file(path).OPTIMIZATION)
