@@ -44,7 +44,11 @@ from pathlib import Path
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, repo_relative
 from pcdet_atlas.evaluation.results import collect_results, write_report
 from pcdet_atlas.models.detectors.two_stage import file_sha256
-from pcdet_atlas.train_utils.atlas_eval import resolve_variants
+from pcdet_atlas.train_utils.atlas_eval import (
+    attack_sha256,
+    build_variant_attacks,
+    resolve_variants,
+)
 from pcdet_atlas.train_utils.setup import load_cfg
 from pcdet_atlas.utils.common import load_tool
 
@@ -130,12 +134,15 @@ def evaluation_of(cfg: Path, args, root: Path) -> tuple[Path, set[str], set[str]
     model_cfg = load_cfg(str(REPO_ROOT / cfg), ["DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs])
     output_root = args.output_root or str(REPO_ROOT / "output")
     ckpt = test.resolve_checkpoint(None, model_cfg.get("ATLAS", {}))
-    wanted = {name for name, _ in resolve_variants(args.attacks, model_cfg.get("ATLAS", {}))}
+    variants = resolve_variants(args.attacks, model_cfg.get("ATLAS", {}))
+    wanted = {name for name, _ in variants}
+    attacks = build_variant_attacks(variants, root)
+    requested = {name: attack_sha256(path, attacks[name]) for name, path in variants}
     out_dir = test.eval_dir(model_cfg, output_root, TAG, ckpt, TAG)
     try:  # the setting tools/test.py gets from test_argv: one process, batch size 1
         finished = set(
             test.finished_variants(
-                out_dir, model_cfg, file_sha256(ckpt), wanted, batch_size=1, world=1
+                out_dir, model_cfg, file_sha256(ckpt), requested, batch_size=1, world=1
             )
         )
     except ValueError:

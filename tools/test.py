@@ -24,31 +24,36 @@ checkpoint and the evaluation directories are checked before anything is written
 directory that already holds files is an error unless ``--overwrite`` is given, which deletes it
 first, or ``--resume``, which keeps the requested variants an earlier call finished there (its
 ``results.json`` entry and ``<variant>/result.pkl``) and evaluates the others, provided that call
-had the same merged config, checkpoint (SHA-256), batch size and process count; the results are
-those of one uninterrupted call.
+had the same merged config, checkpoint (SHA-256), batch size and process count. A finished
+variant is evaluated again when its merged attack config or trace library changed since
+(``extra.attack_sha256`` of its entry; an entry without it too), or when it was evaluated without
+the clean predictions that this call has (``extra.clean_predictions``); the results are those of
+one uninterrupted call.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import pickle
 import shutil
+from collections.abc import Mapping
 from pathlib import Path
 
 import torch.distributed as torch_dist
 import yaml
 
 from pcdet_atlas.config import REPO_ROOT, ConfigError, save_config, to_plain
-from pcdet_atlas.evaluation import build_results, format_table, save_results
+from pcdet_atlas.evaluation import build_results, format_table, load_results, save_results
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.train_utils.atlas_eval import (
+    attack_sha256,
     build_variant_attacks,
     check_test_split,
     evaluate_variant,
     resolve_variants,
+    save_pickle,
 )
 from pcdet_atlas.train_utils.checkpoint import CHECKPOINT_NAME, list_epoch_checkpoints
 from pcdet_atlas.train_utils.setup import (
@@ -90,7 +95,8 @@ def parse_args(argv=None):
     parser.add_argument(
         "--resume", action="store_true", default=False,
         help="keep the requested variants an earlier call with the same config, checkpoint, "
-        "batch size and processes finished in the evaluation directory; evaluate the rest",
+        "batch size and processes finished in the evaluation directory (with the same attack "
+        "config); evaluate the rest",
     )  # fmt: skip
     parser.add_argument(
         "--no_reuse", action="store_true", default=False,
@@ -165,16 +171,31 @@ def check_eval_dir(out_dir: Path, overwrite: bool) -> None:
 
 
 def finished_variants(
-    out_dir: Path, cfg, ckpt_sha256: str, requested, *, batch_size: int, world: int
+    out_dir: Path,
+    cfg,
+    ckpt_sha256: str,
+    requested: Mapping[str, str],
+    *,
+    batch_size: int,
+    world: int,
+    again: dict[str, str] | None = None,
 ) -> dict[str, dict]:
     """``--resume``: the ``results.json`` entries of the requested variants an earlier call
-    finished in ``out_dir`` (entry and ``<variant>/result.pkl`` both there). That call must have
-    had the same merged config, checkpoint bytes, batch size and process count, or this is an
-    error naming what differs."""
+    finished in ``out_dir`` that this call keeps. That call must have had the same merged config,
+    checkpoint bytes, batch size and process count, or this is an error naming what differs.
+
+    ``requested``: ``{variant: attack_sha256}`` of this call. A finished variant (entry and
+    ``<variant>/result.pkl`` both there) is kept unless its entry's ``extra.attack_sha256``
+    differs (or is missing), or it is an attack variant evaluated without the clean predictions
+    while this call evaluates ``clean``, or it is ``clean`` and a process's
+    ``clean/proposals_rank<r>.pkl`` is missing where another's is there: each of those is
+    evaluated again, as one uninterrupted call would; ``again`` (if given) receives
+    ``{variant: reason}`` of those.
+    """
     path = out_dir / "results.json"
     if not path.is_file():
         return {}
-    earlier = json.loads(path.read_text())
+    earlier = load_results(path)
     extra = earlier.get("extra", {})
     config_file = out_dir / f"{cfg.TAG}.yaml"
     now = {"checkpoint_sha256": ckpt_sha256, "batch_size": batch_size, "processes": world}
@@ -189,8 +210,35 @@ def finished_variants(
             f"--resume: {path} was written by a call with another setting: {'; '.join(differs)}; "
             "pass --overwrite to evaluate again, or another --eval_tag / --extra_tag"
         )
-    return {name: entry for name, entry in earlier["variants"].items()
-            if name in requested and (out_dir / name / "result.pkl").is_file()}  # fmt: skip
+    kept = {}
+    again = {} if again is None else again
+    for name, entry in earlier["variants"].items():
+        if name not in requested or not (out_dir / name / "result.pkl").is_file():
+            continue
+        recorded = entry.get("extra", {})
+        if "attack_sha256" not in recorded:
+            again[name] = "its entry has no extra.attack_sha256 (written by an older version)"
+        elif recorded["attack_sha256"] != requested[name]:
+            again[name] = (
+                "its attack config or trace library changed (attack_sha256 "
+                f"{recorded['attack_sha256']}, now {requested[name]})"
+            )
+        elif name != "clean" and "clean" in requested and not recorded.get("clean_predictions"):
+            again[name] = "it was evaluated without the clean predictions this call has"
+        elif name == "clean" and (missing := missing_proposal_parts(out_dir / name, world)):
+            again[name] = f"{missing[0]} is missing (the clean proposals of its process)"
+        else:
+            kept[name] = entry
+    return kept
+
+
+def missing_proposal_parts(variant_dir: Path, world: int) -> list[Path]:
+    """The ``proposals_rank<r>.pkl`` files of ``world`` processes that are missing beside
+    another process's (none when no process wrote one: a model without a proposal bank)."""
+    parts = [variant_dir / f"proposals_rank{rank}.pkl" for rank in range(world)]
+    if not any(part.is_file() for part in parts):
+        return []
+    return [part for part in parts if not part.is_file()]
 
 
 def main(argv=None) -> dict:
@@ -204,6 +252,7 @@ def main(argv=None) -> dict:
     logger = create_logger(rank=rank)
     data_root = check_test_split(cfg.DATA_CONFIG, cfg.CLASS_NAMES, logger)
     attacks = build_variant_attacks(variants, data_root)
+    fingerprints = {name: attack_sha256(path, attacks[name]) for name, path in variants}
     batch_size = args.batch_size or world
     if batch_size % world:
         raise ValueError(f"--batch_size {batch_size} is not divisible by {world} processes")
@@ -211,13 +260,15 @@ def main(argv=None) -> dict:
     out_dirs = [eval_dir(cfg, args.output_root, args.extra_tag, ckpt, args.eval_tag)
                 for ckpt in checkpoints]  # fmt: skip
     ckpt_sha256 = {ckpt: file_sha256(ckpt) for ckpt in checkpoints}
-    finished = {}
+    finished, again = {}, {}
     for ckpt, out_dir in zip(checkpoints, out_dirs):
         check_eval_dir(out_dir, args.overwrite or args.resume)
         if args.resume:
+            again[out_dir] = {}
             finished[out_dir] = finished_variants(
-                out_dir, cfg, ckpt_sha256[ckpt], attacks, batch_size=batch_size, world=world
-            )
+                out_dir, cfg, ckpt_sha256[ckpt], fingerprints, batch_size=batch_size, world=world,
+                again=again[out_dir],
+            )  # fmt: skip
     if dist:  # every rank has checked before rank 0 writes
         torch_dist.barrier()
     model = build_network_from_config(cfg)
@@ -234,11 +285,14 @@ def main(argv=None) -> dict:
         logger = create_logger(log_file, rank=rank)
         logger.info(f"{args.cfg_file}  checkpoint {ckpt}  variants {[v for v, _ in variants]}")
         logger.info(f"processes: {world}  device: {device}  batch: {batch_size}  output: {out_dir}")
+        for variant, reason in again.get(out_dir, {}).items():
+            logger.info(f"{variant}: finished by an earlier call, evaluated again: {reason}")
         runs.append(
             evaluate_checkpoint(
                 model, ckpt, out_dir, args, cfg, attacks, dist=dist, rank=rank, world=world,
                 device=device, batch_size=batch_size, logger=logger,
                 finished=finished.get(out_dir, {}), ckpt_sha256=ckpt_sha256[ckpt],
+                fingerprints=fingerprints,
             )
         )  # fmt: skip
     if rank != 0:
@@ -248,10 +302,11 @@ def main(argv=None) -> dict:
 
 def evaluate_checkpoint(
     model, ckpt, out_dir, args, cfg, attacks, *, dist, rank, world, device, batch_size, logger,
-    finished, ckpt_sha256
+    finished, ckpt_sha256, fingerprints
 ) -> dict:  # fmt: skip
     """Every variant of one checkpoint; ``results.json`` is rewritten after each variant.
-    ``finished``: the entries of the variants an earlier call finished (``--resume``), kept."""
+    ``finished``: the entries of the variants an earlier call finished (``--resume``), kept.
+    ``fingerprints``: ``{variant: attack_sha256}``, recorded in each new entry's ``extra``."""
     atlas_cfg = cfg.get("ATLAS", {})
     entries: dict = {}
     clean_annos = None
@@ -263,7 +318,8 @@ def evaluate_checkpoint(
             if variant == "clean":  # its predictions are reused, its proposals seed (below)
                 with open(out_dir / variant / "result.pkl", "rb") as f:
                     clean_annos = pickle.load(f)
-                for part in sorted((out_dir / variant).glob("proposals_rank*.pkl")):
+                part = out_dir / variant / f"proposals_rank{rank}.pkl"  # this process's frames
+                if part.is_file():
                     with open(part, "rb") as f:
                         clean_proposals.update(pickle.load(f))
             logger.info(f"{variant}: kept from an earlier call (--resume)")
@@ -279,9 +335,10 @@ def evaluate_checkpoint(
             if variant == "clean":
                 clean_annos = det_annos
                 if clean_proposals:  # each rank's part, for a later --resume
-                    (out_dir / variant).mkdir(parents=True, exist_ok=True)
-                    with open(out_dir / variant / f"proposals_rank{rank}.pkl", "wb") as f:
-                        pickle.dump(clean_proposals, f)
+                    save_pickle(clean_proposals, out_dir / variant / f"proposals_rank{rank}.pkl")
+            if rank == 0:
+                entry = {**entry, "extra": {**entry.get("extra", {}),
+                                            "attack_sha256": fingerprints[variant]}}  # fmt: skip
         if rank != 0:
             continue
         entries[variant] = entry

@@ -7,11 +7,14 @@ carries its attack record); predictions of all processes are gathered in dataset
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import json
 import logging
+import os
 import pickle
 import time
 from collections.abc import Mapping, Sequence
-from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -26,18 +29,24 @@ from pcdet_atlas.config import (
     cfg_from_yaml_file,
     check_known_keys,
     key_source,
+    to_plain,
 )
 from pcdet_atlas.datasets.loader import ContiguousBatchSampler, worker_init_fn
 from pcdet_atlas.datasets.multiframe import SequenceConfig
 from pcdet_atlas.evaluation import build_variant_result, evaluate_attack
+from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.registry import DATASETS
 from pcdet_atlas.train_utils.dist import get_dist_info, unwrap_model
 from pcdet_atlas.train_utils.eval_utils import predict_dataset, write_prediction_files
+from pcdet_atlas.train_utils.proposal_bank import frame_batches
 
 __all__ = [
     "ATLAS_KEYS",
     "resolve_variants",
     "build_variant_attacks",
+    "attack_sha256",
+    "loader_batches",
+    "save_pickle",
     "check_test_split",
     "build_attack_loader",
     "evaluate_variant",
@@ -119,6 +128,30 @@ def build_variant_attacks(
     return attacks
 
 
+def attack_sha256(path: str | Path, attack: BaseAttack) -> str:
+    """Hex SHA-256 of what a variant's predictions depend on besides the model and the data: its
+    merged attack config (the YAML at ``path`` with its ``_BASE_CONFIG_`` chain) and, for an
+    attack reading a trace library from a file (``attack.library_path``), that file's bytes."""
+    merged = json.dumps(to_plain(cfg_from_yaml_file(path)), sort_keys=True)
+    digest = hashlib.sha256(merged.encode())
+    library = getattr(attack, "library_path", None)
+    if library is not None:
+        digest.update(f"\ntrace library {file_sha256(library)}".encode())
+    return digest.hexdigest()
+
+
+def save_pickle(obj, path: str | Path) -> Path:
+    """Pickle ``obj`` to ``path`` atomically (a temporary file renamed into place), so that an
+    interrupted write never leaves a truncated file for ``--resume`` to read."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        pickle.dump(obj, f)
+    os.replace(tmp, path)
+    return path
+
+
 def input_reach(model: torch.nn.Module, data_cfg: Mapping) -> int:
     """How many frames before the current one a prediction of ``model`` on data of ``data_cfg``
     reads: the point history of a multi-frame input (``SEQUENCE_CONFIG``), plus, for a model
@@ -157,6 +190,16 @@ def input_attacked(dataset, sequence_name: str, sample_idx: int, reach: int) -> 
     )
 
 
+def loader_batches(num_samples: int, batch_size: int, world_size: int) -> list[list[int]]:
+    """The batches (dataset indices) that :func:`build_attack_loader` deals to all
+    ``world_size`` processes in a full run, in index order; they do not depend on the workers."""
+    return [
+        batch
+        for rank in range(world_size)
+        for batch in ContiguousBatchSampler(num_samples, batch_size, 0, rank, world_size).batches
+    ]
+
+
 def build_attack_loader(
     data_cfg: Mapping,
     class_names: Sequence[str],
@@ -190,7 +233,7 @@ def build_attack_loader(
     loader = DataLoader(
         dataset, batch_sampler=batch_sampler, num_workers=workers,
         collate_fn=dataset.collate_batch, pin_memory=torch.cuda.is_available(),
-        worker_init_fn=partial(worker_init_fn, seed=seed),
+        worker_init_fn=functools.partial(worker_init_fn, seed=seed),
     )  # fmt: skip
     return dataset, loader
 
@@ -225,12 +268,15 @@ def evaluate_variant(
     the result is bitwise that of a full run (docs/evaluation.md "Reusing clean predictions").
     The entry's ``num_reused_frames`` / ``num_recomputed_frames`` count both kinds.
     ``clean_proposals`` (a dict; models with a proposal history, PTT): the clean variant fills it
-    with the frames its proposal bank proposed alone, and a reusing run of another variant seeds
-    its bank with those whose RPN input the attack leaves untouched, so that only the frames it
-    changes go through the RPN again (:class:`ProposalBank`; still bitwise a full run).
+    with the frames its proposal bank holds at the end, and a reusing run of another variant
+    seeds its bank with those whose whole RPN batch (the frames the bank proposes together,
+    :func:`~pcdet_atlas.train_utils.proposal_bank.frame_batches`) has RPN inputs the attack
+    leaves untouched, so that only the other frames go through the RPN again
+    (:class:`ProposalBank`; still bitwise a full run).
 
     Returns:
-        ``(entry, det_annos)``: the ``results.json`` variant entry (None on ranks > 0) and the
+        ``(entry, det_annos)``: the ``results.json`` variant entry (None on ranks > 0; its
+        ``extra.clean_predictions`` says whether ``clean_det_annos`` were given) and the
         detections (every rank). ``out_dir/result.pkl`` holds the detections with each frame's
         ``attack`` record (rank 0); with ``save_to_file`` also one text file per frame in
         ``out_dir/final_result/data/`` (:func:`write_prediction_files`).
@@ -242,21 +288,25 @@ def evaluate_variant(
         data_cfg, class_names, attack, batch_size=batch_size, dist=dist, workers=workers,
         seed=seed, logger=logger, reuse_reach=reach,
     )  # fmt: skip
+    world = torch_dist.get_world_size() if dist else 1
+    batches = loader_batches(len(dataset), batch_size, world)
     proposal_seed = proposals_out = None
     if clean_proposals is not None and dataset.attack.family == "clean":
         proposals_out = clean_proposals
     elif clean_proposals and reuse:
         rpn_reach = point_history(data_cfg)  # the RPN reads the sample's points only
+        attacked = functools.cache(lambda seq, idx: input_attacked(dataset, seq, idx, rpn_reach))
+        batch_of = frame_batches(dataset, batches)  # a frame no batch holds is proposed alone
         proposal_seed = {
             frame: rows for frame, rows in clean_proposals.items()
-            if not input_attacked(dataset, *frame, rpn_reach)
+            if not any(attacked(*member) for member in batch_of.get(frame, (frame,)))
         }  # fmt: skip
     timings: dict = {}
     t0 = time.perf_counter()
     det_annos, extras = predict_dataset(
         model, loader, device=device, desc=variant, show_progress=show_progress, timings=timings,
         reuse=clean_det_annos if reuse else None, proposal_seed=proposal_seed,
-        proposals_out=proposals_out,
+        proposals_out=proposals_out, proposal_batches=batches,
     )  # fmt: skip
     timings["predict_wall"] = time.perf_counter() - t0
     bank_stats = timings.pop("bank", None)
@@ -272,7 +322,7 @@ def evaluate_variant(
     has_targets = dataset.attack.SUCCESS_IF_DETECTED is not None  # the attack class decides
     t1 = time.perf_counter()
     ap_dict = None  # a split without labels (Waymo test) gets attack metrics only
-    if dataset.infos and "annos" in dataset.infos[0]:
+    if any("annos" in info for info in dataset.infos):  # an unlabelled frame among them: error
         _, ap_dict = dataset.evaluation(det_annos, class_names, eval_metric="waymo")
     attack_metrics = None
     if has_targets:
@@ -286,12 +336,11 @@ def evaluate_variant(
         class_names=class_names, attack=attack_metrics, rank_group=dataset.attack.RANK_GROUP,
         num_reused_frames=int(reused.sum()),
         extra={"timing_s": {k: round(v, 3) for k, v in timings.items()},
+               "clean_predictions": clean_det_annos is not None,
                **({"proposal_bank": bank_stats} if bank_stats is not None else {})},
     )  # fmt: skip
     if out_dir is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        with open(out_dir / "result.pkl", "wb") as f:
-            pickle.dump(det_annos, f)
+        save_pickle(det_annos, out_dir / "result.pkl")
         if save_to_file:
             write_prediction_files(det_annos, out_dir / "final_result" / "data")
     if logger is not None:

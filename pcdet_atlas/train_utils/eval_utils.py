@@ -31,6 +31,7 @@ def predict_dataset(
     reuse: Sequence[dict] | None = None,
     proposal_seed: Mapping | None = None,
     proposals_out: dict | None = None,
+    proposal_batches: Sequence[Sequence[int]] | None = None,
 ) -> tuple[list[dict], list[dict]]:
     """Run the model over the loader; gather every rank's results in dataset order.
 
@@ -41,8 +42,10 @@ def predict_dataset(
     is clean). A frame neither yielded nor in ``reuse`` is an error.
 
     For a model reading earlier frames' proposals (its :class:`ProposalBank`):
+    ``proposal_batches`` are the loader's batches over all processes (indices into
+    ``dataset.infos``), with which the bank proposes each frame (``ProposalBank(batches=...)``);
     ``proposal_seed`` seeds the bank (:meth:`ProposalBank.seed`), and ``proposals_out``
-    receives the bank's seedable frames at the end (:meth:`ProposalBank.seedable`).
+    receives the bank's frames at the end (:meth:`ProposalBank.seedable`).
 
     Returns:
         ``(det_annos, extras)``: one OpenPCDet anno dict per frame of ``dataloader.dataset``
@@ -59,7 +62,7 @@ def predict_dataset(
     model.eval()
     core = unwrap_model(model)
     bank = (  # models reading earlier frames' proposals: each frame's computed once
-        ProposalBank(core, dataset, device=device)
+        ProposalBank(core, dataset, device=device, batches=proposal_batches)
         if getattr(core, "proposal_history", 0) else None
     )  # fmt: skip
     if bank is not None and proposal_seed:

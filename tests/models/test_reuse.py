@@ -1,8 +1,10 @@
 """Evaluating only what an attack changes: a frame whose whole model input (the frame, its point
 history, PTT's proposal history) the attack leaves untouched takes the clean prediction, and the
 variant's predictions, attack records and metrics are bitwise those of a full run, for a
-single-frame, a 4-frame and a two-stage model with a 31-frame proposal history. Batch
-composition does not change a prediction."""
+single-frame, a 4-frame and a two-stage model with a 31-frame proposal history. A reusing run
+keeps the full run's batches, and PTT's proposal bank proposes every frame with the frames of
+its loader batch, so even an RPN whose output depends on its batch gives the full run's
+detections, with any number of loader workers."""
 
 from __future__ import annotations
 
@@ -26,6 +28,7 @@ from pcdet_atlas.train_utils.atlas_eval import (
     input_reach,
 )
 from pcdet_atlas.train_utils.eval_utils import predict_dataset
+from pcdet_atlas.train_utils.proposal_bank import ProposalBank
 
 CFGS = REPO_ROOT / "cfgs" / "atlas" / "synthetic"
 ATTACKS = REPO_ROOT / "cfgs" / "attacks"
@@ -183,29 +186,139 @@ def test_batch_composition_and_reuse_at_batch_size_3(name, synthetic_root, injec
     assert 0 < reuse_entry["num_reused_frames"] < len(FRAMES) - len(CASES[name])
 
 
+class BatchNamingRPN:
+    """Stands in for a two-stage model: each proposal's box centre x names the frames it was
+    proposed with (their sum) and its position among them (thousands)."""
+
+    proposal_history = 2
+    rpn_info = {"sha256": "0" * 64}
+
+    def __init__(self):
+        self.calls = []
+
+    def propose(self, batch_dict):
+        members = [int(i) for i in batch_dict["sample_idx"]]
+        self.calls.append(members)
+        return [
+            {"pred_boxes": torch.full((1, 9), float(1000 * position + sum(members))),
+             "pred_scores": torch.ones(1), "pred_labels": torch.ones(1)}
+            for position in range(len(members))
+        ]  # fmt: skip
+
+
+class EvenFrames:
+    """Frames 0..9 of one sequence; ``infos`` (what the loader yields) holds the even ones."""
+
+    infos = [{"point_cloud": {"lidar_sequence": "seq", "sample_idx": i}} for i in range(0, 10, 2)]
+
+    def frame_sample(self, sequence_name, sample_idx):
+        return {"sequence_name": sequence_name, "sample_idx": sample_idx}
+
+    @staticmethod
+    def collate_batch(samples):
+        return {
+            "sequence_name": [s["sequence_name"] for s in samples],
+            "sample_idx": np.array([s["sample_idx"] for s in samples]),
+            "batch_size": len(samples),
+        }
+
+
+def test_the_bank_proposes_a_frame_with_its_loader_batch_in_any_order():
+    batches = [[0, 1], [2, 3], [4]]  # infos indices: frames (0, 2), (4, 6), (8,)
+    got = []
+    for order in ([6, 4, 5, 0, 2, 8], [0, 2, 4, 5, 6, 8]):  # a history read first; loader order
+        rpn = BatchNamingRPN()
+        bank = ProposalBank(rpn, EvenFrames(), device=CPU, batches=batches)
+        got.append({idx: bank.frame("seq", idx) for idx in order})
+        assert sorted(rpn.calls) == [[0, 2], [4, 6], [5], [8]]  # 5: no batch holds it, alone
+        assert bank.stats()["rpn_frames"] == 6 and bank.stats()["hits"] == 2
+        assert set(bank.seedable()) == {("seq", i) for i in (0, 2, 4, 5, 6, 8)}
+    for idx, rows in got[0].items():
+        np.testing.assert_array_equal(rows, got[1][idx])
+    assert got[0][6][0, 0] == 1000 + 4 + 6 and got[0][5][0, 0] == 5
+    with pytest.raises(ValueError, match="seedable needs the loader's batches"):
+        ProposalBank(BatchNamingRPN(), EvenFrames(), device=CPU).seedable()
+    with pytest.raises(ValueError, match=r"frame \('seq', 2\) is in two batches"):
+        ProposalBank(BatchNamingRPN(), EvenFrames(), device=CPU, batches=[[0, 1], [1]])
+    with pytest.raises(ValueError, match="index 5 outside the dataset's 5 frames"):
+        ProposalBank(BatchNamingRPN(), EvenFrames(), device=CPU, batches=[[4, 5]])
+
+
+def composition_sensitive_rpn(model, monkeypatch) -> None:
+    """Make the model's RPN depend on its batch on purpose: each sample's proposals move (scores
+    shrink, boxes shift along x) by an amount set by the frames it is proposed with and its
+    position among them, so a frame proposed in another batch than a full run proposes it in
+    changes the detections, as the current frame or as history (the real CPU RPN differs only at
+    float32 rounding, and on the fixture not at all)."""
+    real = model.propose
+
+    def propose(batch_dict):
+        out = real(batch_dict)
+        members = [int(i) for i in batch_dict["sample_idx"]]
+        for position, proposal in enumerate(out):
+            nudge = 1e-4 * (len(members) - 1 + position) + 1e-6 * (sum(members) % 97)
+            proposal["pred_scores"] = proposal["pred_scores"] * (1.0 - nudge)
+            proposal["pred_boxes"] = proposal["pred_boxes"].clone()
+            proposal["pred_boxes"][:, 0] += 100 * nudge  # metres
+        return out
+
+    monkeypatch.setattr(model, "propose", propose)
+
+
 @pytest.mark.slow
-def test_ptt_seeded_bank_at_batch_size_3(synthetic_root, injection):
-    """PTT at batch size 3: a reusing run whose proposal bank starts from the clean run's
-    (frames whose RPN input the attack leaves untouched, proposed alone) is bitwise a full run.
-    The clean run proposed the loader's frames (0, 5, ..) in batches of 3: they are not seeded,
-    and the batch that straddles the run start (30, 35, 40) goes through the RPN whole."""
+def test_ptt_seeded_bank_at_batch_size_3(synthetic_root, injection, monkeypatch):
+    """PTT at batch size 3, with an RPN whose output depends on its batch: a reusing run whose
+    proposal bank starts from the clean run's is bitwise a full run. Every frame is proposed
+    with the frames of its loader batch (a frame no batch holds, alone), wherever it is read
+    first; a frame is seeded when its whole batch has a clean RPN input."""
     model, cfg = setup_model("ptt_32f", synthetic_root)
+    composition_sensitive_rpn(model, monkeypatch)
     proposals = {}
     _, clean = run(model, cfg, ATTACKS / "clean.yaml", None, reuse=False, batch_size=3,
                    proposals=proposals)  # fmt: skip
     full_entry, reuse_entry = check_variant(model, cfg, injection, clean, proposals, batch_size=3)
     bank = reuse_entry["extra"]["proposal_bank"]
     assert full_entry["extra"]["proposal_bank"]["rpn_frames"] == 66
-    # seeded: the history frames 1..31 that are not loader frames (25); through the RPN: 32..65
-    # and the loader frames 0, 5, .., 30 (7)
-    assert bank["seeded"] == 25 and bank["rpn_frames"] == 34 + 7
+    # seeded: frames 0..31 but 30, whose batch (30, 35, 40) has attacked RPN inputs; through
+    # the RPN, each once: 30 (with 35 and 40) and 32..65
+    assert bank["seeded"] == 31 and bank["rpn_frames"] == 1 + 34
+
+
+@pytest.mark.slow
+def test_ptt_predictions_do_not_depend_on_the_workers(synthetic_root, injection, monkeypatch):
+    """With loader workers the batches arrive interleaved (worker k reads the k-th contiguous
+    chunk), so a worker's first batch reads history that another worker's batches hold: those
+    frames are still proposed with their own batch, and the detections of a full and of a
+    reusing run equal those of one worker bitwise, with an RPN whose output depends on its
+    batch."""
+    model, cfg = setup_model("ptt_32f", synthetic_root)
+    composition_sensitive_rpn(model, monkeypatch)
+
+    def predict(attack, clean, *, reuse, workers, proposals=None):
+        variant = attack.stem if hasattr(attack, "stem") else attack.VARIANT
+        return evaluate_variant(
+            model, variant, attack, data_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES,
+            device=CPU, batch_size=3, dist=False, workers=workers, seed=0,
+            temporal_window=cfg.ATLAS.get("TEMPORAL_WINDOW"), clean_det_annos=clean,
+            out_dir=None, show_progress=False, reuse_clean=reuse, clean_proposals=proposals,
+        )  # fmt: skip
+
+    proposals = {}
+    _, clean = predict(ATTACKS / "clean.yaml", None, reuse=False, workers=2, proposals=proposals)
+    _, clean_one = predict(ATTACKS / "clean.yaml", None, reuse=False, workers=0)
+    assert_annos_equal(clean, clean_one)
+    full_entry, full = predict(injection, clean_one, reuse=False, workers=0)
+    reuse_entry, reused = predict(injection, clean, reuse=True, workers=2, proposals=proposals)
+    assert_annos_equal(reused, full)
+    assert strip(reuse_entry) == strip(full_entry)
 
 
 @pytest.mark.slow
 def test_ptt_resume_seeds_from_the_saved_clean_bank(synthetic_root, injection, tmp_path):
     """``tools/test.py --resume`` on PTT: the clean variant's proposals, saved beside its
     ``result.pkl``, seed the bank of the injection variant evaluated by a later call, as in one
-    uninterrupted call (same frames through the RPN, bitwise the same detections)."""
+    uninterrupted call (same frames through the RPN, bitwise the same detections); a process
+    reads its own part only."""
     test = load_tool("test")
     variant = tmp_path / "inj_global_hard.yaml"
     variant.write_text(
@@ -221,7 +334,11 @@ def test_ptt_resume_seeds_from_the_saved_clean_bank(synthetic_root, injection, t
     ]  # fmt: skip
     whole = test.main(args)
     eval_dir = whole["output_dir"]
-    assert (eval_dir / "clean" / "proposals_rank0.pkl").is_file()
+    saved = pickle.loads((eval_dir / "clean" / "proposals_rank0.pkl").read_bytes())
+    # another process's part (proposals 5 m off): this one-process call must not read it
+    (eval_dir / "clean" / "proposals_rank1.pkl").write_bytes(pickle.dumps({
+        frame: rows + np.float32(5.0) for frame, rows in saved.items()
+    }))  # fmt: skip
     want = whole["results"]["variants"]["inj_global_hard"]
     want_pkl = (eval_dir / "inj_global_hard" / "result.pkl").read_bytes()
     # as if the call had stopped after the clean variant

@@ -7,9 +7,11 @@ import copy
 import json
 import os
 import pickle
+import re
 import socket
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -17,9 +19,11 @@ from model_batches import assert_annos_equal, load_tool
 
 from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
-from pcdet_atlas.evaluation import load_results
+from pcdet_atlas.evaluation import load_results, save_results
+from pcdet_atlas.evaluation.results import ResultsError
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.detectors.detector3d_template import CheckpointMismatchError
+from pcdet_atlas.train_utils.atlas_eval import attack_sha256, build_variant_attacks
 
 CFG = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml"
 ATTACKS = REPO_ROOT / "cfgs" / "attacks"
@@ -242,6 +246,93 @@ def test_resume_goes_on_from_the_last_finished_variant(eval_setup, tmp_path, mon
     with pytest.raises(SystemExit):
         test.main(with_flags(args, "--resume", "--overwrite"))
     assert called == []
+
+
+def test_resume_evaluates_again_what_changed(eval_setup, tmp_path, monkeypatch):
+    """``--resume`` keeps a finished variant only where one uninterrupted call gives the same
+    entry: a removal variant evaluated without the clean predictions this call has (its
+    confidence needs them), a variant whose attack YAML changed and an entry without
+    ``attack_sha256`` (an older file) are evaluated again."""
+    test = load_tool("test")
+    whole = test.main(with_attacks(tool_args(eval_setup, tmp_path, "whole"), "clean,rem_30"))
+    args = with_attacks(tool_args(eval_setup, tmp_path, "parts"), "rem_30")
+    eval_dir = tmp_path / "atlas/synthetic/centerpoint/parts/eval/random/val/default"
+    alone = test.main(args)["results"]["variants"]["rem_30"]
+    assert alone["confidence"] is None and alone["extra"]["clean_predictions"] is False
+    real, called = test.evaluate_variant, []
+    monkeypatch.setattr(
+        test, "evaluate_variant", lambda model, variant, *a, **kw: (
+            called.append(variant) or real(model, variant, *a, **kw)
+        ),
+    )  # fmt: skip
+    ret = test.main(with_flags(with_attacks(args, "clean,rem_30"), "--resume"))
+    assert called == ["clean", "rem_30"]
+    assert ret["results"]["variants"]["rem_30"]["confidence"] is not None
+    assert strip_runtime(ret["results"]) == strip_runtime(whole["results"])
+    called.clear()
+    test.main(with_flags(with_attacks(args, "clean,rem_30"), "--resume"))
+    assert called == []
+
+    variant = tmp_path / "rem_30.yaml"  # the same attack, then another budget
+    variant.write_text(f"_BASE_CONFIG_: {ATTACKS / 'rem_30.yaml'}\n")
+    resumed = with_flags(with_attacks(args, f"clean,{variant}"), "--resume")
+    test.main(resumed)
+    assert called == []
+    variant.write_text(variant.read_text() + "P_REMOVE: 0.5\n")
+    before = load_results(eval_dir / "results.json")["variants"]["rem_30"]["extra"]
+    test.main(resumed)
+    assert called == ["rem_30"]
+    after = load_results(eval_dir / "results.json")["variants"]["rem_30"]["extra"]
+    assert after["attack_sha256"] != before["attack_sha256"]
+
+    called.clear()
+    older = load_results(eval_dir / "results.json")
+    del older["variants"]["rem_30"]["extra"]["attack_sha256"]
+    save_results(older, eval_dir / "results.json")
+    test.main(resumed)
+    assert called == ["rem_30"]
+    logs = "".join(p.read_text() for p in eval_dir.glob("log_eval_*.txt"))
+    again = "rem_30: finished by an earlier call, evaluated again: "
+    assert f"{again}it was evaluated without the clean predictions this call has" in logs
+    assert f"{again}its attack config or trace library changed (attack_sha256 " in logs
+    assert f"{again}its entry has no extra.attack_sha256" in logs
+    assert not list(eval_dir.rglob("*.tmp"))
+
+
+def test_attack_sha256_follows_the_yaml_and_the_trace_library(eval_setup, tmp_path):
+    library = tmp_path / "lib.npz"
+    source = Path(cfg_from_yaml_file(eval_setup["variant"]).TRACE_LIBRARY.PATH)
+    library.write_bytes(source.read_bytes())
+    variant = tmp_path / "inj_global_hard.yaml"
+    text = (
+        f"_BASE_CONFIG_: {ATTACKS / 'inj_global_hard.yaml'}\n"
+        f"TRACE_LIBRARY:\n  PATH: {library}\n  MIN_POINTS: 100\n"
+    )
+    variant.write_text(text)
+
+    def sha() -> str:
+        variants = [("inj_global_hard", variant)]
+        return attack_sha256(variant, build_variant_attacks(variants, eval_setup["root"])[
+            "inj_global_hard"])  # fmt: skip
+
+    first = sha()
+    assert sha() == first and len(first) == 64
+    library.write_bytes(library.read_bytes() + b"\0")  # other bytes at the same path
+    assert sha() != first
+    library.write_bytes(source.read_bytes())
+    assert sha() == first
+    variant.write_text(text + "SEED: 1\n")
+    assert sha() != first
+
+
+def test_resume_names_a_corrupt_results_file(eval_setup, tmp_path):
+    test = load_tool("test")
+    eval_dir = tmp_path / "atlas/synthetic/centerpoint/corrupt/eval/random/val/default"
+    eval_dir.mkdir(parents=True)
+    (eval_dir / "results.json").write_text('{"variants": ')  # a write cut short
+    args = with_flags(tool_args(eval_setup, tmp_path, "corrupt"), "--resume")
+    with pytest.raises(ResultsError, match=re.escape(str(eval_dir / "results.json"))):
+        test.main(args)
 
 
 def test_eval_all_from_start_epoch_and_save_to_file(eval_setup, tmp_path):
