@@ -221,7 +221,8 @@ class Detector3DTemplate(nn.Module):
 
         Raises:
             CheckpointMismatchError: naming missing, unexpected and wrongly shaped parameters
-                (with ``strict=False`` only the shape mismatches raise).
+                (with ``strict=False`` only the shape mismatches raise, and a checkpoint that
+                shares no parameter name with the model).
         """
         ckpt = read_checkpoint(filename, map_location)
         state = ckpt["model_state"] if "model_state" in ckpt else ckpt
@@ -241,6 +242,11 @@ def load_state_dict_checked(
         for k in sorted(set(own) & set(state))
         if tuple(state[k].shape) != tuple(own[k].shape)
     ]
+    if not strict and own and not set(own) & set(state):
+        raise CheckpointMismatchError(
+            f"checkpoint {source} shares no parameter name with {type(model).__name__} built "
+            f"from the config (its first keys: {sorted(state)[:5]}): nothing would load"
+        )
     problems = (
         bad_shape
         + ([] if not strict else [f"missing {k}" for k in missing])

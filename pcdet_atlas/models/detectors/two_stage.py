@@ -20,7 +20,13 @@ from pathlib import Path
 
 import torch
 
-from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file, check_known_keys
+from pcdet_atlas.config import (
+    REPO_ROOT,
+    ConfigError,
+    cfg_from_yaml_file,
+    check_known_keys,
+    key_source,
+)
 from pcdet_atlas.models.detectors.detector3d_template import (
     CheckpointMismatchError,
     Detector3DTemplate,
@@ -32,6 +38,11 @@ from pcdet_atlas.utils.seeding import torch_generator
 __all__ = ["RPN_KEYS", "TwoStageDetector", "file_sha256", "load_rpn", "resolve_repo_path"]
 
 RPN_KEYS = ("CFG", "CHECKPOINT", "CACHE_DIR")
+#: keys ``MODEL.POST_PROCESSING.NMS_CONFIG`` may hold (``NMS_TYPE`` and ``MULTI_CLASSES_NMS``
+#: only with the values of what runs: class-agnostic rotated BEV NMS)
+NMS_CONFIG_KEYS = (
+    "NMS_THRESH", "NMS_PRE_MAXSIZE", "NMS_POST_MAXSIZE", "NMS_TYPE", "MULTI_CLASSES_NMS",
+)  # fmt: skip
 
 
 def resolve_repo_path(path: str | Path) -> Path:
@@ -114,6 +125,7 @@ class TwoStageDetector(Detector3DTemplate):
     def from_config(cls, model_cfg: Mapping, **kwargs) -> TwoStageDetector:
         if "RPN" not in model_cfg:
             raise ConfigError(f"MODEL.RPN is required for {cls.__name__} (CFG and CHECKPOINT)")
+        check_post_processing(model_cfg.get("POST_PROCESSING", {}))
         rpn, info = load_rpn(model_cfg["RPN"])
         rpn_points = info["num_point_features"]
         if rpn_points != kwargs["num_point_features"]:
@@ -186,8 +198,8 @@ class TwoStageDetector(Detector3DTemplate):
     ) -> list[dict[str, torch.Tensor]]:
         """Per sample: the refined boxes ``(B, R, 7)`` of its proposals with their confidence
         ``logits`` fused with the proposal ``scores`` (``IOU_WEIGHT`` per class), then the score
-        threshold and NMS per class (none for vehicles with ``NOT_APPLY_NMS_FOR_VEL``, as MSF and
-        PTT). ``proposals`` (the RPN's per-sample outputs) are returned as ``rois``,
+        threshold and class-agnostic NMS (none for vehicles with ``NOT_APPLY_NMS_FOR_VEL``, as
+        MSF and PTT). ``proposals`` (the RPN's per-sample outputs) are returned as ``rois``,
         ``roi_scores``, ``roi_labels``."""
         post = self.post_processing
         nms = post.get("NMS_CONFIG", {})
@@ -246,6 +258,31 @@ class TwoStageDetector(Detector3DTemplate):
                 "datasets' collate_batch provides)"
             )
         return [torch_generator(int(s), purpose) for s in batch_dict["frame_seed"]]
+
+
+def check_post_processing(post: Mapping) -> None:
+    """Raise :class:`ConfigError` for a ``MODEL.POST_PROCESSING`` ``NMS_CONFIG`` key that would
+    be ignored or a value that asks for an NMS other than the one implemented."""
+    nms = post.get("NMS_CONFIG", {})
+    section = "MODEL.POST_PROCESSING.NMS_CONFIG"
+    check_known_keys(nms, NMS_CONFIG_KEYS, section)
+    if nms.get("NMS_TYPE", "nms_gpu") not in ("nms_gpu", "nms_bev"):
+        raise ConfigError(
+            f"{section}.NMS_TYPE = {nms['NMS_TYPE']!r} (from {key_source(nms, 'NMS_TYPE')}): "
+            "only rotated BEV NMS ('nms_gpu' / 'nms_bev') is implemented"
+        )
+    if nms.get("MULTI_CLASSES_NMS", False) is not False:
+        raise ConfigError(
+            f"{section}.MULTI_CLASSES_NMS = {nms['MULTI_CLASSES_NMS']!r} (from "
+            f"{key_source(nms, 'MULTI_CLASSES_NMS')}): only class-agnostic NMS (False) is "
+            "implemented"
+        )
+    flag = post.get("NOT_APPLY_NMS_FOR_VEL", True)
+    if not isinstance(flag, bool):
+        raise ConfigError(
+            f"MODEL.POST_PROCESSING.NOT_APPLY_NMS_FOR_VEL = {flag!r} (from "
+            f"{key_source(post, 'NOT_APPLY_NMS_FOR_VEL')}): expected True or False"
+        )
 
 
 def proposals_to_padded(

@@ -36,6 +36,35 @@ class RoiSamplerConfig:
     hard_bg_ratio: float = 0.8
     by_class: bool = True
 
+    def __post_init__(self) -> None:
+        problems = []
+        if isinstance(self.roi_per_image, bool) or not isinstance(self.roi_per_image, int):
+            problems.append(f"ROI_PER_IMAGE must be an integer, got {self.roi_per_image!r}")
+        elif self.roi_per_image < 1:
+            problems.append(f"ROI_PER_IMAGE must be >= 1, got {self.roi_per_image}")
+        for key, value in (
+            ("FG_RATIO", self.fg_ratio), ("REG_FG_THRESH", self.reg_fg_thresh),
+            ("CLS_FG_THRESH", self.cls_fg_thresh), ("CLS_BG_THRESH", self.cls_bg_thresh),
+            ("CLS_BG_THRESH_LO", self.cls_bg_thresh_lo), ("HARD_BG_RATIO", self.hard_bg_ratio),
+        ):  # fmt: skip
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not (0.0 <= value <= 1.0)
+            ):
+                problems.append(f"{key} must be a number in [0, 1], got {value!r}")
+        if not problems and not self.cls_bg_thresh < self.cls_fg_thresh:
+            problems.append(
+                f"CLS_BG_THRESH ({self.cls_bg_thresh}) must be below CLS_FG_THRESH "
+                f"({self.cls_fg_thresh})"
+            )
+        if not isinstance(self.by_class, bool):
+            problems.append(
+                f"SAMPLE_ROI_BY_EACH_CLASS must be True or False, got {self.by_class!r}"
+            )
+        if problems:
+            raise ValueError("ROI sampler (TARGET_CONFIG): " + "; ".join(problems))
+
 
 @dataclass
 class RoiSample:

@@ -132,6 +132,14 @@ class TemporalRoIHead(nn.Module):
             }
         )
         self.loss_weights = dict(loss_weights or {})
+        for key, size in (("traj_reg_weight", 3), ("code_weights", 7)):
+            value = self.loss_weights.get(key)
+            if value is not None and (
+                isinstance(value, str) or not isinstance(value, Sequence) or len(value) != size
+            ):
+                raise ValueError(
+                    f"LOSS_CONFIG.LOSS_WEIGHTS.{key} needs {size} weights, got {value!r}"
+                )
         self.box_coder = ResidualCoder(7)
 
     @staticmethod
