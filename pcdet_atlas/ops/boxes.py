@@ -62,8 +62,8 @@ def boxes_to_corners_bev(boxes):
 def boxes_bev_overlap(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
     """``(N, M)`` bool: box ``a[n]`` and box ``b[m]`` overlap with positive BEV area.
 
-    Equivalent to ``boxes_iou_bev(a, b) > 0`` (z is ignored). Boxes of zero length or width
-    have no area and never overlap.
+    Equivalent to ``boxes_iou_bev(a, b) > 0`` (z is ignored). Boxes with a length or width
+    ``<= 0`` have no area and never overlap.
 
     Args:
         boxes_a: ``(N, 7+)`` ``[x, y, z, dx, dy, dz, heading, ...]``.
@@ -91,8 +91,9 @@ def boxes_bev_overlap(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
     proj_b = np.einsum("nmkd,mcd->nmkc", all_axes, cb)
     depth = np.minimum(proj_a.max(-1), proj_b.max(-1)) - np.maximum(proj_a.min(-1), proj_b.min(-1))
     overlap = (depth > _TOUCH_TOL_M).all(axis=-1)  # (N, M)
-    area_a = boxes_a[:, 3] * boxes_a[:, 4] > 0
-    area_b = boxes_b[:, 3] * boxes_b[:, 4] > 0
+    # both dimensions positive, as in boxes_iou_bev (a product test would pass two negatives)
+    area_a = (boxes_a[:, 3] > 0) & (boxes_a[:, 4] > 0)
+    area_b = (boxes_b[:, 3] > 0) & (boxes_b[:, 4] > 0)
     return overlap & area_a[:, None] & area_b[None, :]
 
 

@@ -22,6 +22,8 @@ Conventions (documented, tested):
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
@@ -309,15 +311,28 @@ def nms_bev(
         boxes: ``(N, 7+)`` boxes.
         scores: ``(N,)`` scores.
         iou_thresh: suppression threshold on BEV IoU.
-        pre_max_size: keep only the top-k scores before NMS (``None``: all).
-        post_max_size: return at most this many boxes (``None``: all kept).
+        pre_max_size: keep only the top-k scores before NMS (``None``: all), an int ``>= 0``.
+        post_max_size: return at most this many boxes (``None``: all kept), an int ``>= 0``.
+
+    Raises:
+        TypeError / ValueError: naming the argument, for a non-tensor or wrong-shaped ``scores``,
+        a non-finite ``iou_thresh`` or a negative / non-int ``pre_max_size`` / ``post_max_size``.
 
     Returns:
         ``(K,)`` int64 indices into ``boxes``, ordered by descending score, on ``boxes.device``.
     """
     b = _check_boxes(boxes, "boxes")
+    if not isinstance(scores, torch.Tensor):
+        raise TypeError(f"scores: expected a torch.Tensor of shape (N,), got {type(scores)}")
     if scores.dim() != 1 or scores.shape[0] != b.shape[0]:
         raise ValueError(f"scores: expected shape ({b.shape[0]},), got {tuple(scores.shape)}")
+    if not math.isfinite(float(iou_thresh)):
+        raise ValueError(f"iou_thresh: expected a finite number, got {iou_thresh!r}")
+    for name, size in (("pre_max_size", pre_max_size), ("post_max_size", post_max_size)):
+        if size is not None and (
+            isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 0
+        ):
+            raise ValueError(f"{name}: expected None or an int >= 0, got {size!r}")
     order = torch.sort(scores.to(b.device), descending=True, stable=True).indices
     if pre_max_size is not None:
         order = order[:pre_max_size]

@@ -88,8 +88,8 @@ class LidarModel:
             raise ValueError("LidarModel inclinations must be strictly ascending (radians)")
         if int(azimuth_bins) < 1:
             raise ValueError(f"azimuth_bins must be >= 1, got {azimuth_bins}")
-        if len(origin) != 3:
-            raise ValueError(f"origin must have 3 values (x, y, z), got {origin}")
+        if len(origin) != 3 or not all(math.isfinite(float(v)) for v in origin):
+            raise ValueError(f"origin must have 3 finite values (x, y, z), got {origin}")
         if not max_range > 0:
             raise ValueError(f"max_range must be > 0, got {max_range}")
         self.inclinations = incl  # (B,) float64, radians

@@ -57,6 +57,11 @@ def _linear_keys(indices: torch.Tensor, spatial_shape: Sequence[int]) -> torch.T
     return ((idx[:, 0] * d + idx[:, 1]) * h + idx[:, 2]) * w + idx[:, 3]
 
 
+#: marks indices already checked (a conv's output sites, ``replace_feature``), so the range
+#: check (a device sync) runs once per input tensor, not once per layer
+_TRUSTED = object()
+
+
 class SparseConvTensor:
     """Active sites of a ``(B, C, D, H, W)`` grid: ``features`` ``(N, C)`` at ``indices``
     ``(N, 4)``.
@@ -72,6 +77,7 @@ class SparseConvTensor:
         spatial_shape: Sequence[int],
         batch_size: int,
         indice_dict: dict[str, IndicePairs] | None = None,
+        _trusted_indices: object = None,
     ) -> None:
         if features.dim() != 2:
             raise ValueError(
@@ -92,16 +98,32 @@ class SparseConvTensor:
             raise ValueError(
                 f"SparseConvTensor: spatial_shape must be [D, H, W], got {spatial_shape}"
             )
+        shape = [int(s) for s in spatial_shape]
+        if min(shape) < 1 or int(batch_size) < 0:
+            raise ValueError(
+                f"SparseConvTensor: spatial_shape must be >= 1 and batch_size >= 0, got "
+                f"{spatial_shape}, {batch_size}"
+            )
+        if indices.shape[0] and _trusted_indices is not _TRUSTED:
+            # an out-of-range site would alias another one in the linear keys of the rules
+            low = indices.amin(dim=0).tolist()
+            high = indices.amax(dim=0).tolist()
+            limits = [int(batch_size), *shape]
+            if min(low) < 0 or any(h >= n for h, n in zip(high, limits)):
+                raise ValueError(
+                    f"SparseConvTensor: indices [batch, z, y, x] must lie in [0, {limits}), got "
+                    f"min {low}, max {high}"
+                )
         self.features = features
         self.indices = indices
-        self.spatial_shape = [int(s) for s in spatial_shape]
+        self.spatial_shape = shape
         self.batch_size = int(batch_size)
         self.indice_dict: dict[str, IndicePairs] = {} if indice_dict is None else indice_dict
 
     def replace_feature(self, features: torch.Tensor) -> SparseConvTensor:
         """The same sites (and shared rules) with new ``(N, C')`` features."""
         return SparseConvTensor(
-            features, self.indices, self.spatial_shape, self.batch_size, self.indice_dict
+            features, self.indices, self.spatial_shape, self.batch_size, self.indice_dict, _TRUSTED
         )
 
     def dense(self, channels_first: bool = True) -> torch.Tensor:
@@ -289,6 +311,8 @@ class _SparseConvNd(SparseModule):
                 f"{type(self).__name__}: kernel_size, stride and dilation must be >= 1, got "
                 f"{self.kernel_size}, {self.stride}, {self.dilation}"
             )
+        if min(self.padding) < 0:
+            raise ValueError(f"{type(self).__name__}: padding must be >= 0, got {self.padding}")
         if subm and self.stride != (1, 1, 1):
             raise ValueError(f"SubMConv3d: stride must be 1, got {self.stride}")
         # spconv 2.x layout (KRSC): (out, kD, kH, kW, in)
@@ -354,7 +378,7 @@ class _SparseConvNd(SparseModule):
         rules = self._rules(x)
         return SparseConvTensor(
             self.apply_rules(x.features, rules), rules.out_indices, rules.out_spatial_shape,
-            x.batch_size, x.indice_dict,
+            x.batch_size, x.indice_dict, _TRUSTED,
         )  # fmt: skip
 
     def apply_rules(self, features: torch.Tensor, rules: IndicePairs) -> torch.Tensor:

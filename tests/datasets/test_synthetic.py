@@ -205,6 +205,11 @@ def test_refuses_foreign_root_and_bad_args(tmp_path):
         create_synthetic_waymo(tmp_path / "x", {"train": 1}, {"train": 0})
     with pytest.raises(SyntheticDatasetError, match="seed"):
         create_synthetic_waymo(tmp_path / "x", {"train": 1}, {"train": 1}, seed=-1)
+    # bad workers / threads: an error before anything is written
+    for kwargs, name in (({"workers": 0}, "workers"), ({"threads": 0}, "threads")):
+        with pytest.raises(SyntheticDatasetError, match=name):
+            create_synthetic_waymo(tmp_path / "y", {"train": 1}, {"train": 1}, **kwargs)
+        assert not (tmp_path / "y").exists()
 
 
 def test_chunking_does_not_change_frames(synthetic_root, val_seq, fixture_args, tmp_path):

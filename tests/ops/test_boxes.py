@@ -99,4 +99,8 @@ def test_bev_overlap_edge_cases():
     assert boxes_bev_overlap(box, box)[0, 0]
     assert not boxes_bev_overlap(box, far)[0, 0]
     assert not boxes_bev_overlap(box, degenerate)[0, 0]
+    # negative length and width: no area, as in boxes_iou_bev (a product test would say > 0)
+    negative = np.array([[0, 0, 0, -2, -2, 1, 0.0]])
+    assert not boxes_bev_overlap(box, negative)[0, 0]
+    assert not boxes_bev_overlap(negative, box)[0, 0]
     assert boxes_bev_overlap(np.zeros((0, 7)), box).shape == (0, 1)

@@ -264,6 +264,21 @@ def test_nms_bev_edge_cases():
         nms_bev(two, torch.tensor([0.9]), 0.5)
 
 
+def test_nms_bev_bad_arguments_are_named_errors():
+    two = torch.tensor([[0.0, 0, 0, 2, 2, 2, 0], [1.0, 0, 0, 2, 2, 2, 0]])
+    scores = torch.tensor([0.9, 0.8])
+    with pytest.raises(TypeError, match="scores"):
+        nms_bev(two, [0.9, 0.8], 0.5)
+    with pytest.raises(ValueError, match="iou_thresh"):
+        nms_bev(two, scores, float("nan"))  # would suppress nothing
+    with pytest.raises(ValueError, match="pre_max_size"):
+        nms_bev(two, scores, 0.5, pre_max_size=-1)  # would drop the last box
+    with pytest.raises(ValueError, match="post_max_size"):
+        nms_bev(two, scores, 0.5, post_max_size=2.5)
+    assert nms_bev(two, scores, 0.5, pre_max_size=np.int64(1)).tolist() == [0]
+    assert nms_bev(two, scores, 0.5, pre_max_size=0).numel() == 0
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     st.tuples(st.floats(0.05, 8.0), st.floats(0.05, 8.0), st.floats(0.05, 3.0)),

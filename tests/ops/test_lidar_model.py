@@ -72,6 +72,8 @@ def test_from_config_and_errors():
         LidarModel.from_config({"BEAMS": 64})
     with pytest.raises(ValueError, match="ascending"):
         LidarModel([0.1, 0.0])
+    with pytest.raises(ValueError, match="origin"):
+        LidarModel([0.0, 0.1], origin=(1.43, float("nan"), 2.184))  # every bin would be NaN
 
 
 @pytest.mark.parametrize("device", DEVICES)

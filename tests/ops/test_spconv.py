@@ -272,3 +272,17 @@ def test_bad_input_is_a_clear_error():
         SubMConv3d(3, 3, 3).double()(x)
     with pytest.raises(ValueError, match="too small"):
         SparseConv3d(2, 2, 5).double()(x)
+    with pytest.raises(ValueError, match="padding must be >= 0"):
+        SparseConv3d(2, 2, 3, padding=-1)
+
+
+@pytest.mark.parametrize(
+    "site", [[0, 4, 0, 0], [0, 0, 0, 5], [0, -1, 0, 0], [2, 0, 0, 0], [-1, 0, 0, 0]]
+)
+def test_out_of_range_indices_are_a_clear_error(site):
+    # x = 5 on a W = 5 grid would alias (y + 1, x = 0) in the rules' linear keys
+    indices = torch.tensor([[0, 1, 1, 1], site], dtype=torch.int32)
+    with pytest.raises(ValueError, match="must lie in"):
+        SparseConvTensor(torch.zeros(2, 3), indices, (4, 5, 5), 2)
+    with pytest.raises(ValueError, match="spatial_shape"):
+        SparseConvTensor(torch.zeros(0, 3), torch.zeros(0, 4, dtype=torch.int32), (4, 0, 5), 1)

@@ -443,6 +443,13 @@ def create_synthetic_waymo(
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise SyntheticDatasetError(f"seed must be a non-negative int, got {seed!r}")
     seed = int(seed)
+    # checked before anything is written: a bad argument leaves the root untouched
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise SyntheticDatasetError(f"workers must be an int >= 1, got {workers!r}")
+    if threads is not None and (
+        isinstance(threads, bool) or not isinstance(threads, int) or threads < 1
+    ):
+        raise SyntheticDatasetError(f"threads must be None or an int >= 1, got {threads!r}")
     root = Path(root_path)
     lidar = LidarModel.waymo_top()
     sensor = SensorModel()
@@ -468,8 +475,6 @@ def create_synthetic_waymo(
     (root / "ImageSets").mkdir(exist_ok=True)
     wf.data_dir(root).mkdir(exist_ok=True)
 
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise SyntheticDatasetError(f"workers must be an int >= 1, got {workers!r}")
     existing, todo = {}, []
     for split in SPLITS:
         lines = "".join(f"{name}.tfrecord\n" for name in sequences[split])
