@@ -1,4 +1,5 @@
-"""Install pcdet_atlas: `pip install -e .[test]` (and `[waymo]` for the official Waymo metric)."""
+"""Install pcdet_atlas: `pip install -e .[test]`. The official Waymo metric runs in its own venv
+(tools/official_waymo_metric/setup_venv.sh), not through the `[waymo]` extra listed below."""
 
 from pathlib import Path
 

@@ -384,7 +384,7 @@ def test_step_shares(cfg_file: str, data_path: Path, frames: int, device: torch.
                 workers=0, seed=0,
             )  # fmt: skip
             if len(dataset.infos) < 32 + frames:
-                raise SystemExit(f"--share needs >= {32 + frames} val frames in {data_path}")
+                raise SystemExit(f"--share_cfg needs >= {32 + frames} val frames in {data_path}")
             dataset.infos = dataset.infos[32 : 32 + frames]
             timings: dict = {}
             annos, extras = predict_dataset(

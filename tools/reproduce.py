@@ -1,6 +1,6 @@
 """Evaluate every shipped synthetic model on all 13 ATLAS variants and write the paper's report.
 
-    python tools/reproduce.py                                   # make reproduce
+    python tools/reproduce.py --jobs 2                          # make reproduce's second step
     python tools/reproduce.py --data_path data/synthetic_waymo_val6 --out docs/results
     python tools/reproduce.py --cfgs cfgs/atlas/synthetic/cp4f.yaml --out /tmp/cp4f --device cuda
 
