@@ -260,13 +260,11 @@ def _getitem_data(args):
     inj = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "attacks" / "inj_global_hard.yaml")
     filters = TraceFilter.from_config(inj.TRACE_LIBRARY)
     lib_path = root / filters.path
-    if (
-        lib_path.is_file()
-        and TraceLibrary.load(lib_path).build_info.get("filters") == filters.to_dict()
-    ):
+    origin = LidarModel.from_config(inj.get("LIDAR")).origin_xyz
+    if lib_path.is_file() and not TraceLibrary.load(lib_path).build_mismatch(filters, origin):
         return root, lib_path
     lib_path = Path(tempfile.mkdtemp(prefix="bench_lib_")) / "lib.npz"
-    build_trace_library(root, filters).save(lib_path)
+    build_trace_library(root, filters, split=filters.split, sensor_origin=origin).save(lib_path)
     return root, lib_path
 
 

@@ -76,10 +76,10 @@ def check_same_build(path: Path, filters: TraceFilter, sensor_origin: list[float
     """Refuse to replace the library at ``path`` when it was built with other filters, split or
     sensor origin: the injection variants that share it would stop loading (or, read by an older
     copy of their YAML, run on other traces)."""
-    built = TraceLibrary.load(path).build_info
-    want = {"filters": filters.to_dict(), "split": filters.split, "sensor_origin": sensor_origin}
-    have = {key: built.get(key) for key in want}
-    if have != want:
+    differs = TraceLibrary.load(path).build_mismatch(filters, sensor_origin)
+    if differs:
+        have = {key: pair[0] for key, pair in differs.items()}
+        want = {key: pair[1] for key, pair in differs.items()}
         raise FileExistsError(
             f"{path} holds a trace library built with {have}, not {want}; every injection variant "
             "whose TRACE_LIBRARY.PATH names this file shares it. Write this one elsewhere (--out, "

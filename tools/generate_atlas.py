@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import os
 import pickle
 from pathlib import Path
 
@@ -51,7 +50,7 @@ from pcdet_atlas.config import (
 )
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.datasets.dataset import resolve_data_path
-from pcdet_atlas.utils.common import create_logger
+from pcdet_atlas.utils.common import create_logger, save_pickle
 
 CLASS_NAMES = ["Vehicle", "Pedestrian", "Cyclist"]
 
@@ -66,13 +65,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None,
                         help="overrides of the attack config")  # fmt: skip
     return parser.parse_args(argv)
-
-
-def _dump_atomic(obj, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        pickle.dump(obj, f)
-    os.replace(tmp, path)
 
 
 def _lidar_counts(keep_rows: np.ndarray, counts: list[int], num_injected: int) -> list[int]:
@@ -125,7 +117,7 @@ def write_sequence(
         metas[info["frame_id"]] = meta
         progress.update(1)
     saved = {"variant": attack.variant, "attack_cfg": attack_cfg, "frames": metas}
-    _dump_atomic(saved, out_seq / f"{seq_name}_atlas.pkl")
+    save_pickle(saved, out_seq / f"{seq_name}_atlas.pkl")
     wf.save_sequence_infos(out_seq / f"{seq_name}.pkl", infos)  # written last: the done marker
     return metas
 
@@ -209,7 +201,7 @@ def main(argv=None) -> Path:
         "attack_cfg": plain_cfg,
         "frames": frames,
     }
-    _dump_atomic(summary, out_root / "atlas_attack_metadata.pkl")
+    save_pickle(summary, out_root / "atlas_attack_metadata.pkl")
     save_config(attack_cfg, out_root / "atlas_attack.yaml")
     spoofed = sum(m["spoofed"] for m in frames.values())
     logger.info(

@@ -42,12 +42,12 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, repo_relative
-from pcdet_atlas.evaluation.results import collect_results, write_report
+from pcdet_atlas.evaluation.results import ResultsError, collect_results, write_report
 from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.train_utils.atlas_eval import (
-    attack_sha256,
     build_variant_attacks,
     resolve_variants,
+    variant_fingerprints,
 )
 from pcdet_atlas.train_utils.setup import load_cfg
 from pcdet_atlas.utils.common import load_tool
@@ -137,14 +137,15 @@ def evaluation_of(cfg: Path, args, root: Path) -> tuple[Path, set[str], set[str]
     variants = resolve_variants(args.attacks, model_cfg.get("ATLAS", {}))
     wanted = {name for name, _ in variants}
     attacks = build_variant_attacks(variants, root)
-    requested = {name: attack_sha256(path, attacks[name]) for name, path in variants}
+    requested = variant_fingerprints(variants, attacks)
     out_dir = test.eval_dir(model_cfg, output_root, TAG, ckpt, TAG)
     try:  # the setting tools/test.py gets from test_argv: one process, batch size 1
-        finished = set(
-            test.finished_variants(
-                out_dir, model_cfg, file_sha256(ckpt), requested, batch_size=1, world=1
-            )
+        kept, _ = test.finished_variants(
+            out_dir, model_cfg, file_sha256(ckpt), requested, batch_size=1, world=1
         )
+        finished = set(kept)
+    except ResultsError:  # an unreadable results.json: named, not overwritten
+        raise
     except ValueError:
         finished = None
     return out_dir / "results.json", wanted, finished

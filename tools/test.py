@@ -48,12 +48,11 @@ from pcdet_atlas.evaluation import build_results, format_table, load_results, sa
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.train_utils.atlas_eval import (
-    attack_sha256,
     build_variant_attacks,
     check_test_split,
     evaluate_variant,
     resolve_variants,
-    save_pickle,
+    variant_fingerprints,
 )
 from pcdet_atlas.train_utils.checkpoint import CHECKPOINT_NAME, list_epoch_checkpoints
 from pcdet_atlas.train_utils.setup import (
@@ -64,7 +63,7 @@ from pcdet_atlas.train_utils.setup import (
     require_dataset,
     setup_runtime,
 )
-from pcdet_atlas.utils.common import create_logger
+from pcdet_atlas.utils.common import create_logger, save_pickle
 
 
 def parse_args(argv=None):
@@ -178,8 +177,7 @@ def finished_variants(
     *,
     batch_size: int,
     world: int,
-    again: dict[str, str] | None = None,
-) -> dict[str, dict]:
+) -> tuple[dict[str, dict], dict[str, str]]:
     """``--resume``: the ``results.json`` entries of the requested variants an earlier call
     finished in ``out_dir`` that this call keeps. That call must have had the same merged config,
     checkpoint bytes, batch size and process count, or this is an error naming what differs.
@@ -189,12 +187,12 @@ def finished_variants(
     differs (or is missing), or it is an attack variant evaluated without the clean predictions
     while this call evaluates ``clean``, or it is ``clean`` and a process's
     ``clean/proposals_rank<r>.pkl`` is missing where another's is there: each of those is
-    evaluated again, as one uninterrupted call would; ``again`` (if given) receives
-    ``{variant: reason}`` of those.
+    evaluated again, as one uninterrupted call would. Returns the kept entries and
+    ``{variant: reason}`` of those evaluated again.
     """
     path = out_dir / "results.json"
     if not path.is_file():
-        return {}
+        return {}, {}
     earlier = load_results(path)
     extra = earlier.get("extra", {})
     config_file = out_dir / f"{cfg.TAG}.yaml"
@@ -210,8 +208,7 @@ def finished_variants(
             f"--resume: {path} was written by a call with another setting: {'; '.join(differs)}; "
             "pass --overwrite to evaluate again, or another --eval_tag / --extra_tag"
         )
-    kept = {}
-    again = {} if again is None else again
+    kept, again = {}, {}
     for name, entry in earlier["variants"].items():
         if name not in requested or not (out_dir / name / "result.pkl").is_file():
             continue
@@ -229,7 +226,7 @@ def finished_variants(
             again[name] = f"{missing[0]} is missing (the clean proposals of its process)"
         else:
             kept[name] = entry
-    return kept
+    return kept, again
 
 
 def missing_proposal_parts(variant_dir: Path, world: int) -> list[Path]:
@@ -252,7 +249,7 @@ def main(argv=None) -> dict:
     logger = create_logger(rank=rank)
     data_root = check_test_split(cfg.DATA_CONFIG, cfg.CLASS_NAMES, logger)
     attacks = build_variant_attacks(variants, data_root)
-    fingerprints = {name: attack_sha256(path, attacks[name]) for name, path in variants}
+    fingerprints = variant_fingerprints(variants, attacks)
     batch_size = args.batch_size or world
     if batch_size % world:
         raise ValueError(f"--batch_size {batch_size} is not divisible by {world} processes")
@@ -264,11 +261,9 @@ def main(argv=None) -> dict:
     for ckpt, out_dir in zip(checkpoints, out_dirs):
         check_eval_dir(out_dir, args.overwrite or args.resume)
         if args.resume:
-            again[out_dir] = {}
-            finished[out_dir] = finished_variants(
-                out_dir, cfg, ckpt_sha256[ckpt], fingerprints, batch_size=batch_size, world=world,
-                again=again[out_dir],
-            )  # fmt: skip
+            finished[out_dir], again[out_dir] = finished_variants(
+                out_dir, cfg, ckpt_sha256[ckpt], fingerprints, batch_size=batch_size, world=world
+            )
     if dist:  # every rank has checked before rank 0 writes
         torch_dist.barrier()
     model = build_network_from_config(cfg)
@@ -336,12 +331,11 @@ def evaluate_checkpoint(
                 clean_annos = det_annos
                 if clean_proposals:  # each rank's part, for a later --resume
                     save_pickle(clean_proposals, out_dir / variant / f"proposals_rank{rank}.pkl")
-            if rank == 0:
-                entry = {**entry, "extra": {**entry.get("extra", {}),
-                                            "attack_sha256": fingerprints[variant]}}  # fmt: skip
         if rank != 0:
             continue
-        entries[variant] = entry
+        # a kept entry holds this fingerprint already (finished_variants compared it)
+        entries[variant] = {**entry, "extra": {**entry.get("extra", {}),
+                                               "attack_sha256": fingerprints[variant]}}  # fmt: skip
         results = build_results(
             model=atlas_cfg.get("MODEL_NAME", cfg.TAG), config=str(args.cfg_file),
             checkpoint=str(ckpt), class_names=cfg.CLASS_NAMES, variants=entries,

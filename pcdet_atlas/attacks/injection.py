@@ -256,23 +256,17 @@ class InjectionAttack(BaseAttack):
         and sensor origin must match the config)."""
         if self._library is None:
             lib = TraceLibrary.load(self.library_path)
-            if self.trace_filter is not None:
-                want = {
-                    "filters": self.trace_filter.to_dict(),
-                    "split": self.trace_filter.split,
-                    # the recorded source ranges of the intensity correction are from it
-                    "sensor_origin": list(self.lidar.origin_xyz),
-                }
-                stored = {
-                    k: lib.build_info.get(k) for k in want if lib.build_info.get(k) != want[k]
-                }
-                if stored:
-                    expected = {k: want[k] for k in stored}
-                    raise ConfigError(
-                        f"{self.library_path}: trace library built with {stored}, but "
-                        f"{self.variant} asks for {expected} (its TRACE_LIBRARY and LIDAR.ORIGIN); "
-                        "rebuild the library with tools/build_trace_library.py"
-                    )
+            differs = {} if self.trace_filter is None else (
+                lib.build_mismatch(self.trace_filter, self.lidar.origin_xyz)
+            )  # fmt: skip
+            if differs:
+                stored = {key: pair[0] for key, pair in differs.items()}
+                expected = {key: pair[1] for key, pair in differs.items()}
+                raise ConfigError(
+                    f"{self.library_path}: trace library built with {stored}, but "
+                    f"{self.variant} asks for {expected} (its TRACE_LIBRARY and LIDAR.ORIGIN); "
+                    "rebuild the library with tools/build_trace_library.py"
+                )
             self._library = lib
         return self._library
 

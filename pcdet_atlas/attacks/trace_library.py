@@ -30,9 +30,10 @@ import math
 import os
 import pickle
 import zipfile
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -223,6 +224,18 @@ class TraceLibrary:
             sequence=str(self.sequence[index]),
             obj_id=str(self.obj_id[index]),
         )
+
+    def build_mismatch(
+        self, filters: TraceFilter, sensor_origin: Sequence[float]
+    ) -> dict[str, tuple[Any, Any]]:
+        """``{setting: (stored, wanted)}`` of the build settings (``filters``, ``split``,
+        ``sensor_origin``) in which this library differs from the one a variant with ``filters``
+        and a LiDAR at ``sensor_origin`` reads (the recorded source ranges of the intensity
+        correction are from that origin); empty when it was built for it."""
+        want = {"filters": filters.to_dict(), "split": filters.split,
+                "sensor_origin": [float(v) for v in sensor_origin]}  # fmt: skip
+        stored = {key: self.build_info.get(key) for key in want}
+        return {key: (stored[key], want[key]) for key in want if stored[key] != want[key]}
 
     def trace_sizes(self) -> np.ndarray:
         return np.diff(self.offsets)

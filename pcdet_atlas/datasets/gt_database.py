@@ -28,6 +28,7 @@ import numpy as np
 
 from pcdet_atlas.datasets.augmentor.box_ops import box_index_of_points
 from pcdet_atlas.datasets.multiframe import SequenceConfig
+from pcdet_atlas.utils.common import save_pickle
 
 __all__ = ["create_groundtruth_database", "gt_database_paths", "write_split_infos"]
 
@@ -58,11 +59,7 @@ def write_split_infos(dataset, save_path: str | Path | None = None) -> Path:
     path = save_path / f"{dataset.processed_data_tag}_infos_{dataset.split}.pkl"
     if path.exists():
         return path
-    tmp = path.with_suffix(".tmp.pkl")
-    with open(tmp, "wb") as f:
-        pickle.dump(dataset.all_infos, f)
-    tmp.replace(path)
-    return path
+    return save_pickle(dataset.all_infos, path)
 
 
 def create_groundtruth_database(

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pcdet_atlas.utils.common import save_pickle
+
 PROCESSED_DATA_TAG = "waymo_processed_data_v0_5_0"
 WAYMO_CLASSES = ["unknown", "Vehicle", "Pedestrian", "Sign", "Cyclist"]
 NUM_POINT_COLUMNS = 6  # x, y, z, intensity (raw), elongation (raw), NLZ flag (1 in NLZ, -1 not)
@@ -184,11 +186,7 @@ def save_frame_points(path: str | Path, points: np.ndarray) -> None:
 
 def save_sequence_infos(path: str | Path, infos: list[dict]) -> None:
     """Write a per-sequence info pkl atomically (a list of frame infos ordered by sample_idx)."""
-    path = Path(path)
-    tmp = path.with_suffix(".tmp.pkl")
-    with open(tmp, "wb") as f:
-        pickle.dump(infos, f)
-    os.replace(tmp, path)
+    save_pickle(infos, path)
 
 
 # ---------------------------------------------------------------------------- checking

@@ -11,10 +11,8 @@ import functools
 import hashlib
 import json
 import logging
-import os
-import pickle
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -39,14 +37,15 @@ from pcdet_atlas.registry import DATASETS
 from pcdet_atlas.train_utils.dist import get_dist_info, unwrap_model
 from pcdet_atlas.train_utils.eval_utils import predict_dataset, write_prediction_files
 from pcdet_atlas.train_utils.proposal_bank import frame_batches
+from pcdet_atlas.utils.common import save_pickle
 
 __all__ = [
     "ATLAS_KEYS",
     "resolve_variants",
     "build_variant_attacks",
     "attack_sha256",
+    "variant_fingerprints",
     "loader_batches",
-    "save_pickle",
     "check_test_split",
     "build_attack_loader",
     "evaluate_variant",
@@ -128,28 +127,35 @@ def build_variant_attacks(
     return attacks
 
 
-def attack_sha256(path: str | Path, attack: BaseAttack) -> str:
+def attack_sha256(
+    path: str | Path, attack: BaseAttack, *, library_sha256: Callable[[Path], str] = file_sha256
+) -> str:
     """Hex SHA-256 of what a variant's predictions depend on besides the model and the data: its
     merged attack config (the YAML at ``path`` with its ``_BASE_CONFIG_`` chain) and, for an
-    attack reading a trace library from a file (``attack.library_path``), that file's bytes."""
+    attack reading a trace library from a file (``attack.library_path``), that file's bytes
+    (hashed by ``library_sha256``)."""
     merged = json.dumps(to_plain(cfg_from_yaml_file(path)), sort_keys=True)
     digest = hashlib.sha256(merged.encode())
     library = getattr(attack, "library_path", None)
     if library is not None:
-        digest.update(f"\ntrace library {file_sha256(library)}".encode())
+        digest.update(f"\ntrace library {library_sha256(library)}".encode())
     return digest.hexdigest()
 
 
-def save_pickle(obj, path: str | Path) -> Path:
-    """Pickle ``obj`` to ``path`` atomically (a temporary file renamed into place), so that an
-    interrupted write never leaves a truncated file for ``--resume`` to read."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        pickle.dump(obj, f)
-    os.replace(tmp, path)
-    return path
+def variant_fingerprints(
+    variants: Sequence[tuple[str, Path]], attacks: Mapping[str, BaseAttack]
+) -> dict[str, str]:
+    """``{variant: attack_sha256}`` of :func:`resolve_variants`' list and its built attacks; a
+    trace library that several variants share (the injection ones) is hashed once."""
+    library_hashes: dict[Path, str] = {}
+
+    def library_sha256(library: Path) -> str:
+        if library not in library_hashes:
+            library_hashes[library] = file_sha256(library)
+        return library_hashes[library]
+
+    return {name: attack_sha256(path, attacks[name], library_sha256=library_sha256)
+            for name, path in variants}  # fmt: skip
 
 
 def input_reach(model: torch.nn.Module, data_cfg: Mapping) -> int:

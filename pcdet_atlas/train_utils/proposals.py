@@ -29,6 +29,7 @@ from pcdet_atlas.datasets.dataset import resolve_data_path
 from pcdet_atlas.models.detectors.two_stage import TwoStageDetector, resolve_repo_path
 from pcdet_atlas.train_utils.dist import get_dist_info
 from pcdet_atlas.train_utils.eval_utils import predict_dataset
+from pcdet_atlas.utils.common import save_pickle
 
 __all__ = ["PROPOSAL_FORMAT", "proposal_cache_file", "training_proposals"]
 
@@ -126,9 +127,5 @@ def training_proposals(
             [boxes[:, :9], anno["score"].reshape(-1, 1), anno["pred_labels"].reshape(-1, 1)], 1
         ).astype(np.float32)
     if rank == 0:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".pkl.tmp")
-        with open(tmp, "wb") as fh:
-            pickle.dump({"format": PROPOSAL_FORMAT, **ident, "proposals": proposals}, fh)
-        tmp.replace(path)
+        save_pickle({"format": PROPOSAL_FORMAT, **ident, "proposals": proposals}, path)
     return proposals, path

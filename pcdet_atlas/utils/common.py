@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -76,3 +78,15 @@ def load_tool(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def save_pickle(obj, path: str | Path) -> Path:
+    """Pickle ``obj`` to ``path`` atomically (a temporary file renamed into place, the folder
+    created if needed), so that an interrupted write never leaves a truncated file behind."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        pickle.dump(obj, f)
+    os.replace(tmp, path)
+    return path

@@ -8,11 +8,20 @@ cell key; keys are grouped through a dense per-cell table (pillar grids) or ``to
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
 
-__all__ = ["VoxelGrid", "Voxelization", "check_point_columns", "voxelize"]
+from pcdet_atlas.config import ConfigError, key_source
+
+__all__ = [
+    "VoxelGrid",
+    "Voxelization",
+    "check_point_columns",
+    "check_voxel_size_placeholder",
+    "voxelize",
+]
 
 # grids with at most this many cells (batch included) group points with a dense per-cell table
 # (bincount, O(N + cells)); larger ones (fine 3D voxels) sort the keys with torch.unique
@@ -124,6 +133,20 @@ def voxelize(points: torch.Tensor, grid: VoxelGrid, *, bound_z: bool = True) -> 
     return Voxelization(
         point_mask=mask, point_voxel_idx=inverse, voxel_coords=coords, voxel_num_points=counts
     )
+
+
+def check_voxel_size_placeholder(
+    cfg: Mapping, voxel_size: Sequence[float], model_info: Mapping
+) -> None:
+    """A VFE's ``voxel_size`` (from ``MODEL.VFE`` ``cfg``) must equal the VOXEL_SIZE the data
+    processor's ``transform_points_to_voxels_placeholder`` states (``model_info['voxel_size']``,
+    when there is one)."""
+    data_size = model_info.get("voxel_size")
+    if data_size is not None and tuple(float(v) for v in voxel_size) != tuple(data_size):
+        raise ConfigError(
+            f"MODEL.VFE.VOXEL_SIZE {list(voxel_size)} (from {key_source(cfg, 'VOXEL_SIZE')}) "
+            f"differs from the DATA_PROCESSOR placeholder's VOXEL_SIZE {list(data_size)}"
+        )
 
 
 def check_point_columns(points: torch.Tensor, num_point_features: int, owner: str) -> None:

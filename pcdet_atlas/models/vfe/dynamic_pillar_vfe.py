@@ -22,9 +22,14 @@ from collections.abc import Mapping, Sequence
 import torch
 from torch import nn
 
-from pcdet_atlas.config import ConfigError, check_known_keys, key_source
+from pcdet_atlas.config import ConfigError, check_known_keys
 from pcdet_atlas.models.model_utils.scatter import scatter_max, scatter_mean
-from pcdet_atlas.models.model_utils.voxelize import VoxelGrid, check_point_columns, voxelize
+from pcdet_atlas.models.model_utils.voxelize import (
+    VoxelGrid,
+    check_point_columns,
+    check_voxel_size_placeholder,
+    voxelize,
+)
 from pcdet_atlas.registry import MODEL_STAGES
 
 
@@ -134,12 +139,7 @@ class DynamicPillarVFE(nn.Module):
                 "MODEL.VFE needs VOXEL_SIZE, or DATA_CONFIG.DATA_PROCESSOR a "
                 "transform_points_to_voxels_placeholder stating it (as OpenPCDet's configs do)"
             )
-        data_size = model_info.get("voxel_size")
-        if data_size is not None and tuple(float(v) for v in voxel_size) != tuple(data_size):
-            raise ConfigError(
-                f"MODEL.VFE.VOXEL_SIZE {list(voxel_size)} (from {key_source(cfg, 'VOXEL_SIZE')}) "
-                f"differs from the DATA_PROCESSOR placeholder's VOXEL_SIZE {list(data_size)}"
-            )
+        check_voxel_size_placeholder(cfg, voxel_size, model_info)
         return cls(
             num_point_features=model_info["num_point_features"],
             point_cloud_range=model_info["point_cloud_range"],

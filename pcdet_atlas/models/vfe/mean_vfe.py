@@ -12,9 +12,13 @@ from collections.abc import Mapping, Sequence
 
 from torch import nn
 
-from pcdet_atlas.config import ConfigError, check_known_keys, key_source, require_keys
+from pcdet_atlas.config import check_known_keys, require_keys
 from pcdet_atlas.models.model_utils.hard_voxelize import hard_voxelize
-from pcdet_atlas.models.model_utils.voxelize import VoxelGrid, check_point_columns
+from pcdet_atlas.models.model_utils.voxelize import (
+    VoxelGrid,
+    check_point_columns,
+    check_voxel_size_placeholder,
+)
 from pcdet_atlas.registry import MODEL_STAGES
 
 
@@ -65,13 +69,7 @@ class MeanVFE(nn.Module):
         keys = ["NAME", "VOXEL_SIZE", "MAX_POINTS_PER_VOXEL", "MAX_NUMBER_OF_VOXELS"]
         check_known_keys(cfg, keys, "MODEL.VFE")
         require_keys(cfg, keys[1:], "MODEL.VFE")
-        data_size = model_info.get("voxel_size")
-        if data_size is not None and tuple(float(v) for v in cfg["VOXEL_SIZE"]) != tuple(data_size):
-            raise ConfigError(
-                f"MODEL.VFE.VOXEL_SIZE {list(cfg['VOXEL_SIZE'])} (from "
-                f"{key_source(cfg, 'VOXEL_SIZE')}) differs from the DATA_PROCESSOR "
-                f"placeholder's VOXEL_SIZE {list(data_size)}"
-            )
+        check_voxel_size_placeholder(cfg, cfg["VOXEL_SIZE"], model_info)
         return cls(
             num_point_features=model_info["num_point_features"],
             point_cloud_range=model_info["point_cloud_range"],
