@@ -19,9 +19,13 @@ with the same data, variants, ``--set`` and ``--no_reuse`` as the one ``run.json
 records skips each model whose variants ``tools/test.py --resume`` would all keep (same merged
 config, checkpoint bytes and setting) and lets a model left unfinished go on from its last
 finished variant; any other model, or a call with another setting, is evaluated again.
-``--overwrite`` evaluates everything again. Models start longest first by the times of earlier
-runs that ``run.json`` keeps (``model_wall_s``), so that the jobs end close together; the
-report lists them in the given order. The total wall time adds up every call's (``run.json``
+``--overwrite`` evaluates everything again. The models share a prediction store
+(``tools/test.py --prediction_store``, under ``--output_root``; ``--no_store``: none) that the
+two-stage models and the configs that are their RPN use, so a two-stage model reads the
+proposals its RPN computed as a model of its own. A config that is
+another model's RPN therefore starts first; the others start longest first by the times of
+earlier runs that ``run.json`` keeps (``model_wall_s``), so that the jobs end close together;
+the report lists them in the given order. The total wall time adds up every call's (``run.json``
 is updated each minute, so a call that is killed still counts, with the work it lost); a
 model's time is the sum of its variants' evaluation times, whichever calls ran them.
 """
@@ -43,7 +47,7 @@ from pathlib import Path
 
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, repo_relative
 from pcdet_atlas.evaluation.results import ResultsError, collect_results, write_report
-from pcdet_atlas.models.detectors.two_stage import file_sha256
+from pcdet_atlas.models.detectors.two_stage import file_sha256, resolve_repo_path
 from pcdet_atlas.train_utils.atlas_eval import (
     build_variant_attacks,
     resolve_variants,
@@ -79,6 +83,10 @@ def parse_args(argv=None):
                    help="torch threads per job (default: CPU cores // jobs)")  # fmt: skip
     p.add_argument("--output_root", default=None, help="tools/test.py's output root")
     p.add_argument("--no_reuse", action="store_true", help="run the model on every frame")
+    p.add_argument("--no_store", action="store_true",
+                   help="no prediction store shared by the RPNs and the two-stage models "
+                        "(default: <output_root>/prediction_store; tools/test.py "
+                        "--prediction_store)")  # fmt: skip
     p.add_argument("--overwrite", action="store_true",
                    help="evaluate every model again (default: resume)")  # fmt: skip
     p.add_argument("--attacks", default="all", help="variants of tools/test.py (default: all)")
@@ -110,9 +118,12 @@ def ensure_trace_libraries(root: Path, cfgs: list[Path], attacks: str) -> None:
                 )
 
 
-def test_argv(cfg: Path, args, root: Path, threads: int, resume: bool) -> list[str]:
+def test_argv(
+    cfg: Path, args, root: Path, threads: int, resume: bool, store: Path | None = None
+) -> list[str]:
     """The ``tools/test.py`` arguments that evaluate one model config (``resume``: keep the
-    variants an earlier call finished; otherwise evaluate them all again)."""
+    variants an earlier call finished; otherwise evaluate them all again; ``store``: its
+    ``--prediction_store``)."""
     argv = ["--cfg", str(cfg), "--attacks", args.attacks, "--extra_tag", TAG, "--eval_tag", TAG,
             "--resume" if resume else "--overwrite", "--no_progress",
             "--workers", args.workers, "--threads", str(threads)]  # fmt: skip
@@ -122,7 +133,17 @@ def test_argv(cfg: Path, args, root: Path, threads: int, resume: bool) -> list[s
         argv += ["--device", args.device]
     if args.no_reuse:
         argv.append("--no_reuse")
+    if store is not None:
+        argv += ["--prediction_store", str(store)]
     return argv + ["--set", "DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs]
+
+
+def store_of(cfg: Path, rpns, args) -> Path | None:
+    """The prediction store of a model of the run: the one folder the RPNs (``rpns``) and the
+    two-stage models share; None for another model, or with ``--no_store``."""
+    if args.no_store or (cfg not in rpns and rpn_config(cfg) is None):
+        return None
+    return Path(args.output_root or REPO_ROOT / "output") / "prediction_store"
 
 
 def evaluation_of(cfg: Path, args, root: Path) -> tuple[Path, set[str], set[str] | None]:
@@ -158,10 +179,21 @@ def known_times(run: dict) -> dict[str, float]:
     return known
 
 
-def longest_first(cfgs: list[Path], known: dict[str, float]) -> list[Path]:
-    """The order the models start in: longest first by the earlier times ``known``, so that the
-    ``--jobs`` lanes end close together; models without a time first, in the given order."""
-    return sorted(cfgs, key=lambda cfg: -known.get(str(cfg), math.inf))
+def start_order(cfgs: list[Path], known: dict[str, float], rpns=frozenset()) -> list[Path]:
+    """The order the models start in: the ``rpns`` (configs that are another model's RPN,
+    :func:`rpn_config`) first, since their predictions in the prediction store are the
+    proposals of the models after them; then longest first by the earlier times ``known``, so
+    that the ``--jobs`` lanes end close together; models without a time first, in the given
+    order."""
+    names = {str(cfg) for cfg in rpns}
+    return sorted(cfgs, key=lambda cfg: (str(cfg) not in names, -known.get(str(cfg), math.inf)))
+
+
+def rpn_config(cfg: Path) -> Path | None:
+    """The config of a two-stage model's RPN (``MODEL.RPN.CFG``, as the run names configs),
+    None for another model."""
+    rpn = cfg_from_yaml_file(REPO_ROOT / cfg).get("MODEL", {}).get("RPN")
+    return None if rpn is None else repo_relative(resolve_repo_path(rpn["CFG"]))
 
 
 def evaluation_time(results: dict) -> float:
@@ -224,8 +256,9 @@ def main(argv=None) -> dict:
         resumable = resume and finished is not None
         done = resumable and wanted <= finished
         if not done:
+            store = store_of(cfg, rpns, args)
             command = [sys.executable, str(REPO_ROOT / "tools" / "test.py"),
-                       *test_argv(cfg, args, root, threads, resumable)]  # fmt: skip
+                       *test_argv(cfg, args, root, threads, resumable, store)]  # fmt: skip
             print("$ " + shlex.join(command[1:]), flush=True)
             log = results.parent.parent / "reproduce.log"
             log.parent.mkdir(parents=True, exist_ok=True)
@@ -240,9 +273,10 @@ def main(argv=None) -> dict:
         print(f"{cfg}: {when}{wall / 60:.1f} min, {results}", flush=True)
         save_state({"config": str(cfg), "results": str(results), "wall_s": wall})
 
+    rpns = {rpn_config(cfg) for cfg in cfgs} - {None}
     threading.Thread(target=heartbeat, daemon=True).start()
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        for future in [pool.submit(evaluate, cfg) for cfg in longest_first(cfgs, known)]:
+        for future in [pool.submit(evaluate, cfg) for cfg in start_order(cfgs, known, rpns)]:
             future.result()
     finished.set()
     save_state()

@@ -17,7 +17,11 @@ lays it out.
 The clean variant runs first; under an attack variant, a frame whose whole model input (the
 frame, its point history and, for PTT, its proposal history) the attack leaves untouched takes
 the clean run's prediction, which is bitwise what the model would return
-(docs/evaluation.md "Reusing clean predictions"; ``--no_reuse`` runs every frame).
+(docs/evaluation.md "Reusing clean predictions"; ``--no_reuse`` runs every frame). With
+``--prediction_store DIR``, CP-4f's detections and a two-stage model's proposals are kept in DIR
+by their inputs: MSF-4f and PTT, whose RPN is the same CP-4f fed the same points, then read the
+proposals CP-4f's own evaluation (or another model's) computed instead of running the RPN again
+(docs/evaluation.md "Sharing the RPN between models").
 
 Every variant YAML (its ``VARIANT`` must be its file name), the test split, the (first)
 checkpoint and the evaluation directories are checked before anything is written: an evaluation
@@ -47,6 +51,7 @@ from pcdet_atlas.config import REPO_ROOT, ConfigError, save_config, to_plain
 from pcdet_atlas.evaluation import build_results, format_table, load_results, save_results
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.detectors.two_stage import file_sha256
+from pcdet_atlas.models.prediction_store import PredictionStore, use_prediction_store
 from pcdet_atlas.train_utils.atlas_eval import (
     build_variant_attacks,
     check_test_split,
@@ -101,6 +106,12 @@ def parse_args(argv=None):
         "--no_reuse", action="store_true", default=False,
         help="run the model on every frame of every variant (default: a frame whose input the "
         "attack leaves untouched takes the clean run's prediction, bitwise the same)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--prediction_store", default=None, metavar="DIR",
+        help="keep the predictions of a model that serves as an RPN (CenterPoint, CP-4f), or of "
+        "a two-stage model's RPN, in DIR, found by their inputs; a later model that feeds the "
+        "same RPN the same inputs reads them (docs/evaluation.md 'Sharing the RPN')",
     )  # fmt: skip
     parser.add_argument("--no_progress", action="store_true", default=False, help="no tqdm bars")
     args = parser.parse_args(argv)
@@ -267,6 +278,13 @@ def main(argv=None) -> dict:
     if dist:  # every rank has checked before rank 0 writes
         torch_dist.barrier()
     model = build_network_from_config(cfg)
+    store = None
+    if args.prediction_store is not None:
+        store = PredictionStore(args.prediction_store)
+        users = use_prediction_store(model, store)
+        logger.info(f"prediction store {args.prediction_store}: used by "
+                    + (" and ".join(users) if users else "nothing of this model"))  # fmt: skip
+        store = store if users else None
     runs = []
     for ckpt, out_dir in zip(checkpoints, out_dirs):
         model.load_params_from_file(ckpt)  # strict: CheckpointMismatchError names what differs
@@ -287,7 +305,7 @@ def main(argv=None) -> dict:
                 model, ckpt, out_dir, args, cfg, attacks, dist=dist, rank=rank, world=world,
                 device=device, batch_size=batch_size, logger=logger,
                 finished=finished.get(out_dir, {}), ckpt_sha256=ckpt_sha256[ckpt],
-                fingerprints=fingerprints,
+                fingerprints=fingerprints, store=store,
             )
         )  # fmt: skip
     if rank != 0:
@@ -297,11 +315,12 @@ def main(argv=None) -> dict:
 
 def evaluate_checkpoint(
     model, ckpt, out_dir, args, cfg, attacks, *, dist, rank, world, device, batch_size, logger,
-    finished, ckpt_sha256, fingerprints
+    finished, ckpt_sha256, fingerprints, store=None
 ) -> dict:  # fmt: skip
     """Every variant of one checkpoint; ``results.json`` is rewritten after each variant.
     ``finished``: the entries of the variants an earlier call finished (``--resume``), kept.
-    ``fingerprints``: ``{variant: attack_sha256}``, recorded in each new entry's ``extra``."""
+    ``fingerprints``: ``{variant: attack_sha256}``, recorded in each new entry's ``extra``.
+    ``store``: the model's ``PredictionStore`` (counted per variant), or None."""
     atlas_cfg = cfg.get("ATLAS", {})
     entries: dict = {}
     clean_annos = None
@@ -326,6 +345,7 @@ def evaluate_checkpoint(
                 clean_det_annos=clean_annos, out_dir=out_dir / variant, logger=logger,
                 show_progress=not args.no_progress, save_to_file=args.save_to_file,
                 reuse_clean=not args.no_reuse, clean_proposals=clean_proposals,
+                prediction_store=store,
             )  # fmt: skip
             if variant == "clean":
                 clean_annos = det_annos

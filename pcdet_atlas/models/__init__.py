@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
-from pcdet_atlas.config import require_keys
+from pcdet_atlas.config import require_keys, to_plain
 from pcdet_atlas.models import (  # noqa: F401
     backbones_2d,
     backbones_3d,
@@ -41,15 +41,24 @@ def build_network(
     voxel_size: Sequence[float] | None = None,
 ) -> Detector3DTemplate:
     """The detector ``DETECTORS[model_cfg.NAME]`` built from a ``MODEL`` section (``voxel_size``:
-    the data config's, for a VFE whose section does not state one)."""
+    the data config's, for a VFE whose section does not state one). Its ``build_signature``
+    records these arguments."""
     require_keys(model_cfg, ["NAME"], "MODEL")
-    return DETECTORS.get(model_cfg["NAME"]).from_config(
+    detector = DETECTORS.get(model_cfg["NAME"]).from_config(
         model_cfg,
         class_names=class_names,
         point_cloud_range=point_cloud_range,
         num_point_features=num_point_features,
         voxel_size=voxel_size,
     )
+    # what the model computes besides its weights (a PredictionStore's fingerprint)
+    detector.build_signature = to_plain({
+        "MODEL": model_cfg, "class_names": list(class_names),
+        "point_cloud_range": [float(v) for v in point_cloud_range],
+        "num_point_features": int(num_point_features),
+        "voxel_size": None if voxel_size is None else [float(v) for v in voxel_size],
+    })  # fmt: skip
+    return detector
 
 
 def num_point_features_of(data_cfg: Mapping) -> int:

@@ -33,6 +33,7 @@ from pcdet_atlas.datasets.loader import ContiguousBatchSampler, worker_init_fn
 from pcdet_atlas.datasets.multiframe import SequenceConfig
 from pcdet_atlas.evaluation import build_variant_result, evaluate_attack
 from pcdet_atlas.models.detectors.two_stage import file_sha256
+from pcdet_atlas.models.prediction_store import PredictionStore
 from pcdet_atlas.registry import DATASETS
 from pcdet_atlas.train_utils.dist import get_dist_info, unwrap_model
 from pcdet_atlas.train_utils.eval_utils import predict_dataset, write_prediction_files
@@ -264,6 +265,7 @@ def evaluate_variant(
     save_to_file: bool = False,
     reuse_clean: bool = False,
     clean_proposals: dict | None = None,
+    prediction_store: PredictionStore | None = None,
 ) -> tuple[dict | None, list[dict]]:
     """Predict one variant and score it.
 
@@ -279,6 +281,8 @@ def evaluate_variant(
     :func:`~pcdet_atlas.train_utils.proposal_bank.frame_batches`) has RPN inputs the attack
     leaves untouched, so that only the other frames go through the RPN again
     (:class:`ProposalBank`; still bitwise a full run).
+    ``prediction_store``: the store the model (or its RPN) uses (``use_prediction_store``);
+    the entry's ``extra.prediction_store`` counts the batches it served and those it stored.
 
     Returns:
         ``(entry, det_annos)``: the ``results.json`` variant entry (None on ranks > 0; its
@@ -308,6 +312,7 @@ def evaluate_variant(
             if not any(attacked(*member) for member in batch_of.get(frame, (frame,)))
         }  # fmt: skip
     timings: dict = {}
+    store_before = prediction_store.counts() if prediction_store is not None else None
     t0 = time.perf_counter()
     det_annos, extras = predict_dataset(
         model, loader, device=device, desc=variant, show_progress=show_progress, timings=timings,
@@ -316,6 +321,9 @@ def evaluate_variant(
     )  # fmt: skip
     timings["predict_wall"] = time.perf_counter() - t0
     bank_stats = timings.pop("bank", None)
+    store_stats = None
+    if prediction_store is not None:
+        store_stats = {k: v - store_before[k] for k, v in prediction_store.counts().items()}
     if rank != 0:
         return None, det_annos
     reused = np.array([e["reused"] for e in extras], dtype=bool)
@@ -343,7 +351,8 @@ def evaluate_variant(
         num_reused_frames=int(reused.sum()),
         extra={"timing_s": {k: round(v, 3) for k, v in timings.items()},
                "clean_predictions": clean_det_annos is not None,
-               **({"proposal_bank": bank_stats} if bank_stats is not None else {})},
+               **({"proposal_bank": bank_stats} if bank_stats is not None else {}),
+               **({"prediction_store": store_stats} if store_stats is not None else {})},
     )  # fmt: skip
     if out_dir is not None:
         save_pickle(det_annos, out_dir / "result.pkl")

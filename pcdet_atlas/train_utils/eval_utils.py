@@ -78,7 +78,7 @@ def predict_dataset(
         batch_dev = load_data_to_device(batch, device)
         if bank is not None:
             batch_dev = bank.attach(batch, batch_dev)
-        pred_dicts = core.predict(batch_dev)
+        pred_dicts = core.stored_predict(batch_dev)
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         t1 = time.perf_counter()

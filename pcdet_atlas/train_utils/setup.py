@@ -173,6 +173,8 @@ def setup_runtime(args) -> tuple[bool, int, int, torch.device]:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     if args.fix_random_seed:
+        # cuBLAS is deterministic only with a fixed workspace (read when it first starts)
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
         torch.use_deterministic_algorithms(True, warn_only=True)
         torch.backends.cudnn.benchmark = False
     return args.launcher != "none", rank, world, device

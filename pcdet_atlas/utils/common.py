@@ -6,7 +6,10 @@ import logging
 import math
 import os
 import pickle
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import torch
@@ -80,13 +83,23 @@ def load_tool(name: str):
     return module
 
 
-def save_pickle(obj, path: str | Path) -> Path:
-    """Pickle ``obj`` to ``path`` atomically (a temporary file renamed into place, the folder
-    created if needed), so that an interrupted write never leaves a truncated file behind."""
+def write_atomic(path: str | Path, write: Callable[[BinaryIO], object]) -> Path:
+    """Write ``path`` by ``write(file)`` into a temporary file of its folder (created if
+    needed), renamed into place: an interrupted write never leaves a truncated file, and
+    processes writing the same path at once each rename a whole file of their own."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        pickle.dump(obj, f)
-    os.replace(tmp, path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
     return path
+
+
+def save_pickle(obj, path: str | Path) -> Path:
+    """Pickle ``obj`` to ``path`` atomically (:func:`write_atomic`)."""
+    return write_atomic(path, lambda f: pickle.dump(obj, f))

@@ -373,7 +373,7 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
                for r, s in zip(changed["run"]["runs"], stamps))  # fmt: skip
 
 
-def test_reproduce_starts_the_longest_models_first():
+def test_reproduce_starts_rpns_then_the_longest_models_first():
     """The times an earlier run.json knows (its runs, and those it carried from before) order the
     models longest first; models without a time start first, in the given order."""
     reproduce = load_tool("reproduce")
@@ -382,6 +382,25 @@ def test_reproduce_starts_the_longest_models_first():
     known = reproduce.known_times(earlier)
     assert known == {"a.yaml": 10.0, "b.yaml": 50.0, "c.yaml": 90.0}
     cfgs = [Path(name) for name in ("a.yaml", "b.yaml", "new.yaml", "c.yaml", "other.yaml")]
-    order = reproduce.longest_first(cfgs, known)
+    order = reproduce.start_order(cfgs, known)
     assert [str(c) for c in order] == ["new.yaml", "other.yaml", "c.yaml", "b.yaml", "a.yaml"]
+    # another model's RPN starts first: its stored predictions are the others' proposals
+    order = reproduce.start_order(cfgs, known, rpns={Path("a.yaml")})
+    assert [str(c) for c in order] == ["a.yaml", "new.yaml", "other.yaml", "c.yaml", "b.yaml"]
     assert reproduce.known_times({}) == {}
+
+
+def test_reproduce_shares_a_store_between_rpns_and_two_stage_models(tmp_path):
+    reproduce = load_tool("reproduce")
+    synthetic = Path("cfgs/atlas/synthetic")
+    cfgs = [synthetic / f"{name}.yaml" for name in ("centerpoint", "cp4f", "msf_8f", "ptt_32f")]
+    rpns = {reproduce.rpn_config(cfg) for cfg in cfgs} - {None}
+    assert rpns == {synthetic / "cp4f.yaml"}
+    args = reproduce.parse_args(["--output_root", str(tmp_path)])
+    stores = [reproduce.store_of(cfg, rpns, args) for cfg in cfgs]
+    assert stores == [None, *[tmp_path / "prediction_store"] * 3]
+    argv = reproduce.test_argv(cfgs[2], args, tmp_path, 1, False, stores[2])
+    assert argv[argv.index("--prediction_store") + 1] == str(tmp_path / "prediction_store")
+    args = reproduce.parse_args(["--output_root", str(tmp_path), "--no_store"])
+    assert all(reproduce.store_of(cfg, rpns, args) is None for cfg in cfgs)
+    assert "--prediction_store" not in reproduce.test_argv(cfgs[2], args, tmp_path, 1, False)

@@ -236,9 +236,9 @@ def small_transformer(bifa_layers: int) -> BiFATransformer:
 
 
 def test_bifa_carries_information_both_ways_and_keeps_frames_apart():
-    points = torch.randn(4, 8, 3, 16)  # (T, K, N, C)
+    points = torch.randn(4, 3, 8, 16)  # (T, N, K, C)
     changed = points.clone()
-    changed[2] += torch.randn(8, 3, 16)  # perturb frame 2 only
+    changed[2] += torch.randn(3, 8, 16)  # perturb frame 2 only
     with torch.no_grad():
         base, moved = small_transformer(1)(points)[0], small_transformer(1)(changed)[0]
         delta = (base - moved).abs().amax(dim=(1, 2))  # per frame, first layer's tokens

@@ -597,7 +597,11 @@ def test_msf_tensors_land_where_the_released_code_uses_them():
     groups = torch.randn(4, 1 + 6, 3, 256, generator=g)  # (T groups, token + K points, N, C)
     src = groups.permute(1, 0, 2, 3).reshape(7, 12, 256)  # groups side by side on the batch axis
     with torch.no_grad():
-        got = head.transformer.layers[2](groups)
+        # the layer takes the tokens (T, N, C) and the points (T, N, K, C)
+        got_token, got_points = head.transformer.layers[2](
+            groups[:, 0], groups[:, 1:].permute(0, 2, 1, 3)
+        )
+        got = torch.cat([got_token[:, None], got_points.permute(0, 2, 1, 3)], 1)
         m = f"{e}.mlp_mixer_3d"
         pts = src[1:]
         pts = ln(pts + mha(f"{m}.mixer", 8)(pts, pts, pts)[0], f"{m}.norm")

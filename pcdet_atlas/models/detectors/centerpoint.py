@@ -21,6 +21,7 @@ class CenterPoint(Detector3DTemplate):
     """
 
     required_stages = ("vfe", "map_to_bev_module", "backbone_2d", "dense_head")
+    prediction_inputs = ("points",)
 
     def loss(self, batch_dict: Mapping) -> dict[str, torch.Tensor]:
         """``{'loss': total, 'hm_loss', 'loc_loss'}`` scalars."""

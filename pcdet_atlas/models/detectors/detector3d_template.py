@@ -92,6 +92,9 @@ class Detector3DTemplate(nn.Module):
     POST_PROCESSING_KEYS: tuple[str, ...] = (
         "RECALL_THRESH_LIST", "EVAL_METRIC", "SCORE_THRESH", "OUTPUT_RAW_SCORE",
     )  # fmt: skip
+    #: every batch key besides ``batch_size`` that :meth:`predict` reads; a detector that
+    #: declares them can keep its predictions in a ``PredictionStore`` (``prediction_store``)
+    prediction_inputs: tuple[str, ...] | None = None
 
     def __init__(self, *, class_names: Sequence[str], **stages: nn.Module | None):
         """
@@ -113,6 +116,8 @@ class Detector3DTemplate(nn.Module):
         #: module names that train (a training stage's ``STAGE.TRAIN``); None: all of them.
         #: The others stay in eval mode under ``train()``.
         self.trainable_modules: tuple[str, ...] | None = None
+        #: where :meth:`stored_predict` keeps and finds predictions (a ``PredictionStore``)
+        self.prediction_store = None
 
     @property
     def module_list(self) -> list[nn.Module]:
@@ -203,6 +208,13 @@ class Detector3DTemplate(nn.Module):
 
     def predict(self, batch_dict: Mapping) -> list[dict[str, torch.Tensor]]:
         raise NotImplementedError
+
+    def stored_predict(self, batch_dict: Mapping) -> list[dict[str, torch.Tensor]]:
+        """:meth:`predict`, through ``prediction_store`` when one is set (the stored prediction
+        of the same inputs, or a new one stored)."""
+        if self.prediction_store is None:
+            return self.predict(batch_dict)
+        return self.prediction_store.predict(self, batch_dict)
 
     def forward(self, batch_dict: Mapping):
         """OpenPCDet's contract: training -> ``(ret_dict{'loss'}, tb_dict, disp_dict)``;

@@ -160,10 +160,10 @@ class TwoStageDetector(Detector3DTemplate):
     @torch.no_grad()
     def propose(self, batch_dict: Mapping) -> list[dict[str, torch.Tensor]]:
         """The RPN's detections on the batch's own points: the points of its ``window`` newest
-        frames (time lag < 0.1 * window s)."""
+        frames (time lag < 0.1 * window s); through the RPN's ``prediction_store`` if set."""
         points = batch_dict["points"]
         keep = frame_of_points(points[:, -1], self.rpn_info["window"]) >= 0
-        return self.rpn.predict({**batch_dict, "points": points[keep]})
+        return self.rpn.stored_predict({**batch_dict, "points": points[keep]})
 
     # ------------------------------------------------------------------ training
     def second_stage_loss(

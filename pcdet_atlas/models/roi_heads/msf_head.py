@@ -31,7 +31,7 @@ from pcdet_atlas.models.roi_heads.roi_head_template import TemporalRoIHead
 from pcdet_atlas.ops.boxes import boxes_to_corners_3d
 from pcdet_atlas.registry import MODEL_STAGES
 
-__all__ = ["MSFHead", "BiFATransformer", "mlp", "spherical_offsets"]
+__all__ = ["MSFHead", "BiFATransformer", "attention", "mlp", "spherical_offsets"]
 
 
 def mlp(dims: Sequence[int], *, bias_last: bool = True) -> nn.Sequential:
@@ -45,19 +45,28 @@ def mlp(dims: Sequence[int], *, bias_last: bool = True) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-def spherical_offsets(points_xyz: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
-    """``(..., K, 27)`` offsets of points ``(..., K, 3)`` to the 8 corners and the centre of their
-    box ``(..., 7)``, each as (distance / box diagonal, atan(dy / dx), acos(dz / distance)),
-    grouped as 9 distances, 9 azimuths, 9 polar angles (the released code's encoding)."""
+def spherical_offsets(
+    points_xyz: torch.Tensor, boxes: torch.Tensor, extra: torch.Tensor | None = None
+) -> torch.Tensor:
+    """``(..., K, 27 + E)`` offsets of points ``(..., K, 3)`` to the 8 corners and the centre of
+    their box ``(..., 7)`` (leading dimensions broadcast), each as (distance / box diagonal,
+    atan(dy / dx), acos(dz / distance)), grouped as 9 distances, 9 azimuths, 9 polar angles (the
+    released code's encoding), followed by the points' ``extra`` ``(..., K, E)`` channels (none
+    by default; broadcast too), in one concatenation."""
     lead = boxes.shape[:-1]
     corners = boxes_to_corners_3d(boxes.reshape(-1, boxes.shape[-1])[:, :7]).reshape(*lead, 8, 3)
     anchors = torch.cat([corners, boxes[..., None, 0:3]], dim=-2)  # (..., 9, 3)
-    delta = points_xyz[..., :, None, :] - anchors[..., None, :, :]  # (..., K, 9, 3)
+    # (..., K, 9, 3); subtracted as (..., K, 27) rows (xyz 9 times - the 9 anchors), a
+    # broadcast over whole rows rather than over 3-element ones (the same numbers, faster)
+    delta = (points_xyz.tile(9) - anchors.flatten(-2)[..., None, :]).unflatten(-1, (9, 3))
     dist = torch.linalg.vector_norm(delta, dim=-1)
     diagonal = torch.linalg.vector_norm(boxes[..., 3:6], dim=-1)[..., None, None]
     azimuth = torch.atan(delta[..., 1] / (delta[..., 0] + 1e-5))
     polar = torch.acos((delta[..., 2] / (dist + 1e-5)).clamp(-1.0, 1.0))
-    return torch.cat([dist / (diagonal + 1e-5), azimuth, polar], dim=-1)
+    parts = [dist / (diagonal + 1e-5), azimuth, polar]
+    if extra is not None:
+        parts.append(extra.expand(*dist.shape[:-1], extra.shape[-1]))
+    return torch.cat(parts, dim=-1)
 
 
 class TrajectoryPointNet(nn.Module):
@@ -113,9 +122,59 @@ def trajectory_sequence(trajectories: torch.Tensor) -> torch.Tensor:
     return seq.transpose(1, 2).contiguous()
 
 
+def attention(
+    attn: nn.MultiheadAttention, query: torch.Tensor, memory: torch.Tensor | None = None
+) -> torch.Tensor:
+    """``attn``'s attention (its projections, heads and dropout; no masks) of ``query``
+    ``(B, Lq, C)`` over ``memory`` ``(B, L, C)`` (``None``: over itself) -> ``(B, Lq, C)``.
+
+    Batch first throughout: the heads are views ``(B, h, L, C / h)`` of the projections, and
+    the attention's output, laid out ``(B, Lq, h, C / h)`` by the fused kernels, feeds the
+    output projection as it is, where ``nn.MultiheadAttention``'s forward (sequence first)
+    copies its inputs, projections and output between layouts."""
+    batch, len_q, dim = query.shape
+    heads = attn.num_heads
+    weight, bias = attn.in_proj_weight, attn.in_proj_bias
+    if memory is None:  # one packed projection for q, k and v
+        qkv = F.linear(query, weight, bias).view(batch, len_q, 3, heads, dim // heads)
+        q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)
+    else:
+        q = F.linear(query, weight[:dim], bias[:dim]).view(batch, len_q, heads, -1).transpose(1, 2)
+        kv = F.linear(memory, weight[dim:], bias[dim:]).view(batch, -1, 2, heads, dim // heads)
+        k, v = kv.permute(2, 0, 3, 1, 4).unbind(0)
+    out = F.scaled_dot_product_attention(q, k, v, dropout_p=attn.dropout if attn.training else 0.0)
+    return attn.out_proj(out.transpose(1, 2).reshape(batch, len_q, dim))
+
+
+def group_max(token: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """``(F, N, C)`` max over each group: its token ``(F, N, C)`` and points ``(F, N, K, C)``."""
+    return torch.maximum(token, points.amax(dim=2))
+
+
+def fuse_pooled(
+    fuse: nn.Linear,
+    norm: nn.LayerNorm,
+    token: torch.Tensor,
+    points: torch.Tensor,
+    pooled: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One BiFA step on ``F`` frames: ``norm(fuse([x, pooled]) + x)`` for each token ``x``
+    ``(F, N, C)`` and point ``(F, N, K, C)``, ``pooled`` ``(F, N, C)`` the features each frame
+    takes. ``fuse`` runs as its two halves, the pooled one once per frame and ROI (not per
+    point, and no concatenated input)."""
+    dim = token.shape[-1]
+    own = fuse.weight[:, :dim]
+    pool = F.linear(pooled, fuse.weight[:, dim:], fuse.bias)
+    return (
+        norm(F.linear(token, own) + pool + token),
+        norm(F.linear(points, own) + pool[:, :, None] + points),
+    )
+
+
 class EncoderLayer(nn.Module):
-    """One MSF block over ``T`` groups: point self-attention, the query token attending to its
-    frame's points, and (``bifa``) bidirectional aggregation between adjacent frames."""
+    """One MSF block over ``T`` groups (each a frame's query token and points): point
+    self-attention, the query token attending to its frame's points, and (``bifa``)
+    bidirectional aggregation between adjacent frames."""
 
     def __init__(
         self, dim: int, heads: int, point_heads: int, ffn: int, dropout: float, bifa: bool
@@ -137,42 +196,46 @@ class EncoderLayer(nn.Module):
             self.forward_fuse, self.backward_fuse = nn.Linear(2 * dim, dim), nn.Linear(2 * dim, dim)
             self.forward_norm, self.backward_norm = nn.LayerNorm(dim), nn.LayerNorm(dim)
 
-    def forward(self, groups: torch.Tensor) -> torch.Tensor:
-        """``groups``: ``(T, 1 + K, N, C)`` (frame, token + points, ROI, channel)."""
-        num_frames, length, num, dim = groups.shape
-        seq = groups.reshape(num_frames, length, num, dim).permute(1, 0, 2, 3)
-        seq = seq.reshape(length, num_frames * num, dim)  # frames side by side on the batch axis
-        token, pts = seq[:1], seq[1:]
-        pts = self.point_norm1(
-            pts + self.dropout(self.point_attn(pts, pts, pts, need_weights=False)[0])
-        )
+    def forward(
+        self, token: torch.Tensor, points: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``token`` ``(T, N, C)`` and ``points`` ``(T, N, K, C)`` (frame, ROI, point, channel)
+        -> both updated. The attention runs with frames and ROIs on the batch axis
+        (``(T * N, K, C)``, a view)."""
+        num_frames, num, length, dim = points.shape
+        pts = points.reshape(num_frames * num, length, dim)
+        tok = token.reshape(num_frames * num, 1, dim)
+        pts = self.point_norm1(pts + self.dropout(attention(self.point_attn, pts)))
         pts = self.point_norm2(pts + self.dropout(self.point_ffn(pts)))
-        token = self.token_norm1(
-            token + self.dropout(self.token_attn(token, pts, pts, need_weights=False)[0])
-        )
-        token = self.token_norm2(token + self.dropout(self.token_ffn(token)))
-        seq = torch.cat([token, pts], 0).reshape(length, num_frames, num, dim).permute(1, 0, 2, 3)
+        tok = self.token_norm1(tok + self.dropout(attention(self.token_attn, tok, pts)))
+        tok = self.token_norm2(tok + self.dropout(self.token_ffn(tok)))
+        token, points = tok.reshape(num_frames, num, dim), pts.reshape(num_frames, num, length, dim)
         if self.bifa and num_frames > 1:
-            seq = self._bifa(seq)
-        return seq
+            token, points = self._bifa(token, points)
+        return token, points
 
-    def _bifa(self, groups: torch.Tensor) -> torch.Tensor:
+    def _bifa(self, token: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Frame ``k`` takes the max-pooled features of frame ``k - 1`` (forward, newer ->
         older), then of frame ``k + 1`` (backward), each by a linear layer on the concatenation,
-        a residual and a layer norm."""
-        pooled = groups.max(dim=1).values  # (T, N, C)
-        length = groups.shape[1]
-        older = groups[1:]
-        fused = self.forward_fuse(
-            torch.cat([older, pooled[:-1, None].expand(-1, length, -1, -1)], -1)
+        a residual and a layer norm (:func:`fuse_pooled`)."""
+        pooled = group_max(token, points)  # (T, N, C)
+        # forward: frames 1 .. T-1 (frame 0 keeps its own)
+        fwd_token, fwd_points = fuse_pooled(
+            self.forward_fuse, self.forward_norm, token[1:], points[1:], pooled[:-1]
         )
-        groups = torch.cat([groups[:1], self.forward_norm(fused + older)], 0)
-        pooled = groups.max(dim=1).values
-        newer = groups[:-1]
-        fused = self.backward_fuse(
-            torch.cat([newer, pooled[1:, None].expand(-1, length, -1, -1)], -1)
+        pooled = group_max(fwd_token, fwd_points)  # of frames 1 .. T-1
+        # backward: frame 0, and apart (not concatenated with it) frames 1 .. T-2; the last
+        # frame keeps its forward result
+        first = fuse_pooled(
+            self.backward_fuse, self.backward_norm, token[:1], points[:1], pooled[:1]
         )
-        return torch.cat([self.backward_norm(fused + newer), groups[-1:]], 0)
+        middle = fuse_pooled(
+            self.backward_fuse, self.backward_norm, fwd_token[:-1], fwd_points[:-1], pooled[1:]
+        )
+        return (
+            torch.cat([first[0], middle[0], fwd_token[-1:]]),
+            torch.cat([first[1], middle[1], fwd_points[-1:]]),
+        )
 
 
 class BiFATransformer(nn.Module):
@@ -190,14 +253,14 @@ class BiFATransformer(nn.Module):
         )
 
     def forward(self, points: torch.Tensor) -> list[torch.Tensor]:
-        """``points``: ``(T, K, N, C)`` embedded points; returns each layer's tokens
-        ``(T, N, C)``."""
-        num_frames, _, num, dim = points.shape
-        groups = torch.cat([self.token.expand(num_frames, 1, num, dim), points], 1)
+        """``points``: ``(T, N, K, C)`` embedded points (frame, ROI, point, channel); returns
+        each layer's tokens ``(T, N, C)``."""
+        num_frames, num, _, dim = points.shape
+        token = self.token.reshape(num_frames, 1, dim).expand(num_frames, num, dim)
         tokens = []
         for layer in self.layers:
-            groups = layer(groups)
-            tokens.append(groups[:, 0])
+            token, points = layer(token, points)
+            tokens.append(token)
         return tokens
 
 
@@ -412,21 +475,23 @@ class MSFHead(TemporalRoIHead):
             radius_growth=self.radius_growth,
         )
         num = batch_size * num_rois
-        pts = pts.reshape(num, num_frames, self.num_points, -1)
-        pts_valid = pts_valid.reshape(num, num_frames, self.num_points)
-        traj = trajectories.permute(0, 2, 1, 3).reshape(num, num_frames, -1)  # (N, T, 7)
-        geometry = spherical_offsets(pts[..., 0:3], traj)  # frame i's box
-        geometry = torch.cat([geometry, pts[..., 3:]], dim=-1)
-        motion = spherical_offsets(pts[..., 0:3], traj[:, :1].expand(-1, num_frames, -1))
-        time = 0.1 * torch.arange(num_frames, dtype=pts.dtype, device=pts.device)
-        time = time[None, :, None, None].expand(num, num_frames, self.num_points, 1)
-        motion = torch.cat([motion, torch.zeros_like(time), torch.zeros_like(time), time], dim=-1)
+        # frame-major from here on, as the transformer reads them: (T, N, K, C), (T, N, 7)
+        pts = pts.reshape(num, num_frames, self.num_points, -1).transpose(0, 1).contiguous()
+        keep = pts_valid.reshape(num, num_frames, self.num_points).transpose(0, 1)
+        keep = keep & valid.reshape(1, num, 1)  # empty slots and ROIs: 0
+        boxes = trajectories.transpose(0, 1).reshape(num_frames, num, -1)
+        lag = 0.1 * torch.arange(num_frames, dtype=pts.dtype, device=pts.device)
+        time = torch.stack([torch.zeros_like(lag), torch.zeros_like(lag), lag], -1)  # (T, 3)
+        # geometry: offsets to frame i's box, intensity, elongation; motion: offsets to the
+        # current box, two zero channels and the frame's time (the released code's inputs)
+        geometry = spherical_offsets(pts[..., 0:3], boxes, pts[..., 3:])
+        motion = spherical_offsets(pts[..., 0:3], boxes[:1], time[:, None, None])
         src = self.geometry_embed(geometry) + self.motion_embed(motion)
-        src = src * (pts_valid & valid.reshape(num, 1, 1))[..., None]  # empty slots and ROIs: 0
-        box_code, box_feat = self.trajectory(trajectory_sequence(traj))
-        tokens = self.transformer(src.permute(1, 2, 0, 3))  # (T, K, N, C) -> per layer (T, N, C)
+        src.mul_(keep[..., None])  # in place: no second (T, N, K, C) tensor
+        box_code, box_feat = self.trajectory(trajectory_sequence(boxes.transpose(0, 1)))
+        tokens = self.transformer(src)  # per layer (T, N, C)
         last = tokens[-1]
-        joint = self.joint_reg(torch.cat([last.permute(1, 0, 2).reshape(num, -1), box_feat], 1))
+        joint = self.joint_reg(torch.cat([last.transpose(0, 1).reshape(num, -1), box_feat], 1))
         batch = dict(batch)
         batch["rcnn_cls"] = [self.class_embed(t[0]).reshape(batch_size, num_rois) for t in tokens]
         batch["rcnn_reg"] = joint.reshape(batch_size, num_rois, 7)

@@ -413,15 +413,12 @@ class PTTHead(TemporalRoIHead):
         frame_valid[:, fut] = True  # the ROI itself (keys stay defined for padding ROIs)
 
         # 1. P-T features (N, L, K, P): every point against every box of the sequence
-        xyz = pts[:, None, :, 0:3].expand(num, length, -1, 3)
-        geometry = spherical_offsets(xyz, seq[..., :7])
-        extra = pts[:, None, :, 3:].expand(num, length, -1, -1)
-        pt_feat = self.point_embed(torch.cat([geometry, extra], dim=-1))
-        pt_feat = pt_feat * pts_valid[:, None, :, None]
+        geometry = spherical_offsets(pts[:, None, :, 0:3], seq[..., :7], pts[:, None, :, 3:])
+        pt_feat = self.point_embed(geometry).mul_(pts_valid[:, None, :, None])  # in place
         # 2. per-frame features (N, L, D): box sequence + pooled points
         box = self.box_embed(box_sequence_features(seq, fut).reshape(-1, 8))
         box = F.relu(self.box_norm(box)).reshape(num, length, -1)
-        frame_feat = torch.cat([box, self.point_pool(pt_feat.max(dim=2).values)], dim=-1)
+        frame_feat = torch.cat([box, self.point_pool(pt_feat.amax(dim=2))], dim=-1)
         # 3. memories
         short_end = fut + self.short_frames
         future, short, long = frame_feat[:, :fut], frame_feat[:, fut:short_end], frame_feat[

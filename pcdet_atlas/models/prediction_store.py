@@ -1,0 +1,164 @@
+"""A content-addressed store of a detector's predictions, shared by the models that read them.
+
+MSF-4f, MSF-8f and PTT all take their proposals from the same CP-4f, and CP-4f is evaluated on
+the same attacked frames on its own. With a :class:`PredictionStore`, whichever process runs
+CP-4f on a batch first keeps its detections, and every later process that feeds CP-4f the same
+batch (as a model of its own or as a two-stage model's RPN) reads them instead of running it
+(docs/evaluation.md, "Sharing the RPN between models").
+
+An entry is found by what determines the prediction, never by names: the model's class, the
+arguments it was built from and every tensor of its ``state_dict`` (its *fingerprint*), the
+device type, the torch version and CPU thread count, and the bytes of every batch input the
+model reads (its ``prediction_inputs``: for CenterPoint the points with their batch column, and
+the batch size). Equal keys mean equal computations, so a stored prediction is bitwise the one
+the model would return: on the CPU, where torch's kernels are deterministic for a given thread
+count. On a GPU they need not be (docs/evaluation.md), so a stored prediction is one the model
+may return. A model that does not declare ``prediction_inputs`` cannot be stored (error).
+
+Entries are files ``<root>/<model key>/<k[:2]>/<k>.pt`` written atomically, so concurrent
+processes may share a root; ``<root>/<model key>/model.json`` says which model a folder holds.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Mapping
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from pcdet_atlas.utils.common import write_atomic
+
+__all__ = ["PredictionStore", "model_fingerprint", "use_prediction_store"]
+
+
+def _hash_tensor(h, tensor: torch.Tensor) -> None:
+    """Feed a tensor's dtype, shape and bytes to the hash ``h``."""
+    h.update(f"{tensor.dtype}{tuple(tensor.shape)}".encode())
+    array = tensor.detach().cpu().contiguous().reshape(-1)
+    h.update(memoryview(array.view(torch.uint8).numpy()) if array.numel() else b"")
+
+
+_FINGERPRINTS: dict[int, tuple[tuple, str]] = {}  # id(model) -> (tensor versions, fingerprint)
+
+
+def model_fingerprint(model: nn.Module) -> str:
+    """SHA-256 of the model's class, its ``build_signature`` (the arguments
+    :func:`~pcdet_atlas.models.build_network` built it from) and its ``state_dict``. It is
+    recomputed when a tensor of the state changed in place (a new checkpoint loaded)."""
+    signature = getattr(model, "build_signature", None)
+    if signature is None:
+        raise ValueError(
+            f"{type(model).__name__} has no build_signature: build it with "
+            "pcdet_atlas.models.build_network to store its predictions"
+        )
+    state = model.state_dict(keep_vars=True)
+    versions = tuple((name, t._version, t.data_ptr()) for name, t in state.items())
+    cached = _FINGERPRINTS.get(id(model))
+    if cached is not None and cached[0] == versions:
+        return cached[1]
+    h = hashlib.sha256()
+    h.update(type(model).__qualname__.encode())
+    h.update(json.dumps(signature, sort_keys=True, default=str).encode())
+    for name, tensor in state.items():
+        h.update(name.encode())
+        _hash_tensor(h, tensor)
+    digest = h.hexdigest()
+    _FINGERPRINTS[id(model)] = (versions, digest)
+    return digest
+
+
+class PredictionStore:
+    """Predictions of frozen models under ``root``, found by their inputs (module docstring).
+
+    ``hits`` / ``misses`` count the batches read from the store and those predicted (and
+    stored); :meth:`counts` returns them.
+    """
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+        self.hits = 0
+        self.misses = 0
+
+    def counts(self) -> dict[str, int]:
+        return {"hits": self.hits, "misses": self.misses}
+
+    def model_key(self, model: nn.Module, device: torch.device) -> str:
+        """The folder of ``model``'s entries on ``device`` in this process's torch setup."""
+        threads = torch.get_num_threads() if device.type == "cpu" else 0
+        runtime = f"{device.type}|threads={threads}|torch={torch.__version__}"
+        return hashlib.sha256(f"{model_fingerprint(model)}|{runtime}".encode()).hexdigest()[:32]
+
+    def batch_key(self, model: nn.Module, batch_dict: Mapping) -> str:
+        """The hash of the batch inputs ``model.prediction_inputs`` names, and the batch size."""
+        inputs = getattr(model, "prediction_inputs", None)
+        if not inputs:
+            raise TypeError(
+                f"{type(model).__name__} declares no prediction_inputs: its predictions cannot be "
+                "stored (the store must know every batch key a prediction reads)"
+            )
+        h = hashlib.sha256(f"batch_size={int(batch_dict['batch_size'])}".encode())
+        for key in inputs:
+            if key not in batch_dict:
+                raise KeyError(f"{type(model).__name__} reads batch_dict[{key!r}]; it is missing")
+            value = batch_dict[key]
+            h.update(key.encode())
+            if isinstance(value, torch.Tensor):
+                _hash_tensor(h, value)
+            else:
+                h.update(repr(value).encode())
+        return h.hexdigest()
+
+    @torch.no_grad()
+    def predict(self, model: nn.Module, batch_dict: Mapping) -> list[dict[str, torch.Tensor]]:
+        """``model.predict(batch_dict)``, read from the store when the same model already
+        predicted the same inputs there, predicted and stored otherwise."""
+        device = batch_dict["points"].device
+        folder = self.root / self.model_key(model, device)
+        key = self.batch_key(model, batch_dict)
+        path = folder / key[:2] / f"{key}.pt"
+        if path.is_file():
+            try:
+                stored = torch.load(path, map_location=device, weights_only=True)
+            except (EOFError, OSError, RuntimeError) as err:
+                raise ValueError(f"prediction store entry {path} cannot be read: {err}") from err
+            self.hits += 1
+            return stored
+        predictions = model.predict(batch_dict)
+        self.misses += 1
+        self._describe(folder, model, device)
+        cpu = [{k: v.detach().cpu() for k, v in p.items()} for p in predictions]
+        write_atomic(path, lambda f: torch.save(cpu, f))
+        return predictions
+
+    def _describe(self, folder: Path, model: nn.Module, device: torch.device) -> None:
+        info = folder / "model.json"
+        if info.is_file():
+            return
+        text = json.dumps(
+            {
+                "model": type(model).__qualname__,
+                "fingerprint": model_fingerprint(model),
+                "build_signature": model.build_signature,
+                "device": device.type,
+                "threads": torch.get_num_threads() if device.type == "cpu" else None,
+                "torch": torch.__version__,
+                "prediction_inputs": list(model.prediction_inputs),
+            },
+            indent=1, default=str,
+        )  # fmt: skip
+        write_atomic(info, lambda f: f.write(text.encode()))
+
+
+def use_prediction_store(model: nn.Module, store: PredictionStore) -> list[str]:
+    """Let ``model`` keep its predictions in ``store`` if it declares its
+    ``prediction_inputs``, and a two-stage model its RPN's. Returns what uses the store
+    (``'model'``, ``'rpn'``; empty for a model that cannot use it)."""
+    users = []
+    for name, module in (("model", model), ("rpn", getattr(model, "rpn", None))):
+        if module is not None and getattr(module, "prediction_inputs", None):
+            module.prediction_store = store
+            users.append(name)
+    return users
