@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import weakref
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -41,7 +42,8 @@ def _hash_tensor(h, tensor: torch.Tensor) -> None:
     h.update(memoryview(array.view(torch.uint8).numpy()) if array.numel() else b"")
 
 
-_FINGERPRINTS: dict[int, tuple[tuple, str]] = {}  # id(model) -> (tensor versions, fingerprint)
+# model -> (its tensors' versions and addresses, fingerprint); weak: a freed model's entry goes
+_FINGERPRINTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def model_fingerprint(model: nn.Module) -> str:
@@ -56,7 +58,7 @@ def model_fingerprint(model: nn.Module) -> str:
         )
     state = model.state_dict(keep_vars=True)
     versions = tuple((name, t._version, t.data_ptr()) for name, t in state.items())
-    cached = _FINGERPRINTS.get(id(model))
+    cached = _FINGERPRINTS.get(model)
     if cached is not None and cached[0] == versions:
         return cached[1]
     h = hashlib.sha256()
@@ -66,7 +68,7 @@ def model_fingerprint(model: nn.Module) -> str:
         h.update(name.encode())
         _hash_tensor(h, tensor)
     digest = h.hexdigest()
-    _FINGERPRINTS[id(model)] = (versions, digest)
+    _FINGERPRINTS[model] = (versions, digest)
     return digest
 
 
@@ -115,7 +117,7 @@ class PredictionStore:
     def predict(self, model: nn.Module, batch_dict: Mapping) -> list[dict[str, torch.Tensor]]:
         """``model.predict(batch_dict)``, read from the store when the same model already
         predicted the same inputs there, predicted and stored otherwise."""
-        device = batch_dict["points"].device
+        device = next(model.parameters()).device
         folder = self.root / self.model_key(model, device)
         key = self.batch_key(model, batch_dict)
         path = folder / key[:2] / f"{key}.pt"
