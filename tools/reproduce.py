@@ -143,6 +143,10 @@ def store_of(cfg: Path, rpns, args) -> Path | None:
     two-stage models share; None for another model, or with ``--no_store``."""
     if args.no_store or (cfg not in rpns and rpn_config(cfg) is None):
         return None
+    return store_path(args)
+
+
+def store_path(args) -> Path:
     return Path(args.output_root or REPO_ROOT / "output") / "prediction_store"
 
 
@@ -232,7 +236,8 @@ def main(argv=None) -> dict:
     state = {"setting": setting, "command": command, "jobs": args.jobs, "threads": threads,
              "cpu_cores": os.cpu_count(), "machine": platform.machine(), "device": None,
              "total_wall_s": elapsed_before, "calls": calls, "runs": [],
-             "model_wall_s": known}  # fmt: skip
+             "model_wall_s": known,
+             "prediction_store": None if args.no_store else str(store_path(args))}  # fmt: skip
     lock = threading.Lock()
     start = time.perf_counter()
     finished = threading.Event()

@@ -7,13 +7,17 @@ batch (as a model of its own or as a two-stage model's RPN) reads them instead o
 (docs/evaluation.md, "Sharing the RPN between models").
 
 An entry is found by what determines the prediction, never by names: the model's class, the
-arguments it was built from and every tensor of its ``state_dict`` (its *fingerprint*), the
-device type, the torch version and CPU thread count, and the bytes of every batch input the
-model reads (its ``prediction_inputs``: for CenterPoint the points with their batch column, and
-the batch size). Equal keys mean equal computations, so a stored prediction is bitwise the one
-the model would return: on the CPU, where torch's kernels are deterministic for a given thread
-count. On a GPU they need not be (docs/evaluation.md), so a stored prediction is one the model
-may return. A model that does not declare ``prediction_inputs`` cannot be stored (error).
+arguments it was built from, every tensor of its ``state_dict`` and the plain settings of its
+modules (``fold_eval``, thresholds set after the build; its *fingerprint*); this package's
+source code; the runtime (device, its compute capability or CPU instruction set, torch, CUDA and
+cuDNN versions, TF32 and deterministic-algorithm flags, CPU thread count); and the bytes of every
+batch input the model reads (its ``prediction_inputs``: for CenterPoint the points with their
+batch column, and the batch size). Equal keys mean equal computations, so a stored prediction is
+bitwise the one the model would return: on the CPU, where torch's kernels are deterministic for
+a given thread count. On a GPU they are only in deterministic mode (docs/evaluation.md);
+otherwise a stored prediction is one the model may return. A model that does not declare
+``prediction_inputs``, or is in training mode, cannot be stored (error). Weights changed
+through ``.data`` escape the cached fingerprint (load checkpoints with ``load_state_dict``).
 
 Entries are files ``<root>/<model key>/<k[:2]>/<k>.pt`` written atomically, so concurrent
 processes may share a root; ``<root>/<model key>/model.json`` says which model a folder holds.
@@ -23,6 +27,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import platform
 import weakref
 from collections.abc import Mapping
 from pathlib import Path
@@ -46,6 +51,63 @@ def _hash_tensor(h, tensor: torch.Tensor) -> None:
 _FINGERPRINTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
+_SETTING_TYPES = (bool, int, float, str, type(None))
+
+
+def module_settings(model: nn.Module) -> list:
+    """The plain attributes (bools, numbers, strings and tuples of them) of every submodule:
+    settings outside the ``state_dict`` that change what a module computes."""
+    out = []
+    for name, module in model.named_modules():
+        for attr, value in sorted(vars(module).items()):
+            if attr.startswith("_") or attr == "training":
+                continue
+            plain_sequence = isinstance(value, (tuple, list)) and all(
+                isinstance(v, _SETTING_TYPES) for v in value
+            )
+            if plain_sequence:
+                value = list(value)
+            elif not isinstance(value, _SETTING_TYPES):
+                continue
+            out.append([name, attr, value])
+    return out
+
+
+_SOURCE_DIGEST: list[str] = []
+
+
+def source_digest() -> str:
+    """SHA-256 of this package's Python sources (once per process): a stored prediction is
+    found only by the code that computed it."""
+    if not _SOURCE_DIGEST:
+        package = Path(__file__).resolve().parents[1]
+        h = hashlib.sha256()
+        for path in sorted(package.rglob("*.py")):
+            h.update(str(path.relative_to(package)).encode())
+            h.update(path.read_bytes())
+        _SOURCE_DIGEST.append(h.hexdigest())
+    return _SOURCE_DIGEST[0]
+
+
+def runtime_key(device: torch.device) -> dict:
+    """What besides the model and its inputs decides a prediction's bits on ``device``."""
+    out = {
+        "device": device.type, "torch": torch.__version__, "machine": platform.machine(),
+        "default_dtype": str(torch.get_default_dtype()),
+        "deterministic": torch.are_deterministic_algorithms_enabled(),
+    }  # fmt: skip
+    if device.type == "cuda":
+        out.update(
+            gpu=torch.cuda.get_device_name(device),
+            capability=list(torch.cuda.get_device_capability(device)),
+            cuda=torch.version.cuda, cudnn=torch.backends.cudnn.version(),
+            tf32=[torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32],
+        )  # fmt: skip
+    else:
+        out.update(threads=torch.get_num_threads(), cpu=torch.backends.cpu.get_cpu_capability())
+    return out
+
+
 def model_fingerprint(model: nn.Module) -> str:
     """SHA-256 of the model's class, its ``build_signature`` (the arguments
     :func:`~pcdet_atlas.models.build_network` built it from) and its ``state_dict``. It is
@@ -57,13 +119,17 @@ def model_fingerprint(model: nn.Module) -> str:
             "pcdet_atlas.models.build_network to store its predictions"
         )
     state = model.state_dict(keep_vars=True)
-    versions = tuple((name, t._version, t.data_ptr()) for name, t in state.items())
+    versions = (
+        tuple((name, t._version, t.data_ptr()) for name, t in state.items()),
+        json.dumps(module_settings(model)),
+    )
     cached = _FINGERPRINTS.get(model)
     if cached is not None and cached[0] == versions:
         return cached[1]
     h = hashlib.sha256()
     h.update(type(model).__qualname__.encode())
     h.update(json.dumps(signature, sort_keys=True, default=str).encode())
+    h.update(json.dumps(module_settings(model)).encode())
     for name, tensor in state.items():
         h.update(name.encode())
         _hash_tensor(h, tensor)
@@ -88,10 +154,11 @@ class PredictionStore:
         return {"hits": self.hits, "misses": self.misses}
 
     def model_key(self, model: nn.Module, device: torch.device) -> str:
-        """The folder of ``model``'s entries on ``device`` in this process's torch setup."""
-        threads = torch.get_num_threads() if device.type == "cpu" else 0
-        runtime = f"{device.type}|threads={threads}|torch={torch.__version__}"
-        return hashlib.sha256(f"{model_fingerprint(model)}|{runtime}".encode()).hexdigest()[:32]
+        """The folder of ``model``'s entries on ``device``: its fingerprint, this package's
+        source and the runtime (:func:`runtime_key`)."""
+        runtime = json.dumps(runtime_key(device), sort_keys=True)
+        text = f"{model_fingerprint(model)}|{source_digest()}|{runtime}"
+        return hashlib.sha256(text.encode()).hexdigest()[:32]
 
     def batch_key(self, model: nn.Module, batch_dict: Mapping) -> str:
         """The hash of the batch inputs ``model.prediction_inputs`` names, and the batch size."""
@@ -117,23 +184,45 @@ class PredictionStore:
     def predict(self, model: nn.Module, batch_dict: Mapping) -> list[dict[str, torch.Tensor]]:
         """``model.predict(batch_dict)``, read from the store when the same model already
         predicted the same inputs there, predicted and stored otherwise."""
+        if any(m.training for m in model.modules()):
+            raise RuntimeError(
+                f"{type(model).__name__} is in training mode: only eval-mode predictions are "
+                "stored (call model.eval())"
+            )
         device = next(model.parameters()).device
         folder = self.root / self.model_key(model, device)
         key = self.batch_key(model, batch_dict)
         path = folder / key[:2] / f"{key}.pt"
         if path.is_file():
-            try:
-                stored = torch.load(path, map_location=device, weights_only=True)
-            except (EOFError, OSError, RuntimeError) as err:
-                raise ValueError(f"prediction store entry {path} cannot be read: {err}") from err
             self.hits += 1
-            return stored
+            return self._read(path, device, int(batch_dict["batch_size"]))
         predictions = model.predict(batch_dict)
         self.misses += 1
         self._describe(folder, model, device)
         cpu = [{k: v.detach().cpu() for k, v in p.items()} for p in predictions]
         write_atomic(path, lambda f: torch.save(cpu, f))
         return predictions
+
+    def _read(self, path: Path, device: torch.device, batch_size: int) -> list[dict]:
+        """A stored entry, checked: one dict of tensors per sample."""
+        try:
+            stored = torch.load(path, map_location=device, weights_only=True)
+        except Exception as err:  # noqa: BLE001 - any unreadable file gets the same message
+            reason = (str(err).splitlines() or [""])[0]
+            raise ValueError(
+                f"prediction store entry {path} cannot be read ({type(err).__name__}: {reason}); "
+                f"delete it (or the whole store, {self.root}) and run again"
+            ) from err
+        if not (
+            isinstance(stored, list) and len(stored) == batch_size
+            and all(isinstance(p, dict) and all(isinstance(v, torch.Tensor) for v in p.values())
+                    for p in stored)
+        ):  # fmt: skip
+            raise ValueError(
+                f"prediction store entry {path} does not hold {batch_size} dicts of tensors; "
+                f"delete it (or the whole store, {self.root}) and run again"
+            )
+        return stored
 
     def _describe(self, folder: Path, model: nn.Module, device: torch.device) -> None:
         info = folder / "model.json"
@@ -144,9 +233,8 @@ class PredictionStore:
                 "model": type(model).__qualname__,
                 "fingerprint": model_fingerprint(model),
                 "build_signature": model.build_signature,
-                "device": device.type,
-                "threads": torch.get_num_threads() if device.type == "cpu" else None,
-                "torch": torch.__version__,
+                "source": source_digest(),
+                "runtime": runtime_key(device),
                 "prediction_inputs": list(model.prediction_inputs),
             },
             indent=1, default=str,
@@ -158,6 +246,11 @@ def use_prediction_store(model: nn.Module, store: PredictionStore) -> list[str]:
     """Let ``model`` keep its predictions in ``store`` if it declares its
     ``prediction_inputs``, and a two-stage model its RPN's. Returns what uses the store
     (``'model'``, ``'rpn'``; empty for a model that cannot use it)."""
+    if getattr(model, "build_signature", None) is None:
+        raise ValueError(
+            f"{type(model).__name__} has no build_signature: build it with "
+            "pcdet_atlas.models.build_network to store its predictions"
+        )
     users = []
     for name, module in (("model", model), ("rpn", getattr(model, "rpn", None))):
         if module is not None and getattr(module, "prediction_inputs", None):

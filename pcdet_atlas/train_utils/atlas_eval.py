@@ -35,7 +35,7 @@ from pcdet_atlas.evaluation import build_variant_result, evaluate_attack
 from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.models.prediction_store import PredictionStore
 from pcdet_atlas.registry import DATASETS
-from pcdet_atlas.train_utils.dist import get_dist_info, unwrap_model
+from pcdet_atlas.train_utils.dist import all_gather_objects, get_dist_info, unwrap_model
 from pcdet_atlas.train_utils.eval_utils import predict_dataset, write_prediction_files
 from pcdet_atlas.train_utils.proposal_bank import frame_batches
 from pcdet_atlas.utils.common import save_pickle
@@ -282,7 +282,8 @@ def evaluate_variant(
     leaves untouched, so that only the other frames go through the RPN again
     (:class:`ProposalBank`; still bitwise a full run).
     ``prediction_store``: the store the model (or its RPN) uses (``use_prediction_store``);
-    the entry's ``extra.prediction_store`` counts the batches it served and those it stored.
+    the entry's ``extra.prediction_store`` counts the batches it served and those it stored
+    (all processes).
 
     Returns:
         ``(entry, det_annos)``: the ``results.json`` variant entry (None on ranks > 0; its
@@ -323,7 +324,9 @@ def evaluate_variant(
     bank_stats = timings.pop("bank", None)
     store_stats = None
     if prediction_store is not None:
-        store_stats = {k: v - store_before[k] for k, v in prediction_store.counts().items()}
+        mine = {k: v - store_before[k] for k, v in prediction_store.counts().items()}
+        parts = all_gather_objects(mine)  # every process's batches
+        store_stats = {k: sum(part[k] for part in parts) for k in mine}
     if rank != 0:
         return None, det_annos
     reused = np.array([e["reused"] for e in extras], dtype=bool)

@@ -83,6 +83,10 @@ def load_tool(name: str):
     return module
 
 
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
+
 def write_atomic(path: str | Path, write: Callable[[BinaryIO], object]) -> Path:
     """Write ``path`` by ``write(file)`` into a temporary file of its folder (created if
     needed), renamed into place: an interrupted write never leaves a truncated file, and
@@ -91,8 +95,11 @@ def write_atomic(path: str | Path, write: Callable[[BinaryIO], object]) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp's 0600 -> what open() would have made
         with os.fdopen(fd, "wb") as f:
             write(f)
+            f.flush()
+            os.fsync(f.fileno())  # the rename never publishes an unwritten file
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 
 import pytest
 import torch
@@ -85,6 +86,42 @@ def test_the_store_tells_models_inputs_and_runtimes_apart(tmp_path):
     assert store.counts() == {"hits": 0, "misses": 6}
     store.predict(other, batch)
     assert store.counts() == {"hits": 1, "misses": 6}
+
+
+def test_settings_code_and_mode_outside_the_weights(tmp_path, monkeypatch):
+    """A setting of a module that is not a tensor (the VFE's folded eval form, a threshold set
+    after the build) and the package's source are part of the key; training mode is refused."""
+    from pcdet_atlas.models import prediction_store
+
+    model = small_centerpoint()
+    batch = make_batch()
+    store = PredictionStore(tmp_path)
+    store.predict(model, batch)
+    model.vfe.fold_eval = not model.vfe.fold_eval
+    got = store.predict(model, batch)
+    assert store.counts() == {"hits": 0, "misses": 2}
+    want = model.predict(batch)
+    assert all(torch.equal(g["pred_scores"], w["pred_scores"]) for g, w in zip(got, want))
+    monkeypatch.setattr(prediction_store, "_SOURCE_DIGEST", ["another version of the code"])
+    store.predict(model, batch)
+    assert store.counts() == {"hits": 0, "misses": 3}
+    model.train()
+    with pytest.raises(RuntimeError, match="training mode"):
+        store.predict(model, batch)
+
+
+def test_an_unreadable_entry_is_named(tmp_path):
+    model = small_centerpoint()
+    store = PredictionStore(tmp_path)
+    store.predict(model, make_batch())
+    (entry,) = store_files(tmp_path)
+    assert entry.stat().st_mode & 0o044  # readable by others, as open() would have made it
+    entry.write_bytes(b"not a torch file")
+    with pytest.raises(ValueError, match=f"(?s){re.escape(str(entry))}.*delete it"):
+        store.predict(model, make_batch())
+    torch.save([{"pred_scores": torch.zeros(1)}], entry)  # one sample for a batch of two
+    with pytest.raises(ValueError, match="does not hold 2 dicts of tensors"):
+        store.predict(model, make_batch())
 
 
 def test_a_model_must_declare_what_it_reads(tmp_path):
