@@ -54,7 +54,7 @@ from pcdet_atlas.train_utils.atlas_eval import (
     variant_fingerprints,
 )
 from pcdet_atlas.train_utils.setup import load_cfg
-from pcdet_atlas.utils.common import load_tool
+from pcdet_atlas.utils.common import load_tool, write_atomic
 
 DEFAULT_DATA = REPO_ROOT / "data" / "synthetic_waymo_val6"
 DEFAULT_OUT = REPO_ROOT / "docs" / "results"
@@ -248,9 +248,8 @@ def main(argv=None) -> dict:
                 state["runs"].append(run)
                 state["model_wall_s"][run["config"]] = run["wall_s"]
             state["total_wall_s"] = round(elapsed_before + time.perf_counter() - start, 1)
-            tmp = run_file.with_suffix(".json.tmp")
-            tmp.write_text(json.dumps(state, indent=2) + "\n")
-            tmp.replace(run_file)  # a call killed while writing keeps the previous state
+            text = json.dumps(state, indent=2) + "\n"  # a killed call keeps the previous state
+            write_atomic(run_file, lambda f: f.write(text.encode()))
 
     def heartbeat() -> None:  # the wall time of a call that is killed still counts
         while not finished.wait(60):
@@ -288,7 +287,7 @@ def main(argv=None) -> dict:
     order = {str(cfg): i for i, cfg in enumerate(cfgs)}
     state["runs"] = sorted(state["runs"], key=lambda r: order[r["config"]])
     out = write_run_report(state, out_dir)
-    run_file.write_text(json.dumps(state, indent=2) + "\n")
+    write_atomic(run_file, lambda f: f.write((json.dumps(state, indent=2) + "\n").encode()))
     print(f"report: {out['report']}  total {state['total_wall_s'] / 60:.1f} min")
     return {**out, "run": state}
 

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import pickle
 import zipfile
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -41,6 +40,7 @@ from pcdet_atlas.config import ConfigError, check_known_keys
 from pcdet_atlas.config_values import config_files, config_value
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.ops.boxes import points_in_boxes_mask
+from pcdet_atlas.utils.common import write_atomic
 from pcdet_atlas.utils.seeding import numpy_generator
 
 __all__ = ["Trace", "TraceLibrary", "TraceFilter", "build_trace_library", "TRACE_LIBRARY_KEYS"]
@@ -244,10 +244,7 @@ class TraceLibrary:
     def save(self, path: str | Path) -> Path:
         """Write the library atomically as one ``.npz``."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp.npz")
-        np.savez(
-            tmp,
+        arrays = dict(
             points=self.points,
             intensity=self.intensity,
             elongation=self.elongation,
@@ -259,7 +256,7 @@ class TraceLibrary:
             num_frames=self.num_frames,
             build_info=np.array(json.dumps(self.build_info, sort_keys=True)),
         )
-        os.replace(tmp, path)
+        write_atomic(path, lambda f: np.savez(f, **arrays))
         self.path = str(path)
         return path
 

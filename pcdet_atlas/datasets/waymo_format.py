@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pcdet_atlas.utils.common import save_pickle
+from pcdet_atlas.utils.common import save_pickle, write_atomic
 
 PROCESSED_DATA_TAG = "waymo_processed_data_v0_5_0"
 WAYMO_CLASSES = ["unknown", "Vehicle", "Pedestrian", "Sign", "Cyclist"]
@@ -178,10 +178,7 @@ def save_frame_points(path: str | Path, points: np.ndarray) -> None:
             f"{path}: frame points must be float32 (N, {NUM_POINT_COLUMNS}), got "
             f"{points.dtype} {points.shape}"
         )
-    path = Path(path)
-    tmp = path.with_suffix(".tmp.npy")
-    np.save(tmp, points)
-    os.replace(tmp, path)
+    write_atomic(path, lambda f: np.save(f, points), sync=False)  # regenerable bulk data
 
 
 def save_sequence_infos(path: str | Path, infos: list[dict]) -> None:

@@ -108,28 +108,33 @@ def runtime_key(device: torch.device) -> dict:
     return out
 
 
-def model_fingerprint(model: nn.Module) -> str:
-    """SHA-256 of the model's class, its ``build_signature`` (the arguments
-    :func:`~pcdet_atlas.models.build_network` built it from) and its ``state_dict``. It is
-    recomputed when a tensor of the state changed in place (a new checkpoint loaded)."""
+def build_signature(model: nn.Module) -> dict:
+    """The arguments :func:`~pcdet_atlas.models.build_network` built ``model`` from; a model
+    built otherwise cannot be stored (error)."""
     signature = getattr(model, "build_signature", None)
     if signature is None:
         raise ValueError(
             f"{type(model).__name__} has no build_signature: build it with "
             "pcdet_atlas.models.build_network to store its predictions"
         )
+    return signature
+
+
+def model_fingerprint(model: nn.Module) -> str:
+    """SHA-256 of the model's class, its :func:`build_signature`, its modules' plain settings
+    (:func:`module_settings`) and its ``state_dict``. It is recomputed when a setting or a
+    tensor of the state changed in place (a new checkpoint loaded)."""
+    signature = build_signature(model)
     state = model.state_dict(keep_vars=True)
-    versions = (
-        tuple((name, t._version, t.data_ptr()) for name, t in state.items()),
-        json.dumps(module_settings(model)),
-    )
+    settings = json.dumps(module_settings(model))
+    versions = (tuple((name, t._version, t.data_ptr()) for name, t in state.items()), settings)
     cached = _FINGERPRINTS.get(model)
     if cached is not None and cached[0] == versions:
         return cached[1]
     h = hashlib.sha256()
     h.update(type(model).__qualname__.encode())
     h.update(json.dumps(signature, sort_keys=True, default=str).encode())
-    h.update(json.dumps(module_settings(model)).encode())
+    h.update(settings.encode())
     for name, tensor in state.items():
         h.update(name.encode())
         _hash_tensor(h, tensor)
@@ -194,8 +199,9 @@ class PredictionStore:
         key = self.batch_key(model, batch_dict)
         path = folder / key[:2] / f"{key}.pt"
         if path.is_file():
+            stored = self._read(path, device, int(batch_dict["batch_size"]))
             self.hits += 1
-            return self._read(path, device, int(batch_dict["batch_size"]))
+            return stored
         predictions = model.predict(batch_dict)
         self.misses += 1
         self._describe(folder, model, device)
@@ -232,7 +238,7 @@ class PredictionStore:
             {
                 "model": type(model).__qualname__,
                 "fingerprint": model_fingerprint(model),
-                "build_signature": model.build_signature,
+                "build_signature": build_signature(model),
                 "source": source_digest(),
                 "runtime": runtime_key(device),
                 "prediction_inputs": list(model.prediction_inputs),
@@ -246,14 +252,10 @@ def use_prediction_store(model: nn.Module, store: PredictionStore) -> list[str]:
     """Let ``model`` keep its predictions in ``store`` if it declares its
     ``prediction_inputs``, and a two-stage model its RPN's. Returns what uses the store
     (``'model'``, ``'rpn'``; empty for a model that cannot use it)."""
-    if getattr(model, "build_signature", None) is None:
-        raise ValueError(
-            f"{type(model).__name__} has no build_signature: build it with "
-            "pcdet_atlas.models.build_network to store its predictions"
-        )
     users = []
     for name, module in (("model", model), ("rpn", getattr(model, "rpn", None))):
         if module is not None and getattr(module, "prediction_inputs", None):
+            build_signature(module)  # checked now, not at the first batch
             module.prediction_store = store
             users.append(name)
     return users

@@ -87,10 +87,13 @@ _UMASK = os.umask(0)
 os.umask(_UMASK)
 
 
-def write_atomic(path: str | Path, write: Callable[[BinaryIO], object]) -> Path:
+def write_atomic(
+    path: str | Path, write: Callable[[BinaryIO], object], *, sync: bool = True
+) -> Path:
     """Write ``path`` by ``write(file)`` into a temporary file of its folder (created if
     needed), renamed into place: an interrupted write never leaves a truncated file, and
-    processes writing the same path at once each rename a whole file of their own."""
+    processes writing the same path at once each rename a whole file of their own. ``sync``:
+    flush the file to disk before the rename (off for bulk data that is cheap to regenerate)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -98,8 +101,9 @@ def write_atomic(path: str | Path, write: Callable[[BinaryIO], object]) -> Path:
         os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp's 0600 -> what open() would have made
         with os.fdopen(fd, "wb") as f:
             write(f)
-            f.flush()
-            os.fsync(f.fileno())  # the rename never publishes an unwritten file
+            if sync:  # the rename never publishes an unwritten file
+                f.flush()
+                os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -35,6 +35,7 @@ from pcdet_atlas.datasets.synthetic.scene import FRAME_DT, SyntheticScene
 from pcdet_atlas.datasets.synthetic.sensor import SensorModel
 from pcdet_atlas.ops.boxes import points_in_boxes_mask
 from pcdet_atlas.ops.lidar_model import LidarModel
+from pcdet_atlas.utils.common import write_atomic
 from pcdet_atlas.utils.seeding import derive_seed
 
 __all__ = [
@@ -257,9 +258,7 @@ def _write_if_changed(path: Path, data: bytes) -> bool:
     """Atomically write ``data`` unless the file already holds exactly it; True if written."""
     if path.exists() and path.read_bytes() == data:
         return False
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    tmp.replace(path)
+    write_atomic(path, lambda f: f.write(data))
     return True
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from pcdet_atlas.evaluation.results.build import plain
 from pcdet_atlas.evaluation.results.schema import ResultsError, validate_results
+from pcdet_atlas.utils.common import write_atomic
 
 __all__ = [
     "load_results",
@@ -23,14 +24,8 @@ def save_results(results: Mapping, path: str | Path) -> Path:
     """Validate and write ``results`` as JSON (NaN is refused: undefined values are null)."""
     results = plain(results)
     validate_results(results, where=str(path))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w") as f:
-        json.dump(results, f, indent=2, allow_nan=False)
-        f.write("\n")
-    tmp.replace(path)
-    return path
+    text = json.dumps(results, indent=2, allow_nan=False) + "\n"
+    return write_atomic(path, lambda f: f.write(text.encode()))
 
 
 def load_results(path: str | Path) -> dict:
