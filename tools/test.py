@@ -30,9 +30,10 @@ first, or ``--resume``, which keeps the requested variants an earlier call finis
 ``results.json`` entry and ``<variant>/result.pkl``) and evaluates the others, provided that call
 had the same merged config, checkpoint (SHA-256), batch size and process count. A finished
 variant is evaluated again when its merged attack config or trace library changed since
-(``extra.attack_sha256`` of its entry; an entry without it too), or when it was evaluated without
-the clean predictions that this call has (``extra.clean_predictions``); the results are those of
-one uninterrupted call.
+(``extra.attack_sha256`` of its entry; an entry without it too), when its entry has targets but
+no per-run counts (a file of schema 4 or older), or when it was evaluated without the clean
+predictions that this call has (``extra.clean_predictions``); the results are those of one
+uninterrupted call.
 """
 
 from __future__ import annotations
@@ -231,12 +232,14 @@ def finished_variants(
                 "its attack config or trace library changed (attack_sha256 "
                 f"{recorded['attack_sha256']}, now {requested[name]})"
             )
+        elif entry["runs"] is None and entry["num_targets"] > 0:
+            again[name] = "its entry has no per-run counts (results.json schema 4 or older)"
         elif name != "clean" and "clean" in requested and not recorded.get("clean_predictions"):
             again[name] = "it was evaluated without the clean predictions this call has"
         elif name == "clean" and (missing := missing_proposal_parts(out_dir / name, world)):
             again[name] = f"{missing[0]} is missing (the clean proposals of its process)"
-        else:
-            kept[name] = entry
+        else:  # without targets there are no runs: an older file's null is []
+            kept[name] = entry if entry["runs"] is not None else {**entry, "runs": []}
     return kept, again
 
 

@@ -11,8 +11,10 @@ from pcdet_atlas.evaluation.attack_metrics import (
     lifecycle_asr,
     linear_fit,
     match_targets,
+    paired_asr_differences,
     removal_confidence,
     robustness_ranks,
+    run_counts,
 )
 from pcdet_atlas.evaluation.localization import ap_by_iou, localization_errors
 from pcdet_atlas.evaluation.results import (
@@ -61,9 +63,11 @@ __all__ = [
     "load_results",
     "load_results_dir",
     "match_targets",
+    "paired_asr_differences",
     "ranks_from_results",
     "removal_confidence",
     "robustness_ranks",
+    "run_counts",
     "save_results",
     "summarize_waymo_curves",
     "validate_results",

@@ -466,16 +466,44 @@ def run_bootstrap_interval(
     return float(lo), float(hi)
 
 
+def run_counts(matches: TargetMatches) -> list[dict]:
+    """Targets and successes per spoof run of the attacked (non-shadow) targets of ``matches``:
+    ``[{'sequence', 'run_id', 'num_targets', 'num_success', 'num_success_lenient'}, ...]``
+    sorted by ``(sequence, run_id)``, one entry per run with at least one target. The unit of
+    the ASR's interval, and what a paired comparison of two models needs
+    (:func:`paired_asr_differences`)."""
+    attacked = matches.attacked()
+    if len(attacked) == 0:
+        return []
+    keys = sorted(set(zip(attacked.sequence.tolist(), attacked.run_id.tolist())))
+    index = {key: i for i, key in enumerate(keys)}
+    row = np.array([index[k] for k in zip(attacked.sequence.tolist(), attacked.run_id.tolist())])
+    targets = np.bincount(row, minlength=len(keys))
+    success = np.bincount(row, weights=attacked.success, minlength=len(keys))
+    lenient = np.bincount(row, weights=attacked.success_lenient, minlength=len(keys))
+    return [
+        {
+            "sequence": sequence,
+            "run_id": int(run_id),
+            "num_targets": int(targets[i]),
+            "num_success": int(round(success[i])),
+            "num_success_lenient": int(round(lenient[i])),
+        }
+        for i, (sequence, run_id) in enumerate(keys)
+    ]
+
+
 def asr_from_matches(matches: TargetMatches) -> dict:
     """ASR of the attacked (non-shadow) targets.
 
-    Returns ``{'asr', 'asr_ci', 'num_runs', 'num_targets', 'num_success', 'asr_lenient',
-    'num_success_lenient', 'num_spoofed_frames', 'num_untargeted', 'iou_threshold',
-    'score_threshold', 'target_class'}``; the rates are None without targets. ``asr_ci`` is the
-    95% run-level bootstrap interval (:func:`run_bootstrap_interval`, ``[lo, hi]``; None with
-    fewer than two runs), drawn from a generator seeded by ``CI_SEED`` and the variant's name so
-    that every variant's interval is reproducible on its own. ``num_untargeted`` spoofed frames
-    recorded no target and are not in the ASR (see :class:`TargetMatches`).
+    Returns ``{'asr', 'asr_ci', 'num_runs', 'runs', 'num_targets', 'num_success',
+    'asr_lenient', 'num_success_lenient', 'num_spoofed_frames', 'num_untargeted',
+    'iou_threshold', 'score_threshold', 'target_class'}``; the rates are None without targets.
+    ``asr_ci`` is the 95% run-level bootstrap interval (:func:`run_bootstrap_interval`,
+    ``[lo, hi]``; None with fewer than two runs), drawn from a generator seeded by ``CI_SEED``
+    and the variant's name so that every variant's interval is reproducible on its own. ``runs``
+    are the per-run counts (:func:`run_counts`). ``num_untargeted`` spoofed frames recorded no
+    target and are not in the ASR (see :class:`TargetMatches`).
     """
     attacked = matches.attacked()
     n = len(attacked)
@@ -487,6 +515,7 @@ def asr_from_matches(matches: TargetMatches) -> dict:
         "asr": _rate(n_ok, n),
         "asr_ci": None if ci is None else list(ci),
         "num_runs": int(np.unique(runs).size),
+        "runs": run_counts(matches),
         "num_targets": n,
         "num_success": n_ok,
         "asr_lenient": _rate(n_len, n),
@@ -496,6 +525,96 @@ def asr_from_matches(matches: TargetMatches) -> dict:
         "iou_threshold": matches.iou_threshold,
         "score_threshold": matches.score_threshold,
         "target_class": matches.target_class,
+    }
+
+
+def paired_asr_differences(
+    runs: Mapping[str, Mapping[str, Sequence[Mapping]]],
+    *,
+    level: float = CI_LEVEL,
+    num_resamples: int = CI_RESAMPLES,
+    generator: np.random.Generator,
+) -> dict:
+    """Differences of the mean ASR between models scored on the same spoof runs, with paired
+    run-level bootstrap intervals.
+
+    A model's mean ASR is the mean of its per-variant ASRs (the variants of one rank group, say).
+    Two models attacked on the same runs share the runs' difficulty (the phantom trace and
+    placement, the removal target), so their difference is estimated far more tightly than two
+    separate intervals suggest: each resample draws, per variant, as many runs as there are,
+    with replacement, *the same runs for every model*, and recomputes every model's mean ASR;
+    the interval is the percentile interval of the differences over the resamples. Variants are
+    resampled independently of each other.
+
+    Args:
+        runs: model -> variant -> the variant's per-run counts (:func:`run_counts`, the
+            ``runs`` of a ``results.json`` entry). Every model needs the same variants, each with
+            the same runs and the same number of targets per run.
+        generator: the explicit random source.
+
+    Returns:
+        ``{'models', 'variants', 'num_runs' (per variant), 'mean_asr' {model: float},
+        'difference' {a: {b: mean_asr[a] - mean_asr[b]}}, 'ci' {a: {b: [lo, hi]}}}``; ``ci`` is
+        None when a variant has fewer than two runs.
+
+    Raises:
+        AttackMetricError: fewer than two models, no variant, or models whose variants, runs or
+            targets per run differ (they were not scored on the same targets), naming them.
+    """
+    models = list(runs)
+    if len(models) < 2:
+        raise AttackMetricError(f"a paired comparison needs at least 2 models, got {models}")
+    variants = list(runs[models[0]])
+    if not variants:
+        raise AttackMetricError(f"model {models[0]!r}: no variant to compare")
+    for m in models[1:]:
+        if set(runs[m]) != set(variants):
+            raise AttackMetricError(
+                f"models {models[0]!r} and {m!r} have different variants: {sorted(variants)} "
+                f"and {sorted(runs[m])}"
+            )
+    hits, targets = [], []  # per variant: (M, R) successes, (R,) targets
+    for v in variants:
+        ref = {(r["sequence"], int(r["run_id"])): int(r["num_targets"]) for r in runs[models[0]][v]}
+        if not ref or min(ref.values()) < 1:
+            raise AttackMetricError(f"model {models[0]!r}, variant {v!r}: no run with targets")
+        keys = sorted(ref)
+        table = np.zeros((len(models), len(keys)))
+        for i, m in enumerate(models):
+            own = {(r["sequence"], int(r["run_id"])): r for r in runs[m][v]}
+            counts = {k: int(r["num_targets"]) for k, r in own.items()}
+            if counts != ref:
+                diff = sorted(set(counts.items()) ^ set(ref.items()))[:3]
+                raise AttackMetricError(
+                    f"variant {v!r}: models {models[0]!r} and {m!r} were not scored on the same "
+                    f"targets (runs and targets per run differ, e.g. {diff})"
+                )
+            table[i] = [own[k]["num_success"] for k in keys]
+        hits.append(table)
+        targets.append(np.array([ref[k] for k in keys], dtype=np.float64))
+    mean = np.mean([h.sum(1) / t.sum() for h, t in zip(hits, targets)], axis=0)  # (M,)
+    ci = None
+    if min(t.size for t in targets) >= 2:
+        resampled = np.zeros((num_resamples, len(models)))  # (S, M) mean ASR per resample
+        for h, t in zip(hits, targets):
+            draws = generator.integers(0, t.size, size=(num_resamples, t.size))  # (S, R)
+            resampled += (h[:, draws].sum(2) / t[draws].sum(1)).T
+        resampled /= len(variants)
+        delta = resampled[:, :, None] - resampled[:, None, :]  # (S, M, M)
+        tail = (1.0 - level) / 2 * 100
+        lo, hi = np.percentile(delta, [tail, 100 - tail], axis=0)
+        ci = {a: {b: [float(lo[i, j]), float(hi[i, j])] for j, b in enumerate(models)}
+              for i, a in enumerate(models)}  # fmt: skip
+    return {
+        "models": models,
+        "variants": variants,
+        "num_runs": {v: int(t.size) for v, t in zip(variants, targets)},
+        "mean_asr": {m: float(mean[i]) for i, m in enumerate(models)},
+        "difference": {
+            a: {b: float(mean[i] - mean[j]) for j, b in enumerate(models)}
+            for i, a in enumerate(models)
+        },  # fmt: skip
+        "ci": ci,
     }
 
 

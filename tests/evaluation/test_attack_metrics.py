@@ -20,9 +20,11 @@ from pcdet_atlas.evaluation.attack_metrics import (
     lifecycle_position,
     linear_fit,
     match_targets,
+    paired_asr_differences,
     removal_confidence,
     robustness_ranks,
     run_bootstrap_interval,
+    run_counts,
     score_histogram,
     score_peak,
 )
@@ -611,3 +613,85 @@ def test_a_run_is_its_sequence_and_run_id():
     assert shuffled["num_runs"] == 12 and shuffled["asr_ci"] == out["asr_ci"]
     with pytest.raises(AttackMetricError, match=r"frame 0 \(seq_a_r0_0\).*'sequence_name'"):
         attack_success_rate(dets, [{**i, "sequence_name": None} for i in infos])
+
+
+def test_run_counts_per_sequence_and_run():
+    """One entry per (sequence, run), sorted, with its targets and successes; shadow targets
+    are not counted; the totals are the variant's."""
+    d_a, i_a, _ = spoof_runs("seq_b", runs=range(6))
+    d_b, i_b, _ = spoof_runs("seq_a", runs=range(6, 12))
+    i_b = [{**i, "run_id": i["run_id"] - 6} for i in i_b]
+    shadow = {**i_a[0], "spoofed": False, "target_is_shadow": True, "lifecycle_k": 0,
+              "frame_id": "shadow"}  # fmt: skip
+    dets, infos = d_a + d_b + [anno("shadow", [TARGET])], i_a + i_b + [shadow]
+    out = attack_success_rate(dets, infos)
+    runs = out["runs"]
+    assert [(r["sequence"], r["run_id"]) for r in runs] == [
+        *(("seq_a", r) for r in range(6)), *(("seq_b", r) for r in range(6))]  # fmt: skip
+    assert [r["num_targets"] for r in runs] == [*RUN_TARGETS[6:], *RUN_TARGETS[:6]]
+    assert [r["num_success"] for r in runs] == [*RUN_HITS[6:], *RUN_HITS[:6]]
+    assert sum(r["num_targets"] for r in runs) == out["num_targets"] == sum(RUN_TARGETS)
+    assert sum(r["num_success_lenient"] for r in runs) == out["num_success_lenient"]
+    assert run_counts(match_targets([anno("shadow", [])], [shadow])) == []
+
+
+def _runs(hits, targets, sequence="seq_0"):
+    return [{"sequence": sequence, "run_id": i, "num_targets": t, "num_success": h,
+             "num_success_lenient": h} for i, (h, t) in enumerate(zip(hits, targets))]  # fmt: skip
+
+
+def test_paired_differences_against_a_hand_computed_bootstrap():
+    """Two variants, three runs each: the resamples draw the same runs for both models, per
+    variant in turn, and the interval is the percentile interval of the mean-ASR differences."""
+    targets = {"inj_a": [4, 2, 6], "inj_b": [3, 3, 5]}
+    hits = {"A": {"inj_a": [4, 0, 3], "inj_b": [3, 1, 5]},
+            "B": {"inj_a": [2, 0, 1], "inj_b": [1, 0, 5]}}  # fmt: skip
+    runs = {m: {v: _runs(hits[m][v], targets[v]) for v in targets} for m in hits}
+    out = paired_asr_differences(runs, num_resamples=500, generator=np.random.default_rng(3))
+    gen = np.random.default_rng(3)
+    means = np.zeros((500, 2))
+    for v, t in targets.items():
+        draws = gen.integers(0, 3, size=(500, 3))
+        for i, m in enumerate("AB"):
+            means[:, i] += np.array(hits[m][v])[draws].sum(1) / np.array(t)[draws].sum(1) / 2
+    lo, hi = np.percentile(means[:, 0] - means[:, 1], [2.5, 97.5])
+    assert out["ci"]["A"]["B"] == pytest.approx([lo, hi], abs=1e-12)
+    assert out["ci"]["B"]["A"] == pytest.approx([-hi, -lo], abs=1e-12)
+    mean_a = (7 / 12 + 9 / 11) / 2
+    assert out["mean_asr"]["A"] == pytest.approx(mean_a)
+    assert out["difference"]["A"]["B"] == pytest.approx(mean_a - (3 / 12 + 6 / 11) / 2)
+    assert out["num_runs"] == {"inj_a": 3, "inj_b": 3} and out["models"] == ["A", "B"]
+
+
+def test_pairing_runs_narrows_the_interval():
+    """Runs that are hard or easy for every model: the paired difference is settled (interval
+    away from 0) where the two models' own intervals overlap."""
+    rng = np.random.default_rng(0)
+    difficulty = rng.uniform(0.0, 1.0, 18)
+    targets = [32] * 18
+    a = np.round(32 * np.clip(difficulty + 0.1, 0, 1)).astype(int).tolist()
+    b = np.round(32 * difficulty).astype(int).tolist()
+    runs = {"A": {"inj": _runs(a, targets)}, "B": {"inj": _runs(b, targets)}}
+    out = paired_asr_differences(runs, generator=np.random.default_rng(0))
+    lo, hi = out["ci"]["A"]["B"]
+    assert 0 < lo <= out["difference"]["A"]["B"] <= hi
+    own = [run_bootstrap_interval(np.repeat(np.arange(18), 32),
+                                  np.concatenate([np.arange(32) < h for h in x]),
+                                  generator=np.random.default_rng(0)) for x in (a, b)]  # fmt: skip
+    assert own[0][0] < own[1][1]  # the separate intervals overlap
+    assert hi - lo < 0.5 * (own[0][1] - own[0][0])
+
+
+def test_paired_differences_refuse_unpaired_inputs():
+    one = {"inj": _runs([1, 2], [3, 3])}
+    with pytest.raises(AttackMetricError, match="at least 2 models"):
+        paired_asr_differences({"A": one}, generator=np.random.default_rng(0))
+    with pytest.raises(AttackMetricError, match="different variants"):
+        paired_asr_differences({"A": one, "B": {"rem": one["inj"]}},
+                               generator=np.random.default_rng(0))  # fmt: skip
+    other = {"inj": _runs([1, 2], [3, 4])}
+    with pytest.raises(AttackMetricError, match=r"'inj'.*'A' and 'B'.*not scored on the same"):
+        paired_asr_differences({"A": one, "B": other}, generator=np.random.default_rng(0))
+    single = paired_asr_differences({"A": {"inj": _runs([1], [3])}, "B": {"inj": _runs([2], [3])}},
+                                    generator=np.random.default_rng(0))  # fmt: skip
+    assert single["ci"] is None and single["difference"]["B"]["A"] == pytest.approx(1 / 3)

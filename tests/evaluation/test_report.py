@@ -23,6 +23,7 @@ from pcdet_atlas.evaluation.results import (
     figures,
     save_results,
 )
+from pcdet_atlas.evaluation.results.build import paired_from_results
 from pcdet_atlas.evaluation.results.report import (
     FIGURES,
     centre_gap_table,
@@ -30,6 +31,7 @@ from pcdet_atlas.evaluation.results.report import (
     confident_phantom_table,
     lifecycle_table,
     lot_ablation_table,
+    paired_table,
     summary_table,
     write_report,
 )
@@ -220,6 +222,38 @@ def test_summary_lot_and_centre_gap_tables(models):
     assert cp4f.endswith("| missing |")
     peak = models[0]["variants"]["rem_10"]["confidence"]["peak_gap"]
     assert f"{peak:.3f}" in next(r for r in gap if r.startswith("| CenterPoint |"))
+
+
+def test_paired_comparison_per_rank_group(models, tmp_path):
+    """Per rank group, each model's mean ASR and every pair's difference with its paired
+    interval (bold where it excludes 0), over the ranked variants every model has; a file
+    without per-run counts (schema 4) is named, not guessed."""
+    text = write_report(models, tmp_path)["report"].read_text()
+    part = text.split("## Paired model comparison", 1)[1].split("\n## ", 1)[0]
+    assert "### injection" in part and "### removal" in part
+    removal = report_part(text, "### removal")
+    assert "Over 1 variant(s); runs per variant: Removal 10: 4." in removal  # CP-4f lacks rem_40
+    out = paired_from_results(models, ["rem_10"], "removal")
+    rows = md_table(removal)
+    for a in out["models"]:
+        assert rows[a]["mean ASR"] == f"{out['mean_asr'][a]:.2f}"
+        assert out["mean_asr"][a] == pytest.approx(figures.mean_asr(
+            next(r for r in models if r["model"] == a), ["rem_10"]))  # fmt: skip
+        for b in out["models"]:
+            if a == b:
+                continue
+            lo, hi = out["ci"][a][b]
+            cell = f"{out['difference'][a][b]:+.2f} [{lo:+.2f}, {hi:+.2f}]"
+            assert rows[a][b] == (f"**{cell}**" if lo > 0 or hi < 0 else cell)
+            assert out["difference"][a][b] == pytest.approx(-out["difference"][b][a])
+    assert out["ci"]["CenterPoint"]["PHiM+LOT"][0] > 0  # p_rem 0.8 vs 0.5: settled
+    old = copy.deepcopy(models[2])
+    old["variants"]["rem_10"]["runs"] = None
+    assert paired_table([models[0], old], "removal", ["rem_10"]) == (
+        "not computed: PHiM, variant 'rem_10': no per-run counts (a results.json from before "
+        "schema 5; evaluate it again)"
+    )
+    assert "needs at least 2 models" in paired_table(models[:1], "removal", ["rem_10"])
 
 
 def test_ranks_and_figures_name_what_they_leave_out(models, tmp_path):

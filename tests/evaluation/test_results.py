@@ -51,9 +51,18 @@ INJECTION_SCORING = {
 }
 
 
+def split_runs(num_targets: int, n_ok: int, num_runs: int = 3) -> list[dict]:
+    """``num_targets`` targets with ``n_ok`` successes over ``num_runs`` runs of one sequence."""
+    targets = [len(a) for a in np.array_split(np.arange(num_targets), num_runs)]
+    hits = [int(np.sum(a < n_ok)) for a in np.array_split(np.arange(num_targets), num_runs)]
+    return [{"sequence": "seq_0", "run_id": i, "num_targets": t, "num_success": h,
+             "num_success_lenient": h} for i, (t, h) in enumerate(zip(targets, hits))]  # fmt: skip
+
+
 def attack(variant: str, family: str, asr: float, num_targets: int = 100) -> dict:
     n_ok = round(asr * num_targets)
     return {
+        "runs": split_runs(num_targets, n_ok),
         "variant": variant,
         "family": family,
         "num_frames": 200,
@@ -201,11 +210,11 @@ def test_older_schema_files_load_as_the_current_one(tmp_path):
     old["schema_version"] = 1
     for entry in old["variants"].values():
         entry.pop("rank_group")
-        for key in ("asr_ci", "num_runs", "num_spoofed_frames", "num_untargeted"):
+        for key in ("asr_ci", "num_runs", "num_spoofed_frames", "num_untargeted", "runs"):
             entry.pop(key)
     expected = copy.deepcopy(CP)
     for entry in expected["variants"].values():
-        for key in ("asr_ci", "num_runs", "num_spoofed_frames", "num_untargeted"):
+        for key in ("asr_ci", "num_runs", "num_spoofed_frames", "num_untargeted", "runs"):
             entry[key] = None
     path = tmp_path / "results.json"
     path.write_text(json.dumps(old))
@@ -228,10 +237,28 @@ def test_schema_3_files_load_with_reuse_counts_unknown(tmp_path):
     old = copy.deepcopy(CP)
     old["schema_version"] = 3
     for v in old["variants"].values():
-        v.pop("num_reused_frames"), v.pop("num_recomputed_frames")
+        v.pop("num_reused_frames"), v.pop("num_recomputed_frames"), v.pop("runs")
     path = tmp_path / "v3.json"
     path.write_text(json.dumps(old))
-    assert load_results(path) == CP  # CP records no reuse: both None
+    expected = copy.deepcopy(CP)  # CP records no reuse: both None
+    for v in expected["variants"].values():
+        v["runs"] = None
+    assert load_results(path) == expected
+
+
+def test_schema_4_files_load_with_run_counts_unknown(tmp_path):
+    old = copy.deepcopy(CP)
+    old["schema_version"] = 4
+    for v in old["variants"].values():
+        v.pop("runs")
+    path = tmp_path / "v4.json"
+    path.write_text(json.dumps(old))
+    loaded = load_results(path)
+    assert loaded["schema_version"] == 5
+    assert all(v["runs"] is None for v in loaded["variants"].values())
+    assert {**loaded, "variants": None} == {**CP, "variants": None}
+    assert CP["variants"]["clean"]["runs"] == []
+    assert sum(r["num_targets"] for r in CP["variants"]["rem_10"]["runs"]) == 100
 
 
 def _broken(mutate):
@@ -260,6 +287,18 @@ def _broken(mutate):
         ),
         (lambda r: r["variants"]["rem_10"].update(num_runs=None), r"\['asr_ci'\].*num_runs None"),
         (lambda r: r["variants"]["rem_10"].pop("asr_lenient"), "asr_lenient"),
+        # the per-run counts add up to the variant's, one sorted entry per run
+        (lambda r: r["variants"]["rem_10"]["runs"].pop(), r"\['runs'\]: 2 runs != num_runs 3"),
+        (
+            lambda r: r["variants"]["rem_10"]["runs"][0].update(num_targets=40),
+            r"\['runs'\]: the runs' num_targets add up to 106, not 100",
+        ),
+        (
+            lambda r: r["variants"]["rem_10"]["runs"][0].update(num_success=35),
+            r"\['runs'\]\[0\]\['num_success'\]: 35 > num_targets 34",
+        ),
+        (lambda r: r["variants"]["rem_10"]["runs"].reverse(), "unique and sorted"),
+        (lambda r: r["variants"]["rem_10"]["runs"][0].pop("run_id"), "missing key 'run_id'"),
         (
             lambda r: r["variants"]["rem_10"].update(
                 num_reused_frames=150, num_recomputed_frames=10

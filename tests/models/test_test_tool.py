@@ -291,11 +291,20 @@ def test_resume_evaluates_again_what_changed(eval_setup, tmp_path, monkeypatch):
     save_results(older, eval_dir / "results.json")
     test.main(resumed)
     assert called == ["rem_30"]
+
+    called.clear()  # a schema-4 file: no per-run counts, kept only where there are no targets
+    older = load_results(eval_dir / "results.json")
+    for entry in older["variants"].values():
+        entry["runs"] = None
+    save_results(older, eval_dir / "results.json")
+    assert test.main(resumed)["results"]["variants"]["clean"]["runs"] == []
+    assert called == ["rem_30"]
     logs = "".join(p.read_text() for p in eval_dir.glob("log_eval_*.txt"))
     again = "rem_30: finished by an earlier call, evaluated again: "
     assert f"{again}it was evaluated without the clean predictions this call has" in logs
     assert f"{again}its attack config or trace library changed (attack_sha256 " in logs
     assert f"{again}its entry has no extra.attack_sha256" in logs
+    assert f"{again}its entry has no per-run counts (results.json schema 4 or older)" in logs
     assert not list(eval_dir.rglob("*.tmp"))
 
 

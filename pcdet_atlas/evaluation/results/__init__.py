@@ -3,10 +3,10 @@ plus the invariants between fields), ``build`` makes its entries, ``io`` reads a
 ``tables`` prints the paper's tables from it; ``report`` and ``figures`` write the paper's
 report (tables and PNG figures) from several of them (``tools/report.py``).
 
-Schema (version 4; every key required unless marked optional; unknown keys are errors)::
+Schema (version 5; every key required unless marked optional; unknown keys are errors)::
 
     {
-      "schema_version": 4,
+      "schema_version": 5,
       "model": str,                      # display name, e.g. "CenterPoint-4f"
       "checkpoint": str | null,          # path of the evaluated weights
       "config": str,                     # path of the model config
@@ -24,6 +24,9 @@ Schema (version 4; every key required unless marked optional; unknown keys are e
           "asr", "asr_lenient": float in [0, 1] | null,    # null when num_targets == 0
           "asr_ci": [lo, hi] | null,     # 95% run-level bootstrap interval (null below 2 runs)
           "num_runs": int | null,        # spoof runs the targets come from
+          "runs": [{"sequence": str, "run_id": int, "num_targets": int, "num_success": int,
+                    "num_success_lenient": int}, ...] | null,  # per run, sorted (null: before
+                                                               # schema 5)
           "num_targets", "num_success", "num_success_lenient": int,
           "num_spoofed_frames", "num_untargeted": int | null,  # spoofed frames; those without
                                                                # a target (phantom not in scan)

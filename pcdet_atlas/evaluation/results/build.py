@@ -3,12 +3,18 @@ ranks of several runs."""
 
 from __future__ import annotations
 
+import zlib
 from collections.abc import Mapping, Sequence
 from datetime import datetime, timezone
 
 import numpy as np
 
-from pcdet_atlas.evaluation.attack_metrics import robustness_ranks
+from pcdet_atlas.evaluation.attack_metrics import (
+    CI_SEED,
+    AttackMetricError,
+    paired_asr_differences,
+    robustness_ranks,
+)
 from pcdet_atlas.evaluation.results.schema import (
     ATTACK_KEYS,
     CLASS_METRIC_KEYS,
@@ -20,7 +26,13 @@ from pcdet_atlas.evaluation.results.schema import (
 )
 from pcdet_atlas.version import __version__
 
-__all__ = ["build_results", "build_variant_result", "plain", "ranks_from_results"]
+__all__ = [
+    "build_results",
+    "build_variant_result",
+    "paired_from_results",
+    "plain",
+    "ranks_from_results",
+]
 
 
 def plain(value):
@@ -83,6 +95,7 @@ def build_variant_result(
             asr=None,
             asr_ci=None,
             num_runs=0,
+            runs=[],
             asr_lenient=None,
             num_targets=0,
             num_success=0,
@@ -173,3 +186,34 @@ def ranks_from_results(
                 raise ResultsError(f"{r['model']}: variant {name!r} has another rank group")
             asr[r["model"]][name] = r["variants"][name]["asr"]
     return robustness_ranks(asr, groups, tie_method=tie_method)
+
+
+def paired_from_results(
+    results_list: Sequence[Mapping], variants: Sequence[str], group: str
+) -> dict:
+    """:func:`attack_metrics.paired_asr_differences` of several models' results over
+    ``variants`` (one rank group's, say), from their per-run counts; the bootstrap's generator is
+    seeded by ``CI_SEED`` and ``group``, so each group's intervals are reproducible on their own.
+
+    Raises:
+        ResultsError: a model without one of the variants, or whose file has no per-run counts
+            (written before schema 5), or models not scored on the same runs, naming them.
+    """
+    runs = {}
+    for r in results_list:
+        runs[r["model"]] = {}
+        for name in variants:
+            entry = r["variants"].get(name)
+            if entry is None:
+                raise ResultsError(f"{r['model']}: no variant {name!r} to compare")
+            if entry["runs"] is None:
+                raise ResultsError(
+                    f"{r['model']}, variant {name!r}: no per-run counts (a results.json from "
+                    "before schema 5; evaluate it again)"
+                )
+            runs[r["model"]][name] = entry["runs"]
+    gen = np.random.default_rng([CI_SEED, zlib.crc32(group.encode())])
+    try:
+        return paired_asr_differences(runs, generator=gen)
+    except AttackMetricError as err:
+        raise ResultsError(str(err)) from err

@@ -17,6 +17,7 @@ __all__ = [
     "upgrade_v1",
     "upgrade_v2",
     "upgrade_v3",
+    "upgrade_v4",
 ]
 
 
@@ -42,6 +43,8 @@ def load_results(path: str | Path) -> dict:
         results = upgrade_v2(results)
     if isinstance(results, dict) and results.get("schema_version") == 3:
         results = upgrade_v3(results)
+    if isinstance(results, dict) and results.get("schema_version") == 4:
+        results = upgrade_v4(results)
     validate_results(results, where=str(path))
     return results
 
@@ -101,6 +104,19 @@ def upgrade_v3(results: dict) -> dict:
                 entry["lifecycle"] = {**entry["lifecycle"], "clean_score_counts": None}
         upgraded[name] = entry
     return {**results, "schema_version": 4, "variants": upgraded}
+
+
+def upgrade_v4(results: dict) -> dict:
+    """A schema-4 results dict as schema 5: each variant gains ``runs`` (the per-run counts) as
+    None (schema 4 did not record them)."""
+    variants = results.get("variants")
+    if not isinstance(variants, dict):
+        return results  # validation names what is wrong
+    upgraded = {
+        name: {**entry, "runs": None} if isinstance(entry, dict) else entry
+        for name, entry in variants.items()
+    }
+    return {**results, "schema_version": 5, "variants": upgraded}
 
 
 def load_results_dir(root: str | Path, pattern: str = "**/results.json") -> list[dict]:

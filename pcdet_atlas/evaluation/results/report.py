@@ -19,7 +19,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from pcdet_atlas.evaluation.results import figures
-from pcdet_atlas.evaluation.results.build import ranks_from_results
+from pcdet_atlas.evaluation.results.build import paired_from_results, ranks_from_results
 from pcdet_atlas.evaluation.results.io import load_results
 from pcdet_atlas.evaluation.results.schema import ResultsError
 from pcdet_atlas.evaluation.results.tables import (
@@ -42,6 +42,7 @@ __all__ = [
     "confident_phantom_table",
     "lifecycle_table",
     "lot_ablation_table",
+    "paired_table",
     "summary_table",
     "write_report",
 ]
@@ -328,6 +329,59 @@ def _ranks_text(results_list) -> str:
     return f"{ranks}\n\n{note}"
 
 
+def paired_table(results_list: Sequence[Mapping], group: str, variants: Sequence[str]) -> str:
+    """Markdown: each model's mean ASR over ``variants`` (a rank group's) and, per pair, the
+    difference row - column with its paired run-level 95% interval
+    (:func:`paired_from_results`), **bold** where the interval excludes 0; or why it cannot be
+    computed."""
+    if len(results_list) < 2 or not variants:
+        return f"needs at least 2 models with a common {group} variant"
+    try:
+        out = paired_from_results(results_list, variants, group)
+    except ResultsError as err:
+        return f"not computed: {err}"
+    models = out["models"]
+    header = ["Model", "mean ASR", *models]
+    rows = []
+    for a in models:
+        row = [a, f"{out['mean_asr'][a]:.2f}"]
+        for b in models:
+            if a == b:
+                row.append("-")
+                continue
+            text = f"{out['difference'][a][b]:+.2f}"
+            if out["ci"] is not None:
+                lo, hi = out["ci"][a][b]
+                text += f" [{lo:+.2f}, {hi:+.2f}]"
+                if lo > 0 or hi < 0:
+                    text = f"**{text}**"
+            row.append(text)
+        rows.append(row)
+    runs = ", ".join(f"{variant_label(v)}: {n}" for v, n in out["num_runs"].items())
+    table = _render("markdown", None, header, rows)
+    return f"{table}\n\nOver {len(variants)} variant(s); runs per variant: {runs}."
+
+
+def _paired_text(results_list) -> str:
+    """The paired comparison per rank group, over the ranked variants every model has with an
+    ASR."""
+    variants, _ = figures.ranked_variants(results_list)
+    groups: dict[str, list[str]] = {}
+    for name in variants:
+        groups.setdefault(results_list[0]["variants"][name]["rank_group"], []).append(name)
+    if not groups:
+        return "needs at least 2 models with a common ranked variant"
+    parts = [
+        "Row minus column: the difference of the two models' mean ASR over the group's "
+        "variants, with its 95% interval from a paired bootstrap that resamples the spoof runs, "
+        "the same runs for both models (docs/evaluation.md); **bold**: the interval excludes 0, "
+        "the runs settle which model the attack succeeds against more often."
+    ]
+    for group, names in groups.items():
+        parts += [f"### {group}", paired_table(results_list, group, names)]
+    return "\n\n".join(parts)
+
+
 def write_report(
     results_list: Sequence[Mapping],
     out_dir: str | Path,
@@ -367,6 +421,7 @@ def write_report(
     for title, table in _table_sections(results_list, "markdown", lot_pair):
         lines += [f"## {title}", "", table, ""]
     lines += ["## Robustness ranks", "", _ranks_text(results_list), ""]
+    lines += ["## Paired model comparison", "", _paired_text(results_list), ""]
     drawn: dict = {}
     lines += ["## Figures", ""]
     for name, (caption, draw) in FIGURES.items():

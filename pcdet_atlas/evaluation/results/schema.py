@@ -20,13 +20,14 @@ __all__ = [
     "validate_variant",
 ]
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 METRIC_KEYS = ("L1/mAP", "L1/mAPH", "L2/mAP", "L2/mAPH")
 CLASS_METRIC_KEYS = ("L1/AP", "L1/APH", "L2/AP", "L2/APH")
 ATTACK_KEYS = (
     "asr",
     "asr_ci",
     "num_runs",
+    "runs",
     "asr_lenient",
     "num_targets",
     "num_success",
@@ -139,6 +140,16 @@ _LIFECYCLE = _closed(
         ),
     }
 )
+#: One spoof run's counts (``attack_metrics.run_counts``).
+_RUN = _closed(
+    {
+        "sequence": _NAME,
+        "run_id": _COUNT,
+        "num_targets": {"type": "integer", "minimum": 1},
+        "num_success": _COUNT,
+        "num_success_lenient": _COUNT,
+    }
+)
 _VARIANT = _closed(
     {
         "family": _NAME,
@@ -153,6 +164,8 @@ _VARIANT = _closed(
         # [lo, hi] run-level bootstrap interval; None with < 2 runs or from before schema 3
         "asr_ci": _nullable({"type": "array", "items": _FRAC, "minItems": 2, "maxItems": 2}),
         "num_runs": _nullable(_COUNT),
+        # per-run counts, sorted by (sequence, run_id); None before schema 5
+        "runs": _nullable({"type": "array", "items": _RUN}),
         "asr_lenient": _nullable(_FRAC),
         "num_targets": _COUNT,
         "num_success": _COUNT,
@@ -301,6 +314,24 @@ def _check_schema(validator: jsonschema.Draft202012Validator, value, where: str)
         _fail(_at(where, error.absolute_path), _schema_message(error))
 
 
+def _runs(v: Mapping, path: str) -> None:
+    """The per-run counts add up to the variant's, one entry per run, sorted."""
+    runs = v["runs"]
+    keys = [(r["sequence"], r["run_id"]) for r in runs]
+    if keys != sorted(set(keys)):
+        _fail(path, "runs must be unique and sorted by (sequence, run_id)")
+    if len(runs) != v["num_runs"]:
+        _fail(path, f"{len(runs)} runs != num_runs {v['num_runs']}")
+    for i, r in enumerate(runs):
+        for key in ("num_success", "num_success_lenient"):
+            if r[key] > r["num_targets"]:
+                _fail(f"{path}[{i}]['{key}']", f"{r[key]} > num_targets {r['num_targets']}")
+    for key in ("num_targets", "num_success", "num_success_lenient"):
+        total = sum(r[key] for r in runs)
+        if total != v[key]:
+            _fail(path, f"the runs' {key} add up to {total}, not {v[key]}")
+
+
 def _variant_invariants(v: Mapping, path: str, class_names: list[str]) -> None:
     if set(v["per_class"]) != set(class_names):
         _fail(f"{path}['per_class']", f"classes {sorted(v['per_class'])} != {class_names}")
@@ -312,6 +343,8 @@ def _variant_invariants(v: Mapping, path: str, class_names: list[str]) -> None:
         _fail(f"{path}['asr_ci']", f"must be null with num_runs {v['num_runs']} (< 2 runs)")
     if v["num_runs"] is not None and v["num_runs"] > n:
         _fail(f"{path}['num_runs']", f"{v['num_runs']} runs > num_targets {n}")
+    if v["runs"] is not None:
+        _runs(v, f"{path}['runs']")
     spoofed, untargeted = v["num_spoofed_frames"], v["num_untargeted"]
     if (spoofed is None) != (untargeted is None) or (
         spoofed is not None and (untargeted > spoofed or n > spoofed)
