@@ -196,7 +196,8 @@ def finished_variants(
 
     ``requested``: ``{variant: attack_sha256}`` of this call. A finished variant (entry and
     ``<variant>/result.pkl`` both there) is kept unless its entry's ``extra.attack_sha256``
-    differs (or is missing), or it is an attack variant evaluated without the clean predictions
+    differs (or is missing), or it has targets but no per-run counts (``runs``: a file of
+    schema 4 or older), or it is an attack variant evaluated without the clean predictions
     while this call evaluates ``clean``, or it is ``clean`` and a process's
     ``clean/proposals_rank<r>.pkl`` is missing where another's is there: each of those is
     evaluated again, as one uninterrupted call would. Returns the kept entries and

@@ -539,12 +539,15 @@ def paired_asr_differences(
     run-level bootstrap intervals.
 
     A model's mean ASR is the mean of its per-variant ASRs (the variants of one rank group, say).
-    Two models attacked on the same runs share the runs' difficulty (the phantom trace and
-    placement, the removal target), so their difference is estimated far more tightly than two
-    separate intervals suggest: each resample draws, per variant, as many runs as there are,
-    with replacement, *the same runs for every model*, and recomputes every model's mean ASR;
-    the interval is the percentile interval of the differences over the resamples. Variants are
-    resampled independently of each other.
+    Models attacked on the same runs share the runs' difficulty (the phantom trace and
+    placement, the removal target), and the variants of a family share their runs too: the
+    attacks key their draws by sequence and run start, not by budget, so run r of ``rem_10``
+    removes around the same target as run r of ``rem_40``. The resampling unit is therefore the
+    run ``(sequence, run_id)`` across all the given variants: each resample draws as many runs
+    as there are (over the variants' union), with replacement, the same runs for every model and
+    every variant, and recomputes every model's mean ASR; the interval is the percentile
+    interval of the differences over the resamples. A resample that draws no run of some
+    variant (only possible where variants have different runs) is left out.
 
     Args:
         runs: model -> variant -> the variant's per-run counts (:func:`run_counts`, the
@@ -553,13 +556,14 @@ def paired_asr_differences(
         generator: the explicit random source.
 
     Returns:
-        ``{'models', 'variants', 'num_runs' (per variant), 'mean_asr' {model: float},
-        'difference' {a: {b: mean_asr[a] - mean_asr[b]}}, 'ci' {a: {b: [lo, hi]}}}``; ``ci`` is
-        None when a variant has fewer than two runs.
+        ``{'models', 'variants', 'num_runs' (per variant), 'num_clusters' (runs over all the
+        variants), 'mean_asr' {model: float}, 'difference' {a: {b: mean_asr[a] - mean_asr[b]}},
+        'ci' {a: {b: [lo, hi]}}}``; ``ci`` is None with fewer than two runs.
 
     Raises:
-        AttackMetricError: fewer than two models, no variant, or models whose variants, runs or
-            targets per run differ (they were not scored on the same targets), naming them.
+        AttackMetricError: fewer than two models, no variant, a variant without targets or with
+            a run listed twice, or models whose variants, runs or targets per run differ (they
+            were not scored on the same targets), naming them.
     """
     models = list(runs)
     if len(models) < 2:
@@ -573,34 +577,53 @@ def paired_asr_differences(
                 f"models {models[0]!r} and {m!r} have different variants: {sorted(variants)} "
                 f"and {sorted(runs[m])}"
             )
-    hits, targets = [], []  # per variant: (M, R) successes, (R,) targets
+
+    def by_run(model: str, variant: str) -> dict:
+        out = {}
+        for r in runs[model][variant]:
+            key = (str(r["sequence"]), int(r["run_id"]))
+            if key in out:
+                raise AttackMetricError(f"model {model!r}, variant {variant!r}: run {key} twice")
+            out[key] = r
+        return out
+
+    first = {v: by_run(models[0], v) for v in variants}
+    keys = sorted({key for v in variants for key in first[v]})
+    column = {key: j for j, key in enumerate(keys)}
+    hits, targets = [], []  # per variant: (M, R) successes, (R,) targets (0: not a run of it)
     for v in variants:
-        ref = {(r["sequence"], int(r["run_id"])): int(r["num_targets"]) for r in runs[models[0]][v]}
-        if not ref or min(ref.values()) < 1:
-            raise AttackMetricError(f"model {models[0]!r}, variant {v!r}: no run with targets")
-        keys = sorted(ref)
+        ref = {key: int(r["num_targets"]) for key, r in first[v].items()}
+        if sum(ref.values()) < 1:
+            raise AttackMetricError(f"model {models[0]!r}, variant {v!r}: no targets")
         table = np.zeros((len(models), len(keys)))
         for i, m in enumerate(models):
-            own = {(r["sequence"], int(r["run_id"])): r for r in runs[m][v]}
-            counts = {k: int(r["num_targets"]) for k, r in own.items()}
+            own = by_run(m, v)
+            counts = {key: int(r["num_targets"]) for key, r in own.items()}
             if counts != ref:
                 diff = sorted(set(counts.items()) ^ set(ref.items()))[:3]
                 raise AttackMetricError(
                     f"variant {v!r}: models {models[0]!r} and {m!r} were not scored on the same "
                     f"targets (runs and targets per run differ, e.g. {diff})"
                 )
-            table[i] = [own[k]["num_success"] for k in keys]
+            for key, r in own.items():
+                table[i, column[key]] = r["num_success"]
+        count = np.zeros(len(keys))
+        for key, n in ref.items():
+            count[column[key]] = n
         hits.append(table)
-        targets.append(np.array([ref[k] for k in keys], dtype=np.float64))
+        targets.append(count)
     mean = np.mean([h.sum(1) / t.sum() for h, t in zip(hits, targets)], axis=0)  # (M,)
     ci = None
-    if min(t.size for t in targets) >= 2:
+    if len(keys) >= 2:
+        draws = generator.integers(0, len(keys), size=(num_resamples, len(keys)))  # (S, R)
+        weight = np.zeros((num_resamples, len(keys)))  # times each run is drawn
+        np.add.at(weight, (np.arange(num_resamples)[:, None], draws), 1.0)
         resampled = np.zeros((num_resamples, len(models)))  # (S, M) mean ASR per resample
-        for h, t in zip(hits, targets):
-            draws = generator.integers(0, t.size, size=(num_resamples, t.size))  # (S, R)
-            resampled += (h[:, draws].sum(2) / t[draws].sum(1)).T
-        resampled /= len(variants)
-        delta = resampled[:, :, None] - resampled[:, None, :]  # (S, M, M)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for h, t in zip(hits, targets):
+                resampled += (weight @ h.T) / (weight @ t)[:, None]
+        resampled = resampled[np.all(np.isfinite(resampled), axis=1)] / len(variants)
+        delta = resampled[:, :, None] - resampled[:, None, :]  # (S', M, M)
         tail = (1.0 - level) / 2 * 100
         lo, hi = np.percentile(delta, [tail, 100 - tail], axis=0)
         ci = {a: {b: [float(lo[i, j]), float(hi[i, j])] for j, b in enumerate(models)}
@@ -608,7 +631,8 @@ def paired_asr_differences(
     return {
         "models": models,
         "variants": variants,
-        "num_runs": {v: int(t.size) for v, t in zip(variants, targets)},
+        "num_runs": {v: int(np.count_nonzero(t)) for v, t in zip(variants, targets)},
+        "num_clusters": len(keys),
         "mean_asr": {m: float(mean[i]) for i, m in enumerate(models)},
         "difference": {
             a: {b: float(mean[i] - mean[j]) for j, b in enumerate(models)}

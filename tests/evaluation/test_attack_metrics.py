@@ -641,17 +641,17 @@ def _runs(hits, targets, sequence="seq_0"):
 
 
 def test_paired_differences_against_a_hand_computed_bootstrap():
-    """Two variants, three runs each: the resamples draw the same runs for both models, per
-    variant in turn, and the interval is the percentile interval of the mean-ASR differences."""
+    """Two variants over the same three runs: each resample draws runs once, the same runs for
+    both models and both variants, and the interval is the percentile interval of the mean-ASR
+    differences."""
     targets = {"inj_a": [4, 2, 6], "inj_b": [3, 3, 5]}
     hits = {"A": {"inj_a": [4, 0, 3], "inj_b": [3, 1, 5]},
             "B": {"inj_a": [2, 0, 1], "inj_b": [1, 0, 5]}}  # fmt: skip
     runs = {m: {v: _runs(hits[m][v], targets[v]) for v in targets} for m in hits}
     out = paired_asr_differences(runs, num_resamples=500, generator=np.random.default_rng(3))
-    gen = np.random.default_rng(3)
+    draws = np.random.default_rng(3).integers(0, 3, size=(500, 3))
     means = np.zeros((500, 2))
     for v, t in targets.items():
-        draws = gen.integers(0, 3, size=(500, 3))
         for i, m in enumerate("AB"):
             means[:, i] += np.array(hits[m][v])[draws].sum(1) / np.array(t)[draws].sum(1) / 2
     lo, hi = np.percentile(means[:, 0] - means[:, 1], [2.5, 97.5])
@@ -660,7 +660,28 @@ def test_paired_differences_against_a_hand_computed_bootstrap():
     mean_a = (7 / 12 + 9 / 11) / 2
     assert out["mean_asr"]["A"] == pytest.approx(mean_a)
     assert out["difference"]["A"]["B"] == pytest.approx(mean_a - (3 / 12 + 6 / 11) / 2)
-    assert out["num_runs"] == {"inj_a": 3, "inj_b": 3} and out["models"] == ["A", "B"]
+    assert out["num_runs"] == {"inj_a": 3, "inj_b": 3} and out["num_clusters"] == 3
+    assert out["models"] == ["A", "B"]
+
+
+def test_variants_that_share_runs_are_resampled_together():
+    """The variants of a family share their runs (the same target, another budget): a variant
+    repeated adds no information, so its interval is the one variant's, not narrower; variants
+    with runs of their own are resampled over the union of the runs."""
+    rng = np.random.default_rng(1)
+    targets = [32] * 12
+    a, b = rng.integers(0, 33, 12).tolist(), rng.integers(0, 33, 12).tolist()
+    one = {"A": {"rem_10": _runs(a, targets)}, "B": {"rem_10": _runs(b, targets)}}
+    two = {m: {"rem_10": v["rem_10"], "rem_40": v["rem_10"]} for m, v in one.items()}
+    single = paired_asr_differences(one, generator=np.random.default_rng(0))
+    double = paired_asr_differences(two, generator=np.random.default_rng(0))
+    assert double["ci"] == single["ci"] and double["difference"] == single["difference"]
+    other = {"A": {**one["A"], "inj": _runs(a[:3], [32] * 3, "seq_9")},
+             "B": {**one["B"], "inj": _runs(b[:3], [32] * 3, "seq_9")}}  # fmt: skip
+    union = paired_asr_differences(other, generator=np.random.default_rng(0))
+    assert union["num_clusters"] == 15 and union["num_runs"] == {"rem_10": 12, "inj": 3}
+    lo, hi = union["ci"]["A"]["B"]
+    assert lo <= union["difference"]["A"]["B"] <= hi
 
 
 def test_pairing_runs_narrows_the_interval():
@@ -689,6 +710,9 @@ def test_paired_differences_refuse_unpaired_inputs():
     with pytest.raises(AttackMetricError, match="different variants"):
         paired_asr_differences({"A": one, "B": {"rem": one["inj"]}},
                                generator=np.random.default_rng(0))  # fmt: skip
+    twice = {"inj": _runs([1, 2], [3, 3]) * 2}
+    with pytest.raises(AttackMetricError, match=r"variant 'inj': run \('seq_0', 0\) twice"):
+        paired_asr_differences({"A": twice, "B": twice}, generator=np.random.default_rng(0))
     other = {"inj": _runs([1, 2], [3, 4])}
     with pytest.raises(AttackMetricError, match=r"'inj'.*'A' and 'B'.*not scored on the same"):
         paired_asr_differences({"A": one, "B": other}, generator=np.random.default_rng(0))

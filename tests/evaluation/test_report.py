@@ -232,7 +232,9 @@ def test_paired_comparison_per_rank_group(models, tmp_path):
     part = text.split("## Paired model comparison", 1)[1].split("\n## ", 1)[0]
     assert "### injection" in part and "### removal" in part
     removal = report_part(text, "### removal")
-    assert "Over 1 variant(s); runs per variant: Removal 10: 4." in removal  # CP-4f lacks rem_40
+    assert (
+        "Over 1 variant(s), resampling 4 runs; runs per variant: Removal 10: 4." in removal
+    )  # CP-4f lacks rem_40
     out = paired_from_results(models, ["rem_10"], "removal")
     rows = md_table(removal)
     for a in out["models"]:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import copy
 import json
 import re
+from pathlib import Path
 
 import pytest
 import torch
@@ -108,6 +109,27 @@ def test_settings_code_and_mode_outside_the_weights(tmp_path, monkeypatch):
     model.train()
     with pytest.raises(RuntimeError, match="training mode"):
         store.predict(model, batch)
+
+
+def test_the_source_digest_leaves_out_the_evaluation_code(monkeypatch):
+    """Metrics and reports never make a prediction: editing them keeps the store; any other
+    source file of the package is part of the key."""
+    from pcdet_atlas.models import prediction_store
+
+    package = Path(prediction_store.__file__).resolve().parents[1]
+    files = {package / "models" / "prediction_store.py": b"models",
+             package / "evaluation" / "attack_metrics.py": b"metrics"}  # fmt: skip
+
+    def digest(contents):
+        monkeypatch.setattr(prediction_store, "_SOURCE_DIGEST", [])
+        monkeypatch.setattr(Path, "rglob", lambda self, pattern: iter(sorted(contents)))
+        monkeypatch.setattr(Path, "read_bytes", lambda self: contents[self])
+        return prediction_store.source_digest()
+
+    base = digest(files)
+    evaluation, model = list(files)[1], list(files)[0]
+    assert digest({**files, evaluation: b"other metrics"}) == base
+    assert digest({**files, model: b"other model"}) != base
 
 
 def test_an_unreadable_entry_is_named(tmp_path):

@@ -359,7 +359,8 @@ def paired_table(results_list: Sequence[Mapping], group: str, variants: Sequence
         rows.append(row)
     runs = ", ".join(f"{variant_label(v)}: {n}" for v, n in out["num_runs"].items())
     table = _render("markdown", None, header, rows)
-    return f"{table}\n\nOver {len(variants)} variant(s); runs per variant: {runs}."
+    return (f"{table}\n\nOver {len(variants)} variant(s), resampling {out['num_clusters']} runs; "
+            f"runs per variant: {runs}.")  # fmt: skip
 
 
 def _paired_text(results_list) -> str:
@@ -374,8 +375,9 @@ def _paired_text(results_list) -> str:
     parts = [
         "Row minus column: the difference of the two models' mean ASR over the group's "
         "variants, with its 95% interval from a paired bootstrap that resamples the spoof runs, "
-        "the same runs for both models (docs/evaluation.md); **bold**: the interval excludes 0, "
-        "the runs settle which model the attack succeeds against more often."
+        "the same runs for every model and variant (docs/evaluation.md); **bold**: the interval "
+        "excludes 0. Each pair is judged on its own (no correction for the number of pairs), "
+        "and with few runs (under ~10) a bootstrap interval is too narrow."
     ]
     for group, names in groups.items():
         parts += [f"### {group}", paired_table(results_list, group, names)]
