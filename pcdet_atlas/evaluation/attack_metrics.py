@@ -473,23 +473,21 @@ def run_counts(matches: TargetMatches) -> list[dict]:
     the ASR's interval, and what a paired comparison of two models needs
     (:func:`paired_asr_differences`)."""
     attacked = matches.attacked()
-    if len(attacked) == 0:
-        return []
-    keys = sorted(set(zip(attacked.sequence.tolist(), attacked.run_id.tolist())))
-    index = {key: i for i, key in enumerate(keys)}
-    row = np.array([index[k] for k in zip(attacked.sequence.tolist(), attacked.run_id.tolist())])
-    targets = np.bincount(row, minlength=len(keys))
-    success = np.bincount(row, weights=attacked.success, minlength=len(keys))
-    lenient = np.bincount(row, weights=attacked.success_lenient, minlength=len(keys))
+    run = attacked.run  # (T,) index of (sequence, run_id) in sorted order
+    first = np.unique(run, return_index=True)[1]  # (R,) a target of each run
+    num = first.size
+    targets = np.bincount(run, minlength=num)
+    success = np.bincount(run[attacked.success], minlength=num)
+    lenient = np.bincount(run[attacked.success_lenient], minlength=num)
     return [
         {
-            "sequence": sequence,
-            "run_id": int(run_id),
-            "num_targets": int(targets[i]),
-            "num_success": int(round(success[i])),
-            "num_success_lenient": int(round(lenient[i])),
+            "sequence": str(attacked.sequence[i]),
+            "run_id": int(attacked.run_id[i]),
+            "num_targets": int(targets[r]),
+            "num_success": int(success[r]),
+            "num_success_lenient": int(lenient[r]),
         }
-        for i, (sequence, run_id) in enumerate(keys)
+        for r, i in enumerate(first)
     ]
 
 
@@ -509,13 +507,13 @@ def asr_from_matches(matches: TargetMatches) -> dict:
     n = len(attacked)
     n_ok, n_len = int(attacked.success.sum()), int(attacked.success_lenient.sum())
     gen = np.random.default_rng([CI_SEED, zlib.crc32(matches.variant.encode())])
-    runs = attacked.run  # (sequence, run_id): run ids repeat across sequences
-    ci = run_bootstrap_interval(runs, attacked.success, generator=gen)
+    ci = run_bootstrap_interval(attacked.run, attacked.success, generator=gen)
+    runs = run_counts(matches)  # a run is (sequence, run_id): run ids repeat across sequences
     return {
         "asr": _rate(n_ok, n),
         "asr_ci": None if ci is None else list(ci),
-        "num_runs": int(np.unique(runs).size),
-        "runs": run_counts(matches),
+        "num_runs": len(runs),
+        "runs": runs,
         "num_targets": n,
         "num_success": n_ok,
         "asr_lenient": _rate(n_len, n),

@@ -8,16 +8,17 @@ batch (as a model of its own or as a two-stage model's RPN) reads them instead o
 
 An entry is found by what determines the prediction, never by names: the model's class, the
 arguments it was built from, every tensor of its ``state_dict`` and the plain settings of its
-modules (``fold_eval``, thresholds set after the build; its *fingerprint*); this package's
-source code; the runtime (device, its compute capability or CPU instruction set, torch, CUDA and
-cuDNN versions, TF32 and deterministic-algorithm flags, CPU thread count); and the bytes of every
-batch input the model reads (its ``prediction_inputs``: for CenterPoint the points with their
-batch column, and the batch size). Equal keys mean equal computations, so a stored prediction is
-bitwise the one the model would return: on the CPU, where torch's kernels are deterministic for
-a given thread count. On a GPU they are only in deterministic mode (docs/evaluation.md);
-otherwise a stored prediction is one the model may return. A model that does not declare
-``prediction_inputs``, or is in training mode, cannot be stored (error). Weights changed
-through ``.data`` escape the cached fingerprint (load checkpoints with ``load_state_dict``).
+modules (``fold_eval``, thresholds set after the build; its *fingerprint*); this package's source
+code, but for ``pcdet_atlas/evaluation`` (:func:`source_digest`); the runtime (device, its compute
+capability or CPU instruction set, torch, CUDA and cuDNN versions, TF32 and deterministic-algorithm
+flags, CPU thread count); and the bytes of every batch input the model reads (its
+``prediction_inputs``: for CenterPoint the points with their batch column, and the batch size).
+Equal keys mean equal computations, so a stored prediction is bitwise the one the model would
+return: on the CPU, where torch's kernels are deterministic for a given thread count. On a GPU they
+are only in deterministic mode (docs/evaluation.md); otherwise a stored prediction is one the model
+may return. A model that does not declare ``prediction_inputs``, or is in training mode, cannot be
+stored (error). Weights changed through ``.data`` escape the cached fingerprint (load checkpoints
+with ``load_state_dict``).
 
 Entries are files ``<root>/<model key>/<k[:2]>/<k>.pt`` written atomically, so concurrent
 processes may share a root; ``<root>/<model key>/model.json`` says which model a folder holds.
