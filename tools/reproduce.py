@@ -242,23 +242,26 @@ def main(argv=None) -> dict:
     start = time.perf_counter()
     finished = threading.Event()
 
+    def write_state() -> None:  # atomic: a killed call keeps the previous state
+        text = json.dumps(state, indent=2) + "\n"
+        write_atomic(run_file, lambda f: f.write(text.encode()))
+
     def save_state(run: dict | None = None) -> None:
         with lock:
             if run is not None:
                 state["runs"].append(run)
                 state["model_wall_s"][run["config"]] = run["wall_s"]
             state["total_wall_s"] = round(elapsed_before + time.perf_counter() - start, 1)
-            text = json.dumps(state, indent=2) + "\n"  # a killed call keeps the previous state
-            write_atomic(run_file, lambda f: f.write(text.encode()))
+            write_state()
 
     def heartbeat() -> None:  # the wall time of a call that is killed still counts
         while not finished.wait(60):
             save_state()
 
     def evaluate(cfg: Path) -> None:
-        results, wanted, finished = evaluation_of(cfg, args, root)
-        resumable = resume and finished is not None
-        done = resumable and wanted <= finished
+        results, wanted, evaluated = evaluation_of(cfg, args, root)
+        resumable = resume and evaluated is not None
+        done = resumable and wanted <= evaluated
         if not done:
             store = store_of(cfg, rpns, args)
             command = [sys.executable, str(REPO_ROOT / "tools" / "test.py"),
@@ -287,7 +290,7 @@ def main(argv=None) -> dict:
     order = {str(cfg): i for i, cfg in enumerate(cfgs)}
     state["runs"] = sorted(state["runs"], key=lambda r: order[r["config"]])
     out = write_run_report(state, out_dir)
-    write_atomic(run_file, lambda f: f.write((json.dumps(state, indent=2) + "\n").encode()))
+    write_state()
     print(f"report: {out['report']}  total {state['total_wall_s'] / 60:.1f} min")
     return {**out, "run": state}
 
