@@ -151,6 +151,10 @@ def test_report_has_every_table_row_and_figure(models, tmp_path):
         assert section in text, section
     for name in ("CenterPoint", "CP-4f", "PHiM", "PHiM+LOT"):
         assert f"| {name} |" in text
+    first_table = "| Model | Config" + report_part(text, "| Model | Config").split("\n\n")[0]
+    provenance = md_table(first_table)
+    assert provenance["CP-4f"]["pcdet_atlas"] == models[1]["pcdet_atlas_version"]
+    assert models[1]["created"] not in text  # provenance, not the time of the run
     # CP-4f lacks rem_40: shown as missing in the removal table, not as zero
     cp4f = md_table(report_part(text, "## Point removal"))["CP-4f"]
     assert cp4f["Removal 40 L2 mAP"] == cp4f["Removal 40 ASR"] == "missing"
