@@ -262,6 +262,59 @@ def test_paired_comparison_per_rank_group(models, tmp_path):
     assert "needs at least 2 models" in paired_table(models[:1], "removal", ["rem_10"])
 
 
+def test_time_of_proposals_read_from_the_store_is_added_back(models, tmp_path):
+    """A two-stage model that read its RPN's proposals from the prediction store is timed with
+    the RPN's clean ms/frame for those batches, found through its config's MODEL.RPN; without
+    its RPN in the report the time is a lower bound, marked and explained."""
+
+    def stored(results, name, cfg, ckpt, ms, hits):
+        out = copy.deepcopy(results)
+        out.update(model=name, config=cfg, checkpoint=ckpt)
+        clean = out["variants"]["clean"]
+        clean["extra"] = {"timing_s": {"model": ms * 200 / 1000.0},
+                          "prediction_store": {"hits": hits, "misses": 200 - hits}}  # fmt: skip
+        return out
+
+    rpn = stored(models[1], "CP-4f", "cfgs/atlas/synthetic/cp4f.yaml",
+                 "checkpoints/cp4f_synthetic.pth", 80.0, 0)  # fmt: skip
+    msf = stored(models[2], "MSF-4f", "cfgs/atlas/synthetic/msf_4f.yaml",
+                 "checkpoints/msf_4f_synthetic.pth", 50.0, 150)  # fmt: skip
+    assert figures.rpn_results(msf, [rpn, msf]) == (rpn, "")
+    ms, lower_bound, note = figures.frame_cost(msf, [rpn, msf])
+    assert ms == pytest.approx(50.0 + 80.0 * 150 / 200) and not lower_bound
+    assert note == (
+        "MSF-4f: 50 ms of its own + 60 ms for the proposals of 150 of 200 clean batches read "
+        "from the prediction store, at CP-4f's clean 80 ms/frame"
+    )
+    assert figures.frame_cost(rpn, [rpn, msf]) == (pytest.approx(80.0), False, None)
+    text = summary_table([rpn, msf])
+    assert md_table(text)["MSF-4f"]["ms/frame"] == "110" and f"ms/frame of {note}." in text
+    # another RPN checkpoint, the RPN not given, or the RPN served by the store itself
+    other = copy.deepcopy(rpn)
+    other["checkpoint"] = "checkpoints/other.pth"
+    served = stored(rpn, "CP-4f", rpn["config"], rpn["checkpoint"], 5.0, 200)
+    cases = [
+        (other, "its RPN (cfgs/atlas/synthetic/cp4f.yaml with checkpoints/cp4f_synthetic.pth) "
+                "is not in the report"),
+        (served, "its RPN CP-4f read clean batches from the store as well"),
+    ]  # fmt: skip
+    for given, why in cases:
+        ms, lower_bound, note = figures.frame_cost(msf, [given, msf])
+        assert ms == pytest.approx(50.0) and lower_bound
+        assert note == ("MSF-4f: at least 50 ms; 150 of 200 clean batches were read from the "
+                        f"prediction store, untimed: {why}")  # fmt: skip
+        assert md_table(summary_table([given, msf]))["MSF-4f"]["ms/frame"] == "≥50"
+    # a config that names no RPN: the model's own predictions came from the store
+    ms, lower_bound, note = figures.frame_cost(served, [served])
+    assert lower_bound and note.endswith("names no RPN (MODEL.RPN.CFG, CHECKPOINT)")
+    assert "$\\geq$50" in summary_table([other, msf], fmt="latex")
+    notes = []
+    assert isinstance(figures.accuracy_vs_time([served, msf], tmp_path / "t.png", notes), Path)
+    assert [n for n in notes if n.startswith("Model time per frame of")] == [
+        f"Model time per frame of {figures.frame_cost(m, [served, msf])[2]}." for m in (served, msf)
+    ]
+
+
 def test_ranks_and_figures_name_what_they_leave_out(models, tmp_path):
     untimed = copy.deepcopy(models[3])
     del untimed["variants"]["clean"]["extra"]  # no clean timing

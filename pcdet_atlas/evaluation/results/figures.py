@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, repo_relative
 from pcdet_atlas.evaluation.results.build import ranks_from_results
 from pcdet_atlas.evaluation.results.tables import missing_of, ordered_variants, variant_label
 
@@ -20,6 +21,7 @@ __all__ = [
     "attack_variants",
     "confidence_histograms",
     "covered_variants",
+    "frame_cost",
     "lifecycle_curves",
     "lifecycle_heatmaps",
     "mean_asr",
@@ -27,6 +29,7 @@ __all__ = [
     "rank_correlation",
     "ranked_variants",
     "ranked_variants_note",
+    "rpn_results",
 ]
 
 DPI = 120
@@ -69,6 +72,68 @@ def ms_per_frame(results: Mapping) -> float | None:
     if model_s is None or clean["num_frames"] == 0:
         return None
     return 1000.0 * float(model_s) / clean["num_frames"]
+
+
+def _store_counts(results: Mapping) -> tuple[int, int]:
+    """(batches read from the prediction store, batches in all) of the clean run; (0, 0)
+    without store counts."""
+    store = (results["variants"].get("clean") or {}).get("extra", {}).get("prediction_store")
+    if not store:
+        return 0, 0
+    return int(store.get("hits", 0)), int(store.get("hits", 0)) + int(store.get("misses", 0))
+
+
+def _repo_path(path: str | Path) -> Path:
+    path = Path(path).expanduser()
+    return repo_relative(path if path.is_absolute() else REPO_ROOT / path)
+
+
+def rpn_results(results: Mapping, results_list: Sequence[Mapping]) -> tuple[Mapping | None, str]:
+    """The entry of ``results_list`` that is the RPN of ``results``' model (the model whose
+    config and checkpoint are the ``MODEL.RPN.CFG`` and ``MODEL.RPN.CHECKPOINT`` of the config
+    ``results`` names), and ``''``; or None and why there is none."""
+    try:
+        rpn = cfg_from_yaml_file(_repo_path(results["config"])).get("MODEL", {}).get("RPN")
+    except (OSError, ValueError) as err:  # ConfigError is a ValueError
+        return None, f"its config cannot be read ({err})"
+    if not rpn or "CFG" not in rpn or "CHECKPOINT" not in rpn:
+        return None, f"its config {results['config']} names no RPN (MODEL.RPN.CFG, CHECKPOINT)"
+    want = (_repo_path(rpn["CFG"]), _repo_path(rpn["CHECKPOINT"]))
+    for r in results_list:
+        if r.get("checkpoint") and (_repo_path(r["config"]), _repo_path(r["checkpoint"])) == want:
+            return r, ""
+    return None, f"its RPN ({want[0]} with {want[1]}) is not in the report"
+
+
+def frame_cost(
+    results: Mapping, results_list: Sequence[Mapping] = ()
+) -> tuple[float | None, bool, str | None]:
+    """A model's time per frame on the clean run in ms, whether it is only a lower bound, and a
+    note (None when there is nothing to say). A two-stage model that read its RPN's proposals
+    from the prediction store did not spend the RPN's time: that share of the clean batches is
+    added back at the RPN's own clean ms/frame when the RPN is in ``results_list``
+    (:func:`rpn_results`) and computed every batch of its own clean run; otherwise the time is
+    a lower bound and the note says why."""
+    own = ms_per_frame(results)
+    hits, batches = _store_counts(results)
+    if own is None or hits == 0:
+        return own, False, None
+    rpn, why = rpn_results(results, results_list)
+    if rpn is not None and _store_counts(rpn)[0]:
+        rpn, why = None, f"its RPN {rpn['model']} read clean batches from the store as well"
+    rpn_ms = None if rpn is None else ms_per_frame(rpn)
+    if rpn is not None and rpn_ms is None:
+        why = f"its RPN {rpn['model']} has no clean timing"
+    served = f"{hits} of {batches} clean batches"
+    if rpn_ms is None:
+        note = (f"{results['model']}: at least {own:.0f} ms; {served} were read from the "
+                f"prediction store, untimed: {why}")  # fmt: skip
+        return own, True, note
+    added = rpn_ms * hits / batches
+    note = (f"{results['model']}: {own:.0f} ms of its own + {added:.0f} ms for the proposals of "
+            f"{served} read from the prediction store, at {rpn['model']}'s clean "
+            f"{rpn_ms:.0f} ms/frame")  # fmt: skip
+    return own + added, False, note
 
 
 def attack_variants(results_list: Sequence[Mapping], family: str | None = None) -> list[str]:
@@ -342,36 +407,43 @@ def confidence_histograms(results_list: Sequence[Mapping], family: str, path: Pa
 def accuracy_vs_time(
     results_list: Sequence[Mapping], path: Path, notes: list[str] | None = None
 ) -> Path | str:
-    """Clean L2 mAP against measured model ms/frame per model, the marker coloured by the mean
-    ASR over the attack variants of all the models (:func:`mean_asr`); a model without every one
-    of them has a hollow grey marker. ``notes``: the models left out (no clean timing or mAP)
-    and those drawn hollow."""
+    """Clean L2 mAP against measured model ms/frame per model (:func:`frame_cost`: a two-stage
+    model's proposals read from the prediction store at its RPN's time; a right-pointing marker
+    where that time cannot be added and the value is a lower bound), the marker coloured by the
+    mean ASR over the attack variants of all the models (:func:`mean_asr`); a model without
+    every one of them has a hollow grey marker. ``notes``: the models left out (no clean timing
+    or mAP), those drawn hollow, and how each store-served model's time was counted."""
     from matplotlib.cm import ScalarMappable
     from matplotlib.colors import Normalize
     from matplotlib.ticker import FormatStrFormatter
 
     variants = attack_variants(results_list)
-    points, untimed = [], []
+    points, untimed, time_notes = [], [], []
     for r in results_list:
-        ms, clean = ms_per_frame(r), r["variants"].get("clean")
+        (ms, lower_bound, note), clean = frame_cost(r, results_list), r["variants"].get("clean")
         if ms is None or clean is None or clean["L2/mAP"] is None:
             untimed.append(r["model"])
             continue
-        points.append((r, ms, 100.0 * clean["L2/mAP"], mean_asr(r, variants)))
+        time_notes += [] if note is None else [note]
+        points.append((r, ms, 100.0 * clean["L2/mAP"], mean_asr(r, variants), lower_bound))
     if not points:
         return "no model has a clean variant with timing and L2 mAP"
     devices = sorted({str(r.get("extra", {}).get("device", "?")) for r, *_ in points})
     fig, (ax,) = _figure(1, (5.5, 4.2))
     colours = ScalarMappable(Normalize(0.0, 1.0), "viridis_r")
     hollow = [p for p in points if p[3] is None]
-    for r, x, y, asr in points:
+    for r, x, y, asr, lower_bound in points:
         face = "none" if asr is None else colours.to_rgba(asr)
         ax.scatter([x], [y], s=60, facecolors=[face], edgecolors="grey" if asr is None else "black",
-                   zorder=3)  # fmt: skip
+                   marker=">" if lower_bound else "o", zorder=3)  # fmt: skip
         ax.annotate(r["model"], (x, y), textcoords="offset points", xytext=(5, 4), fontsize=8)
     if hollow:
         ax.scatter([], [], s=60, facecolors="none", edgecolors="grey",
                    label="no mean ASR (not every attack variant)")  # fmt: skip
+    if any(p[4] for p in points):
+        ax.scatter([], [], s=60, marker=">", facecolors="none", edgecolors="black",
+                   label="time is a lower bound (store reads untimed)")  # fmt: skip
+    if hollow or any(p[4] for p in points):
         ax.legend(fontsize=7, loc="lower right")
     fig.colorbar(colours, ax=ax, label="mean ASR over attack variants")
     if notes is not None and untimed:
@@ -380,6 +452,8 @@ def accuracy_vs_time(
         cells = [f"{r['model']} ({missing_of(len(covered_variants(r, variants)), len(variants))})"
                  for r, *_ in hollow]  # fmt: skip
         notes.append(f"Hollow grey marker, no mean ASR colour: {', '.join(cells)}.")
+    if notes is not None:
+        notes += [f"Model time per frame of {note}." for note in time_notes]
     ax.set_xscale("log")
     ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
     ax.xaxis.set_minor_formatter(FormatStrFormatter("%g"))

@@ -136,33 +136,38 @@ def _mean_asr_cell(results: Mapping, variants: Sequence[str]) -> str:
 
 def summary_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str:
     """A row per model: clean L2 mAP / mAPH (x100), input frames, clean rank (1 = highest clean
-    L2 mAP), model ms/frame on the clean run and its device, mean ASR per family (over every
-    variant of the family that any of the models has: ``missing (n of m variants)`` for a model
-    without all of them)."""
+    L2 mAP), model ms/frame on the clean run (:func:`figures.frame_cost`: with the RPN's time
+    for proposals read from the prediction store, ``≥`` where it cannot be added; in Markdown
+    each such model is explained under the table) and its device, mean ASR per family (over
+    every variant of the family that any of the models has: ``missing (n of m variants)`` for a
+    model without all of them)."""
     families = {f: figures.attack_variants(results_list, f) for f in ("injection", "removal")}
     maps = [(r["variants"].get("clean") or {}).get("L2/mAP") for r in results_list]
     order = sorted({m for m in maps if m is not None}, reverse=True)
     header = ["Model", "L2 mAP", "L2 mAPH", "Frames", "Clean rank", "ms/frame", "Device",
               "Mean inj. ASR", "Mean rem. ASR"]  # fmt: skip
-    rows = []
+    rows, notes = [], []
     for r, l2 in zip(results_list, maps):
         clean = r["variants"].get("clean")
         frames = input_frames(r)
-        ms = figures.ms_per_frame(r)
+        ms, lower_bound, note = figures.frame_cost(r, results_list)
+        notes += [] if note is None else [note]
         rows.append([
             r["model"],
             MISSING if clean is None else _fmt(clean["L2/mAP"], 100, 1),
             MISSING if clean is None else _fmt(clean["L2/mAPH"], 100, 1),
             "-" if frames is None else str(frames),
             "-" if l2 is None else str(order.index(l2) + 1),
-            "-" if ms is None else f"{ms:.0f}",
+            "-" if ms is None else f"{'≥' if lower_bound else ''}{ms:.0f}",
             str(r.get("extra", {}).get("device", "-")),
             _mean_asr_cell(r, families["injection"]),
             _mean_asr_cell(r, families["removal"]),
         ])  # fmt: skip
     if fmt == "latex":
         rows = [[latex_escape(c) for c in row] for row in rows]
-    return _render(fmt, None, header, rows)
+        return _render(fmt, None, header, rows)
+    text = _render(fmt, None, header, rows)
+    return "\n\n".join([text, *(f"ms/frame of {note}." for note in notes)])
 
 
 def lot_ablation_table(base: Mapping, defended: Mapping, fmt: str = "markdown") -> str:

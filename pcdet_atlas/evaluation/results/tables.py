@@ -62,7 +62,7 @@ MISSING = "missing"
 FORMATS = ("text", "markdown", "latex")
 _LATEX_ESCAPES = {"&": r"\&", "%": r"\%", "_": r"\_", "#": r"\#", "$": r"\$", "{": r"\{",
                   "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}", "<": "$<$",
-                  ">": "$>$"}  # fmt: skip
+                  ">": "$>$", "≥": "$\\geq$"}  # fmt: skip
 
 
 def missing_of(num: int, total: int) -> str:
