@@ -229,12 +229,15 @@ def main(argv=None) -> dict:
     previous = json.loads(run_file.read_text()) if run_file.is_file() else {}
     known = known_times(previous)
     resume = not args.overwrite and previous.get("setting") == setting
+    cpus = [cpu_model()]
     if resume:
         elapsed_before = float(previous.get("total_wall_s", 0.0))
         calls += int(previous.get("calls", 1))
+        cpus = list(dict.fromkeys([*previous.get("cpus", []), *cpus]))
     command = shlex.join(sys.argv[1:] if argv is None else argv)
     state = {"setting": setting, "command": command, "jobs": args.jobs, "threads": threads,
-             "cpu_cores": os.cpu_count(), "machine": platform.machine(), "device": None,
+             "cpu_cores": os.cpu_count(), "machine": platform.machine(), "cpus": cpus,
+             "device": None,
              "total_wall_s": elapsed_before, "calls": calls, "runs": [],
              "model_wall_s": known,
              "prediction_store": None if args.no_store else str(store_path(args))}  # fmt: skip
@@ -295,6 +298,19 @@ def main(argv=None) -> dict:
     return {**out, "run": state}
 
 
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``; ``platform.processor()`` elsewhere), so that a
+    run's wall time can be read against the machine it ran on."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
+
+
 def write_run_report(state: dict, out_dir: Path) -> dict:
     """The report of a run (``state``: its ``run.json``) into ``out_dir``, with how it was
     produced (command, machine, wall times); sets ``state['device']``."""
@@ -309,7 +325,9 @@ def write_run_report(state: dict, out_dir: Path) -> dict:
         f"`python tools/reproduce.py {state['command']}` on "
         f"`{Path(state['setting']['data_path']).name}` ({frames} val frames), device {device}, "
         f"{state['jobs']} model(s) at a time with {state['threads']} torch thread(s) each, "
-        f"{state['cpu_cores']} CPU cores, {state['machine']}; total wall time "
+        f"{state['cpu_cores']} CPU cores, {state['machine']}"
+        + (f" ({', '.join(state['cpus'])})" if state.get("cpus") else "")
+        + "; total wall time "
         f"**{total / 60:.1f} min**"
         + (
             f" over {calls} calls (a resumed run counts the work its interrupted calls lost)."

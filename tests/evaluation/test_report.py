@@ -402,6 +402,7 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     text = out["report"].read_text()
     assert "## How these results were produced" in text and "| CenterPoint |" in text
     assert "2 model(s) at a time with 1 torch thread(s) each" in text
+    assert f"({reproduce.cpu_model()}); total wall time" in text  # the CPU it ran on
     # clean 5 frames + rem_30 2 recomputed (below) per model, its time spread over them
     appendix = text.split("## How these results were produced")[1].splitlines()
     row = next(line for line in appendix if line.startswith("| CP-4f | "))
@@ -448,6 +449,7 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     assert pkl["clean"].stat().st_mtime_ns == pkl_stamps["clean"]
     assert pkl["rem_30"].stat().st_mtime_ns > pkl_stamps["rem_30"]
     assert resumed["run"]["calls"] == 3 and "over 3 calls" in resumed["report"].read_text()
+    assert resumed["run"]["cpus"] == [reproduce.cpu_model()]  # one entry per distinct CPU
     assert resumed["run"]["runs"][0]["wall_s"] > 0
     stamps = [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]]
     # a retrained checkpoint (its SHA-256 differs from the one results.json records) is
