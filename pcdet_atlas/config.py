@@ -29,6 +29,14 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 _SOURCES_ATTR = "_key_sources"
 
 
+def resolve_repo_path(path: str | Path) -> Path:
+    """A path from a config or the command line: absolute as given, else relative to the
+    repository root (``DATA_PATH``, an RPN's ``CFG`` / ``CHECKPOINT``), whatever the working
+    directory."""
+    path = Path(path).expanduser()
+    return path if path.is_absolute() else (REPO_ROOT / path).resolve()
+
+
 def repo_relative(path: str | Path) -> Path:
     """``path`` relative to the repository root when it lies inside it (absolute otherwise), as
     reports and ``results.json`` name configs and files, independent of where the clone is."""

@@ -45,11 +45,11 @@ from pcdet_atlas.config import (
     ConfigError,
     cfg_from_list,
     cfg_from_yaml_file,
+    resolve_repo_path,
     save_config,
     to_plain,
 )
 from pcdet_atlas.datasets import waymo_format as wf
-from pcdet_atlas.datasets.dataset import resolve_data_path
 from pcdet_atlas.utils.common import create_logger, save_pickle
 
 CLASS_NAMES = ["Vehicle", "Pedestrian", "Cyclist"]
@@ -172,7 +172,7 @@ def main(argv=None) -> Path:
         out_root = REPO_ROOT / out_root
     if "DATA_PATH" not in data_cfg:
         raise ConfigError(f"{args.data_cfg}: no DATA_PATH (the source dataset root)")
-    check_out_dir(out_root, resolve_data_path(data_cfg.DATA_PATH))
+    check_out_dir(out_root, resolve_repo_path(data_cfg.DATA_PATH))
     attack_cfg = cfg_from_yaml_file(args.attack)
     if args.set_cfgs:
         cfg_from_list(args.set_cfgs, attack_cfg)

@@ -45,9 +45,9 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, repo_relative
+from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, repo_relative, resolve_repo_path
 from pcdet_atlas.evaluation.results import ResultsError, collect_results, write_report
-from pcdet_atlas.models.detectors.two_stage import file_sha256, resolve_repo_path
+from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.train_utils.atlas_eval import (
     build_variant_attacks,
     resolve_variants,

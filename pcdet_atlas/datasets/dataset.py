@@ -22,18 +22,12 @@ from pathlib import Path
 import numpy as np
 import torch.utils.data as torch_data
 
-from pcdet_atlas.config import REPO_ROOT, ConfigError, key_source
+from pcdet_atlas.config import ConfigError, key_source, resolve_repo_path
 from pcdet_atlas.datasets.augmentor import DataAugmentor, DataProcessor
 from pcdet_atlas.datasets.point_features import PointFeatureEncoder
 from pcdet_atlas.utils.seeding import derive_seed
 
-__all__ = ["DatasetTemplate", "collate_batch", "resolve_data_path"]
-
-
-def resolve_data_path(data_path: str | Path) -> Path:
-    """``DATA_PATH`` as a path: absolute as given, relative to the repository root otherwise."""
-    path = Path(data_path).expanduser()
-    return path if path.is_absolute() else (REPO_ROOT / path).resolve()
+__all__ = ["DatasetTemplate", "collate_batch"]
 
 
 class DatasetTemplate(torch_data.Dataset):
@@ -71,7 +65,7 @@ class DatasetTemplate(torch_data.Dataset):
         if root_path is not None:
             self.root_path = Path(root_path)
         elif "DATA_PATH" in dataset_cfg:
-            self.root_path = resolve_data_path(dataset_cfg.DATA_PATH)
+            self.root_path = resolve_repo_path(dataset_cfg.DATA_PATH)
         else:
             raise ConfigError("DATA_CONFIG: no DATA_PATH and no root_path given")
         pc_range = dataset_cfg.get("POINT_CLOUD_RANGE")

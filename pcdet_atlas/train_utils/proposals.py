@@ -23,10 +23,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pcdet_atlas.config import cfg_from_yaml_file, to_plain
+from pcdet_atlas.config import cfg_from_yaml_file, resolve_repo_path, to_plain
 from pcdet_atlas.datasets import build_dataloader
-from pcdet_atlas.datasets.dataset import resolve_data_path
-from pcdet_atlas.models.detectors.two_stage import TwoStageDetector, resolve_repo_path
+from pcdet_atlas.models.detectors.two_stage import TwoStageDetector
 from pcdet_atlas.train_utils.dist import get_dist_info
 from pcdet_atlas.train_utils.eval_utils import predict_dataset
 from pcdet_atlas.utils.common import save_pickle
@@ -42,7 +41,7 @@ def _rpn_data_config(model: TwoStageDetector, data_cfg: Mapping, split: str):
     root and ``split``, every frame (interval 1), test mode (no augmentation)."""
     rpn_cfg = cfg_from_yaml_file(resolve_repo_path(model.rpn_info["cfg"]))
     rpn_data = copy.deepcopy(rpn_cfg.DATA_CONFIG)
-    rpn_data.DATA_PATH = str(resolve_data_path(data_cfg.DATA_PATH))
+    rpn_data.DATA_PATH = str(resolve_repo_path(data_cfg.DATA_PATH))
     rpn_data.DATA_SPLIT = {"train": split, "test": split}
     rpn_data.SAMPLED_INTERVAL = {"train": 1, "test": 1}
     return rpn_cfg, rpn_data

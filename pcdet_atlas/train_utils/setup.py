@@ -13,6 +13,7 @@ from pcdet_atlas.config import (
     cfg_from_list,
     cfg_from_yaml_file,
     check_experiment_config,
+    resolve_repo_path,
 )
 from pcdet_atlas.train_utils.dist import init_dist_pytorch, init_dist_slurm
 from pcdet_atlas.utils.common import resolve_device
@@ -106,9 +107,8 @@ def load_cfg(cfg_file: str, set_cfgs: list[str] | None):
 def require_dataset(cfg, cfg_file: str | Path) -> None:
     """Stop with a one-line message (no traceback) when the config's ``DATA_CONFIG.DATA_PATH``
     is not there, naming the path and, for a real-Waymo config, its synthetic counterpart."""
-    from pcdet_atlas.datasets.dataset import resolve_data_path
 
-    root = resolve_data_path(cfg.DATA_CONFIG.get("DATA_PATH", ""))
+    root = resolve_repo_path(cfg.DATA_CONFIG.get("DATA_PATH", ""))
     if root.is_dir():
         return
     hint = "convert Waymo with OpenPCDet into it (docs/data.md)"

@@ -20,10 +20,9 @@ from waymo_tiny_data import (
     write_tiny_waymo,
 )
 
-from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, resolve_repo_path
 from pcdet_atlas.datasets import WaymoDataset, build_dataloader
 from pcdet_atlas.datasets import waymo_format as wf
-from pcdet_atlas.datasets.dataset import resolve_data_path
 from pcdet_atlas.datasets.loader import ResumableSampler
 from pcdet_atlas.datasets.multiframe import (
     history_sample_indices,
@@ -87,7 +86,7 @@ def test_data_path_resolves_against_the_repository_root(tiny_root, monkeypatch, 
     monkeypatch.chdir(tmp_path)  # the working directory plays no part
     ds = WaymoDataset(dataset_cfg(DATA_PATH=str(tiny_root)), CLASS_NAMES, training=False)
     assert ds.root_path == tiny_root and len(ds) == 6
-    assert resolve_data_path("data/waymo") == REPO_ROOT / "data" / "waymo"
+    assert resolve_repo_path("data/waymo") == REPO_ROOT / "data" / "waymo"
     # a plain dict works as well as an EasyDict
     plain = WaymoDataset(dict(dataset_cfg()), CLASS_NAMES, training=False, root_path=tiny_root)
     assert len(plain) == 6

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, repo_relative
+from pcdet_atlas.config import cfg_from_yaml_file, repo_relative, resolve_repo_path
 from pcdet_atlas.evaluation.results.build import ranks_from_results
 from pcdet_atlas.evaluation.results.tables import missing_of, ordered_variants, variant_label
 
@@ -83,24 +83,23 @@ def _store_counts(results: Mapping) -> tuple[int, int]:
     return int(store.get("hits", 0)), int(store.get("hits", 0)) + int(store.get("misses", 0))
 
 
-def _repo_path(path: str | Path) -> Path:
-    path = Path(path).expanduser()
-    return repo_relative(path if path.is_absolute() else REPO_ROOT / path)
-
-
 def rpn_results(results: Mapping, results_list: Sequence[Mapping]) -> tuple[Mapping | None, str]:
     """The entry of ``results_list`` that is the RPN of ``results``' model (the model whose
     config and checkpoint are the ``MODEL.RPN.CFG`` and ``MODEL.RPN.CHECKPOINT`` of the config
     ``results`` names), and ``''``; or None and why there is none."""
     try:
-        rpn = cfg_from_yaml_file(_repo_path(results["config"])).get("MODEL", {}).get("RPN")
+        rpn = cfg_from_yaml_file(resolve_repo_path(results["config"])).get("MODEL", {}).get("RPN")
     except (OSError, ValueError) as err:  # ConfigError is a ValueError
         return None, f"its config cannot be read ({err})"
     if not rpn or "CFG" not in rpn or "CHECKPOINT" not in rpn:
         return None, f"its config {results['config']} names no RPN (MODEL.RPN.CFG, CHECKPOINT)"
-    want = (_repo_path(rpn["CFG"]), _repo_path(rpn["CHECKPOINT"]))
+
+    def same(path: str | Path) -> Path:  # one name for a file, however a config wrote it
+        return repo_relative(resolve_repo_path(path))
+
+    want = (same(rpn["CFG"]), same(rpn["CHECKPOINT"]))
     for r in results_list:
-        if r.get("checkpoint") and (_repo_path(r["config"]), _repo_path(r["checkpoint"])) == want:
+        if r.get("checkpoint") and (same(r["config"]), same(r["checkpoint"])) == want:
             return r, ""
     return None, f"its RPN ({want[0]} with {want[1]}) is not in the report"
 

@@ -21,11 +21,11 @@ from pathlib import Path
 import torch
 
 from pcdet_atlas.config import (
-    REPO_ROOT,
     ConfigError,
     cfg_from_yaml_file,
     check_known_keys,
     key_source,
+    resolve_repo_path,
 )
 from pcdet_atlas.models.detectors.detector3d_template import (
     CheckpointMismatchError,
@@ -35,7 +35,7 @@ from pcdet_atlas.models.model_utils.motion_sampler import frame_of_points
 from pcdet_atlas.models.model_utils.roi_utils import fuse_scores, select_detections
 from pcdet_atlas.utils.seeding import torch_generator
 
-__all__ = ["RPN_KEYS", "TwoStageDetector", "file_sha256", "load_rpn", "resolve_repo_path"]
+__all__ = ["RPN_KEYS", "TwoStageDetector", "file_sha256", "load_rpn"]
 
 RPN_KEYS = ("CFG", "CHECKPOINT", "CACHE_DIR")
 #: keys ``MODEL.POST_PROCESSING.NMS_CONFIG`` may hold (``NMS_TYPE`` and ``MULTI_CLASSES_NMS``
@@ -43,12 +43,6 @@ RPN_KEYS = ("CFG", "CHECKPOINT", "CACHE_DIR")
 NMS_CONFIG_KEYS = (
     "NMS_THRESH", "NMS_PRE_MAXSIZE", "NMS_POST_MAXSIZE", "NMS_TYPE", "MULTI_CLASSES_NMS",
 )  # fmt: skip
-
-
-def resolve_repo_path(path: str | Path) -> Path:
-    """A config path: absolute as given, else relative to the repository root."""
-    path = Path(path).expanduser()
-    return path if path.is_absolute() else REPO_ROOT / path
 
 
 def file_sha256(path: str | Path) -> str:
