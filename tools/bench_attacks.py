@@ -244,10 +244,9 @@ def _getitem_data(args):
     from pathlib import Path
 
     from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, build_trace_library
-    from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+    from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, resolve_repo_path
 
-    root = Path(args.data_path)
-    root = root if root.is_absolute() else REPO_ROOT / root
+    root = resolve_repo_path(args.data_path)
     if not (root / "ImageSets" / "val.txt").is_file():
         from pcdet_atlas.datasets.synthetic import create_synthetic_waymo
 

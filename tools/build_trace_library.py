@@ -20,7 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, build_trace_library
-from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_list, cfg_from_yaml_file
+from pcdet_atlas.config import ConfigError, cfg_from_list, cfg_from_yaml_file, resolve_repo_path
 from pcdet_atlas.ops.lidar_model import LidarModel
 from pcdet_atlas.utils.common import create_logger
 
@@ -46,9 +46,7 @@ def main(argv=None) -> Path:
     if "TRACE_LIBRARY" not in cfg:
         raise ConfigError(f"{args.cfg}: no TRACE_LIBRARY section (not an injection attack?)")
     filters = TraceFilter.from_config(cfg.TRACE_LIBRARY)
-    root = Path(args.data_path)
-    if not root.is_absolute():
-        root = REPO_ROOT / root
+    root = resolve_repo_path(args.data_path)
     out = Path(args.out) if args.out else Path(filters.path)
     if not out.is_absolute():
         out = (Path.cwd() / out) if args.out else (root / out)

@@ -41,7 +41,6 @@ from tqdm import tqdm
 
 from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
 from pcdet_atlas.config import (
-    REPO_ROOT,
     ConfigError,
     cfg_from_list,
     cfg_from_yaml_file,
@@ -167,9 +166,7 @@ def main(argv=None) -> Path:
     args = parse_args(argv)
     logger = create_logger()
     data_cfg = cfg_from_yaml_file(args.data_cfg)
-    out_root = Path(args.out_dir)
-    if not out_root.is_absolute():
-        out_root = REPO_ROOT / out_root
+    out_root = resolve_repo_path(args.out_dir)
     if "DATA_PATH" not in data_cfg:
         raise ConfigError(f"{args.data_cfg}: no DATA_PATH (the source dataset root)")
     check_out_dir(out_root, resolve_repo_path(data_cfg.DATA_PATH))

@@ -107,7 +107,6 @@ def load_cfg(cfg_file: str, set_cfgs: list[str] | None):
 def require_dataset(cfg, cfg_file: str | Path) -> None:
     """Stop with a one-line message (no traceback) when the config's ``DATA_CONFIG.DATA_PATH``
     is not there, naming the path and, for a real-Waymo config, its synthetic counterpart."""
-
     root = resolve_repo_path(cfg.DATA_CONFIG.get("DATA_PATH", ""))
     if root.is_dir():
         return
