@@ -51,6 +51,15 @@ backbone:
 
     python tools/bench_models.py --cfgs --spconv cfgs/atlas/synthetic/cp4f_voxel.yaml --frames 3
 
+``--deterministic_scatter CFG`` times the 3D backbone's forward + backward on one training batch
+(``--batch_size``, the config's train pipeline, seed 0) in torch's deterministic mode, as a
+seeded training run has it: the sparse conv's collision-free scatter on its own kernel against
+torch's rerouting of it through a sort-based ``index_put_``, alternating, ``--steps`` timed pairs
+after 2 warm-up pairs, and whether both give the same bits (they differ in time on CUDA only):
+
+    python tools/bench_models.py --cfgs --deterministic_scatter \
+        cfgs/atlas/synthetic/cp4f_voxel.yaml --device cuda --steps 10
+
 ``--train_step`` instead times training steps (batch ``--batch_size``, the configs' own train
 pipeline with GT sampling and augmentation, AdamW + one-cycle, gradient clipping: what
 ``tools/train.py`` does per iteration) of each ``--train_cfgs`` config, in a fresh process per
@@ -194,6 +203,11 @@ def parse_args():
     p.add_argument(
         "--spconv_crop", type=float, default=0.0,
         help="--spconv on the voxels within this many metres of the sensor (0: the whole frame)",
+    )  # fmt: skip
+    p.add_argument(
+        "--deterministic_scatter", default=None, metavar="CFG",
+        help="time this voxel config's 3D backbone (forward + backward, one training batch) in "
+        "deterministic mode, the sparse conv's scatter kept vs rerouted by torch",
     )  # fmt: skip
     p.add_argument("--ssm_lengths", type=int, nargs="+", default=[1024, 16384])
     t = p.add_argument_group("training step (--train_step)")
@@ -1013,6 +1027,76 @@ def spconv_table(cfg_file: str, data_path: Path, args, device: torch.device) -> 
     )
 
 
+def deterministic_scatter_table(cfg_file: str, data_path: Path, args, device: torch.device) -> None:
+    """The 3D backbone's forward + backward on one training batch in torch's deterministic mode:
+    the sparse conv's scatter as the library runs it ("kept") against the same with
+    :func:`~pcdet_atlas.ops.spconv._collision_free_index_add` replaced by a null context, i.e.
+    torch's sort-based rerouting of every CUDA ``index_add_`` ("rerouted")."""
+    import contextlib
+
+    import pcdet_atlas.ops.spconv as spconv
+
+    cfg = cfg_from_yaml_file(cfg_file)
+    cfg.DATA_CONFIG.DATA_PATH = str(data_path)
+    _, loader, _ = build_dataloader(
+        cfg.DATA_CONFIG, cfg.CLASS_NAMES, args.batch_size, False, workers=0, seed=0,
+        training=True,
+    )  # fmt: skip
+    torch.manual_seed(0)
+    model = build_network_from_config(cfg).to(device).train()
+    backbone = getattr(model, "backbone_3d", None)
+    if backbone is None or not any(isinstance(m, spconv._SparseConvNd) for m in backbone.modules()):
+        raise SystemExit(f"--deterministic_scatter: {cfg_file} has no sparse conv 3D backbone")
+    with torch.no_grad():
+        batch = model.vfe(load_data_to_device(next(iter(loader)), device))
+    features = batch["voxel_features"].detach()
+
+    def step():
+        leaf = features.clone().requires_grad_(True)
+        backbone.zero_grad(set_to_none=True)
+        out = backbone({**batch, "voxel_features": leaf})["encoded_spconv_tensor"].features
+        out.square().mean().backward()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        return [out.detach(), leaf.grad] + [p.grad for p in backbone.parameters()]
+
+    kept = spconv._collision_free_index_add
+    variants = {"kept": kept, "rerouted": lambda tensor: contextlib.nullcontext()}
+    times: dict = {name: [] for name in variants}
+    results: dict = {}
+    mode = torch.are_deterministic_algorithms_enabled()
+    warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # as tools/train.py sets it
+    torch.use_deterministic_algorithms(True)
+    try:
+        for i in range(args.steps + 2):
+            for name, context in variants.items():
+                spconv._collision_free_index_add = context
+                t0 = time.perf_counter()
+                results[name] = step()
+                if i >= 2:
+                    times[name].append(time.perf_counter() - t0)
+    finally:
+        spconv._collision_free_index_add = kept
+        torch.use_deterministic_algorithms(mode, warn_only=warn_only)
+    same = all(torch.equal(a, b) for a, b in zip(results["kept"], results["rerouted"]))
+    name = str(Path(cfg_file).resolve().relative_to(REPO_ROOT / "cfgs"))
+    print(
+        f"\n3D backbone of {name} (random weights), forward + backward on one training batch of "
+        f"{args.batch_size} ({features.shape[0]:,} voxels), deterministic mode, device {device}, "
+        f"medians of {args.steps} alternating steps after 2 warm-ups"
+    )
+    print("| scatter | ms (median) | min-max ms | speed-up |\n|---|---|---|---|")
+    base = statistics.median(times["rerouted"])
+    for variant in ("rerouted", "kept"):
+        t = times[variant]
+        print(
+            f"| {variant} | {statistics.median(t) * 1e3:,.1f} | {min(t) * 1e3:,.1f}-"
+            f"{max(t) * 1e3:,.1f} | {base / statistics.median(t):.2f}x |"
+        )
+    print(f"outputs and gradients bitwise the same: {'yes' if same else 'NO'}")
+
+
 def _spconv_layer_times(conv, x, device: torch.device, repeats: int) -> dict:
     """Seconds of one sparse conv layer on its input ``x`` (rules from scratch, forward, forward
     + backward to the features and weights) and of ``conv3d`` on ``x.dense()``."""
@@ -1087,6 +1171,8 @@ def main() -> None:
         ssm_table(args.ssm_lengths, args.frames, device)
     if args.spconv is not None:
         spconv_table(args.spconv, data_path, args, device)
+    if args.deterministic_scatter is not None:
+        deterministic_scatter_table(args.deterministic_scatter, data_path, args, device)
     if args.reuse_cfgs:
         reuse_table([str(Path(c).resolve()) for c in args.reuse_cfgs], data_path, args, device)
     if tmp is not None:

@@ -14,7 +14,9 @@ docs/model_zoo.md):
 Rules (which input site feeds which output site through which kernel offset) are built by sorting
 linear site keys and ``torch.searchsorted`` / ``torch.unique``; the convolution is a
 gather-GEMM-scatter per kernel offset. Within one offset every output site receives at most one
-input site, so the scatter has no collisions and the result is deterministic on CPU and GPU.
+input site, so the scatter has no collisions and the result is deterministic on CPU and GPU, in
+torch's deterministic mode or not; in that mode the scatter keeps its atomic CUDA kernel
+(:func:`_collision_free_index_add`).
 
 Output order: a submanifold conv keeps the input's rows. A regular sparse conv lists its output
 sites sorted by their linear index ``((b * D + z) * H + y) * W + x``. spconv 2.x's maintainer
@@ -24,8 +26,9 @@ unspecified when it is on (traveller59/spconv#592); the sites and their features
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -391,6 +394,27 @@ class _SparseConvNd(SparseModule):
         return out
 
 
+@contextlib.contextmanager
+def _collision_free_index_add(tensor: torch.Tensor) -> Iterator[None]:
+    """Run the ``index_add_`` calls inside on ``tensor`` with torch's own CUDA kernel also when
+    ``torch.use_deterministic_algorithms(True)`` is in effect.
+
+    That mode sends every CUDA ``index_add_`` through a sort-based ``index_put_`` (a sort, host
+    synchronisations, ~2x the time of a voxel CP-4f training step on a GPU,
+    docs/benchmarks.md). The sparse conv's index rows never repeat within one call, so each
+    output element gets exactly one atomic add: the result is the same bits either way. The mode
+    and its ``warn_only`` setting are restored on exit, also on an error."""
+    if not (tensor.is_cuda and torch.are_deterministic_algorithms_enabled()):
+        yield
+        return
+    warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.use_deterministic_algorithms(False)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(True, warn_only=warn_only)
+
+
 class _GatherGemmScatter(torch.autograd.Function):
     """``out[o] = sum_k W_k x[i]`` over the pairs ``(i, o)`` of each kernel offset ``k``, with
     its own backward: the gradients go to one ``(N_in, in)`` buffer and one weight buffer, offset
@@ -405,7 +429,9 @@ class _GatherGemmScatter(torch.autograd.Function):
         out = features.new_zeros((num_out, weight.shape[0]))
         for k, (in_rows, out_rows) in enumerate(pairs):
             if in_rows.numel():
-                out.index_add_(0, out_rows, features.index_select(0, in_rows) @ weight[:, k].t())
+                rows = features.index_select(0, in_rows) @ weight[:, k].t()
+                with _collision_free_index_add(out):
+                    out.index_add_(0, out_rows, rows)
         ctx.save_for_backward(features, weight)
         ctx.pairs = pairs
         return out
@@ -422,7 +448,9 @@ class _GatherGemmScatter(torch.autograd.Function):
                 continue
             grad = grad_out.index_select(0, out_rows)  # (n, out)
             if need_features:
-                grad_features.index_add_(0, in_rows, grad @ weight[:, k])
+                rows = grad @ weight[:, k]
+                with _collision_free_index_add(grad_features):
+                    grad_features.index_add_(0, in_rows, rows)
             if need_weight:
                 grad_weight[:, k] = grad.t() @ features.index_select(0, in_rows)
         return grad_features, grad_weight, None, None

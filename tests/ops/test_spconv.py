@@ -11,6 +11,7 @@ from pcdet_atlas.ops.spconv import (
     SparseModule,
     SparseSequential,
     SubMConv3d,
+    _collision_free_index_add,
 )
 from tests.device_params import DEVICES
 
@@ -217,6 +218,86 @@ def test_empty_input(conv_cls):
     assert out.features.shape == (0, 4)
     assert out.indices.shape == (0, 4)
     assert out.dense().shape[:2] == (2, 4)
+
+
+RULE_CASES = [
+    (SubMConv3d, {"kernel_size": 3}),
+    (SubMConv3d, {"kernel_size": 3, "dilation": 2}),
+    (SparseConv3d, {"kernel_size": 3, "stride": 2, "padding": 1}),
+    (SparseConv3d, {"kernel_size": (3, 1, 1), "stride": (2, 1, 1)}),
+]
+
+
+@pytest.mark.parametrize("conv_cls,kwargs", RULE_CASES)
+def test_rows_never_repeat_within_a_kernel_offset(conv_cls, kwargs):
+    """What makes the scatter collision-free, hence deterministic without sorting (also in torch's
+    deterministic mode): within one offset an input row feeds one output row and an output row
+    reads one input row."""
+    x = random_sparse((6, 7, 5), 2, 2, 60, seed=11)
+    rules = conv_cls(2, 2, **kwargs)._rules(x)
+    assert sum(in_rows.numel() for in_rows, _ in rules.pairs) > 60
+    for in_rows, out_rows in rules.pairs:
+        assert in_rows.unique().numel() == in_rows.numel()
+        assert out_rows.unique().numel() == out_rows.numel()
+
+
+@pytest.fixture
+def restore_deterministic_mode(monkeypatch):
+    """Leaves torch's deterministic mode as it found it; cuBLAS needs a fixed workspace in it."""
+    monkeypatch.setenv("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    enabled = torch.are_deterministic_algorithms_enabled()
+    warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
+    yield
+    torch.use_deterministic_algorithms(enabled, warn_only=warn_only)
+
+
+def conv_step(conv, x):
+    """Forward and backward of ``conv`` on ``x``: output, feature and weight gradients."""
+    feats = x.features.clone().requires_grad_(True)
+    conv.zero_grad()
+    out = conv(x.replace_feature(feats)).features
+    out.square().sum().backward()
+    return out.detach(), feats.grad, conv.weight.grad.clone()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("warn_only", [False, True])
+@pytest.mark.parametrize("conv_cls", [SubMConv3d, SparseConv3d])
+def test_deterministic_mode_gives_the_same_bits_and_stays_on(
+    device, warn_only, conv_cls, restore_deterministic_mode
+):
+    x = random_sparse((6, 7, 5), 2, 3, 40, seed=13, dtype=torch.float32, device=device)
+    conv = conv_cls(3, 4, 3, padding=1, stride=1 if conv_cls is SubMConv3d else 2).to(device)
+    torch.use_deterministic_algorithms(False)
+    free = conv_step(conv, x)
+    torch.use_deterministic_algorithms(True, warn_only=warn_only)
+    strict = conv_step(conv, x)
+    assert torch.are_deterministic_algorithms_enabled()
+    assert torch.is_deterministic_algorithms_warn_only_enabled() == warn_only
+    for got, want in zip(strict, free):
+        assert torch.equal(got, want)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_deterministic_mode_keeps_the_atomic_scatter_on_cuda(restore_deterministic_mode):
+    """Torch's deterministic mode would send each CUDA ``index_add_`` through a sort-based
+    ``index_put_``; the conv's collision-free ones keep their kernel, and the mode comes back
+    also when the block raises."""
+    x = random_sparse((6, 7, 5), 2, 3, 40, seed=13, dtype=torch.float32, device="cuda")
+    conv = SubMConv3d(3, 4, 3).cuda()
+    torch.use_deterministic_algorithms(True)
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+        conv_step(conv, x)
+    ops = {event.key for event in prof.key_averages()}
+    assert "aten::index_add_" in ops
+    assert "aten::_index_put_impl_" not in ops
+    with pytest.raises(RuntimeError, match="inside"):
+        with _collision_free_index_add(x.features):
+            assert not torch.are_deterministic_algorithms_enabled()
+            raise RuntimeError("inside")
+    assert torch.are_deterministic_algorithms_enabled()
+    assert not torch.is_deterministic_algorithms_warn_only_enabled()
 
 
 def test_state_dict_has_spconv_layout_and_loads_strict():
