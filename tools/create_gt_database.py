@@ -24,6 +24,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--split", default="train")
     parser.add_argument("--sampled_interval", type=int, default=1)
     parser.add_argument("--class_names", nargs="+", default=["Vehicle", "Pedestrian", "Cyclist"])
+    parser.add_argument(
+        "--workers", type=int, default=0,
+        help="processes cutting out the frames' objects (0: this one); the output does not "
+        "depend on it",
+    )  # fmt: skip
     parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None)
     args = parser.parse_args(argv)
     logger = create_logger()
@@ -42,6 +47,7 @@ def main(argv: list[str] | None = None) -> None:
             sampled_interval=args.sampled_interval,
             used_classes=args.class_names,
             logger=logger,
+            workers=args.workers,
         )
         logger.info(f"{cfg_file}: wrote {paths['info']}, {paths['global']}, {paths['dir']}/")
 

@@ -223,6 +223,31 @@ def test_box_index_of_points_matches_mask():
     assert (idx == 0).sum() > 0 and (idx == 1).sum() == 0
 
 
+@pytest.mark.parametrize("span", [40.0, 150.0, 5000.0])
+def test_box_index_of_points_over_wide_scenes_and_cell_edges(span):
+    """The BEV grid that picks candidate points changes nothing: against the brute-force mask
+    for scenes narrower and far wider than its cells, boxes on cell edges and off the points."""
+    rng = np.random.default_rng(int(span))
+    background = rng.uniform(-span / 2, span / 2, (20000, 2))
+    centres = np.column_stack([background[:30], rng.uniform(-1, 3, 30)])
+    centres[:5, 0] = np.floor(centres[:5, 0])  # on the edges of 1 m cells
+    boxes = np.column_stack(
+        [centres, rng.uniform(0.5, 6.0, (30, 3)), rng.uniform(-np.pi, np.pi, 30)]
+    )
+    boxes[-1, :2] = span  # off the points
+    near = np.repeat(centres, 40, axis=0) + rng.uniform(-3, 3, (1200, 3))
+    corners = boxes_to_corners_bev(boxes[:10])[:, 0]  # on a corner of a box
+    xyz = np.concatenate(
+        [np.column_stack([background, rng.uniform(-1, 3, 20000)]), near,
+         np.column_stack([corners, centres[:10, 2]])]
+    )  # fmt: skip
+    points = np.column_stack([xyz, rng.uniform(0, 1, len(xyz))])
+    idx = box_index_of_points(points, boxes)
+    mask = points_in_boxes_mask(points[:, :3].astype(np.float64), boxes)
+    np.testing.assert_array_equal(idx, np.where(mask.any(0), mask.argmax(0), -1))
+    assert (idx >= 0).sum() > 100
+
+
 # ---------------------------------------------------------------------------- GT sampling
 def _write_db(root, entries, num_features=5):
     """entries: (name, box(9,), points (n, F) box-centred). Writes .bin files, pkl, global."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import pickle
 import runpy
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from waymo_tiny_data import CLASS_NAMES, write_tiny_waymo
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import WaymoDataset
 from pcdet_atlas.datasets import waymo_format as wf
-from pcdet_atlas.datasets.gt_database import gt_database_paths
+from pcdet_atlas.datasets.gt_database import create_groundtruth_database, gt_database_paths
 from pcdet_atlas.ops.boxes import points_in_boxes_mask
 from pcdet_atlas.registry import DATASETS
 
@@ -185,3 +186,41 @@ def test_backup_db_info_and_disable_aug_list(db_root, caplog):
     sample = ds[0]
     assert sample["points"].shape[1] == 5  # multi-frame objects reduced to their lag-0 points
     assert "flip_x" not in sample and "noise_scale" not in sample and "noise_rot" in sample
+
+
+@pytest.mark.parametrize("config", ["waymo_dataset.yaml", "waymo_dataset_multiframe.yaml"])
+def test_workers_build_the_same_database(db_root, tmp_path, config):
+    dataset = WaymoDataset(
+        cfg_from_yaml_file(CFG_DIR / config), ["Vehicle", "Pedestrian", "Cyclist"],
+        training=False, root_path=db_root,
+    )  # fmt: skip
+    dataset.set_split("train")
+    built = {}
+    for workers in (0, 2):
+        paths = create_groundtruth_database(
+            dataset, save_path=tmp_path / str(workers), workers=workers
+        )
+        db = _load(paths["info"])
+        bins = {f.name: f.read_bytes() for f in paths["dir"].iterdir()}
+        built[workers] = (db, bins, paths["global"].read_bytes())
+    (db0, bins0, global0), (db2, bins2, global2) = built[0], built[2]
+    assert bins0 == bins2 and len(bins0) > 10
+    assert global0 == global2
+    assert list(db0) == list(db2)
+    for name in db0:
+        assert len(db0[name]) == len(db2[name]) > 0
+        for a, b in zip(db0[name], db2[name]):
+            assert list(a) == list(b)
+            assert Path(a.pop("path")).name == Path(b.pop("path")).name
+            box_a, box_b = a.pop("box3d_lidar"), b.pop("box3d_lidar")
+            np.testing.assert_array_equal(box_a, box_b)
+            assert a == b
+
+
+def test_negative_workers_is_an_error(db_root):
+    dataset = WaymoDataset(
+        cfg_from_yaml_file(CFG_DIR / "waymo_dataset.yaml"), ["Vehicle"], training=False,
+        root_path=db_root,
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="workers must be >= 0, got -1"):
+        create_groundtruth_database(dataset, workers=-1)
