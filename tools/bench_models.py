@@ -105,6 +105,7 @@ from pcdet_atlas.train_utils import eval_one_epoch
 from pcdet_atlas.train_utils.atlas_eval import point_history
 from pcdet_atlas.train_utils.proposal_bank import ProposalBank
 from pcdet_atlas.train_utils.setup import device_arg
+from pcdet_atlas.utils.common import deterministic_algorithms
 
 
 def _read_hwm_kib() -> int | None:
@@ -1064,21 +1065,18 @@ def deterministic_scatter_table(cfg_file: str, data_path: Path, args, device: to
     variants = {"kept": kept, "rerouted": lambda tensor: contextlib.nullcontext()}
     times: dict = {name: [] for name in variants}
     results: dict = {}
-    mode = torch.are_deterministic_algorithms_enabled()
-    warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
     os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # as tools/train.py sets it
-    torch.use_deterministic_algorithms(True)
-    try:
-        for i in range(args.steps + 2):
-            for name, context in variants.items():
-                spconv._collision_free_index_add = context
-                t0 = time.perf_counter()
-                results[name] = step()
-                if i >= 2:
-                    times[name].append(time.perf_counter() - t0)
-    finally:
-        spconv._collision_free_index_add = kept
-        torch.use_deterministic_algorithms(mode, warn_only=warn_only)
+    with deterministic_algorithms(True):
+        try:
+            for i in range(args.steps + 2):
+                for name, context in variants.items():
+                    spconv._collision_free_index_add = context
+                    t0 = time.perf_counter()
+                    results[name] = step()
+                    if i >= 2:
+                        times[name].append(time.perf_counter() - t0)
+        finally:
+            spconv._collision_free_index_add = kept
     same = all(torch.equal(a, b) for a, b in zip(results["kept"], results["rerouted"]))
     name = str(Path(cfg_file).resolve().relative_to(REPO_ROOT / "cfgs"))
     print(

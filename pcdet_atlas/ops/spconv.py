@@ -28,11 +28,13 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import nn
+
+from pcdet_atlas.utils.common import deterministic_algorithms
 
 __all__ = [
     "IndicePairs",
@@ -394,9 +396,8 @@ class _SparseConvNd(SparseModule):
         return out
 
 
-@contextlib.contextmanager
-def _collision_free_index_add(tensor: torch.Tensor) -> Iterator[None]:
-    """Run the ``index_add_`` calls inside on ``tensor`` with torch's own CUDA kernel also when
+def _collision_free_index_add(tensor: torch.Tensor) -> contextlib.AbstractContextManager:
+    """A context in which ``index_add_`` on ``tensor`` runs torch's own CUDA kernel also when
     ``torch.use_deterministic_algorithms(True)`` is in effect.
 
     That mode sends every CUDA ``index_add_`` through a sort-based ``index_put_`` (a sort, host
@@ -404,15 +405,9 @@ def _collision_free_index_add(tensor: torch.Tensor) -> Iterator[None]:
     docs/benchmarks.md). The sparse conv's index rows never repeat within one call, so each
     output element gets exactly one atomic add: the result is the same bits either way. The mode
     and its ``warn_only`` setting are restored on exit, also on an error."""
-    if not (tensor.is_cuda and torch.are_deterministic_algorithms_enabled()):
-        yield
-        return
-    warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
-    torch.use_deterministic_algorithms(False)
-    try:
-        yield
-    finally:
-        torch.use_deterministic_algorithms(True, warn_only=warn_only)
+    if tensor.is_cuda and torch.are_deterministic_algorithms_enabled():
+        return deterministic_algorithms(False)
+    return contextlib.nullcontext()
 
 
 class _GatherGemmScatter(torch.autograd.Function):

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
 import pickle
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 
@@ -65,6 +66,20 @@ def resolve_device(name: str | None, local_rank: int = 0) -> torch.device:
     if index >= count:
         raise ValueError(f"{name!r}: only {count} CUDA device(s) are visible")
     return torch.device("cuda", index)
+
+
+@contextlib.contextmanager
+def deterministic_algorithms(enabled: bool, warn_only: bool = False) -> Iterator[None]:
+    """Torch's deterministic mode (``torch.use_deterministic_algorithms``) set to ``enabled``
+    and ``warn_only`` inside the block; on exit, also on an error, back to what it was, its
+    ``warn_only`` setting included."""
+    before = torch.are_deterministic_algorithms_enabled()
+    before_warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.use_deterministic_algorithms(enabled, warn_only=warn_only)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(before, warn_only=before_warn_only)
 
 
 def load_tool(name: str):

@@ -13,6 +13,7 @@ from pcdet_atlas.ops.spconv import (
     SubMConv3d,
     _collision_free_index_add,
 )
+from pcdet_atlas.utils.common import deterministic_algorithms
 from tests.device_params import DEVICES
 
 
@@ -245,10 +246,8 @@ def test_rows_never_repeat_within_a_kernel_offset(conv_cls, kwargs):
 def restore_deterministic_mode(monkeypatch):
     """Leaves torch's deterministic mode as it found it; cuBLAS needs a fixed workspace in it."""
     monkeypatch.setenv("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
-    enabled = torch.are_deterministic_algorithms_enabled()
-    warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
-    yield
-    torch.use_deterministic_algorithms(enabled, warn_only=warn_only)
+    with deterministic_algorithms(False):
+        yield
 
 
 def conv_step(conv, x):
