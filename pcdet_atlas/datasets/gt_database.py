@@ -23,6 +23,7 @@ import contextlib
 import logging
 import multiprocessing
 import pickle
+import tempfile
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -100,10 +101,16 @@ def create_groundtruth_database(
     offset_cnt = 0
     with contextlib.ExitStack() as stack:
         if workers:
+            # The job goes to the workers through a file: a spawned worker imports this package
+            # before it reads its start-up pipe, and a dataset-sized payload in that pipe would
+            # make the pool start its workers one import after another.
+            job_path = Path(stack.enter_context(tempfile.TemporaryDirectory(dir=save_path)))
+            job_path = job_path / "job.pkl"
+            save_pickle(job, job_path)
             pool = stack.enter_context(
                 ProcessPoolExecutor(
                     workers, mp_context=multiprocessing.get_context("spawn"),
-                    initializer=_set_worker_job, initargs=(job,),
+                    initializer=_load_worker_job, initargs=(job_path,),
                 )
             )  # fmt: skip
             objects = pool.map(_worker_frame_objects, frames, chunksize=4)
@@ -185,9 +192,10 @@ def _frame_objects(job: tuple, k: int) -> list[tuple[dict, np.ndarray]]:
 _WORKER_JOB: tuple | None = None
 
 
-def _set_worker_job(job: tuple) -> None:
+def _load_worker_job(path: Path) -> None:
     global _WORKER_JOB
-    _WORKER_JOB = job
+    with open(path, "rb") as f:
+        _WORKER_JOB = pickle.load(f)
 
 
 def _worker_frame_objects(k: int) -> list[tuple[dict, np.ndarray]]:

@@ -200,6 +200,8 @@ def test_workers_build_the_same_database(db_root, tmp_path, config):
         paths = create_groundtruth_database(
             dataset, save_path=tmp_path / str(workers), workers=workers
         )
+        # the three outputs and nothing else (the workers' job file is gone)
+        assert sorted((tmp_path / str(workers)).iterdir()) == sorted(paths.values())
         db = _load(paths["info"])
         bins = {f.name: f.read_bytes() for f in paths["dir"].iterdir()}
         built[workers] = (db, bins, paths["global"].read_bytes())
