@@ -271,7 +271,7 @@ def detect_spconv_layout(
             every weight fits several (then the caller must name it: ``spconv_layout``).
     """
     possible = set(SPCONV_LAYOUTS)
-    decided_by = None
+    narrowed_by = None  # the last weight that ruled a layout out
     problems = []
     for key, (shape, ours) in shapes.items():
         fits = _layout_candidates(tuple(shape), tuple(ours))
@@ -281,13 +281,13 @@ def detect_spconv_layout(
         elif not possible & fits and not problems:
             raise CheckpointMismatchError(
                 f"checkpoint {source}: its sparse conv weights fit different layouts ({key} "
-                f"{tuple(shape)}: {sorted(fits)}; {decided_by[0]} {decided_by[1]}: "
+                f"{tuple(shape)}: {sorted(fits)}; {narrowed_by[0]} {narrowed_by[1]}: "
                 f"{sorted(possible)}); a checkpoint has one"
             )
         else:
+            if possible - fits:
+                narrowed_by = (key, tuple(shape))
             possible &= fits
-            if len(fits) == 1 and decided_by is None:
-                decided_by = (key, tuple(shape))
     if problems:
         raise CheckpointMismatchError(f"checkpoint {source}: {_format(problems)}")
     if not shapes:

@@ -153,6 +153,7 @@ class IndicePairs:
     in_spatial_shape: tuple[int, int, int]
     out_spatial_shape: tuple[int, int, int]
     kernel_size: tuple[int, int, int]
+    dilation: tuple[int, int, int]
     subm: bool
     pairs: tuple[tuple[torch.Tensor, torch.Tensor], ...]  # per offset: (n_k,), (n_k,) int64
 
@@ -171,24 +172,24 @@ def _subm_pairs(
 ) -> IndicePairs:
     """Submanifold rules: output sites are the input sites; kernel centred on each site.
 
-    With odd kernel sizes the offsets pair up around the centre: when site ``i`` feeds site ``o``
-    through offset ``d``, ``o`` feeds ``i`` through ``-d``, so only half the offsets are searched
-    (the mirror of flat offset ``k`` is ``K - 1 - k``) and the centre maps every site to itself.
+    The kernel sizes are odd (``SubMConv3d`` checks), so the offsets pair up around the centre:
+    when site ``i`` feeds site ``o`` through offset ``d``, ``o`` feeds ``i`` through ``-d``; only
+    half the offsets are searched (the mirror of flat offset ``k`` is ``K - 1 - k``) and the centre
+    maps every site to itself.
     """
     device = indices.device
     shape = torch.tensor(spatial_shape, device=device)
     sorted_keys, order = torch.sort(_linear_keys(indices, spatial_shape))
     sorted_zyx = indices.long()[order, 1:]
-    centre = torch.tensor([(k - 1) // 2 for k in kernel_size], device=device)
+    centre = torch.tensor([k // 2 for k in kernel_size], device=device)
     deltas = (_kernel_offsets(kernel_size, device) - centre) * torch.tensor(dilation, device=device)
     _, h, w = spatial_shape
     shifts = ((deltas[:, 0] * h + deltas[:, 1]) * w + deltas[:, 2]).tolist()  # linear key shifts
-    mirrored = all(k % 2 == 1 for k in kernel_size)
     pairs: list = [None] * deltas.shape[0]
     for k, delta in enumerate(deltas):
         if pairs[k] is not None:
             continue
-        if mirrored and k == len(pairs) // 2:  # the centre
+        if k == len(pairs) // 2:  # the centre
             rows = torch.arange(len(order), device=device)
             pairs[k] = (rows, rows)
             continue
@@ -202,10 +203,9 @@ def _subm_pairs(
         at = torch.nonzero(found, as_tuple=True)[0]
         in_rows, out_rows = order[pos[at]], order[at]
         pairs[k] = (in_rows, out_rows)
-        if mirrored:
-            pairs[len(pairs) - 1 - k] = (out_rows, in_rows)
+        pairs[len(pairs) - 1 - k] = (out_rows, in_rows)
     return IndicePairs(
-        indices, indices, spatial_shape, spatial_shape, kernel_size, True, tuple(pairs)
+        indices, indices, spatial_shape, spatial_shape, kernel_size, dilation, True, tuple(pairs)
     )
 
 
@@ -279,7 +279,9 @@ def _regular_pairs(
     # nonzero lists (k, n) row-major: each offset's pairs are one slice
     counts = torch.bincount(k_ids, minlength=kd * kh * kw).tolist()
     pairs = tuple(zip(in_rows.split(counts), out_rows.split(counts)))
-    return IndicePairs(indices, out_indices, spatial_shape, out_shape, kernel_size, False, pairs)
+    return IndicePairs(
+        indices, out_indices, spatial_shape, out_shape, kernel_size, dilation, False, pairs
+    )
 
 
 class SparseModule(nn.Module):
@@ -320,6 +322,11 @@ class _SparseConvNd(SparseModule):
             raise ValueError(f"{type(self).__name__}: padding must be >= 0, got {self.padding}")
         if subm and self.stride != (1, 1, 1):
             raise ValueError(f"SubMConv3d: stride must be 1, got {self.stride}")
+        if subm and any(k % 2 == 0 for k in self.kernel_size):
+            raise ValueError(
+                f"SubMConv3d: kernel_size must be odd (a kernel centred on each site, as "
+                f"spconv), got {self.kernel_size}"
+            )
         # spconv 2.x layout (KRSC): (out, kD, kH, kW, in)
         self.weight = nn.Parameter(torch.empty(out_channels, *self.kernel_size, in_channels))
         self.bias = nn.Parameter(torch.empty(out_channels)) if bias else None
@@ -354,10 +361,11 @@ class _SparseConvNd(SparseModule):
                     f"{cached.in_indices.shape[0]} sites); this input has shape {list(shape)}, "
                     f"{x.indices.shape[0]} sites"
                 )
-            if cached.kernel_size != self.kernel_size:
+            if (cached.kernel_size, cached.dilation) != (self.kernel_size, self.dilation):
                 raise ValueError(
                     f"SubMConv3d: indice_key {self.indice_key!r} was built for kernel "
-                    f"{cached.kernel_size}, this layer's kernel is {self.kernel_size}"
+                    f"{cached.kernel_size}, dilation {cached.dilation}; this layer has kernel "
+                    f"{self.kernel_size}, dilation {self.dilation}"
                 )
             return cached
         if self.subm:

@@ -315,6 +315,17 @@ def test_mismatches_name_the_keys():
     ):
         openpcdet_to_atlas_state(mixed, model)
 
+    square_first = {  # a square weight (two layouts) before one that fits a third
+        "a.conv1.weight": ((3, 3, 3, 16, 16), (16, 3, 3, 3, 16)),
+        "b.conv2.weight": ((32, 3, 3, 3, 16), (32, 3, 3, 3, 16)),
+    }
+    with pytest.raises(
+        CheckpointMismatchError,
+        match=r"y\.pth: .*different layouts \(b\.conv2\.weight \(32, 3, 3, 3, 16\): "
+        r"\['spconv2'\]; a\.conv1\.weight \(3, 3, 3, 16, 16\): \['spconv1', 'spconv2-native'\]",
+    ):
+        detect_spconv_layout(square_first, "y.pth")
+
     with pytest.raises(CheckpointMismatchError, match=r"native = \(kD, kH, kW, out, in\)"):
         openpcdet_to_atlas_state(good, model, spconv_layout="spconv2-native")
     with pytest.raises(ValueError, match="spconv_layout 'spconv3'"):

@@ -86,16 +86,18 @@ def test_subm_matches_dense_conv_masked_to_input_sites(
     torch.testing.assert_close(out.features, expected)
 
 
-@pytest.mark.parametrize("kernel,dilation", [(3, 1), ((3, 1, 5), (1, 1, 2)), ((2, 3, 3), 1)])
+@pytest.mark.parametrize(
+    "kernel,dilation", [(3, 1), ((3, 1, 5), (1, 1, 2)), ((5, 3, 1), (1, 2, 1))]
+)
 def test_subm_rules_are_every_neighbour_pair(kernel, dilation):
     """The submanifold rules against a site dictionary: per kernel offset, exactly the pairs
-    (input row, output row) whose sites differ by that offset (the mirrored half of an odd
-    kernel, and the even kernel searched offset by offset)."""
+    (input row, output row) whose sites differ by that offset (half the offsets are searched,
+    the other half mirrored)."""
     x = random_sparse((6, 7, 8), 2, 1, 60, seed=11)
     conv = SubMConv3d(1, 1, kernel, dilation=dilation)
     rules = conv._rules(x)
     site_row = {tuple(site): row for row, site in enumerate(x.indices.tolist())}
-    centre = [(k - 1) // 2 for k in conv.kernel_size]
+    centre = [k // 2 for k in conv.kernel_size]
     kd, kh, kw = conv.kernel_size
     for k, (in_rows, out_rows) in enumerate(rules.pairs):
         offset = (k // (kh * kw), k // kw % kh, k % kw)
@@ -161,11 +163,22 @@ def test_indice_key_reuses_the_same_rules_object():
     )
 
 
-def test_indice_key_with_another_kernel_is_an_error():
+@pytest.mark.parametrize("kernel,dilation", [(5, 1), (3, 2), ((3, 3, 1), 1)])
+def test_indice_key_with_another_kernel_or_dilation_is_an_error(kernel, dilation):
     x = random_sparse((6, 7, 5), 1, 3, 20)
     y = SubMConv3d(3, 3, 3, indice_key="k").double()(x)
-    with pytest.raises(ValueError, match="indice_key 'k'"):
-        SubMConv3d(3, 3, 5, indice_key="k").double()(y)
+    with pytest.raises(ValueError, match="indice_key 'k' was built for kernel .3, 3, 3., "
+                       "dilation .1, 1, 1.; this layer has"):  # fmt: skip
+        SubMConv3d(3, 3, kernel, dilation=dilation, indice_key="k").double()(y)
+
+
+@pytest.mark.parametrize("kernel", [2, (3, 4, 3), (1, 1, 2)])
+def test_subm_even_kernel_is_an_error(kernel):
+    """A submanifold kernel is centred on each site: an even size has no centre (spconv
+    refuses it too)."""
+    with pytest.raises(ValueError, match="SubMConv3d: kernel_size must be odd .* got"):
+        SubMConv3d(1, 1, kernel)
+    SparseConv3d(1, 1, kernel)  # a regular sparse conv takes any size
 
 
 @pytest.mark.parametrize("subm", [True, False])
