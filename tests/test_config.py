@@ -146,9 +146,10 @@ def test_save_config_roundtrip(tree, tmp_path):
     assert again == cfg
 
 
-def test_repo_configs_load():
+def test_repo_configs_load(tmp_path, monkeypatch):
     """Every shipped YAML loads with its whole _BASE_CONFIG_ chain, from any working directory."""
     root = Path(__file__).resolve().parent.parent / "cfgs"
+    monkeypatch.chdir(tmp_path)
     for f in sorted(root.rglob("*.yaml")):
         cfg = cfg_from_yaml_file(f)
         assert isinstance(cfg, dict) and cfg, f

@@ -1,3 +1,7 @@
+import json
+import subprocess
+import sys
+
 import pytest
 
 from pcdet_atlas.registry import (
@@ -58,5 +62,22 @@ def test_unknown_name_lists_known_and_suggests():
 
 
 def test_global_registries_exist_and_autoload():
-    for reg in (DATASETS, TRANSFORMS, ATTACKS, DETECTORS, MODEL_STAGES):
-        assert isinstance(reg.list(), list)
+    """A process that imports only the registry module finds the built-ins on first lookup."""
+    code = (
+        "import json; from pcdet_atlas import registry as r; print(json.dumps({n: getattr(r, n)"
+        ".list() for n in ('DATASETS', 'TRANSFORMS', 'ATTACKS', 'DETECTORS', 'MODEL_STAGES')}))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout
+    listed = json.loads(out.strip().splitlines()[-1])
+    assert {"WaymoDataset", "AtlasWaymoDataset"} <= set(listed["DATASETS"])
+    assert {"gt_sampling", "random_world_flip", "shuffle_points"} <= set(listed["TRANSFORMS"])
+    assert {"CleanAttack", "InjectionAttack", "RemovalAttack"} <= set(listed["ATTACKS"])
+    assert {"CenterPoint", "MSF", "PTT", "PHiM"} <= set(listed["DETECTORS"])
+    assert {"CenterHead", "VoxelResBackBone8x", "LatentOccupancyTracking"} <= set(
+        listed["MODEL_STAGES"]
+    )
+    # the same lists in this process
+    for name, reg in zip(listed, (DATASETS, TRANSFORMS, ATTACKS, DETECTORS, MODEL_STAGES)):
+        assert reg.list() == listed[name], name

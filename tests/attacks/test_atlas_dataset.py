@@ -191,8 +191,10 @@ def test_same_output_with_zero_or_two_workers(synthetic_root, library_path):
     out = {}
     for workers in (0, 2):
         out[workers] = _batches(make(synthetic_root, "inj_global_easy", library_path), workers)
+    assert len(out[0]) == len(out[2]) > 0
     for a, b in zip(out[0], out[2]):
         np.testing.assert_array_equal(a["points"], b["points"])
+        assert len(a["attack"]) == len(b["attack"]) > 0
         for ma, mb in zip(a["attack"], b["attack"]):
             assert ma.keys() == mb.keys()
             for key in ma:

@@ -462,8 +462,12 @@ def test_low_precision_and_grad_inputs():
     lidar = LidarModel.waymo_top()
     scene, spoof = random_case(2, lidar, num_scene=2000, num_spoof=200)
     ks, kp = raycast_merge(scene, spoof, lidar, 0.0)
-    ks_bf, _ = raycast_merge(scene.bfloat16(), spoof.bfloat16(), lidar, 0.0)
+    ks_bf, kp_bf = raycast_merge(scene.bfloat16(), spoof.bfloat16(), lidar, 0.0)
     assert ks_bf.shape == (scene.shape[0],)
+    # bfloat16 points are cast exactly as the same values in float32 would be
+    ks_up, kp_up = raycast_merge(scene.bfloat16().float(), spoof.bfloat16().float(), lidar, 0.0)
+    assert torch.equal(ks_bf, ks_up) and torch.equal(kp_bf, kp_up)
+    assert (ks_bf != ks).sum() <= 5 and kp_bf.sum() > 0.5 * kp.sum()  # close to full precision
     ks_grad, kp_grad = raycast_merge(scene.clone().requires_grad_(), spoof, lidar, 0.0)
     assert torch.equal(ks_grad, ks) and torch.equal(kp_grad, kp)
 

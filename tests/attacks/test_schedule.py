@@ -101,7 +101,7 @@ def test_counters():
     assert set(c.snapshot().values()) == {0}
     with pytest.raises(KeyError, match="unknown attack counter"):
         c.add(frame_simulated=1)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="counter 'frames_simulated' increment must be >= 0"):
         c.add(frames_simulated=-1)
     assert isinstance(COUNTERS, AttackCounters)
 
@@ -123,5 +123,5 @@ def test_attack_schedule_state_memo_keeps_the_checks():
             )
             assert state.spoofed == is_spoofed(frame, 32)
     for bad in (True, 1.5, 198, -1):
-        with pytest.raises(ValueError):
+        with pytest.raises(ValueError, match=f"frame index .*{bad!r}"):
             attack.schedule_state(bad, 198)

@@ -114,9 +114,13 @@ def test_rebuild_with_other_filters_does_not_replace_the_shared_file(tiny_root, 
     out = tmp_path / "shared.npz"
     base = ["--cfg", yaml, "--data_path", str(tiny_root), "--out", str(out)]
     tool.main(base)
-    before = out.read_bytes()
+    before = TraceLibrary.load(out)
     tool.main(base)  # the same filters: rebuilt in place, the same library
-    assert TraceLibrary.load(out).build_info["filters"]["min_points"] == 200
+    again = TraceLibrary.load(out)
+    assert again.build_info["filters"]["min_points"] == 200 and len(again.offsets) > 1
+    np.testing.assert_array_equal(again.points, before.points)
+    np.testing.assert_array_equal(again.offsets, before.offsets)
+    before = out.read_bytes()
     other = [*base, "--set", "TRACE_LIBRARY.MIN_POINTS", "100"]
     with pytest.raises(FileExistsError, match=r"shared\.npz holds a trace library built with"):
         tool.main(other)

@@ -90,8 +90,13 @@ def test_world_transforms_keep_points_in_boxes(transform, draw):
     # membership is kept except for points within float32 rounding of a face
     assert before.sum() > 100
     assert (before != after).sum() <= 2
-    mat = out.get("lidar_aug_matrix", np.eye(4))  # absent if nothing was flipped
-    np.testing.assert_allclose(orig_pts[:, :3] @ mat[:3, :3].T, out["points"][:, :3], atol=1e-4)
+    mat = _expected_linear(out)  # from the recorded draw, not from the transform's matrix
+    np.testing.assert_allclose(out.get("lidar_aug_matrix", np.eye(4))[:3, :3], mat, atol=1e-12)
+    if not isinstance(transform, RandomWorldFlip):  # a continuous draw: never the identity here
+        assert not np.allclose(mat, np.eye(3), atol=1e-3)
+    np.testing.assert_allclose(orig_pts[:, :3] @ mat.T, out["points"][:, :3], atol=1e-4)
+    size_factor = out.get("noise_scale", 1.0)
+    np.testing.assert_allclose(out["gt_boxes"][:, 3:6], orig_boxes[:, 3:6] * size_factor)
     np.testing.assert_allclose(orig_boxes[:, :3] @ mat[:3, :3].T, out["gt_boxes"][:, :3], atol=1e-9)
     vel = np.column_stack([orig_boxes[:, 7:9], np.zeros(len(orig_boxes))]) @ mat[:3, :3].T
     np.testing.assert_allclose(vel[:, :2], out["gt_boxes"][:, 7:9], atol=1e-9)
@@ -103,11 +108,25 @@ def test_world_transforms_keep_points_in_boxes(transform, draw):
     np.testing.assert_allclose(got, fwd, atol=1e-9)
 
 
+def _expected_linear(out: dict) -> np.ndarray:
+    """The 3x3 map a world transform should have applied, from what it recorded."""
+    if "noise_rot" in out:
+        c, s = np.cos(out["noise_rot"]), np.sin(out["noise_rot"])
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # CCW about z
+    if "noise_scale" in out:
+        return np.eye(3) * out["noise_scale"]
+    # flip_x mirrors across the x axis (y -> -y), flip_y across the y axis (x -> -x)
+    return np.diag([-1.0 if out["flip_y"] else 1.0, -1.0 if out["flip_x"] else 1.0, 1.0])
+
+
 def test_flip_draws_both_outcomes_and_records_them():
     seen = set()
     for i in range(40):
-        out = RandomWorldFlip(["x", "y"])(_scene(n_boxes=1), np.random.default_rng(i))
+        data = _scene(n_boxes=1)
+        orig = data["points"][:, :3].copy()
+        out = RandomWorldFlip(["x", "y"])(data, np.random.default_rng(i))
         seen.add((out["flip_x"], out["flip_y"]))
+        np.testing.assert_array_equal(out["points"][:, :3], orig * np.diag(_expected_linear(out)))
     assert seen == {(False, False), (False, True), (True, False), (True, True)}
 
 
@@ -121,7 +140,7 @@ def test_rotation_and_scaling_ranges():
         RandomWorldScaling((0.95, 1.05))(_scene(n_boxes=1), np.random.default_rng(i))["noise_scale"]
         for i in range(50)
     ]
-    assert min(scales) >= 0.95 and max(scales) <= 1.05
+    assert min(scales) >= 0.95 and max(scales) <= 1.05 and np.ptp(scales) > 0.05
 
 
 def test_augmentor_wraps_heading_and_applies_mask():

@@ -113,6 +113,7 @@ def test_multi_frame_database(db_root):
     lags = set(np.round(global_points[:, 5].astype(np.float64), 6))
     assert lags == {0.0, 0.1, 0.2, 0.3, 0.4}  # 5 frames, whatever SAMPLE_OFFSET says
     single = _load(gt_database_paths(db_root, TAG, "train", 1)["info"])
+    assert len(db["Vehicle"]) == len(single["Vehicle"]) > 0
     for a, b in zip(db["Vehicle"], single["Vehicle"]):
         assert a["path"].startswith(f"{TAG}_gt_database_train_sampled_1_multiframe_-4_to_0/")
         assert a["num_points_in_gt"] >= b["num_points_in_gt"]

@@ -230,6 +230,7 @@ def test_chunking_does_not_change_frames(synthetic_root, val_seq, fixture_args, 
     wf.frame_npy_path(tmp_path, val_seq, 0).parent.mkdir(parents=True)
     infos = _generate_chunk(task)
     ref = _infos(synthetic_root, val_seq)
+    assert len(infos) == 2
     for f, info in zip((33, 34), infos):
         assert (
             wf.frame_npy_path(tmp_path, val_seq, f).read_bytes()

@@ -52,6 +52,7 @@ def test_a_stored_prediction_is_the_models_bitwise(tmp_path):
     second = again.predict(model, batch)
     assert again.counts() == {"hits": 1, "misses": 0}
     for got in (first, second):
+        assert len(got) == len(want) > 0
         for g, w in zip(got, want):
             assert g.keys() == w.keys()
             for key in w:
@@ -102,6 +103,7 @@ def test_settings_code_and_mode_outside_the_weights(tmp_path, monkeypatch):
     got = store.predict(model, batch)
     assert store.counts() == {"hits": 0, "misses": 2}
     want = model.predict(batch)
+    assert len(got) == len(want) > 0
     assert all(torch.equal(g["pred_scores"], w["pred_scores"]) for g, w in zip(got, want))
     monkeypatch.setattr(prediction_store, "_SOURCE_DIGEST", ["another version of the code"])
     store.predict(model, batch)
