@@ -78,6 +78,6 @@ def test_global_registries_exist_and_autoload():
     assert {"CenterHead", "VoxelResBackBone8x", "LatentOccupancyTracking"} <= set(
         listed["MODEL_STAGES"]
     )
-    # the same lists in this process
+    # the same built-ins in this process (where other tests may have registered more)
     for name, reg in zip(listed, (DATASETS, TRANSFORMS, ATTACKS, DETECTORS, MODEL_STAGES)):
-        assert reg.list() == listed[name], name
+        assert set(listed[name]) <= set(reg.list()), name
