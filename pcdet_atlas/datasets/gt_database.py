@@ -104,9 +104,8 @@ def create_groundtruth_database(
             # The job goes to the workers through a file: a spawned worker imports this package
             # before it reads its start-up pipe, and a dataset-sized payload in that pipe would
             # make the pool start its workers one import after another.
-            job_path = Path(stack.enter_context(tempfile.TemporaryDirectory(dir=save_path)))
-            job_path = job_path / "job.pkl"
-            save_pickle(job, job_path)
+            job_dir = stack.enter_context(tempfile.TemporaryDirectory(dir=save_path))
+            job_path = save_pickle(job, Path(job_dir) / "job.pkl")
             pool = stack.enter_context(
                 ProcessPoolExecutor(
                     workers, mp_context=multiprocessing.get_context("spawn"),

@@ -97,8 +97,8 @@ def test_world_transforms_keep_points_in_boxes(transform, draw):
     np.testing.assert_allclose(orig_pts[:, :3] @ mat.T, out["points"][:, :3], atol=1e-4)
     size_factor = out.get("noise_scale", 1.0)
     np.testing.assert_allclose(out["gt_boxes"][:, 3:6], orig_boxes[:, 3:6] * size_factor)
-    np.testing.assert_allclose(orig_boxes[:, :3] @ mat[:3, :3].T, out["gt_boxes"][:, :3], atol=1e-9)
-    vel = np.column_stack([orig_boxes[:, 7:9], np.zeros(len(orig_boxes))]) @ mat[:3, :3].T
+    np.testing.assert_allclose(orig_boxes[:, :3] @ mat.T, out["gt_boxes"][:, :3], atol=1e-9)
+    vel = np.column_stack([orig_boxes[:, 7:9], np.zeros(len(orig_boxes))]) @ mat.T
     np.testing.assert_allclose(vel[:, :2], out["gt_boxes"][:, 7:9], atol=1e-9)
     np.testing.assert_array_equal(out["points"][:, 3:], orig_pts[:, 3:])
     # headings: the box's forward direction maps like a vector
