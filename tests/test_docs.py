@@ -1,0 +1,186 @@
+"""The commands the docs give a user run as written: every ``tools/*.py`` invocation in the
+README, ``docs/``, the Makefile, the configs' comments and the tools' own docstrings names a tool
+that exists and only options its argument parser defines, and every config under ``cfgs/`` it
+passes exists.
+
+The parsers are read in one child process: each tool runs as ``__main__`` until it parses its
+arguments, which stops it. ``tools/official_waymo_metric/`` runs in its own venv (TensorFlow), so
+its options are read from its source (``add_argument`` literals).
+"""
+
+from __future__ import annotations
+
+import ast
+import glob
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pcdet_atlas.config import REPO_ROOT
+
+#: configs a doc tells the reader to write before the command that uses them -> that doc
+WRITTEN_BY_THE_READER = {"cfgs/atlas/msf_4f_released.yaml": "docs/getting_started.md"}
+OFFICIAL_VENV = "tools/official_waymo_metric/"
+CALL = re.compile(r"tools/[\w/]+\.py")
+FLAG = re.compile(r"(?<![\w-])--[A-Za-z][\w-]*")
+REPO_PATH = re.compile(r"(?<![\w/.<-])cfgs/[\w./{},*-]*\.yaml")
+
+PARSERS = r"""
+import argparse, json, runpy, sys
+
+class Parsed(Exception):
+    pass
+
+def capture(self, *args, **kwargs):
+    raise Parsed(self)
+
+argparse.ArgumentParser.parse_args = capture
+argparse.ArgumentParser.parse_known_args = capture
+found = {}
+for path in sys.argv[1:]:
+    sys.argv = [path]
+    try:
+        runpy.run_path(path, run_name="__main__")
+    except Parsed as parsed:
+        parser = parsed.args[0]
+        found[path] = sorted({s for a in parser._actions for s in a.option_strings})
+print(json.dumps(found))
+"""
+
+
+def documented_sources() -> dict[str, str]:
+    """Repository-relative name -> the text a user reads commands from."""
+    paths = [REPO_ROOT / "README.md", REPO_ROOT / "Makefile"]
+    paths += sorted((REPO_ROOT / "docs").glob("*.md")) + sorted(REPO_ROOT.glob("cfgs/**/*.yaml"))
+    texts = {str(p.relative_to(REPO_ROOT)): p.read_text() for p in paths}
+    for path in sorted(REPO_ROOT.glob("tools/**/*.py")):
+        doc = ast.get_docstring(ast.parse(path.read_text(), str(path)))
+        if doc:
+            texts[str(path.relative_to(REPO_ROOT))] = doc
+    return texts
+
+
+def invocations(text: str) -> list[tuple[str, str, int]]:
+    """``(tool, its arguments, line)`` for every ``tools/*.py`` in ``text``; the arguments run to
+    the end of the command (a closing backtick, the line's end, a pipe, ``&&`` or ``;``), shell
+    and YAML-comment line continuations joined."""
+    found = []
+    for match in CALL.finditer(text):
+        rest = text[match.end() :]
+        joined = re.sub(r"\s*\\\n\s*(?:#\s*)?", " ", rest)
+        args = re.split(r"`|\n|\s\|\s|&&|;", joined, maxsplit=1)[0]
+        found.append((match.group(0), args, text.count("\n", 0, match.start()) + 1))
+    return found
+
+
+def official_options(path: Path) -> list[str]:
+    """The option strings of every ``add_argument`` call in a file, read from its source."""
+    options = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "add_argument":
+            options += [a.value for a in node.args if isinstance(a, ast.Constant)]
+    return [o for o in options if isinstance(o, str) and o.startswith("-")]
+
+
+@pytest.fixture(scope="module")
+def documented_calls():
+    calls = [
+        (source, tool, args, line)
+        for source, text in documented_sources().items()
+        for tool, args, line in invocations(text)
+    ]
+    assert len(calls) > 150, f"found only {len(calls)} tool invocations in the docs"
+    return calls
+
+
+@pytest.fixture(scope="module")
+def tool_options(documented_calls):
+    tools = sorted({tool for _, tool, _, _ in documented_calls})
+    missing = [t for t in tools if not (REPO_ROOT / t).is_file()]
+    assert not missing, f"the docs name tools that do not exist: {missing}"
+    ours = [t for t in tools if not t.startswith(OFFICIAL_VENV)]
+    run = subprocess.run(
+        [sys.executable, "-c", PARSERS, *ours], cwd=REPO_ROOT, capture_output=True, text=True,
+        timeout=600,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-3000:]
+    options = json.loads(run.stdout.strip().splitlines()[-1])
+    unparsed = sorted(set(ours) - set(options))
+    assert not unparsed, f"these tools ran to the end without parsing arguments: {unparsed}"
+    for tool in set(tools) - set(ours):
+        options[tool] = official_options(REPO_ROOT / tool)
+    return options
+
+
+def test_documented_options_exist(documented_calls, tool_options):
+    wrong = [
+        f"{source}:{line}: {tool} has no option {flag}"
+        for source, tool, args, line in documented_calls
+        for flag in FLAG.findall(args)
+        if flag not in tool_options[tool]
+    ]
+    assert not wrong, "\n".join(wrong)
+    used = {flag for _, _, args, _ in documented_calls for flag in FLAG.findall(args)}
+    assert {"--cfg", "--attacks", "--fix_random_seed", "--ckpt"} <= used
+
+
+def expand_braces(pattern: str) -> list[str]:
+    """``a{b,c}d`` -> ``[abd, acd]`` (the shell's brace expansion; the docs nest none)."""
+    match = re.search(r"\{([^{}]*)\}", pattern)
+    if match is None:
+        return [pattern]
+    alternatives = match.group(1).split(",")
+    return [
+        expanded
+        for alt in alternatives
+        for expanded in expand_braces(pattern[: match.start()] + alt + pattern[match.end() :])
+    ]
+
+
+def test_documented_configs_exist(documented_calls):
+    for path, doc in WRITTEN_BY_THE_READER.items():
+        assert not (REPO_ROOT / path).exists(), f"{path} exists: drop it from WRITTEN_BY_THE_READER"
+        assert path in (REPO_ROOT / doc).read_text(), (
+            f"{doc} no longer tells the reader to write {path}"
+        )
+    checked, missing = 0, []
+    for source, tool, args, line in documented_calls:
+        for pattern in REPO_PATH.findall(args):
+            for path in expand_braces(pattern):
+                checked += 1
+                if path not in WRITTEN_BY_THE_READER and not glob.glob(str(REPO_ROOT / path)):
+                    missing.append(f"{source}:{line}: {tool} is given {path}, which does not exist")
+    assert not missing, "\n".join(missing)
+    assert checked > 50, f"only {checked} config paths in the documented commands"
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ("`python tools/test.py --cfg a.yaml` then --x", " --cfg a.yaml"),
+        ("python tools/train.py --cfg x \\\n    --extra_tag y\nnext --z", " --cfg x --extra_tag y"),
+        ("# python tools/train.py --cfg x \\\n#     --ckpt c\n", " --cfg x --ckpt c"),
+        ("tools/report.py --out d | tee log", " --out d"),
+    ],
+)
+def test_invocations_end_where_the_command_ends(text, expected):
+    assert [args for _, args, _ in invocations(text)] == [expected]
+
+
+def test_options_configs_and_braces_are_read_from_a_command(tmp_path):
+    calls = invocations("`python tools/test.py --cfg cfgs/atlas/nope.yaml --atacks all`")
+    assert [FLAG.findall(args) for _, args, _ in calls] == [["--cfg", "--atacks"]]
+    assert REPO_PATH.findall(calls[0][1]) == ["cfgs/atlas/nope.yaml"]
+    assert expand_braces("cfgs/{a,b}/{c,d}.yaml") == [
+        "cfgs/a/c.yaml",
+        "cfgs/a/d.yaml",
+        "cfgs/b/c.yaml",
+        "cfgs/b/d.yaml",
+    ]
+    source = tmp_path / "tool.py"
+    source.write_text("import argparse\nargparse.ArgumentParser().add_argument('--out', '-o')\n")
+    assert official_options(source) == ["--out", "-o"]
