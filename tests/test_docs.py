@@ -1,7 +1,7 @@
 """The commands the docs give a user run as written: every ``tools/*.py`` invocation in the
 README, ``docs/``, the Makefile, the configs' comments and the tools' own docstrings names a tool
 that exists and only options its argument parser defines, and every config under ``cfgs/`` it
-passes exists.
+passes exists; every relative link of the Markdown docs reaches its file and heading.
 
 The parsers are read in one child process: each tool runs as ``__main__`` until it parses its
 arguments, which stops it. ``tools/official_waymo_metric/`` runs in its own venv (TensorFlow), so
@@ -156,6 +156,51 @@ def test_documented_configs_exist(documented_calls):
                     missing.append(f"{source}:{line}: {tool} is given {path}, which does not exist")
     assert not missing, "\n".join(missing)
     assert checked > 50, f"only {checked} config paths in the documented commands"
+
+
+def strip_code(markdown: str) -> str:
+    """The text outside fenced code blocks (a ``#`` line there is a comment, not a heading)."""
+    return re.sub(r"^```.*?^```", "", markdown, flags=re.M | re.S)
+
+
+def heading_anchors(markdown: str) -> set[str]:
+    """The anchors GitHub gives a file's headings: lower case, punctuation but ``-`` and ``_``
+    dropped, spaces as ``-``, a repeated heading numbered ``-1``, ``-2``, ..."""
+    anchors: set[str] = set()
+    for heading in re.findall(r"^#+\s+(.+?)\s*$", strip_code(markdown), flags=re.M):
+        anchor = re.sub(r"[^\w\- ]", "", heading.lower()).replace(" ", "-")
+        count = sum(1 for a in anchors if re.fullmatch(re.escape(anchor) + r"(-\d+)?", a))
+        anchors.add(f"{anchor}-{count}" if count else anchor)
+    return anchors
+
+
+def test_relative_links_reach_their_file_and_heading():
+    docs = [REPO_ROOT / "README.md", REPO_ROOT / "CHANGELOG.md"]
+    docs += sorted((REPO_ROOT / "docs").glob("**/*.md"))
+    broken, checked = [], 0
+    for doc in docs:
+        for target in re.findall(r"\]\(([^)\s]+)\)", strip_code(doc.read_text())):
+            if re.match(r"[a-z]+:", target):  # https:, mailto:
+                continue
+            checked += 1
+            path, _, anchor = target.partition("#")
+            linked = (doc.parent / path).resolve() if path else doc
+            name = doc.relative_to(REPO_ROOT)
+            if not linked.exists():
+                broken.append(f"{name}: {target}: no such file")
+            elif (
+                anchor
+                and linked.suffix == ".md"
+                and anchor not in heading_anchors(linked.read_text())
+            ):
+                broken.append(f"{name}: {target}: no such heading")
+    assert not broken, "\n".join(broken)
+    assert checked > 80, f"only {checked} relative links in the docs"
+
+
+def test_heading_anchors_follow_github():
+    text = "# Model zoo\n## PHiM and PHiM+LOT: (a) `phim.yaml`\n```\n# not one\n```\n## Model zoo\n"
+    assert heading_anchors(text) == {"model-zoo", "phim-and-phimlot-a-phimyaml", "model-zoo-1"}
 
 
 @pytest.mark.parametrize(
