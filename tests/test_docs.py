@@ -1,7 +1,8 @@
 """The commands the docs give a user run as written: every ``tools/*.py`` invocation in the
 README, ``docs/``, the Makefile, the configs' comments and the tools' own docstrings names a tool
 that exists and only options its argument parser defines, and every config under ``cfgs/`` it
-passes exists; every relative link of the Markdown docs reaches its file and heading.
+passes exists; every relative link of the Markdown docs reaches its file and heading; the
+Python examples of the docs import what exists and call it with arguments its signature takes.
 
 The parsers are read in one child process: each tool runs as ``__main__`` until it parses its
 arguments, which stops it. ``tools/official_waymo_metric/`` runs in its own venv (TensorFlow), so
@@ -12,6 +13,8 @@ from __future__ import annotations
 
 import ast
 import glob
+import importlib
+import inspect
 import json
 import re
 import subprocess
@@ -229,3 +232,75 @@ def test_options_configs_and_braces_are_read_from_a_command(tmp_path):
     source = tmp_path / "tool.py"
     source.write_text("import argparse\nargparse.ArgumentParser().add_argument('--out', '-o')\n")
     assert official_options(source) == ["--out", "-o"]
+
+
+def python_examples() -> list[tuple[str, int, str]]:
+    """``(doc, line, code)`` of every fenced ``python`` block of README and docs/."""
+    found = []
+    for doc in [REPO_ROOT / "README.md", *sorted((REPO_ROOT / "docs").glob("*.md"))]:
+        text = doc.read_text()
+        for block in re.finditer(r"^```python\n(.*?)^```", text, flags=re.M | re.S):
+            line = text.count("\n", 0, block.start()) + 2
+            found.append((str(doc.relative_to(REPO_ROOT)), line, block.group(1)))
+    return found
+
+
+def example_errors(code: str) -> list[tuple[int, str]]:
+    """``(line, what)`` for what in one example does not exist or does not fit: a ``from X
+    import Y`` that does not resolve, or a call of an imported name whose positional count or
+    keywords its signature refuses (the values are placeholders; ``*args`` / ``**kwargs`` in the
+    call are not checked)."""
+    tree = ast.parse(code)
+    imported, errors = {}, []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            module = importlib.import_module(node.module)
+            for alias in node.names:
+                if hasattr(module, alias.name):
+                    imported[alias.asname or alias.name] = getattr(module, alias.name)
+                else:
+                    errors.append((node.lineno, f"{node.module} has no {alias.name}"))
+    for node in ast.walk(tree):
+        if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)):
+            continue
+        target = imported.get(node.func.id)
+        if target is None or any(isinstance(a, ast.Starred) for a in node.args):
+            continue
+        keywords = {k.arg: None for k in node.keywords if k.arg is not None}
+        try:
+            inspect.signature(target).bind(*[None] * len(node.args), **keywords)
+        except TypeError as err:
+            errors.append((node.lineno, f"{node.func.id}(...): {err}"))
+    return errors
+
+
+def test_python_examples_fit_the_code():
+    examples = python_examples()
+    wrong = [
+        f"{doc}:{first + line - 1}: {what}"
+        for doc, first, code in examples
+        for line, what in example_errors(code)
+    ]
+    assert not wrong, "\n".join(wrong)
+    checked = 0  # calls of imported names: what the signatures were asked about
+    for _, _, code in examples:
+        nodes = list(ast.walk(ast.parse(code)))
+        names = {
+            a.asname or a.name for n in nodes if isinstance(n, ast.ImportFrom) for a in n.names
+        }
+        calls = [n for n in nodes if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)]
+        checked += sum(call.func.id in names for call in calls)
+    assert len(examples) >= 8 and checked >= 15, (len(examples), checked)
+
+
+def test_a_wrong_import_or_keyword_in_an_example_is_found():
+    code = (
+        "from pcdet_atlas.config import cfg_from_yaml_file, no_such_name\n"
+        "cfg = cfg_from_yaml_file('a.yaml', strict=True)\n"
+        "cfg = cfg_from_yaml_file('a.yaml', 'b', 'c')\n"
+        "cfg = cfg_from_yaml_file(*paths)\n"
+    )
+    errors = example_errors(code)
+    assert [line for line, _ in errors] == [1, 2, 3], errors
+    assert errors[0][1] == "pcdet_atlas.config has no no_such_name"
+    assert "'strict'" in errors[1][1] and "too many positional" in errors[2][1]
