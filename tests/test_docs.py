@@ -2,7 +2,9 @@
 README, ``docs/``, the Makefile, the configs' comments and the tools' own docstrings names a tool
 that exists and only options its argument parser defines, and every config under ``cfgs/`` it
 passes exists; every relative link of the Markdown docs reaches its file and heading; the
-Python examples of the docs import what exists and call it with arguments its signature takes.
+Python examples of the docs import what exists and call it with arguments its signature takes;
+docs/attacks.md's key tables name every key the attacks accept, no other, with the defaults of
+the ``_base_`` configs.
 
 The parsers are read in one child process: each tool runs as ``__main__`` until it parses its
 arguments, which stops it. ``tools/official_waymo_metric/`` runs in its own venv (TensorFlow), so
@@ -304,3 +306,113 @@ def test_a_wrong_import_or_keyword_in_an_example_is_found():
     assert [line for line, _ in errors] == [1, 2, 3], errors
     assert errors[0][1] == "pcdet_atlas.config has no no_such_name"
     assert "'strict'" in errors[1][1] and "too many positional" in errors[2][1]
+
+
+# ------------------------------------------------------------------ docs/attacks.md's key tables
+def attack_key_rows() -> list[tuple[str, list[str], str, str]]:
+    """``(base, keys, default, meaning)`` of every row of docs/attacks.md's config-key tables;
+    ``base`` is the ``_base_`` YAML the table is about. A key without a section in a row whose
+    first key has one (``INTENSITY.MAX_INTENSITY``, ``MAX_ELONGATION``) belongs to that section."""
+    text = (REPO_ROOT / "docs" / "attacks.md").read_text()
+    section = text[text.index("## Config keys") : text.index("\n## ", text.index("## Config keys"))]
+    rows, base = [], None
+    for line in section.splitlines():
+        heading = re.match(r"\w+ \(`_base_/(\w+)\.yaml`\):", line)
+        if heading:
+            base = heading.group(1)
+        elif line.startswith("| `") and base is not None:
+            first, default, meaning = (c.strip() for c in line.strip().strip("|").split("|"))
+            keys = re.findall(r"`([A-Z_.]+)`", first)
+            prefix = keys[0].rpartition(".")[0]
+            keys = [k if "." in k or not prefix else f"{prefix}.{k}" for k in keys]
+            rows.append((base, keys, default, meaning))
+    return rows
+
+
+def accepted_attack_keys(monkeypatch) -> set[str]:
+    """Every key the attack classes accept, dotted (``GROUND.RADIUS``), recorded from their
+    ``check_known_keys`` calls while every YAML of cfgs/attacks/ is built."""
+    import pcdet_atlas.attacks  # noqa: F401  (registers the classes)
+    from pcdet_atlas.attacks.base import build_attack
+    from pcdet_atlas.config import cfg_from_yaml_file, check_known_keys
+
+    accepted = set()
+
+    def record(cfg, known, where, *args, **kwargs):
+        prefix = "" if where.startswith("attack config") else f"{where}."
+        accepted.update(prefix + key for key in known)
+        return check_known_keys(cfg, known, where, *args, **kwargs)
+
+    for name, module in list(sys.modules.items()):
+        if name.startswith("pcdet_atlas") and getattr(module, "check_known_keys", None):
+            monkeypatch.setattr(module, "check_known_keys", record)
+    variants = sorted((REPO_ROOT / "cfgs" / "attacks").glob("*.yaml"))
+    for path in variants:
+        build_attack(cfg_from_yaml_file(path), data_root=REPO_ROOT / "no_data")
+    assert len(variants) >= 13 and any(k.startswith("TRACKING.") for k in accepted)
+    return accepted
+
+
+def test_every_attack_key_is_documented_and_every_documented_key_exists(monkeypatch):
+    rows = attack_key_rows()
+    documented = {key for _, keys, _, _ in rows for key in keys}
+    # a section documented in one row names its keys in the row's text (LIDAR)
+    for _, keys, _, meaning in rows:
+        documented |= {f"{keys[0]}.{k}" for k in re.findall(r"`([A-Z_]+)`", meaning)}
+    accepted = accepted_attack_keys(monkeypatch)
+    sections = {key.partition(".")[0] for key in accepted | documented if "." in key}
+    undocumented = sorted(k for k in accepted - documented if k not in sections)
+    unknown = sorted(documented - accepted)
+    assert not undocumented and not unknown, (
+        f"docs/attacks.md's key tables miss {undocumented} and document keys no attack "
+        f"accepts: {unknown}"
+    )
+
+
+def split_top_level(text: str) -> list[str]:
+    """``"[15, 20], [-3, 3]"`` -> ``["[15, 20]", "[-3, 3]"]``: commas outside brackets."""
+    parts, depth, start = [], 0, 0
+    for i, char in enumerate(text):
+        depth += (char == "[") - (char == "]")
+        if char == "," and depth == 0:
+            parts.append(text[start:i].strip())
+            start = i + 1
+    return [*parts, text[start:].strip()]
+
+
+def documented_value(text: str):
+    """A default cell as a value: YAML, with numbers YAML 1.1 reads as strings (``1e4``) as
+    floats."""
+    import yaml
+
+    value = yaml.safe_load(text.strip("`"))
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
+
+
+def test_documented_attack_defaults_are_the_base_configs():
+    from pcdet_atlas.config import cfg_from_yaml_file
+
+    checked, wrong = 0, []
+    for base, keys, default, _ in attack_key_rows():
+        if default in ("-", "per variant", "text"):
+            continue
+        cells = split_top_level(default)
+        values = cells if len(cells) == len(keys) else [default] * len(keys)
+        cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "attacks" / "_base_" / f"{base}.yaml")
+        for key, text in zip(keys, values, strict=True):
+            node = cfg
+            for part in key.split("."):
+                node = node.get(part, KeyError) if isinstance(node, dict) else KeyError
+            checked += 1
+            if node is KeyError:
+                wrong.append(f"{key}: documented with default {text}, not in _base_/{base}.yaml")
+                continue
+            if documented_value(text) != node:
+                wrong.append(f"{key}: docs/attacks.md says {text}, _base_/{base}.yaml has {node}")
+    assert not wrong, "\n".join(wrong)
+    assert checked >= 35, checked
