@@ -1,10 +1,13 @@
-"""The commands the docs give a user run as written: every ``tools/*.py`` invocation in the
-README, ``docs/``, the Makefile, the configs' comments and the tools' own docstrings names a tool
-that exists and only options its argument parser defines, and every config under ``cfgs/`` it
-passes exists; every relative link of the Markdown docs reaches its file and heading; the
-Python examples of the docs import what exists and call it with arguments its signature takes;
-docs/attacks.md's key tables name every key the attacks accept, no other, with the defaults of
-the ``_base_`` configs.
+"""What the docs tell a user is true of the code:
+
+- every ``tools/*.py`` command in the README, ``docs/``, the Makefile, the configs' comments and
+  the tools' own docstrings names a tool that exists and only options its argument parser
+  defines, and every config under ``cfgs/`` it passes exists;
+- every ``pcdet_atlas/`` or ``tests/`` path the docs name exists, and every relative link of
+  the Markdown docs reaches its file and heading;
+- the Python examples import what exists and call it with arguments its signature takes;
+- docs/attacks.md's key tables name every key the attacks accept, no other, with the defaults
+  of the ``_base_`` configs.
 
 The parsers are read in one child process: each tool runs as ``__main__`` until it parses its
 arguments, which stops it. ``tools/official_waymo_metric/`` runs in its own venv (TensorFlow), so
@@ -161,6 +164,23 @@ def test_documented_configs_exist(documented_calls):
                     missing.append(f"{source}:{line}: {tool} is given {path}, which does not exist")
     assert not missing, "\n".join(missing)
     assert checked > 50, f"only {checked} config paths in the documented commands"
+
+
+def test_package_and_test_paths_in_the_docs_exist():
+    """A file or folder of ``pcdet_atlas/`` or ``tests/`` the docs name is there (a module moved
+    or renamed leaves no pointer behind)."""
+    docs = [REPO_ROOT / "README.md", REPO_ROOT / "CHANGELOG.md"]
+    docs += sorted((REPO_ROOT / "docs").glob("**/*.md"))
+    mentioned = re.compile(r"(?<![\w/.-])(?:pcdet_atlas|tests)/[\w./{},*-]*[\w*}]")
+    checked, missing = 0, []
+    for doc in docs:
+        for pattern in mentioned.findall(doc.read_text()):
+            for path in expand_braces(pattern):
+                checked += 1
+                if not glob.glob(str(REPO_ROOT / path)):
+                    missing.append(f"{doc.relative_to(REPO_ROOT)} names {path}, which is not there")
+    assert not missing, "\n".join(missing)
+    assert checked > 40, checked
 
 
 def strip_code(markdown: str) -> str:
