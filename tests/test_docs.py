@@ -27,6 +27,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from pcdet_atlas.config import REPO_ROOT
 
@@ -166,14 +167,18 @@ def test_documented_configs_exist(documented_calls):
     assert checked > 50, f"only {checked} config paths in the documented commands"
 
 
+def markdown_docs() -> list[Path]:
+    """README, CHANGELOG and every Markdown file under docs/."""
+    docs = [REPO_ROOT / "README.md", REPO_ROOT / "CHANGELOG.md"]
+    return docs + sorted((REPO_ROOT / "docs").glob("**/*.md"))
+
+
 def test_package_and_test_paths_in_the_docs_exist():
     """A file or folder of ``pcdet_atlas/`` or ``tests/`` the docs name is there (a module moved
     or renamed leaves no pointer behind)."""
-    docs = [REPO_ROOT / "README.md", REPO_ROOT / "CHANGELOG.md"]
-    docs += sorted((REPO_ROOT / "docs").glob("**/*.md"))
     mentioned = re.compile(r"(?<![\w/.-])(?:pcdet_atlas|tests)/[\w./{},*-]*[\w*}]")
     checked, missing = 0, []
-    for doc in docs:
+    for doc in markdown_docs():
         for pattern in mentioned.findall(doc.read_text()):
             for path in expand_braces(pattern):
                 checked += 1
@@ -200,10 +205,8 @@ def heading_anchors(markdown: str) -> set[str]:
 
 
 def test_relative_links_reach_their_file_and_heading():
-    docs = [REPO_ROOT / "README.md", REPO_ROOT / "CHANGELOG.md"]
-    docs += sorted((REPO_ROOT / "docs").glob("**/*.md"))
     broken, checked = [], 0
-    for doc in docs:
+    for doc in markdown_docs():
         for target in re.findall(r"\]\(([^)\s]+)\)", strip_code(doc.read_text())):
             if re.match(r"[a-z]+:", target):  # https:, mailto:
                 continue
@@ -257,9 +260,9 @@ def test_options_configs_and_braces_are_read_from_a_command(tmp_path):
 
 
 def python_examples() -> list[tuple[str, int, str]]:
-    """``(doc, line, code)`` of every fenced ``python`` block of README and docs/."""
+    """``(doc, line, code)`` of every fenced ``python`` block of the Markdown docs."""
     found = []
-    for doc in [REPO_ROOT / "README.md", *sorted((REPO_ROOT / "docs").glob("*.md"))]:
+    for doc in markdown_docs():
         text = doc.read_text()
         for block in re.finditer(r"^```python\n(.*?)^```", text, flags=re.M | re.S):
             line = text.count("\n", 0, block.start()) + 2
@@ -267,13 +270,13 @@ def python_examples() -> list[tuple[str, int, str]]:
     return found
 
 
-def example_errors(code: str) -> list[tuple[int, str]]:
+def example_errors(code: str) -> tuple[list[tuple[int, str]], int]:
     """``(line, what)`` for what in one example does not exist or does not fit: a ``from X
     import Y`` that does not resolve, or a call of an imported name whose positional count or
     keywords its signature refuses (the values are placeholders; ``*args`` / ``**kwargs`` in the
-    call are not checked)."""
+    call are not checked); and how many calls were checked."""
     tree = ast.parse(code)
-    imported, errors = {}, []
+    imported, errors, checked = {}, [], 0
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):
             module = importlib.import_module(node.module)
@@ -289,29 +292,22 @@ def example_errors(code: str) -> list[tuple[int, str]]:
         if target is None or any(isinstance(a, ast.Starred) for a in node.args):
             continue
         keywords = {k.arg: None for k in node.keywords if k.arg is not None}
+        checked += 1
         try:
             inspect.signature(target).bind(*[None] * len(node.args), **keywords)
         except TypeError as err:
             errors.append((node.lineno, f"{node.func.id}(...): {err}"))
-    return errors
+    return errors, checked
 
 
 def test_python_examples_fit_the_code():
     examples = python_examples()
-    wrong = [
-        f"{doc}:{first + line - 1}: {what}"
-        for doc, first, code in examples
-        for line, what in example_errors(code)
-    ]
+    wrong, checked = [], 0
+    for doc, first, code in examples:
+        errors, calls = example_errors(code)
+        wrong += [f"{doc}:{first + line - 1}: {what}" for line, what in errors]
+        checked += calls
     assert not wrong, "\n".join(wrong)
-    checked = 0  # calls of imported names: what the signatures were asked about
-    for _, _, code in examples:
-        nodes = list(ast.walk(ast.parse(code)))
-        names = {
-            a.asname or a.name for n in nodes if isinstance(n, ast.ImportFrom) for a in n.names
-        }
-        calls = [n for n in nodes if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)]
-        checked += sum(call.func.id in names for call in calls)
     assert len(examples) >= 8 and checked >= 15, (len(examples), checked)
 
 
@@ -322,7 +318,8 @@ def test_a_wrong_import_or_keyword_in_an_example_is_found():
         "cfg = cfg_from_yaml_file('a.yaml', 'b', 'c')\n"
         "cfg = cfg_from_yaml_file(*paths)\n"
     )
-    errors = example_errors(code)
+    errors, checked = example_errors(code)
+    assert checked == 2, checked  # the starred call is not checked
     assert [line for line, _ in errors] == [1, 2, 3], errors
     assert errors[0][1] == "pcdet_atlas.config has no no_such_name"
     assert "'strict'" in errors[1][1] and "too many positional" in errors[2][1]
@@ -403,8 +400,6 @@ def split_top_level(text: str) -> list[str]:
 def documented_value(text: str):
     """A default cell as a value: YAML, with numbers YAML 1.1 reads as strings (``1e4``) as
     floats."""
-    import yaml
-
     value = yaml.safe_load(text.strip("`"))
     if isinstance(value, str):
         try:
