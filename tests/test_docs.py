@@ -1,8 +1,9 @@
 """What the docs tell a user is true of the code:
 
-- every ``tools/*.py`` command in the README, ``docs/``, the Makefile, the configs' comments and
-  the tools' own docstrings names a tool that exists and only options its argument parser
-  defines, and every config under ``cfgs/`` it passes exists;
+- every ``tools/*.py`` command in the Markdown docs (README, CHANGELOG, ``docs/`` with the
+  results report), the Makefile, the configs' comments and the tools' own docstrings names a
+  tool that exists and only options its argument parser defines, and every config under
+  ``cfgs/`` it passes exists;
 - every ``pcdet_atlas/`` or ``tests/`` path the docs name exists, and every relative link of
   the Markdown docs reaches its file and heading;
 - the Python examples import what exists and call it with arguments its signature takes;
@@ -61,10 +62,15 @@ print(json.dumps(found))
 """
 
 
+def markdown_docs() -> list[Path]:
+    """README, CHANGELOG and every Markdown file under docs/."""
+    docs = [REPO_ROOT / "README.md", REPO_ROOT / "CHANGELOG.md"]
+    return docs + sorted((REPO_ROOT / "docs").glob("**/*.md"))
+
+
 def documented_sources() -> dict[str, str]:
     """Repository-relative name -> the text a user reads commands from."""
-    paths = [REPO_ROOT / "README.md", REPO_ROOT / "Makefile"]
-    paths += sorted((REPO_ROOT / "docs").glob("*.md")) + sorted(REPO_ROOT.glob("cfgs/**/*.yaml"))
+    paths = [*markdown_docs(), REPO_ROOT / "Makefile", *sorted(REPO_ROOT.glob("cfgs/**/*.yaml"))]
     texts = {str(p.relative_to(REPO_ROOT)): p.read_text() for p in paths}
     for path in sorted(REPO_ROOT.glob("tools/**/*.py")):
         doc = ast.get_docstring(ast.parse(path.read_text(), str(path)))
@@ -165,12 +171,6 @@ def test_documented_configs_exist(documented_calls):
                     missing.append(f"{source}:{line}: {tool} is given {path}, which does not exist")
     assert not missing, "\n".join(missing)
     assert checked > 50, f"only {checked} config paths in the documented commands"
-
-
-def markdown_docs() -> list[Path]:
-    """README, CHANGELOG and every Markdown file under docs/."""
-    docs = [REPO_ROOT / "README.md", REPO_ROOT / "CHANGELOG.md"]
-    return docs + sorted((REPO_ROOT / "docs").glob("**/*.md"))
 
 
 def test_package_and_test_paths_in_the_docs_exist():
