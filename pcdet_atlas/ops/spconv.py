@@ -301,7 +301,7 @@ class _SparseConvNd(SparseModule):
         stride: int | Sequence[int] = 1,
         padding: int | Sequence[int] = 0,
         dilation: int | Sequence[int] = 1,
-        bias: bool = False,
+        bias: bool = True,
         indice_key: str | None = None,
     ) -> None:
         super().__init__()
@@ -462,7 +462,7 @@ class _GatherGemmScatter(torch.autograd.Function):
 class SubMConv3d(_SparseConvNd):
     """Submanifold conv: outputs at the input sites, in the input's row order, with a kernel
     centred on each site whatever ``padding`` says (as spconv). Arguments as spconv's:
-    ``(in_channels, out_channels, kernel_size, stride=1, padding=0, dilation=1, bias=False,
+    ``(in_channels, out_channels, kernel_size, stride=1, padding=0, dilation=1, bias=True,
     indice_key=None)``."""
 
     SUBM = True

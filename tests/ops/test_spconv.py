@@ -339,6 +339,15 @@ def test_state_dict_has_spconv_layout_and_loads_strict():
         twin.load_state_dict(bad, strict=True)
 
 
+def test_bias_defaults_as_spconv():
+    """spconv's convs carry a bias unless ``bias=False``: code ported from spconv that leaves
+    it out must get the same parameters (and a strict load of its state_dict)."""
+    for conv_cls in (SubMConv3d, SparseConv3d):
+        assert conv_cls(4, 8, 3).bias.shape == (8,)
+        assert conv_cls(4, 8, 3, bias=False).bias is None
+        assert list(conv_cls(4, 8, 3, bias=False).state_dict()) == ["weight"]
+
+
 def test_sparse_sequential_numbers_children_and_dispatches():
     class Double(SparseModule):
         def forward(self, x):
