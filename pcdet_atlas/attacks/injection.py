@@ -211,7 +211,9 @@ class InjectionAttack(BaseAttack):
         kwargs = cls._common_kwargs(cfg)
         for key in ("TRACE_LIBRARY", "POSITION_MODE", "BUDGET"):
             if key not in cfg:
-                raise ConfigError(f"{kwargs['variant']}: InjectionAttack needs {key}")
+                raise ConfigError(
+                    f"{kwargs['variant']}: InjectionAttack needs {key} (in {config_files(cfg)})"
+                )
         trace_filter = TraceFilter.from_config(cfg["TRACE_LIBRARY"])
         path = Path(trace_filter.path)
         if not path.is_absolute():

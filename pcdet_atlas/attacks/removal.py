@@ -70,7 +70,7 @@ class PDistTable:
         check_known_keys(cfg, {"EDGES_M", "PROB", "NOTE"}, "P_DIST")
         for key in ("EDGES_M", "PROB"):
             if key not in cfg:
-                raise ConfigError(f"P_DIST: missing {key}")
+                raise ConfigError(f"P_DIST: missing {key} (in {config_files(cfg)})")
         try:
             return cls(cfg["EDGES_M"], cfg["PROB"])
         except (TypeError, ValueError) as err:
@@ -215,7 +215,9 @@ class RemovalAttack(BaseAttack):
         kwargs = cls._common_kwargs(cfg)
         for key in ("AZIMUTH_WIDTH_DEG", "P_REMOVE", "P_DIST"):
             if key not in cfg:
-                raise ConfigError(f"{kwargs['variant']}: RemovalAttack needs {key}")
+                raise ConfigError(
+                    f"{kwargs['variant']}: RemovalAttack needs {key} (in {config_files(cfg)})"
+                )
         width = {"valid": lambda w: 0 < w < 180, "expected": "an angle in (0, 180) degrees"}
         try:
             return cls(

@@ -90,6 +90,25 @@ def test_unknown_keys_fail_naming_key_and_file(tmp_path):
         build_attack(cfg_from_yaml_file(_write(tmp_path / "n.yaml", "NAME: InjectonAttack\n")))
 
 
+BASE = ATTACK_DIR / "_base_"
+MISSING_KEYS = [  # (YAML body without a required key, the key the error must name)
+    (f"_BASE_CONFIG_: {BASE / 'removal.yaml'}\nAZIMUTH_WIDTH_DEG: 10.0\n", "P_REMOVE"),
+    (f"_BASE_CONFIG_: {BASE / 'common.yaml'}\nNAME: InjectionAttack\n", "TRACE_LIBRARY"),
+    (
+        f"_BASE_CONFIG_: {BASE / 'common.yaml'}\nNAME: RemovalAttack\n"
+        "AZIMUTH_WIDTH_DEG: 10.0\nP_REMOVE: 0.9\nP_DIST:\n  EDGES_M: [0.0, 10.0]\n",
+        "PROB",
+    ),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("body,key", MISSING_KEYS, ids=[key for _, key in MISSING_KEYS])
+def test_missing_keys_fail_naming_key_and_file(tmp_path, body, key):
+    bad = _write(tmp_path / "no_key.yaml", f"VARIANT: no_key\n{body}")
+    with pytest.raises(ConfigError, match=rf"{key}.*no_key\.yaml"):
+        build_attack(cfg_from_yaml_file(bad))
+
+
 BAD_VALUES = [  # (base variant, YAML body, the key the error must name)
     ("clean", "SEED: abc\n", "SEED"),
     ("clean", "SCHEDULE:\n  WINDOW: many\n", "WINDOW"),
