@@ -170,6 +170,8 @@ def find_resume_checkpoint(ckpt_dir: str | Path) -> Path | None:
     latest = Path(ckpt_dir) / LATEST_NAME
     if latest.is_file():
         ckpt = read_checkpoint(latest)
+        if "epoch" not in ckpt:
+            raise ValueError(f"checkpoint {latest} has no 'epoch': not a training state to resume")
         ahead = (ckpt["epoch"], ckpt.get("epoch_it", 0))
         if newest is None or ahead > (int(CHECKPOINT_NAME.fullmatch(newest.name).group(1)), 0):
             return latest

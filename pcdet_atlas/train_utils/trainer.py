@@ -279,12 +279,13 @@ def train_model(
                 + ", ".join(f"{k} {v:.4f}" for k, v in means.items())
             )
         if rank == 0 and (state.epoch % ckpt_save_interval == 0 or state.epoch == total_epochs):
+            path = save_checkpoint(state_dict(), ckpt_dir / f"checkpoint_epoch_{state.epoch}.pth")
+            # the oldest go only once the new one is on disk: a kill in between leaves both
             existing = sorted(
                 ckpt_dir.glob("checkpoint_epoch_*.pth"), key=lambda p: p.stat().st_mtime
             )
-            for old in existing[: max(0, len(existing) - max_ckpt_save_num + 1)]:
+            for old in existing[: max(0, len(existing) - max_ckpt_save_num)]:
                 old.unlink()
-            path = save_checkpoint(state_dict(), ckpt_dir / f"checkpoint_epoch_{state.epoch}.pth")
             (ckpt_dir / LATEST_NAME).unlink(missing_ok=True)
             last_save = time.monotonic()
             if logger is not None:

@@ -287,6 +287,55 @@ def test_resume_point_is_the_most_advanced_checkpoint(tmp_path):
     (tmp_path / "checkpoint_epoch_2.pth").unlink()
     (tmp_path / "checkpoint_epoch_1.pth").unlink()
     assert find_resume_checkpoint(tmp_path) == latest
+    torch.save({"model_state": model.state_dict()}, latest)  # weights only: no training state
+    with pytest.raises(ValueError, match=r"latest_model\.pth has no 'epoch'"):
+        find_resume_checkpoint(tmp_path)
+
+
+class _ToyModel(torch.nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.linear = torch.nn.Linear(2, 1)
+
+    def forward(self, batch):
+        loss = self.linear(batch["x"]).square().mean()
+        return {"loss": loss}, {"loss": float(loss.detach())}, {}
+
+
+def test_checkpoint_rotation_removes_the_oldest_only_after_the_new_one_is_written(
+    tmp_path, monkeypatch
+):
+    """With ``max_ckpt_save_num`` 1, a kill while epoch 2's checkpoint is written leaves epoch
+    1's to resume from (the rotation used to delete it first)."""
+    from pcdet_atlas.train_utils import find_resume_checkpoint, trainer
+
+    model = _ToyModel()
+    loader = torch.utils.data.DataLoader([{"x": torch.ones(2)}] * 2, batch_size=1)
+    optimizer = torch.optim.SGD(model.parameters(), lr=0.1)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
+    common = dict(
+        total_epochs=1, device=torch.device("cpu"), seed=0, grad_norm_clip=10.0,
+        ckpt_dir=tmp_path, max_ckpt_save_num=1, show_progress=False,
+    )  # fmt: skip
+    state = trainer.TrainState()
+    trainer.train_model(model, optimizer, scheduler, loader, None, state=state, **common)
+    assert [p.name for p in tmp_path.iterdir()] == ["checkpoint_epoch_1.pth"]
+
+    def killed(state_dict, path):
+        raise KeyboardInterrupt(f"killed while writing {path}")
+
+    monkeypatch.setattr(trainer, "save_checkpoint", killed)
+    with pytest.raises(KeyboardInterrupt, match="checkpoint_epoch_2"):
+        trainer.train_model(
+            model, optimizer, scheduler, loader, None, state=state, **dict(common, total_epochs=2)
+        )
+    assert find_resume_checkpoint(tmp_path) == tmp_path / "checkpoint_epoch_1.pth"
+    monkeypatch.undo()
+    resumed = trainer.TrainState(epoch=1, it=2)  # what a resume from epoch 1's checkpoint reads
+    trainer.train_model(
+        model, optimizer, scheduler, loader, None, state=resumed, **dict(common, total_epochs=2)
+    )
+    assert [p.name for p in tmp_path.iterdir()] == ["checkpoint_epoch_2.pth"]
 
 
 @pytest.mark.slow
