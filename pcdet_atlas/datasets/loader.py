@@ -184,9 +184,13 @@ def build_dataloader(
             shuffle=training,
             seed=0 if seed is None else int(seed) % 2**31,
         )
+    # A DataLoader's iterator draws the workers' base seed from its generator, or else from
+    # torch's global RNG: seeded and evaluation loaders have their own, so that running one
+    # (the RPN over the train split before a second stage trains, a resume that starts a
+    # DDP epoch part-way) leaves the global draws of training (dropout) as they were.
     generator = None
-    if seed is not None and sampler is None and training:
-        generator = torch_generator(int(seed), "dataloader_shuffle")
+    if seed is not None or not training:
+        generator = torch_generator(0 if seed is None else int(seed), "dataloader_shuffle")
     if training:  # the order DataLoader(shuffle=True) would draw, startable part-way
         sampler = ResumableSampler(sampler or RandomSampler(dataset, generator=generator))
     dataloader = DataLoader(

@@ -39,6 +39,7 @@ from pcdet_atlas.train_utils.dist import all_gather_objects, get_dist_info, unwr
 from pcdet_atlas.train_utils.eval_utils import predict_dataset, write_prediction_files
 from pcdet_atlas.train_utils.proposal_bank import frame_batches
 from pcdet_atlas.utils.common import save_pickle
+from pcdet_atlas.utils.seeding import torch_generator
 
 __all__ = [
     "ATLAS_KEYS",
@@ -241,6 +242,8 @@ def build_attack_loader(
         dataset, batch_sampler=batch_sampler, num_workers=workers,
         collate_fn=dataset.collate_batch, pin_memory=torch.cuda.is_available(),
         worker_init_fn=functools.partial(worker_init_fn, seed=seed),
+        # its own generator: a pass draws nothing from the global RNG (build_dataloader's note)
+        generator=torch_generator(0 if seed is None else int(seed), "dataloader"),
     )  # fmt: skip
     return dataset, loader
 

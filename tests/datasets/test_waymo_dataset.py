@@ -478,6 +478,23 @@ def test_training_order_is_torch_shuffle_and_resumes_part_way(tiny_root):
         sampler.start_at(12)
 
 
+@pytest.mark.parametrize("training,seed", [(False, None), (True, 7)])
+def test_a_pass_leaves_the_global_rng_alone(tiny_root, training, seed):
+    """An evaluation or seeded loader draws its workers' base seed from its own generator: a
+    pass over it (the RPN over the train split before a second stage trains, a resumed epoch)
+    does not shift the global draws that dropout then makes."""
+    cfg = dataset_cfg(augment=training, shuffle=training)
+    cfg.DATASET = "WaymoDataset"
+    _, loader, _ = build_dataloader(
+        cfg, CLASS_NAMES, batch_size=4, dist=False, root_path=tiny_root, workers=0, seed=seed,
+        training=training,
+    )  # fmt: skip
+    torch.manual_seed(3)
+    before = torch.get_rng_state()
+    assert len(list(loader)) == len(loader) > 0
+    assert torch.equal(torch.get_rng_state(), before)
+
+
 def test_merge_all_iters_to_one_epoch(tiny_root):
     cfg = dataset_cfg(augment=True)
     ds, loader, _ = build_dataloader(

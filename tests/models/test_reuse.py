@@ -154,6 +154,20 @@ def test_the_sampler_keeps_batch_composition():
         ContiguousBatchSampler(10, 3, compute=[True] * 3)
 
 
+def test_attack_loader_draws_nothing_from_the_global_rng(synthetic_root):
+    """Starting a pass draws the workers' base seed from the loader's own generator."""
+    cfg = cfg_from_yaml_file(CFGS / "cp4f.yaml")
+    cfg.DATA_CONFIG.DATA_PATH = str(synthetic_root)
+    _, loader = build_attack_loader(
+        cfg.DATA_CONFIG, cfg.CLASS_NAMES, ATTACKS / "clean.yaml", batch_size=1, dist=False,
+        workers=0, seed=None,
+    )  # fmt: skip
+    torch.manual_seed(3)
+    before = torch.get_rng_state()
+    iter(loader)
+    assert torch.equal(torch.get_rng_state(), before)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["centerpoint", "cp4f"])
 def test_batch_composition_and_reuse_at_batch_size_3(name, synthetic_root, injection):
