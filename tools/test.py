@@ -61,6 +61,7 @@ from pcdet_atlas.train_utils.atlas_eval import (
     variant_fingerprints,
 )
 from pcdet_atlas.train_utils.checkpoint import CHECKPOINT_NAME, list_epoch_checkpoints
+from pcdet_atlas.train_utils.eval_utils import write_prediction_files
 from pcdet_atlas.train_utils.setup import (
     add_common_args,
     count_arg,
@@ -189,10 +190,12 @@ def finished_variants(
     *,
     batch_size: int,
     world: int,
+    device: str,
 ) -> tuple[dict[str, dict], dict[str, str]]:
     """``--resume``: the ``results.json`` entries of the requested variants an earlier call
     finished in ``out_dir`` that this call keeps. That call must have had the same merged config,
-    checkpoint bytes, batch size and process count, or this is an error naming what differs.
+    checkpoint bytes, batch size, process count and device, or this is an error naming what
+    differs.
 
     ``requested``: ``{variant: attack_sha256}`` of this call. A finished variant (entry and
     ``<variant>/result.pkl`` both there) is kept unless its entry's ``extra.attack_sha256``
@@ -209,7 +212,8 @@ def finished_variants(
     earlier = load_results(path)
     extra = earlier.get("extra", {})
     config_file = out_dir / f"{cfg.TAG}.yaml"
-    now = {"checkpoint_sha256": ckpt_sha256, "batch_size": batch_size, "processes": world}
+    now = {"checkpoint_sha256": ckpt_sha256, "batch_size": batch_size, "processes": world,
+           "device": device}  # fmt: skip
     differs = [f"{key} {extra.get(key)!r} (now {value!r})"
                for key, value in now.items() if extra.get(key) != value]  # fmt: skip
     if not config_file.is_file():
@@ -277,8 +281,9 @@ def main(argv=None) -> dict:
         check_eval_dir(out_dir, args.overwrite or args.resume)
         if args.resume:
             finished[out_dir], again[out_dir] = finished_variants(
-                out_dir, cfg, ckpt_sha256[ckpt], fingerprints, batch_size=batch_size, world=world
-            )
+                out_dir, cfg, ckpt_sha256[ckpt], fingerprints, batch_size=batch_size, world=world,
+                device=str(device),
+            )  # fmt: skip
     if dist:  # every rank has checked before rank 0 writes
         torch_dist.barrier()
     model = build_network_from_config(cfg)
@@ -333,9 +338,13 @@ def evaluate_checkpoint(
     for variant, attack in attacks.items():
         if variant in finished:
             entry = finished[variant]
-            if variant == "clean":  # its predictions are reused, its proposals seed (below)
+            if variant == "clean" or (args.save_to_file and rank == 0):
                 with open(out_dir / variant / "result.pkl", "rb") as f:
-                    clean_annos = pickle.load(f)
+                    kept_annos = pickle.load(f)
+            if args.save_to_file and rank == 0:  # the earlier call may have run without it
+                write_prediction_files(kept_annos, out_dir / variant / "final_result" / "data")
+            if variant == "clean":  # its predictions are reused, its proposals seed (below)
+                clean_annos = kept_annos
                 part = out_dir / variant / f"proposals_rank{rank}.pkl"  # this process's frames
                 if part.is_file():
                     with open(part, "rb") as f:

@@ -185,7 +185,8 @@ def test_results_survive_a_failing_variant_and_reruns_need_overwrite(
 def test_resume_goes_on_from_the_last_finished_variant(eval_setup, tmp_path, monkeypatch, capsys):
     """A call stopped after the clean variant; ``--resume`` evaluates only the injection variant
     (its frames untouched by the attack taking the saved clean predictions) and ends with the
-    results of one uninterrupted call. Another checkpoint, config or batch size is refused."""
+    results of one uninterrupted call; ``--save_to_file`` writes the kept variants' files too.
+    Another checkpoint, config, batch size or device is refused."""
     test = load_tool("test")
     ckpt = tmp_path / "random.pth"  # a copy, rewritten below
     ckpt.write_bytes(eval_setup["ckpt"].read_bytes())
@@ -231,8 +232,13 @@ def test_resume_goes_on_from_the_last_finished_variant(eval_setup, tmp_path, mon
     assert "clean: kept from an earlier call (--resume)" in logs  # the calls' logs are kept
 
     called.clear()
-    ret = test.main(with_flags(args, "--resume"))  # everything finished: nothing runs
+    assert not list(eval_dir.glob("*/final_result"))
+    # everything finished: nothing runs, and the kept variants' prediction files are written
+    ret = test.main(with_flags(args, "--resume", "--save_to_file"))
     assert called == [] and strip_runtime(ret["results"]) == strip_runtime(whole["results"])
+    for variant in ("clean", "inj_global_hard"):
+        files = sorted((eval_dir / variant / "final_result" / "data").glob("*.txt"))
+        assert len(files) == ret["results"]["variants"][variant]["num_frames"] > 0
 
     torch.save({**torch.load(ckpt), "epoch": 1}, ckpt)  # the same name, other bytes
     with pytest.raises(ValueError, match="--resume: .*results.json .*checkpoint_sha256"):
@@ -243,6 +249,14 @@ def test_resume_goes_on_from_the_last_finished_variant(eval_setup, tmp_path, mon
         test.main([*with_flags(args, "--resume"), thresh, "0.2"])
     with pytest.raises(ValueError, match="--resume: .*batch_size 1 \\(now 2\\)"):
         test.main(with_flags(args, "--resume", "--batch_size", "2"))
+    results_file = eval_dir / "results.json"
+    written = results_file.read_text()
+    on_gpu = json.loads(written)
+    on_gpu["extra"]["device"] = "cuda"  # as a call on a GPU records it
+    results_file.write_text(json.dumps(on_gpu))
+    with pytest.raises(ValueError, match="--resume: .*device 'cuda' \\(now 'cpu'\\)"):
+        test.main(with_flags(args, "--resume"))
+    results_file.write_text(written)
     capsys.readouterr()
     with pytest.raises(SystemExit):
         test.main(with_flags(args, "--resume", "--overwrite"))
