@@ -297,6 +297,11 @@ def main(argv=None) -> dict:
     runs = []
     for ckpt, out_dir in zip(checkpoints, out_dirs):
         model.load_params_from_file(ckpt)  # strict: CheckpointMismatchError names what differs
+        if file_sha256(ckpt) != ckpt_sha256[ckpt]:  # results.json records the hash taken above
+            raise RuntimeError(
+                f"checkpoint {ckpt} changed since this call started (a training run rewriting "
+                "it?); evaluate a copy, or an epoch checkpoint"
+            )
         model.to(device).eval()
         if rank == 0:
             if out_dir.exists() and not args.resume:  # --overwrite: no stale file survives

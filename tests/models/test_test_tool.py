@@ -362,7 +362,7 @@ def test_resume_names_a_corrupt_results_file(eval_setup, tmp_path):
         test.main(args)
 
 
-def test_eval_all_from_start_epoch_and_save_to_file(eval_setup, tmp_path, capsys):
+def test_eval_all_from_start_epoch_and_save_to_file(eval_setup, tmp_path, capsys, monkeypatch):
     test = load_tool("test")
     ckpt_dir = tmp_path / "ckpts"
     ckpt_dir.mkdir()
@@ -403,6 +403,18 @@ def test_eval_all_from_start_epoch_and_save_to_file(eval_setup, tmp_path, capsys
         test.main(
             with_flags(args, "--eval_all", "--ckpt_dir", str(ckpt_dir), "--start_epoch", "11")
         )
+    # a checkpoint rewritten between the hash results.json records and the load
+    real_check = test.check_eval_dir
+
+    def rewritten_then_check(*a, **kw):
+        target = ckpt_dir / "checkpoint_epoch_10.pth"
+        torch.save({**torch.load(target), "epoch": 11}, target)
+        return real_check(*a, **kw)
+
+    monkeypatch.setattr(test, "check_eval_dir", rewritten_then_check)
+    with pytest.raises(RuntimeError, match="checkpoint_epoch_10.pth changed since this call"):
+        test.main(with_flags(args, "--eval_all", "--ckpt_dir", str(ckpt_dir), "--start_epoch",
+                             "10", "--overwrite"))  # fmt: skip
     capsys.readouterr()
     with pytest.raises(SystemExit):
         test.main(with_flags(args, "--start_epoch", "2"))  # --start_epoch without --eval_all
