@@ -54,7 +54,7 @@ from pcdet_atlas.train_utils.atlas_eval import (
     variant_fingerprints,
 )
 from pcdet_atlas.train_utils.setup import load_cfg
-from pcdet_atlas.utils.common import load_tool, write_atomic
+from pcdet_atlas.utils.common import load_tool, resolve_device, write_atomic
 
 DEFAULT_DATA = REPO_ROOT / "data" / "synthetic_waymo_val6"
 DEFAULT_OUT = REPO_ROOT / "docs" / "results"
@@ -166,8 +166,9 @@ def evaluation_of(cfg: Path, args, root: Path) -> tuple[Path, set[str], set[str]
     out_dir = test.eval_dir(model_cfg, output_root, TAG, ckpt, TAG)
     try:  # the setting tools/test.py gets from test_argv: one process, batch size 1
         kept, _ = test.finished_variants(
-            out_dir, model_cfg, file_sha256(ckpt), requested, batch_size=1, world=1
-        )
+            out_dir, model_cfg, file_sha256(ckpt), requested, batch_size=1, world=1,
+            device=str(resolve_device(args.device)),
+        )  # fmt: skip
         finished = set(kept)
     except ResultsError:  # an unreadable results.json: named, not overwritten
         raise
