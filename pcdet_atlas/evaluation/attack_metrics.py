@@ -191,6 +191,11 @@ def _check_predictions(anno: Mapping, where: str) -> tuple[np.ndarray, np.ndarra
         )
     if not np.all(np.isfinite(boxes[:, :7])) or not np.all(np.isfinite(scores)):
         raise AttackMetricError(f"{where}: det anno has non-finite 'boxes_lidar' or 'score'")
+    if np.any((scores < 0) | (scores > 1)):  # thresholds and bins are on probabilities
+        raise AttackMetricError(
+            f"{where}: det anno 'score' must be in [0, 1] (probabilities, not logits), got "
+            f"{scores[(scores < 0) | (scores > 1)][:5].tolist()}"
+        )
     return names, boxes[:, :7], scores
 
 
@@ -835,7 +840,7 @@ def lifecycle_position(
     shadow = np.asarray(is_shadow, dtype=bool)
     out = np.full(k.shape, -1, dtype=np.int64)
     bad_shadow = shadow & (k >= 1) & (k <= recorded_window)
-    bad_spoofed = ~shadow & ((k == 0) | (k > recorded_window))
+    bad_spoofed = ~shadow & ((k <= 0) | (k > recorded_window))
     bad_range = (k > 2 * recorded_window) | (shadow & (k < 0))
     if np.any(bad_shadow | bad_spoofed | bad_range):
         bad = np.flatnonzero(bad_shadow | bad_spoofed | bad_range)[:5]

@@ -240,6 +240,10 @@ def test_shadow_targets_are_not_counted_by_asr():
         (lambda d, i: d[0].update(boxes_lidar=np.zeros((2, 6))), "boxes_lidar"),
         (lambda d, i: d[0].update(score=np.zeros(5)), "lengths differ"),
         (lambda d, i: d[1].pop("score"), "'score'"),
+        (
+            lambda d, i: d[1].update(score=np.full(len(d[1]["score"]), 3.2)),
+            r"frame 1 .*'score' must be in \[0, 1\] .*got \[3\.2",
+        ),
         (lambda d, i: i.__setitem__(0, {**i[0], "target_box": np.zeros(5)}), "target_box"),
         (lambda d, i: i.__setitem__(3, {**i[3], "target_box": TARGET}), "neither spoofed"),
         (
@@ -382,9 +386,8 @@ def test_lifecycle_counts_and_asr(family):
     w = 4
     d0, i0 = lifecycle_run([0, 1, 1, 1, 1, 0, 0, 0, 0], w, family, run_id=0)
     d1, i1 = lifecycle_run([0, 0, 1, 1, 1, 1, 0, 0, 0], w, family, run_id=1)
-    # a spoofed frame beyond the lifecycle (k = -1) and a frame without a target are ignored
-    d2, i2 = [anno("x", [TARGET]), anno("y", [TARGET])], [info(TARGET, k=-1, family=family)]
-    i2.append(info(None, family=family))
+    # a frame without a target is ignored
+    d2, i2 = [anno("y", [TARGET])], [info(None, family=family)]
     m = match_targets(d0 + d1 + d2, i0 + i1 + i2)
     lc = lifecycle_asr(m, w, recorded_window=w)
     assert lc["k"] == list(range(9))
@@ -432,13 +435,17 @@ def test_lifecycle_default_is_the_schedule_window():
 
 def test_lifecycle_shorter_detector_window():
     # engine recorded We = 4; a 2-frame detector sees k = 0, spoofed 1..2, after-run 1..2
-    k = np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, -1])
-    shadow = np.array([1, 0, 0, 0, 0, 1, 1, 1, 1, 0], dtype=bool)
+    k = np.array([0, 1, 2, 3, 4, 5, 6, 7, 8])
+    shadow = np.array([1, 0, 0, 0, 0, 1, 1, 1, 1], dtype=bool)
     pos = lifecycle_position(k, shadow, window=2, recorded_window=4)
-    assert pos.tolist() == [0, 1, 2, -1, -1, 3, 4, -1, -1, -1]
-    assert lifecycle_position(k, shadow, 4, 4).tolist() == [0, 1, 2, 3, 4, 5, 6, 7, 8, -1]
+    assert pos.tolist() == [0, 1, 2, -1, -1, 3, 4, -1, -1]
+    assert lifecycle_position(k, shadow, 4, 4).tolist() == [0, 1, 2, 3, 4, 5, 6, 7, 8]
     with pytest.raises(AttackMetricError, match="recorded_window=2"):
         lifecycle_position(k, shadow, window=2, recorded_window=2)  # spoofed k = 3 contradicts
+    # a spoofed target outside any lifecycle (make_meta's default -1: never set) would count in
+    # the ASR and vanish from the lifecycle
+    with pytest.raises(AttackMetricError, match=r"lifecycle_k \[-1\]"):
+        lifecycle_position(np.append(k, -1), np.append(shadow, False), 2, 4)
     with pytest.raises(AttackMetricError, match="window"):
         lifecycle_position(k, shadow, window=5, recorded_window=4)
 
