@@ -178,7 +178,6 @@ class ConvSSM(nn.Module):
     (b, in_channels, h, w).
     """
 
-    no_weight_decay_params = ("A_log", "D")
     # exp(-exp(20)) is exactly 0 even in float64; clamping keeps exp(A_log) finite so its
     # gradient is 0 there instead of 0 * inf = NaN
     _MAX_A_LOG = 20.0

@@ -9,8 +9,12 @@ window's history is moved into its current vehicle frame when it is read
 (:func:`~pcdet_atlas.datasets.proposal_history.gather_history`). Frames are computed when first
 needed: the batch's current frames from the batch itself, any other frame from
 ``dataset.frame_sample`` (frames ``SAMPLED_INTERVAL`` skips, or the history before a worker's
-first frame). ``rpn_frames`` counts the frames passed through the RPN; with a capacity that
-holds a window's frames, each frame is computed exactly once.
+first frame). ``rpn_frames`` counts the frames passed through the RPN. The bank drops the
+oldest-inserted frame first and a window inserts its history newest first, so each frame is
+computed exactly once when the capacity holds twice the frames a batch's windows span (its
+current frames, those between them and the history before the first): at least
+``2 * (num_history + 1)`` frames, which a batch of one needs; a smaller bank would drop the
+frames the next window reads and compute them again and again.
 
 Which frames the RPN sees together: the CPU RPN's output can depend on its batch at float32
 rounding, so with ``batches`` (the loader's batches over all processes, as dataset indices) a
@@ -98,7 +102,8 @@ class ProposalBank:
         dataset: the evaluated dataset (an ``AtlasWaymoDataset`` for a variant, or a clean
             ``WaymoDataset``); history frames are read through its ``frame_sample``.
         device: where the RPN runs. num_history: previous frames attached per sample
-            (default: ``model.proposal_history``). capacity: frames kept.
+            (default: ``model.proposal_history``). capacity: frames kept (at least
+            ``2 * (num_history + 1)``).
         batches: the loader's batches over all processes, as lists of indices into
             ``dataset.infos``: each frame is then proposed with the frames of its batch
             (module docstring); needed by :meth:`seedable`.
@@ -116,10 +121,10 @@ class ProposalBank:
     ):
         self.model, self.dataset, self.device = model, dataset, device
         self.num_history = int(model.proposal_history if num_history is None else num_history)
-        if capacity < self.num_history + 1:
+        if capacity < 2 * (self.num_history + 1):
             raise ValueError(
-                f"ProposalBank capacity {capacity} cannot hold one window ({self.num_history + 1}"
-                " frames)"
+                f"ProposalBank capacity {capacity} is below 2 * (num_history + 1) = "
+                f"{2 * (self.num_history + 1)} frames, twice a window (module docstring)"
             )
         self.capacity = int(capacity)
         attack = getattr(dataset, "attack", None)

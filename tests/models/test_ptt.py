@@ -220,8 +220,23 @@ def test_the_bank_computes_each_frame_once_and_as_recomputing_it(val_cfg):
     np.testing.assert_array_equal(
         out["roi_boxes"][0][: len(bank.frame(seq, 9))].numpy(), bank.frame(seq, 9)
     )
-    with pytest.raises(ValueError, match="capacity"):
-        ProposalBank(model, clean, device=CPU, num_history=31, capacity=8)
+    with pytest.raises(ValueError, match=r"capacity 63 is below 2 \* \(num_history \+ 1\) = 64"):
+        ProposalBank(model, clean, device=CPU, num_history=31, capacity=63)
+
+
+def test_the_smallest_bank_still_computes_each_frame_once(val_cfg):
+    """At its smallest capacity (twice a window) the bank drops only frames no later window
+    reads: a pass over frames 5..16 with 4 frames of history computes frames 1..16 once each
+    (a bank of one window, 5 frames, drops frame t as window t + 1 inserts itself)."""
+    cfg, data_cfg = val_cfg
+    clean = AtlasWaymoDataset(
+        data_cfg, cfg.CLASS_NAMES, REPO_ROOT / "cfgs" / "attacks" / "clean.yaml", training=False
+    )
+    bank = ProposalBank(synthetic_ptt().eval(), clean, device=CPU, num_history=4, capacity=10)
+    for index in range(5, 17):
+        batch = collate_batch([clean[index]])
+        bank.attach(batch, load_data_to_device(batch, CPU))
+    assert bank.stats()["rpn_frames"] == 16 and bank.stats()["frames_held"] == 10
 
 
 def test_a_spoofed_history_reaches_ptt_while_the_current_frame_is_clean(val_cfg, injection):
