@@ -338,6 +338,11 @@ def test_missing_required_augmentation_key(root):
     del rotation["WORLD_ROT_ANGLE"]
     with pytest.raises(ConfigError, match="missing required key 'WORLD_ROT_ANGLE'"):
         WaymoDataset(cfg, CLASS_NAMES, training=True, root_path=root)
+    rotation["WORLD_ROT_ANGLE"] = 0.78  # a scalar angle is symmetric: fine
+    scaling = next(a for a in augs if a.NAME == "random_world_scaling")
+    scaling["WORLD_SCALE_RANGE"] = 1.05  # a scalar scale is not
+    with pytest.raises(ConfigError, match=r"WORLD_SCALE_RANGE must be a \[low, high\] pair.*1\.05"):
+        WaymoDataset(cfg, CLASS_NAMES, training=True, root_path=root)
 
 
 @pytest.mark.parametrize("key", ["SAMPLE_GROUPS", "PREPARE.filter_by_min_points"])

@@ -330,8 +330,9 @@ class GTSampling:
             boxes = boxes.astype(np.float32).astype(np.float64)  # OpenPCDet compares float32
             if boxes.shape[1] < width:
                 raise WaymoFormatError(
-                    f"gt_sampling: database boxes have {boxes.shape[1]} values, the scene's "
-                    f"{width} (TRAIN_WITH_SPEED needs a database with speeds)"
+                    f"gt_sampling: {class_name} boxes of {[str(p) for p in self.db_info_paths]} "
+                    f"have {boxes.shape[1]} values, the scene's {width} (TRAIN_WITH_SPEED needs "
+                    "a database with speeds)"
                 )
             hit_existing = boxes_bev_overlap(boxes, existed).any(axis=1)
             hit_sampled = boxes_bev_overlap(boxes, boxes)
@@ -363,8 +364,9 @@ class GTSampling:
                 t_min = t_max = 0.0
             else:
                 raise WaymoFormatError(
-                    f"gt_sampling: database points have {obj.shape[1]} columns, the scene "
-                    f"{points.shape[1]}; NUM_POINT_FEATURES does not fit this dataset"
+                    f"gt_sampling: the points of {[str(p) for p in self.db_info_paths]} have "
+                    f"{obj.shape[1]} columns, the scene {points.shape[1]} (frame "
+                    f"{data_dict.get('frame_id')}); NUM_POINT_FEATURES does not fit this dataset"
                 )
             lag = obj[:, -1]
             obj = obj[(lag < t_max + 1e-6) & (lag > t_min - 1e-6)]

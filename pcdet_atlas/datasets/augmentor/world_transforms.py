@@ -139,6 +139,11 @@ class RandomWorldScaling:
     CONFIG_KEYS = ("WORLD_SCALE_RANGE",)
 
     def __init__(self, scale_range: tuple[float, float] = (0.95, 1.05)):
+        if isinstance(scale_range, (int, float)):  # no symmetric reading, unlike an angle
+            raise ConfigError(
+                "WORLD_SCALE_RANGE must be a [low, high] pair of scale factors, got "
+                f"{scale_range!r}"
+            )
         low, high = _range_pair(scale_range, "WORLD_SCALE_RANGE")
         if low <= 0:
             raise ConfigError(f"WORLD_SCALE_RANGE must be positive, got {scale_range!r}")
@@ -147,7 +152,7 @@ class RandomWorldScaling:
     @classmethod
     def from_config(cls, cfg: Mapping, **context) -> RandomWorldScaling:
         require_keys(cfg, ("WORLD_SCALE_RANGE",), "random_world_scaling")
-        return cls(scale_range=tuple(cfg["WORLD_SCALE_RANGE"]))
+        return cls(scale_range=cfg["WORLD_SCALE_RANGE"])
 
     def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
         scale = float(rng.uniform(*self.scale_range))
