@@ -32,7 +32,7 @@ import numpy as np
 
 from pcdet_atlas.datasets.augmentor.box_ops import box_index_of_points
 from pcdet_atlas.datasets.multiframe import SequenceConfig
-from pcdet_atlas.utils.common import save_pickle
+from pcdet_atlas.utils.common import save_pickle, write_atomic
 
 __all__ = ["create_groundtruth_database", "gt_database_paths", "write_split_infos"]
 
@@ -123,13 +123,16 @@ def create_groundtruth_database(
                 all_db_infos.setdefault(db_info["name"], []).append(db_info)
     for name, entries in all_db_infos.items():
         logger.info(f"GT database {name}: {len(entries)} objects")
-    with open(paths["info"], "wb") as f:
-        pickle.dump(all_db_infos, f)
     num_columns = 5 + (1 if sequence_cfg is not None else 0)
     global_points = (
         np.concatenate(stacked, axis=0) if stacked else np.zeros((0, num_columns), np.float32)
     )
-    np.save(paths["global"], global_points)
+    # the info file's offsets index the stacked points: the old info goes first and the new
+    # one is published last, each file whole, so a kill in between leaves no info file (an
+    # error naming it) rather than offsets into another database's points
+    Path(paths["info"]).unlink(missing_ok=True)
+    write_atomic(paths["global"], lambda f: np.save(f, global_points))
+    save_pickle(all_db_infos, paths["info"])
     return paths
 
 

@@ -227,3 +227,25 @@ def test_negative_workers_is_an_error(db_root):
     )  # fmt: skip
     with pytest.raises(ValueError, match="workers must be >= 0, got -1"):
         create_groundtruth_database(dataset, workers=-1)
+
+
+def test_a_rebuild_killed_before_the_info_file_leaves_none(db_root, tmp_path, monkeypatch):
+    """The info file's offsets index the stacked points: a rebuild killed while it writes them
+    leaves no info file (an error naming it) instead of the old one beside new points."""
+    from pcdet_atlas.datasets import gt_database
+
+    dataset = WaymoDataset(
+        cfg_from_yaml_file(CFG_DIR / "waymo_dataset_multiframe.yaml"), ["Vehicle"],
+        training=False, root_path=db_root,
+    )  # fmt: skip
+    dataset.set_split("train")
+    paths = create_groundtruth_database(dataset, save_path=tmp_path)
+    assert paths["info"].is_file() and paths["global"].is_file()
+
+    def killed(path, write, **kw):
+        raise KeyboardInterrupt(f"killed while writing {path}")
+
+    monkeypatch.setattr(gt_database, "write_atomic", killed)
+    with pytest.raises(KeyboardInterrupt, match="_global.npy"):
+        create_groundtruth_database(dataset, save_path=tmp_path)
+    assert not paths["info"].exists()
