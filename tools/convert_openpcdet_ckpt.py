@@ -17,6 +17,7 @@ repository does not convert: part of its head has no counterpart here (the error
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from pcdet_atlas.config import cfg_from_list, cfg_from_yaml_file
@@ -54,8 +55,17 @@ def main(argv: list[str] | None = None) -> Path:
     if args.set_cfgs:
         cfg_from_list(args.set_cfgs, cfg)
     model = build_network_from_config(cfg)
-    written = convert_openpcdet_checkpoint(args.ckpt, out, model, spconv_layout=args.spconv_layout)
-    model.load_params_from_file(out, strict=True)  # the promise of this tool
+    # written beside --out and loaded strictly (the promise of this tool) before it takes the
+    # name: a failed check or a kill leaves no --out that a rerun would have to --overwrite
+    staged = out.with_name(f".{out.name}.unchecked")
+    try:
+        written = convert_openpcdet_checkpoint(
+            args.ckpt, staged, model, spconv_layout=args.spconv_layout
+        )
+        model.load_params_from_file(staged, strict=True)
+        os.replace(staged, out)
+    finally:
+        staged.unlink(missing_ok=True)
     source = written["converted_from"]
     rpn = written.get("model_info", {}).get("rpn")
     print(

@@ -43,6 +43,7 @@ from pcdet_atlas.models.detectors.detector3d_template import (
     read_checkpoint,
 )
 from pcdet_atlas.ops.spconv import SparseConv3d, SubMConv3d
+from pcdet_atlas.utils.common import write_atomic
 from pcdet_atlas.version import __version__
 
 __all__ = [
@@ -520,7 +521,5 @@ def convert_openpcdet_checkpoint(
             "spconv_layout": layout,
         },
     )
-    dst = Path(dst)
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(out, dst)
+    write_atomic(dst, lambda f: torch.save(out, f))
     return out

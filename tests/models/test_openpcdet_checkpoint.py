@@ -349,7 +349,7 @@ def test_square_weights_need_the_layout_named():
     assert torch.equal(ours[k], state[k].permute(4, 0, 1, 2, 3))
 
 
-def test_convert_tool(tmp_path, capsys):
+def test_convert_tool(tmp_path, capsys, monkeypatch):
     cfg_path = SYNTHETIC / "cp4f_voxel.yaml"
     cfg = cfg_from_yaml_file(cfg_path)
     src = tmp_path / "openpcdet" / "checkpoint_epoch_36.pth"
@@ -375,6 +375,19 @@ def test_convert_tool(tmp_path, capsys):
 
     with pytest.raises(FileExistsError, match="--overwrite"):
         tool.main(["--cfg", str(cfg_path), "--ckpt", str(src), "--out", str(out)])
+    # a conversion that fails its strict load leaves no --out (nor its staged file) behind
+    from pcdet_atlas.models.detectors.detector3d_template import Detector3DTemplate
+
+    def fails(self, filename, **kw):
+        raise RuntimeError(f"strict load of {filename} failed")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(Detector3DTemplate, "load_params_from_file", fails)
+        with pytest.raises(RuntimeError, match=r"c\.pth\.unchecked failed"):
+            tool.main(
+                ["--cfg", str(cfg_path), "--ckpt", str(src), "--out", str(tmp_path / "c.pth")]
+            )
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["converted.pth", "openpcdet"]
     bad = copy.deepcopy(theirs)
     del bad["backbone_3d.conv_out.1.running_var"]
     torch.save({"model_state": bad}, src)
