@@ -224,7 +224,7 @@ def main(argv=None) -> dict:
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     run_file = out_dir / "run.json"
-    setting = {"data_path": str(root), "attacks": args.attacks,
+    setting = {"data_path": str(root), "attacks": args.attacks, "cfgs": list(map(str, cfgs)),
                "set": list(args.set_cfgs), "no_reuse": args.no_reuse}  # fmt: skip
     elapsed_before, calls = 0.0, 1
     previous = json.loads(run_file.read_text()) if run_file.is_file() else {}

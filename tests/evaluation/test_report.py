@@ -466,6 +466,11 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     changed = reproduce.main(argv(20))  # another setting: evaluated again
     assert all(Path(r["results"]).stat().st_mtime_ns > s
                for r, s in zip(changed["run"]["runs"], stamps))  # fmt: skip
+    # another model set is another run: its time and calls are not added to this one's
+    one = argv(20)
+    del one[one.index("--cfgs") + 2]  # the first model only
+    alone = reproduce.main(one)
+    assert alone["run"]["calls"] == 1 and len(alone["run"]["runs"]) == 1
 
 
 def test_reproduce_starts_rpns_then_the_longest_models_first():
