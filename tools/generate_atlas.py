@@ -115,13 +115,23 @@ def write_sequence(
         infos.append(info)
         metas[info["frame_id"]] = meta
         progress.update(1)
-    saved = {"variant": attack.variant, "attack_cfg": attack_cfg, "frames": metas}
+    saved = {"variant": attack.variant, "attack_cfg": attack_cfg, "frames": metas,
+             "source": _source(dataset, seq_name)}  # fmt: skip
     save_pickle(saved, out_seq / f"{seq_name}_atlas.pkl")
     wf.save_sequence_infos(out_seq / f"{seq_name}.pkl", infos)  # written last: the done marker
     return metas
 
 
-def _done(out_seq: Path, seq_name: str, variant: str, attack_cfg: dict) -> dict | None:
+def _source(dataset: AtlasWaymoDataset, seq_name: str) -> dict:
+    """What a written sequence was attacked from: the source root and its frame count (synthetic
+    sequence names repeat across datasets generated with the same seed)."""
+    return {"root": str(Path(dataset.root_path).resolve()),
+            "num_frames": len(dataset.seq_name_to_infos[seq_name])}  # fmt: skip
+
+
+def _done(
+    out_seq: Path, seq_name: str, variant: str, attack_cfg: dict, source: dict
+) -> dict | None:
     meta_pkl, info_pkl = out_seq / f"{seq_name}_atlas.pkl", out_seq / f"{seq_name}.pkl"
     if not (meta_pkl.is_file() and info_pkl.is_file()):
         return None
@@ -131,6 +141,11 @@ def _done(out_seq: Path, seq_name: str, variant: str, attack_cfg: dict) -> dict 
         raise ValueError(
             f"{meta_pkl}: holds variant {saved.get('variant')!r}, not {variant!r}; "
             "use another --out_dir"
+        )
+    if saved.get("source") != source:
+        raise ValueError(
+            f"{meta_pkl}: attacked from {saved.get('source')}, not {source}; use another "
+            "--out_dir or delete it"
         )
     old, new = _flatten(saved.get("attack_cfg", {})), _flatten(attack_cfg)
     differ = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
@@ -187,7 +202,7 @@ def main(argv=None) -> Path:
     with tqdm(total=total, desc=dataset.attack.variant, unit="frame") as progress:
         for name in names:
             out_seq = wf.data_dir(out_root, dataset.processed_data_tag) / name
-            done = _done(out_seq, name, dataset.attack.variant, plain_cfg)
+            done = _done(out_seq, name, dataset.attack.variant, plain_cfg, _source(dataset, name))
             if done is not None:
                 frames.update(done)
                 progress.update(len(dataset.seq_name_to_infos[name]))
