@@ -373,6 +373,8 @@ def test_step_shares(cfg_file: str, data_path: Path, frames: int, device: torch.
     Frames ``32 .. 32 + frames`` of the val split (inside the first spoofed run) are served by
     ``AtlasWaymoDataset`` for ``clean``, ``inj_global_hard`` and ``rem_40``; data loading of the
     clean variant is plain loading, the rest of an attacked variant's data time is the attack.
+    An untimed clean pass over the same frames runs first: the first pass pays for reading the
+    files and growing the allocator, which would otherwise land on ``clean`` alone.
     """
     from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
     from pcdet_atlas.evaluation import evaluate_attack
@@ -391,8 +393,8 @@ def test_step_shares(cfg_file: str, data_path: Path, frames: int, device: torch.
         inj.TRACE_LIBRARY.MIN_POINTS = 100
         lib = build_trace_library(data_path, TraceFilter.from_config(inj.TRACE_LIBRARY))
         inj.TRACE_LIBRARY.PATH = str(lib.save(Path(tmp) / "lib.npz"))
-        variants = [("clean", attacks / "clean.yaml"), ("inj_global_hard", inj)]
-        variants.append(("rem_40", attacks / "rem_40.yaml"))
+        variants = [("warm-up", attacks / "clean.yaml"), ("clean", attacks / "clean.yaml")]
+        variants += [("inj_global_hard", inj), ("rem_40", attacks / "rem_40.yaml")]
         for name, attack_cfg in variants:
             dataset, loader = build_attack_loader(
                 cfg.DATA_CONFIG, cfg.CLASS_NAMES, attack_cfg, batch_size=1, dist=False,
@@ -401,6 +403,10 @@ def test_step_shares(cfg_file: str, data_path: Path, frames: int, device: torch.
             if len(dataset.infos) < 32 + frames:
                 raise SystemExit(f"--share_cfg needs >= {32 + frames} val frames in {data_path}")
             dataset.infos = dataset.infos[32 : 32 + frames]
+            # the loader's sampler was built for the whole split: one over the kept frames
+            loader = torch.utils.data.DataLoader(
+                dataset, batch_size=1, shuffle=False, collate_fn=dataset.collate_batch
+            )
             timings: dict = {}
             annos, extras = predict_dataset(
                 model, loader, device=device, show_progress=False, timings=timings
@@ -410,7 +416,8 @@ def test_step_shares(cfg_file: str, data_path: Path, frames: int, device: torch.
             if name != "clean":
                 evaluate_attack(annos, [e["attack"] for e in extras], window=1)
             timings["metric"] = time.perf_counter() - t0
-            rows.append((name, timings))
+            if name != "warm-up":
+                rows.append((name, timings))
     clean_data = rows[0][1]["data"]
     print(f"\ntest step of {cfg_file}, {frames} frames (32..{31 + frames}), batch 1, {device}")
     print("| variant | data loading | attack simulation | model | metric | s / frame |")
