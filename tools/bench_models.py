@@ -396,15 +396,14 @@ def test_step_shares(cfg_file: str, data_path: Path, frames: int, device: torch.
         variants = [("warm-up", attacks / "clean.yaml"), ("clean", attacks / "clean.yaml")]
         variants += [("inj_global_hard", inj), ("rem_40", attacks / "rem_40.yaml")]
         for name, attack_cfg in variants:
-            dataset, loader = build_attack_loader(
+            dataset, _ = build_attack_loader(  # its loader covers the whole split
                 cfg.DATA_CONFIG, cfg.CLASS_NAMES, attack_cfg, batch_size=1, dist=False,
                 workers=0, seed=0,
             )  # fmt: skip
             if len(dataset.infos) < 32 + frames:
                 raise SystemExit(f"--share_cfg needs >= {32 + frames} val frames in {data_path}")
             dataset.infos = dataset.infos[32 : 32 + frames]
-            # the loader's sampler was built for the whole split: one over the kept frames
-            loader = torch.utils.data.DataLoader(
+            loader = torch.utils.data.DataLoader(  # over the kept frames only
                 dataset, batch_size=1, shuffle=False, collate_fn=dataset.collate_batch
             )
             timings: dict = {}

@@ -343,10 +343,11 @@ def evaluate_checkpoint(
     for variant, attack in attacks.items():
         if variant in finished:
             entry = finished[variant]
-            if variant == "clean" or (args.save_to_file and rank == 0):
+            write_files = args.save_to_file and rank == 0  # the earlier call may have run without
+            if variant == "clean" or write_files:
                 with open(out_dir / variant / "result.pkl", "rb") as f:
                     kept_annos = pickle.load(f)
-            if args.save_to_file and rank == 0:  # the earlier call may have run without it
+            if write_files:
                 write_prediction_files(kept_annos, out_dir / variant / "final_result" / "data")
             if variant == "clean":  # its predictions are reused, its proposals seed (below)
                 clean_annos = kept_annos
