@@ -30,11 +30,18 @@ _SOURCES_ATTR = "_key_sources"
 
 
 def resolve_repo_path(path: str | Path) -> Path:
-    """A path from a config or the command line: absolute as given, else relative to the
-    repository root (``DATA_PATH``, an RPN's ``CFG`` / ``CHECKPOINT``), whatever the working
-    directory."""
+    """A path from a config (``DATA_PATH``, an RPN's ``CFG`` / ``CHECKPOINT``, also when given
+    with ``--set``): absolute as given, else relative to the repository root, whatever the
+    working directory."""
     path = Path(path).expanduser()
     return path if path.is_absolute() else (REPO_ROOT / path).resolve()
+
+
+def resolve_cli_path(path: str | Path) -> Path:
+    """A path typed as a tool's option (``--data_path``, ``--out_dir``, ...): absolute as given,
+    else relative to the working directory, as any shell command reads it. Tools resolve it
+    before it enters a config, where :func:`resolve_repo_path` would read it otherwise."""
+    return Path(path).expanduser().resolve()
 
 
 def repo_relative(path: str | Path) -> Path:

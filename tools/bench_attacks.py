@@ -38,6 +38,7 @@ import torch
 
 from pcdet_atlas.attacks.counters import COUNTERS, AttackCounters
 from pcdet_atlas.attacks.raycast import raycast_merge
+from pcdet_atlas.config import REPO_ROOT
 from pcdet_atlas.ops.lidar_model import LidarModel
 
 
@@ -244,9 +245,9 @@ def _getitem_data(args):
     from pathlib import Path
 
     from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, build_trace_library
-    from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, resolve_repo_path
+    from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, resolve_cli_path
 
-    root = resolve_repo_path(args.data_path)
+    root = resolve_cli_path(args.data_path)
     if not (root / "ImageSets" / "val.txt").is_file():
         from pcdet_atlas.datasets.synthetic import create_synthetic_waymo
 
@@ -416,7 +417,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--num_points", type=int, default=180_000)
     parser.add_argument("--spoof_points", type=int, default=1000)
-    parser.add_argument("--data_path", default="data/synthetic_waymo", help="getitem part")
+    parser.add_argument(
+        "--data_path", default=str(REPO_ROOT / "data" / "synthetic_waymo"), help="getitem part"
+    )
     parser.add_argument(
         "--warmup_s", type=float, default=8.0, help="getitem part: process warm-up per input"
     )

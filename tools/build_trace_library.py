@@ -20,7 +20,13 @@ import numpy as np
 from tqdm import tqdm
 
 from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, build_trace_library
-from pcdet_atlas.config import ConfigError, cfg_from_list, cfg_from_yaml_file, resolve_repo_path
+from pcdet_atlas.config import (
+    REPO_ROOT,
+    ConfigError,
+    cfg_from_list,
+    cfg_from_yaml_file,
+    resolve_cli_path,
+)
 from pcdet_atlas.ops.lidar_model import LidarModel
 from pcdet_atlas.utils.common import create_logger
 
@@ -28,7 +34,9 @@ from pcdet_atlas.utils.common import create_logger
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cfg", "--cfg_file", dest="cfg", required=True, help="injection YAML")
-    parser.add_argument("--data_path", default="data/synthetic_waymo", help="dataset root")
+    parser.add_argument(
+        "--data_path", default=str(REPO_ROOT / "data" / "synthetic_waymo"), help="dataset root"
+    )
     parser.add_argument("--out", default=None, help="output .npz (default TRACE_LIBRARY.PATH)")
     parser.add_argument(
         "--overwrite", action="store_true", help="replace a library built with other filters"
@@ -46,10 +54,11 @@ def main(argv=None) -> Path:
     if "TRACE_LIBRARY" not in cfg:
         raise ConfigError(f"{args.cfg}: no TRACE_LIBRARY section (not an injection attack?)")
     filters = TraceFilter.from_config(cfg.TRACE_LIBRARY)
-    root = resolve_repo_path(args.data_path)
-    out = Path(args.out) if args.out else Path(filters.path)
+    root = resolve_cli_path(args.data_path)
+    # --out as typed (the working directory); TRACE_LIBRARY.PATH relative to the dataset root
+    out = resolve_cli_path(args.out) if args.out else Path(filters.path)
     if not out.is_absolute():
-        out = (Path.cwd() / out) if args.out else (root / out)
+        out = root / out
     lidar = LidarModel.from_config(cfg.get("LIDAR"))
     if out.is_file() and not args.overwrite:
         check_same_build(out, filters, list(lidar.origin_xyz))

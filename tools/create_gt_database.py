@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 
-from pcdet_atlas.config import cfg_from_list, cfg_from_yaml_file
+from pcdet_atlas.config import cfg_from_list, cfg_from_yaml_file, resolve_cli_path
 from pcdet_atlas.datasets import WaymoDataset
 from pcdet_atlas.datasets.gt_database import create_groundtruth_database, write_split_infos
 from pcdet_atlas.utils.common import create_logger
@@ -36,8 +36,9 @@ def main(argv: list[str] | None = None) -> None:
         dataset_cfg = cfg_from_yaml_file(cfg_file)
         if args.set_cfgs:
             cfg_from_list(args.set_cfgs, dataset_cfg)
+        root = None if args.data_path is None else resolve_cli_path(args.data_path)
         dataset = WaymoDataset(
-            dataset_cfg, args.class_names, training=False, root_path=args.data_path, logger=logger
+            dataset_cfg, args.class_names, training=False, root_path=root, logger=logger
         )
         dataset.set_split(args.split)
         infos_path = write_split_infos(dataset)

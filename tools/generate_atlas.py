@@ -44,6 +44,7 @@ from pcdet_atlas.config import (
     ConfigError,
     cfg_from_list,
     cfg_from_yaml_file,
+    resolve_cli_path,
     resolve_repo_path,
     save_config,
     to_plain,
@@ -181,7 +182,7 @@ def main(argv=None) -> Path:
     args = parse_args(argv)
     logger = create_logger()
     data_cfg = cfg_from_yaml_file(args.data_cfg)
-    out_root = resolve_repo_path(args.out_dir)
+    out_root = resolve_cli_path(args.out_dir)
     if "DATA_PATH" not in data_cfg:
         raise ConfigError(f"{args.data_cfg}: no DATA_PATH (the source dataset root)")
     check_out_dir(out_root, resolve_repo_path(data_cfg.DATA_PATH))

@@ -48,7 +48,13 @@ from pathlib import Path
 import torch.distributed as torch_dist
 import yaml
 
-from pcdet_atlas.config import REPO_ROOT, ConfigError, save_config, to_plain
+from pcdet_atlas.config import (
+    ConfigError,
+    resolve_cli_path,
+    resolve_repo_path,
+    save_config,
+    to_plain,
+)
 from pcdet_atlas.evaluation import build_results, format_table, load_results, save_results
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.detectors.two_stage import file_sha256
@@ -129,12 +135,15 @@ def parse_args(argv=None):
 
 
 def resolve_checkpoint(arg: str | None, atlas_cfg) -> Path:
-    ckpt = arg if arg is not None else atlas_cfg.get("CHECKPOINT")
-    if ckpt is None:
+    """``--ckpt`` as typed (relative to the working directory), else the config's
+    ``ATLAS.CHECKPOINT`` (relative to the repository root)."""
+    if arg is not None:
+        ckpt, path = arg, resolve_cli_path(arg)
+    elif atlas_cfg.get("CHECKPOINT") is not None:
+        ckpt = atlas_cfg.CHECKPOINT
+        path = resolve_repo_path(ckpt)
+    else:
         raise ConfigError("no checkpoint: pass --ckpt (the config's ATLAS.CHECKPOINT is null)")
-    path = Path(ckpt)
-    if not path.is_absolute() and not path.is_file():
-        path = REPO_ROOT / path
     if not path.is_file():
         raise FileNotFoundError(
             f"checkpoint {ckpt} not found (train one with tools/train.py, or pass --ckpt)"

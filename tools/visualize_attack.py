@@ -29,7 +29,12 @@ import torch  # noqa: E402
 
 from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset  # noqa: E402
 from pcdet_atlas.attacks.removal import RemovalAttack  # noqa: E402
-from pcdet_atlas.config import REPO_ROOT, cfg_from_list, cfg_from_yaml_file  # noqa: E402
+from pcdet_atlas.config import (  # noqa: E402
+    REPO_ROOT,
+    cfg_from_list,
+    cfg_from_yaml_file,
+    resolve_cli_path,
+)
 from pcdet_atlas.ops.boxes import boxes_to_corners_3d  # noqa: E402
 
 CLASS_NAMES = ["Vehicle", "Pedestrian", "Cyclist"]
@@ -168,7 +173,7 @@ def main(argv=None) -> Path:
         cfg_from_list(args.set_cfgs, attack_cfg)
     data_cfg = cfg_from_yaml_file(args.data_cfg)
     if args.data_path is not None:
-        cfg_from_list(["DATA_PATH", args.data_path], data_cfg)
+        cfg_from_list(["DATA_PATH", str(resolve_cli_path(args.data_path))], data_cfg)
     dataset = AtlasWaymoDataset(data_cfg, CLASS_NAMES, attack_cfg)
     if not 0 <= args.frame < len(dataset):
         raise SystemExit(f"--frame {args.frame} outside the split's {len(dataset)} frames")

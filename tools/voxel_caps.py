@@ -19,7 +19,7 @@ import argparse
 import numpy as np
 import torch
 
-from pcdet_atlas.config import cfg_from_yaml_file
+from pcdet_atlas.config import cfg_from_yaml_file, resolve_cli_path
 from pcdet_atlas.datasets import build_dataloader
 from pcdet_atlas.datasets.dataset import collate_batch
 from pcdet_atlas.models.model_utils.hard_voxelize import hard_voxelize
@@ -41,7 +41,7 @@ def cap_table(cfg_file: str, data_path: str | None, caps: list[int], frames: int
     if vfe.get("NAME") != "MeanVFE":
         raise SystemExit(f"{cfg_file}: MODEL.VFE.NAME is {vfe.get('NAME')!r}, not MeanVFE")
     if data_path is not None:
-        cfg.DATA_CONFIG.DATA_PATH = data_path
+        cfg.DATA_CONFIG.DATA_PATH = str(resolve_cli_path(data_path))
     dataset, _, _ = build_dataloader(
         cfg.DATA_CONFIG, cfg.CLASS_NAMES, 1, False, workers=0, training=False
     )

@@ -67,6 +67,15 @@ def test_out_dir_beside_the_source_is_written(source, tmp_path):
     assert sorted(p.name for p in (out_dir / "ImageSets").iterdir()) == ["val.txt"]
 
 
+def test_relative_out_dir_is_read_from_the_working_directory(source, tmp_path, monkeypatch):
+    root, cfg_path = source
+    monkeypatch.chdir(tmp_path / "data")
+    load_tool("generate_atlas").main(gen_args(cfg_path, "tiny_clean"))
+    assert (tmp_path / "data" / "tiny_clean" / "atlas_attack_metadata.pkl").is_file()
+    with pytest.raises(ValueError, match="lies inside the source"):  # relative to the cwd too
+        load_tool("generate_atlas").main(gen_args(cfg_path, "tiny/atlas"))
+
+
 @pytest.mark.parametrize("variant", ["inj_rel_hard", "rem_60"])
 def test_lidar_counts_sum_to_the_written_rows(tmp_path, variant):
     """``num_points_of_each_lidar`` of a written frame counts the rows kept of each LiDAR, the

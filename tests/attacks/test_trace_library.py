@@ -1,10 +1,12 @@
+import os
+
 import numpy as np
 import pytest
 from atlas_helpers import VEHICLES, load_tool, synthetic_library, write_tiny_waymo
 
 from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
-from pcdet_atlas.datasets.waymo_format import read_image_set
+from pcdet_atlas.datasets.waymo_format import WaymoFormatError, read_image_set
 
 
 @pytest.fixture(scope="module")
@@ -76,6 +78,19 @@ def test_build_tool_writes_under_data_root(tiny_root, capfd):
     expected = f"{sizes.min()}/{int(np.median(sizes))}/{sizes.max()}"
     logged = capfd.readouterr()
     assert f"min/median/max {expected}" in logged.out + logged.err
+
+
+def test_build_tool_reads_its_paths_from_the_working_directory(tiny_root, tmp_path, monkeypatch):
+    """--data_path and --out as typed, relative to the working directory (not the repo root)."""
+    monkeypatch.chdir(tiny_root.parent)
+    args = ["--cfg", str(REPO_ROOT / "cfgs/attacks/inj_rel_easy.yaml"), "--data_path",
+            tiny_root.name, "--out", os.path.relpath(tmp_path / "rel_lib.npz")]  # fmt: skip
+    out = load_tool("build_trace_library").main(args)
+    assert out == tmp_path / "rel_lib.npz" and out.is_file()
+    assert TraceLibrary.load(out).build_info["split"] == "train"
+    monkeypatch.chdir(tmp_path)  # the same relative --data_path names nothing here
+    with pytest.raises(WaymoFormatError, match=str(tmp_path / tiny_root.name)):
+        load_tool("build_trace_library").main(args)
 
 
 def test_library_of_the_synthetic_dataset(synthetic_root, tmp_path):

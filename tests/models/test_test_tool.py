@@ -115,6 +115,19 @@ def test_bad_inputs_are_clear_errors(eval_setup, tmp_path):
     assert not (tmp_path / "atlas").exists()  # a failed start-up writes nothing
 
 
+def test_ckpt_is_read_from_the_working_directory(tmp_path, monkeypatch):
+    """--ckpt as typed (the working directory); ATLAS.CHECKPOINT from the repository root."""
+    resolve = load_tool("test").resolve_checkpoint
+    atlas_cfg = cfg_from_yaml_file(CFG).ATLAS
+    shipped = REPO_ROOT / atlas_cfg.CHECKPOINT
+    monkeypatch.chdir(tmp_path)
+    assert resolve(None, atlas_cfg) == shipped
+    (tmp_path / "mine.pth").write_bytes(b"")
+    assert resolve("mine.pth", atlas_cfg) == tmp_path / "mine.pth"
+    with pytest.raises(FileNotFoundError, match="checkpoint"):  # no fallback to the repo root
+        resolve(atlas_cfg.CHECKPOINT, atlas_cfg)
+
+
 def with_attacks(args, attacks):
     out = list(args)
     out[out.index("--attacks") + 1] = attacks
