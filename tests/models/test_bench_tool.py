@@ -1,8 +1,8 @@
 """tools/bench_models.py end to end on the tiny synthetic dataset, at the smallest sizes: the
 latency table (a shipped model and a real-Waymo two-stage config whose RPN is not trained here),
-the test-step shares of the three attack families, selective_scan against its loop, and the
-sparse conv layers of a voxel backbone. The figures are not checked, only that every table is
-complete and its numbers are sane."""
+the test-step shares of the three attack families, PTT with and without its proposal bank,
+selective_scan against its loop, and the sparse conv layers of a voxel backbone. The figures
+are not checked, only that every table is complete and its numbers are sane."""
 
 import re
 import subprocess
@@ -38,6 +38,7 @@ def test_every_table_is_complete(synthetic_root):
         "--cfgs", "cfgs/atlas/synthetic/centerpoint.yaml", "cfgs/atlas/msf_4f.yaml",
         "--data_path", str(synthetic_root), "--frames", "1", "--threads", "1",
         "--share_cfg", "cfgs/atlas/synthetic/centerpoint.yaml", "--share_frames", "1",
+        "--bank_cfg", "cfgs/atlas/synthetic/ptt_32f.yaml", "--bank_frames", "3",
         "--ssm", "--ssm_lengths", "32",
         "--spconv", "cfgs/atlas/synthetic/cp4f_voxel.yaml", "--spconv_crop", "8",
         "--spconv_frame", "3",
@@ -59,6 +60,12 @@ def test_every_table_is_complete(synthetic_root):
     for row in shares:
         assert sum(number(c) for c in row[1:5]) == pytest.approx(100, abs=3), row
         assert number(row[5]) > 0
+
+    bank = table(out, "| proposals | RPN passes")
+    # frame t's window holds t previous frames: one RPN pass per frame with the bank, t + 1
+    # without it (1 + 2 + 3)
+    assert [(r[0], r[1]) for r in bank] == [("bank", "3"), ("no bank", "6")]
+    assert all(number(r[3]) > 0 for r in bank)
 
     scan = table(out, "| l | pass | chunked ms")
     assert [(r[0], r[1]) for r in scan] == [("32", "forward"), ("32", "forward + backward")]
