@@ -16,8 +16,8 @@ stage's (the RPN's is its CP-4f row); a two-stage config whose RPN checkpoint is
 real-Waymo ones) is listed as not built. PTT is timed with the proposal bank holding the
 previous frames: its RPN column is the bank's one RPN pass for the new frame (plus reading the
 history), and the bank's memory is printed below the table.
-Peak memory of one ``predict`` is measured in a fresh process per model (so no
-model reuses memory another freed): CUDA ``max_memory_allocated``, or on CPU the rise of the
+Peak memory of one ``predict`` (PTT's including its RPN pass into the bank) is measured in a
+fresh process per model (so no model reuses memory another freed): CUDA ``max_memory_allocated``, or on CPU the rise of the
 process's peak resident set (``VmHWM``, reset through ``/proc/self/clear_refs``).
 With ``--eval``, a model whose ``ATLAS.CHECKPOINT`` exists is evaluated (Waymo L2 mAP) on the
 val split of ``--data_path``; without a checkpoint the model runs with random weights and the
@@ -136,8 +136,9 @@ def _rss_kib() -> int:
 def _peak_memory_mib(
     cfg_file: str, data_path: str, device: str, trained: bool, start: int
 ) -> float:
-    """Peak memory of one ``predict`` on val frame ``start`` (PTT: with the bank holding its
-    proposal history), in a fresh process (MiB).
+    """Peak memory of one ``predict`` on val frame ``start`` in a fresh process (MiB). PTT: the
+    bank holds the previous frames' proposals, and the frame's RPN pass into the bank counts, as
+    a two-stage ``predict`` counts its RPN (and as the latency column does).
 
     CUDA: ``max_memory_allocated`` above what model and batch hold. CPU: rise of the process's
     peak resident set (``VmHWM``, reset just before) above its resident set before the call.
@@ -150,16 +151,19 @@ def _peak_memory_mib(
     model = build_network_from_config(cfg).to(dev).eval()
     if trained:
         model.load_params_from_file(REPO_ROOT / cfg.ATLAS.CHECKPOINT)
-    if _reads_proposal_history(cfg):  # the bank holds the previous frames' proposals; the
-        batch = _warm_bank(model, dataset, batch, dev).attach(batch, batch)  # RPN's not counted
+    bank = _warm_bank(model, dataset, batch, dev) if _reads_proposal_history(cfg) else None
+
+    def run():
+        model.predict(batch if bank is None else bank.attach(batch, batch))
+
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
         torch.cuda.reset_peak_memory_stats(dev)
         base = torch.cuda.memory_allocated(dev)
-        model.predict(batch)
+        run()
         return (torch.cuda.max_memory_allocated(dev) - base) / 2**20
     base, ok = _rss_kib(), _reset_hwm()
-    model.predict(batch)
+    run()
     hwm = _read_hwm_kib()
     return (hwm - base) / 1024 if ok and hwm is not None else float("nan")
 
