@@ -17,8 +17,9 @@ real-Waymo ones) is listed as not built. PTT is timed with the proposal bank hol
 previous frames: its RPN column is the bank's one RPN pass for the new frame (plus reading the
 history), and the bank's memory is printed below the table.
 Peak memory of one ``predict`` (PTT's including its RPN pass into the bank) is measured in a
-fresh process per model (so no model reuses memory another freed): CUDA ``max_memory_allocated``, or on CPU the rise of the
-process's peak resident set (``VmHWM``, reset through ``/proc/self/clear_refs``).
+fresh process per model (so no model reuses memory another freed): CUDA
+``max_memory_allocated``, or on CPU the rise of the process's peak resident set (``VmHWM``,
+reset through ``/proc/self/clear_refs``).
 With ``--eval``, a model whose ``ATLAS.CHECKPOINT`` exists is evaluated (Waymo L2 mAP) on the
 val split of ``--data_path``; without a checkpoint the model runs with random weights and the
 column says so ("checkpoint missing", or "no checkpoint" for configs without
