@@ -245,7 +245,7 @@ def _getitem_data(args):
     from pathlib import Path
 
     from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, build_trace_library
-    from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, resolve_cli_path
+    from pcdet_atlas.config import cfg_from_yaml_file, resolve_cli_path
 
     root = resolve_cli_path(args.data_path)
     if not (root / "ImageSets" / "val.txt").is_file():
@@ -289,7 +289,7 @@ def bench_getitem(args) -> None:
 
     from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
     from pcdet_atlas.attacks.schedule import is_spoofed
-    from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+    from pcdet_atlas.config import cfg_from_yaml_file
     from pcdet_atlas.datasets import WaymoDataset
 
     root, lib_path = _getitem_data(args)
@@ -374,7 +374,7 @@ def visible_counts(args) -> None:
     """Budget vs visible phantom points per injection variant (the one-echo-per-ray cap)."""
     from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
     from pcdet_atlas.attacks.schedule import is_spoofed
-    from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+    from pcdet_atlas.config import cfg_from_yaml_file
 
     root, lib_path = _getitem_data(args)
     data_cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "dataset_configs" / "synthetic_waymo.yaml")

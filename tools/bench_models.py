@@ -97,7 +97,7 @@ from pathlib import Path
 
 import torch
 
-from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, resolve_cli_path
 from pcdet_atlas.datasets import build_dataloader
 from pcdet_atlas.models import build_network_from_config, load_data_to_device
 from pcdet_atlas.models.detectors import PTT, TwoStageDetector
@@ -1159,7 +1159,7 @@ def main() -> None:
     all_cfgs = sorted(str(p) for p in (REPO_ROOT / "cfgs" / "atlas").rglob("*.yaml"))
     cfg_files = all_cfgs if args.cfgs is None else args.cfgs
     # absolute: a --baseline_src tree would resolve a relative path against itself
-    data_path = Path(args.data_path).resolve()
+    data_path = resolve_cli_path(args.data_path)
     tmp = None
     if not (data_path / "ImageSets" / "val.txt").is_file():
         from pcdet_atlas.datasets.synthetic import create_synthetic_waymo

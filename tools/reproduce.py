@@ -45,7 +45,13 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file, repo_relative, resolve_repo_path
+from pcdet_atlas.config import (
+    REPO_ROOT,
+    cfg_from_yaml_file,
+    repo_relative,
+    resolve_cli_path,
+    resolve_repo_path,
+)
 from pcdet_atlas.evaluation.results import ResultsError, collect_results, write_report
 from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.train_utils.atlas_eval import (
@@ -212,7 +218,7 @@ def main(argv=None) -> dict:
     args = parse_args(argv)
     if args.report_only:
         return rewrite_report(Path(args.out))
-    root = Path(args.data_path).resolve()  # the tools/test.py processes run in the repo root
+    root = resolve_cli_path(args.data_path)  # the tools/test.py processes run in the repo root
     if not (root / "ImageSets").is_dir():
         raise FileNotFoundError(
             f"{root}: no synthetic dataset there (generate it: see docs/synthetic.md "

@@ -1,3 +1,5 @@
+import shutil
+
 import numpy as np
 import pytest
 import torch
@@ -279,7 +281,7 @@ def test_generate_atlas_roundtrip_and_resume(tmp_path, keep_nlz):
         gen.main([*args, "SEED", "1"])
     assert npy.stat().st_mtime_ns == stamp
     # nor frames attacked from another dataset (synthetic sequence names repeat across them)
-    copy = __import__("shutil").copytree(root, tmp_path / "tiny_copy")
+    copy = shutil.copytree(root, tmp_path / "tiny_copy")
     copy_cfg = tmp_path / "copy.yaml"
     copy_cfg.write_text(cfg_path.read_text().replace(f"DATA_PATH: {root}", f"DATA_PATH: {copy}"))
     with pytest.raises(ValueError, match=r"attacked from \{'root': .*tiny'"):
