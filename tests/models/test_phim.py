@@ -13,6 +13,7 @@ from model_batches import make_batch
 
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.models import build_network_from_config
+from pcdet_atlas.models.backbones_3d.polar_sector_mamba import polar_neighbours
 from pcdet_atlas.models.model_utils.mamba import Mamba, pack_sequences
 from pcdet_atlas.models.model_utils.polar_grid import PolarGrid, polar_voxelize
 from pcdet_atlas.models.occupancy.occupancy_targets import occupancy_target
@@ -26,6 +27,7 @@ from pcdet_atlas.train_utils.stages import (
 CFGS = REPO_ROOT / "cfgs" / "atlas"
 PHIM_CONFIGS = sorted(p for p in CFGS.rglob("*.yaml") if cfg_from_yaml_file(p).MODEL.NAME == "PHiM")
 SYN_PHIM = CFGS / "synthetic" / "phim.yaml"
+SYN_PHIM_FINE = CFGS / "synthetic" / "phim_fine.yaml"
 SYN_STAGES = [CFGS / "synthetic" / "phim_lot" / f for f in
               ("stage1_score.yaml", "stage2_ssm.yaml", "stage3_finetune.yaml")]  # fmt: skip
 
@@ -80,6 +82,80 @@ def test_polar_voxelize_matches_a_per_point_reference():
     seam = {tuple(c) for i, c in zip(got_idx, coords) if i in (n - 4, n - 3)}
     assert seam == {(0, 1, 0, 2)}  # +pi and -pi share the first azimuth bin
     assert expected[n - 1][2] == 63  # just below +pi: the last bin, not outside
+
+
+def test_polar_grid_measures_from_its_origin():
+    """Range and azimuth are taken about ``origin_xy``: voxels of points about an origin are
+    those of the shifted points about zero, and the occupancy target moves with the boxes."""
+    kw = dict(range_m=(0.0, 40.0), z_range_m=(-2.0, 4.0), grid_size=(40, 128, 3), num_sectors=8)
+    at_lidar = PolarGrid(**kw, origin_xy=(1.43, -0.5))
+    g = torch.Generator().manual_seed(1)
+    xyz = (torch.rand(2000, 3, generator=g) - 0.5) * torch.tensor([80.0, 80.0, 6.0])
+    points = torch.cat([torch.zeros(len(xyz), 1), xyz, torch.zeros(len(xyz), 2)], 1).double()
+    shifted = points.clone()
+    shifted[:, 1] -= 1.43
+    shifted[:, 2] += 0.5
+    a, b = polar_voxelize(points, at_lidar), polar_voxelize(shifted, PolarGrid(**kw))
+    assert torch.equal(a.voxel_coords, b.voxel_coords)
+    assert torch.equal(a.point_voxel_idx, b.point_voxel_idx)
+    # a point 1 m in front of the sensor lies in range bin 1 about it, bin 2 about the vehicle
+    probe = torch.tensor([[0.0, 2.93, -0.5, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    assert polar_voxelize(probe, at_lidar).voxel_coords[0, 3] == 1
+    boxes = torch.tensor([[[12.0, 5.0, 0.8, 4.6, 2.0, 1.6, 0.3, 1.0]]])
+    moved = boxes.clone()
+    moved[0, 0, :2] -= torch.tensor([1.43, -0.5])
+    torch.testing.assert_close(
+        occupancy_target(boxes, at_lidar, (2, 2)), occupancy_target(moved, PolarGrid(**kw), (2, 2))
+    )
+    with pytest.raises(ValueError, match="origin_xy"):
+        PolarGrid(**kw, origin_xy=(float("nan"), 0.0))
+
+
+def test_polar_neighbours_match_a_per_voxel_reference():
+    """Each voxel's neighbours along range, azimuth (dilated by range) and height, inside its
+    sector only, against a dictionary lookup."""
+    grid = PolarGrid((0.0, 32.0), (-2.0, 4.0), (40, 256, 4), 4)
+    g = torch.Generator().manual_seed(0)
+    cells = torch.stack(
+        [torch.randint(0, 2, (6000,), generator=g), torch.randint(0, 4, (6000,), generator=g),
+         torch.randint(0, 256, (6000,), generator=g), torch.randint(0, 40, (6000,), generator=g)],
+        dim=1,
+    ).unique(dim=0)  # fmt: skip
+    got = polar_neighbours(cells, grid)
+    where = {tuple(c): i for i, c in enumerate(cells.tolist())}
+    dr, da, _ = grid.cell_size
+    sb = grid.sector_bins
+    dilated = 0
+    for i, (b, z, a, r) in enumerate(cells.tolist()):
+        step = min(max(1, round(dr / ((r + 0.5) * dr * da))), sb // 2)
+        dilated += step > 1
+        want = []
+        for dz, dad, drr in [(0, 0, -1), (0, 0, 1), (0, -step, 0), (0, step, 0), (-1, 0, 0),
+                             (1, 0, 0)]:  # fmt: skip
+            q = (b, z + dz, a + dad, r + drr)
+            same_sector = (a + dad) // sb == a // sb and 0 <= a + dad < 256
+            want.append(where.get(q, -1) if same_sector else -1)
+        assert got[i].tolist() == want, (i, (b, z, a, r))
+    assert dilated > 100 and (got >= 0).sum() > 1000  # both cases are exercised
+    assert polar_neighbours(cells[:0], grid).shape == (0, 6)
+
+
+def test_decomposed_conv_reads_its_neighbours_and_nothing_else():
+    model, _ = build(SYN_PHIM_FINE)
+    block = model.backbone_3d.conv_blocks[0]
+    grid = model.backbone_3d.grid
+    coords = torch.tensor([[0, 2, 100, 50], [0, 2, 100, 51], [0, 2, 100, 53], [0, 3, 100, 50]])
+    nb = polar_neighbours(coords, grid)
+    assert nb[0].tolist() == [-1, 1, -1, -1, -1, 3]
+    x = torch.randn(4, block.norm.weight.shape[0])
+    with torch.no_grad():
+        y = block(x, nb)
+        x2 = x.clone()
+        x2[2] += 1.0  # two range bins away: not a neighbour of voxel 0
+        assert torch.equal(block(x2, nb)[0], y[0])
+        x3 = x.clone()
+        x3[3] += 1.0  # one height bin above voxel 0
+        assert not torch.allclose(block(x3, nb)[0], y[0])
 
 
 def test_pack_sequences_round_trip_and_reverse():
@@ -159,9 +235,10 @@ def test_phim_state_never_leaks_between_frames():
     torch.testing.assert_close(together["pred_boxes"], first["pred_boxes"], rtol=1e-4, atol=1e-4)
 
 
-def test_phim_streams_sectors_causally_in_azimuth_order():
+@pytest.mark.parametrize("path", [SYN_PHIM, SYN_PHIM_FINE], ids=lambda p: p.stem)
+def test_phim_streams_sectors_causally_in_azimuth_order(path: Path):
     """A sector's features depend on the sectors streamed before it, never on later ones."""
-    model, _ = build(SYN_PHIM)
+    model, _ = build(path)
     model.eval()
     grid = model.vfe.grid
     batch = one_sample(make_batch(num_point_features=5, background=4000), 0)

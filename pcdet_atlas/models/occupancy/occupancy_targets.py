@@ -76,9 +76,11 @@ def occupancy_target(
     r_t = r0 + (torch.arange(nr // pr, device=dev, dtype=torch.float64) + 0.5) * dr * pr
     out = torch.zeros(B, na // pa, nr // pr, dtype=torch.float32, device=dev)
     for b in range(B):
-        boxes = gt_boxes[b][gt_boxes[b, :, -1] > 0]
+        boxes = gt_boxes[b][gt_boxes[b, :, -1] > 0].clone()
         if boxes.shape[0] == 0:
             continue
+        boxes[:, 0] -= grid.origin_xy[0]  # the grid's polar coordinates are about its origin
+        boxes[:, 1] -= grid.origin_xy[1]
         ext = box_polar_extent(boxes)  # (M, 5)
         theta_c, lo, hi, r_min, r_max = ext.unbind(1)
         # binary: angular membership with the seam wrapped, radial membership; (M, na) x (M, nr)

@@ -63,9 +63,10 @@ class PolarVFE(nn.Module):
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> PolarVFE:
         check_known_keys(
-            cfg, ["NAME", "RANGE_M", "GRID_SIZE", "NUM_SECTORS", "NUM_FILTERS", "USE_NORM"],
+            cfg,
+            ["NAME", "RANGE_M", "GRID_SIZE", "NUM_SECTORS", "ORIGIN_XY", "NUM_FILTERS", "USE_NORM"],
             "MODEL.VFE",
-        )  # fmt: skip
+        )
         require_keys(cfg, ["RANGE_M", "GRID_SIZE", "NUM_SECTORS"], "MODEL.VFE")
         pcr = model_info["point_cloud_range"]
         grid = PolarGrid(
@@ -73,6 +74,7 @@ class PolarVFE(nn.Module):
             z_range_m=(float(pcr[2]), float(pcr[5])),
             grid_size=tuple(int(v) for v in cfg["GRID_SIZE"]),
             num_sectors=int(cfg["NUM_SECTORS"]),
+            origin_xy=tuple(float(v) for v in cfg.get("ORIGIN_XY", (0.0, 0.0))),
         )
         return cls(
             num_point_features=model_info["num_point_features"],
@@ -91,7 +93,9 @@ class PolarVFE(nn.Module):
         pts = points[vox.point_mask, 1:].float()  # (N_in, C)
         idx, coords = vox.point_voxel_idx, vox.voxel_coords
         num_voxels = coords.shape[0]
-        polar = polar_coordinates(pts[:, :3]).to(pts.dtype)  # (N_in, 3) r, theta, z
+        polar = polar_coordinates(pts[:, :3], self.grid.origin_xy).to(
+            pts.dtype
+        )  # (N_in, 3) r, theta, z
         mean = scatter_mean(pts[:, :3], idx, num_voxels, vox.voxel_num_points)  # (V, 3)
         centre = self.grid.cell_centres(coords).to(pts.dtype).index_select(0, idx)  # (N_in, 3)
         dtheta = torch.remainder(polar[:, 1] - centre[:, 1] + torch.pi, 2 * torch.pi) - torch.pi
