@@ -4,7 +4,7 @@
 (train: 2 sequences x 10 frames; val: 1 sequence x 70 frames, enough for one full 32-frame
 attack run 32..63 plus 6 frames after it), in OpenPCDet's processed layout.
 
-``real_rpn_checkpoint``: a checkpoint of the real-Waymo CP-4f with random weights (the RPN of
+``real_rpn_checkpoint``: a checkpoint of the real-Waymo voxel CP-4f with random weights (the RPN of
 the real two-stage configs, which does not ship).
 
 ``injection``: the loaded ``inj_global_hard`` attack config with a trace library built from
@@ -52,14 +52,14 @@ def injection(synthetic_root, tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def real_rpn_checkpoint(tmp_path_factory):
-    """Random weights of ``cfgs/atlas/cp4f.yaml`` (module docstring)."""
+    """Random weights of ``cfgs/atlas/cp4f_voxel.yaml`` (module docstring)."""
     import torch
 
     from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
     from pcdet_atlas.models import build_network_from_config
 
     torch.manual_seed(0)
-    rpn = build_network_from_config(cfg_from_yaml_file(REPO_ROOT / "cfgs/atlas/cp4f.yaml"))
+    rpn = build_network_from_config(cfg_from_yaml_file(REPO_ROOT / "cfgs/atlas/cp4f_voxel.yaml"))
     path = tmp_path_factory.mktemp("rpn") / "cp4f_random.pth"
     torch.save({"model_state": rpn.state_dict()}, path)
     return path

@@ -1,10 +1,12 @@
 from collections import defaultdict
 
+import numpy as np
 import pytest
 import torch
 from device_params import DEVICES
 
 from pcdet_atlas.models.model_utils import voxelize as voxelize_module
+from pcdet_atlas.models.model_utils.hard_voxelize import hard_voxelize
 from pcdet_atlas.models.model_utils.scatter import scatter_max, scatter_mean, scatter_sum
 from pcdet_atlas.models.model_utils.voxelize import VoxelGrid, voxelize
 
@@ -110,3 +112,53 @@ def test_unbounded_z_needs_a_pillar_grid():
     voxels = VoxelGrid((0.0, 0.0, -1.0, 2.0, 2.0, 1.0), (1.0, 1.0, 1.0))
     with pytest.raises(ValueError, match="pillar grid"):
         voxelize(points, voxels, bound_z=False)
+
+
+@pytest.mark.parametrize(
+    "pcr,vs",
+    [
+        ((-75.2, -75.2, -2.0, 75.2, 75.2, 4.0), (0.1, 0.1, 0.15)),  # OpenPCDet's voxel CenterPoint
+        ((-74.88, -74.88, -2.0, 74.88, 74.88, 4.0), (0.32, 0.32, 6.0)),  # its dynamic pillars
+    ],
+    ids=["voxel", "pillar"],
+)
+def test_cells_at_edges_follow_spconvs_float32_arithmetic(pcr, vs):
+    """Points exactly on cell edges and 1-2 float32 ulps around them land where spconv's voxel
+    generator puts them: ``floor((p - range_min) / voxel_size)``, every operand and result
+    rounded to float32 (numpy float32 arithmetic as the reference)."""
+    grid = VoxelGrid(pcr, vs)
+    nx, ny, nz = grid.grid_size
+    edges = [
+        pcr[k] + np.arange(n + 1, dtype=np.float64) * vs[k] for k, n in enumerate((nx, ny, nz))
+    ]
+    g = np.random.default_rng(0)
+    cols = []
+    for k in range(3):
+        on_edge = edges[k][g.integers(0, len(edges[k]), 400)].astype(np.float32)
+        ulps = g.integers(-2, 3, 400)
+        cols.append(np.array([np.float32(v) for v in _step_ulps(on_edge, ulps)], np.float32))
+    xyz = np.stack(cols, 1)  # (400, 3) float32
+    lo, size = np.asarray(pcr[:3], np.float32), np.asarray(vs, np.float32)
+    expected = np.floor((xyz - lo) / size).astype(np.int64)  # float32 all the way
+    inside = ((expected >= 0) & (expected < np.array([nx, ny, nz]))).all(1)
+    points = torch.cat([torch.zeros(400, 1), torch.from_numpy(xyz), torch.zeros(400, 2)], 1)
+    vox = voxelize(points, grid)
+    assert vox.point_mask.numpy().tolist() == inside.tolist()
+    got = vox.voxel_coords[vox.point_voxel_idx][:, [3, 2, 1]].numpy()
+    assert (got == expected[inside]).all()
+    hard = hard_voxelize(points, grid, 400, 400)
+    rows = {tuple(c) for c in hard.voxel_coords[:, [3, 2, 1]].tolist()}
+    assert rows == {tuple(c) for c in expected[inside].tolist()}
+    # the test can fail: float64 arithmetic puts some of these points in other cells
+    wide = np.floor((xyz.astype(np.float64) - np.asarray(pcr[:3])) / np.asarray(vs)).astype(int)
+    assert (wide != expected).any(1).sum() > 0
+
+
+def _step_ulps(values: np.ndarray, steps: np.ndarray) -> list:
+    """Each float32 value moved ``steps`` ulps (towards +inf for a positive step)."""
+    out = []
+    for v, s in zip(values, steps):
+        for _ in range(abs(int(s))):
+            v = np.nextafter(v, np.float32(np.inf if s > 0 else -np.inf), dtype=np.float32)
+        out.append(v)
+    return out

@@ -9,8 +9,8 @@ per frame and without a loop over points:
   ``max_voxels`` is dropped, while later points of already open voxels are still kept;
 - a voxel keeps its first ``max_points_per_voxel`` points (input order), the rest are dropped.
 
-The cells come from :func:`voxelize` (float64 cell edges; spconv computes them in the points'
-dtype, which can differ for a point within float32 rounding of a cell edge).
+The cells come from :func:`voxelize`, in the points' dtype as spconv computes them (float32
+points: float32 arithmetic, so a point within rounding of a cell edge lands where spconv puts it).
 """
 
 from __future__ import annotations

@@ -95,17 +95,22 @@ def voxelize(points: torch.Tensor, grid: VoxelGrid, *, bound_z: bool = True) -> 
 
     Returns:
         A :class:`Voxelization`. Voxels are sorted by ``(batch, z, y, x)``. A point on the upper
-        boundary of the range is outside (half-open cells).
+        boundary of the range is outside (half-open cells). Cells are
+        ``floor((p - range_min) / voxel_size)`` in the points' dtype (float32 for half
+        precision), the range and size rounded to it first, as spconv's voxel generator.
     """
     if points.dim() != 2 or points.shape[1] < 4:
         raise ValueError(f"voxelize: points must be (N, 1 + C>=3), got {tuple(points.shape)}")
     nx, ny, nz = grid.grid_size
     if not bound_z and nz != 1:
         raise ValueError(f"voxelize: bound_z=False needs a pillar grid (1 z cell), got {nz}")
-    pc_min = points.new_tensor(grid.point_cloud_range[:3], dtype=torch.float64)
-    vsize = points.new_tensor(grid.voxel_size, dtype=torch.float64)
-    # float64 cell coordinates (exact cell edges for float32 input), in place on one copy
-    cell = points[:, 1:4].to(torch.float64, copy=True).sub_(pc_min).div_(vsize).floor_().long()
+    # spconv's generator (OpenPCDet's data processor) and OpenPCDet's dynamic VFEs compute
+    # floor((p - range_min) / voxel_size) in the points' dtype, range and size cast to it: a
+    # float32 point within rounding of a cell edge lands in the cell that arithmetic gives
+    dtype = points.dtype if points.dtype in (torch.float32, torch.float64) else torch.float32
+    pc_min = points.new_tensor(grid.point_cloud_range[:3], dtype=dtype)
+    vsize = points.new_tensor(grid.voxel_size, dtype=dtype)
+    cell = points[:, 1:4].to(dtype, copy=True).sub_(pc_min).div_(vsize).floor_().long()
     if not bound_z:
         cell[:, 2] = 0
     upper = torch.tensor([nx, ny, nz], device=points.device)
