@@ -16,7 +16,6 @@ removed (:func:`~pcdet_atlas.evaluation.localization.projected_ap`).
 from __future__ import annotations
 
 import argparse
-import pickle
 from pathlib import Path
 
 from pcdet_atlas.config import cfg_from_list, cfg_from_yaml_file
@@ -27,6 +26,7 @@ from pcdet_atlas.evaluation.localization import (
     localization_errors,
     projected_ap,
 )
+from pcdet_atlas.utils.safe_pickle import load_pickle
 
 #: Components scaled by ``--project`` (the centre's along / across errors move together).
 PROJECTED = ("center", "z", "length", "width", "height", "heading")
@@ -49,8 +49,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def load_pairs(cfg, result_path: Path) -> tuple[list[dict], list[dict]]:
     """Ground-truth annos aligned with the predictions of ``result_path`` by ``frame_id``."""
-    with open(result_path, "rb") as f:
-        det_annos = pickle.load(f)
+    det_annos = load_pickle(result_path)
     dataset = WaymoDataset(cfg.DATA_CONFIG, cfg.CLASS_NAMES, training=False)
     by_id = {info["frame_id"]: info["annos"] for info in dataset.infos}
     missing = [d["frame_id"] for d in det_annos if d["frame_id"] not in by_id]

@@ -12,6 +12,9 @@ A two-stage checkpoint records the config's RPN checkpoint as the one it was tra
 conv weights of spconv 1.x or 2.x are recognised by their shapes; ``--spconv_layout`` names the
 layout when the shapes cannot tell (docs/getting_started.md). A PTT checkpoint of the PTT
 repository does not convert: part of its head has no counterpart here (the error names it).
+The checkpoint is read with ``torch.load(weights_only=True)`` (tensors and plain values; the
+numpy scalars of OpenPCDet's optimizer state allowed), and NaN/inf weights are refused, naming
+the tensor.
 """
 
 from __future__ import annotations

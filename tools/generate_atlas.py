@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import pickle
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +50,7 @@ from pcdet_atlas.config import (
 )
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.utils.common import create_logger, save_pickle
+from pcdet_atlas.utils.safe_pickle import load_pickle
 
 CLASS_NAMES = ["Vehicle", "Pedestrian", "Cyclist"]
 
@@ -92,7 +92,7 @@ def write_sequence(
     """Attack and write every frame of one sequence; returns ``{frame_id: meta}``."""
     attack = dataset.attack
     seq = dataset.sequence_data(seq_name)
-    out_seq = wf.data_dir(out_root, dataset.processed_data_tag) / seq_name
+    out_seq = wf.sequence_dir(out_root, seq_name, dataset.processed_data_tag)
     out_seq.mkdir(parents=True, exist_ok=True)
     infos, metas = [], {}
     for idx in range(seq.num_frames):
@@ -136,8 +136,7 @@ def _done(
     meta_pkl, info_pkl = out_seq / f"{seq_name}_atlas.pkl", out_seq / f"{seq_name}.pkl"
     if not (meta_pkl.is_file() and info_pkl.is_file()):
         return None
-    with open(meta_pkl, "rb") as f:
-        saved = pickle.load(f)
+    saved = load_pickle(meta_pkl)
     if saved.get("variant") != variant:
         raise ValueError(
             f"{meta_pkl}: holds variant {saved.get('variant')!r}, not {variant!r}; "
@@ -202,7 +201,7 @@ def main(argv=None) -> Path:
     frames: dict[str, dict] = {}
     with tqdm(total=total, desc=dataset.attack.variant, unit="frame") as progress:
         for name in names:
-            out_seq = wf.data_dir(out_root, dataset.processed_data_tag) / name
+            out_seq = wf.sequence_dir(out_root, name, dataset.processed_data_tag)
             done = _done(out_seq, name, dataset.attack.variant, plain_cfg, _source(dataset, name))
             if done is not None:
                 frames.update(done)

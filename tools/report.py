@@ -29,7 +29,10 @@ def parse_args(argv=None):
         "--lot_pair", nargs=2, default=list(DEFAULT_LOT_PAIR), metavar=("BASE", "DEFENDED"),
         help="model names of the LOT ablation (default: %(default)s)",
     )  # fmt: skip
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        p.error(f"--out {args.out}: an existing file, expected a folder (or a path to create one)")
+    return args
 
 
 def main(argv=None) -> dict:

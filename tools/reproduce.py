@@ -17,8 +17,10 @@ torch threads (default: the cores divided among the jobs); its output goes to ``
 in the folder above the model's ``reproduce/results.json``. The run resumes: a later call
 with the same data, variants, ``--set`` and ``--no_reuse`` as the one ``run.json`` in ``--out``
 records skips each model whose variants ``tools/test.py --resume`` would all keep (same merged
-config, checkpoint bytes and setting) and lets a model left unfinished go on from its last
-finished variant; any other model, or a call with another setting, is evaluated again.
+config, checkpoint bytes, setting and test split: its info pkls and frame files, by the dataset
+fingerprint in ``results.json``) and lets a model left unfinished go on from its last finished
+variant; any other model, or a call with another setting, is evaluated again. A ``run.json`` that
+is truncated or holds a key of the wrong type is an error naming the file and the key.
 ``--overwrite`` evaluates everything again. The models share a prediction store
 (``tools/test.py --prediction_store``, under ``--output_root``; ``--no_store``: none) that the
 two-stage models and the configs that are their RPN use, so a two-stage model reads the
@@ -27,12 +29,16 @@ another model's RPN therefore starts first; the others start longest first by th
 earlier runs that ``run.json`` keeps (``model_wall_s``), so that the jobs end close together;
 the report lists them in the given order. The total wall time adds up every call's (``run.json``
 is updated each minute, so a call that is killed still counts, with the work it lost); a
-model's time is the sum of its variants' evaluation times, whichever calls ran them.
+model's time is the sum of its variants' evaluation times, whichever calls ran them. A call holds
+the lock of ``--out`` (a second call into it stops at once, naming the first), and the
+``tools/test.py`` processes it starts die with it (Linux), so a killed call leaves no orphan
+writing.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -52,6 +58,7 @@ from pcdet_atlas.config import (
     resolve_cli_path,
     resolve_repo_path,
 )
+from pcdet_atlas.datasets.fingerprint import data_config_fingerprint
 from pcdet_atlas.evaluation.results import ResultsError, collect_results, write_report
 from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.train_utils.atlas_eval import (
@@ -59,8 +66,9 @@ from pcdet_atlas.train_utils.atlas_eval import (
     resolve_variants,
     variant_fingerprints,
 )
-from pcdet_atlas.train_utils.setup import load_cfg
+from pcdet_atlas.train_utils.setup import load_cfg, lock_output_folder
 from pcdet_atlas.utils.common import load_tool, resolve_device, write_atomic
+from pcdet_atlas.utils.processes import die_with_parent
 
 DEFAULT_DATA = REPO_ROOT / "data" / "synthetic_waymo_val6"
 DEFAULT_OUT = REPO_ROOT / "docs" / "results"
@@ -156,11 +164,15 @@ def store_path(args) -> Path:
     return Path(args.output_root or REPO_ROOT / "output") / "prediction_store"
 
 
-def evaluation_of(cfg: Path, args, root: Path) -> tuple[Path, set[str], set[str] | None]:
+def evaluation_of(
+    cfg: Path, args, root: Path, data_fingerprints: dict | None = None
+) -> tuple[Path, set[str], set[str] | None]:
     """Where ``tools/test.py`` (:func:`test_argv`) writes the config's ``results.json``, the
     variants the call evaluates, and those an earlier call already finished there with the same
-    merged config, checkpoint bytes and setting (``tools/test.py --resume`` keeps them), or
-    ``None`` when that folder cannot be resumed (another model or setting wrote it)."""
+    merged config, checkpoint bytes, setting and test split (its dataset fingerprint;
+    ``tools/test.py --resume`` keeps them), or ``None`` when that folder cannot be resumed
+    (another model or setting wrote it). ``data_fingerprints``: the run's fingerprints by
+    (split, processed-data tag), filled as they are computed (once per run)."""
     test = load_tool("test")
     model_cfg = load_cfg(str(REPO_ROOT / cfg), ["DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs])
     output_root = args.output_root or str(REPO_ROOT / "output")
@@ -170,10 +182,15 @@ def evaluation_of(cfg: Path, args, root: Path) -> tuple[Path, set[str], set[str]
     attacks = build_variant_attacks(variants, root)
     requested = variant_fingerprints(variants, attacks)
     out_dir = test.eval_dir(model_cfg, output_root, TAG, ckpt, TAG)
+    data_cfg = model_cfg.DATA_CONFIG
+    split = (str(data_cfg.DATA_SPLIT["test"]), str(data_cfg.get("PROCESSED_DATA_TAG")))
+    data_fingerprints = {} if data_fingerprints is None else data_fingerprints
+    if split not in data_fingerprints:
+        data_fingerprints[split] = data_config_fingerprint(data_cfg, "test")
     try:  # the setting tools/test.py gets from test_argv: one process, batch size 1
         kept, _ = test.finished_variants(
             out_dir, model_cfg, file_sha256(ckpt), requested, batch_size=1, world=1,
-            device=str(resolve_device(args.device)),
+            device=str(resolve_device(args.device)), dataset_fingerprint=data_fingerprints[split],
         )  # fmt: skip
         finished = set(kept)
     except ResultsError:  # an unreadable results.json: named, not overwritten
@@ -181,6 +198,57 @@ def evaluation_of(cfg: Path, args, root: Path) -> tuple[Path, set[str], set[str]
     except ValueError:
         finished = None
     return out_dir / "results.json", wanted, finished
+
+
+_NUMBER, _TEXT = (int, float), (str,)
+#: The types of ``run.json``'s keys (None allowed where the tuple holds ``type(None)``).
+RUN_RECORD_TYPES = {
+    "setting": (dict,), "command": _TEXT, "jobs": (int,), "threads": (int,),
+    "cpu_cores": (int, type(None)), "machine": _TEXT, "cpus": (list,),
+    "device": (str, type(None)), "total_wall_s": _NUMBER, "calls": (int,), "runs": (list,),
+    "model_wall_s": (dict,), "prediction_store": (str, type(None)),
+}  # fmt: skip
+_RUN_TYPES = {"config": _TEXT, "results": _TEXT, "wall_s": _NUMBER}
+
+
+def _typed(value, types: tuple) -> bool:
+    return isinstance(value, types) and not (isinstance(value, bool) and bool not in types)
+
+
+def read_run_record(path: Path) -> dict:
+    """An earlier call's ``run.json``, checked: a truncated or hand-edited file is a
+    ``ValueError`` naming the file and the key (keys a call of an older version did not write
+    may be absent)."""
+
+    def bad(key: str, value, expected: str) -> ValueError:
+        return ValueError(
+            f"{path}: key {key!r} holds {value!r}, expected {expected} (a truncated or "
+            "hand-edited run record: fix the key, or delete the file to start a new record)"
+        )
+
+    try:
+        record = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(
+            f"{path}: not valid JSON ({err}); truncated? delete it to start a new run record"
+        ) from err
+    if not isinstance(record, dict):
+        raise ValueError(f"{path}: holds a JSON {type(record).__name__}, expected an object")
+    for key, types in RUN_RECORD_TYPES.items():
+        if key in record and not _typed(record[key], types):
+            raise bad(key, record[key], " or ".join(t.__name__ for t in types))
+    for i, run in enumerate(record.get("runs", [])):
+        for key, types in _RUN_TYPES.items():
+            if not isinstance(run, dict) or not _typed(run.get(key), types):
+                got = run.get(key) if isinstance(run, dict) else run
+                raise bad(f"runs[{i}].{key}", got, " or ".join(t.__name__ for t in types))
+    for name, wall in record.get("model_wall_s", {}).items():
+        if not _typed(wall, _NUMBER):
+            raise bad(f"model_wall_s.{name}", wall, "a number of seconds")
+    for i, cpu in enumerate(record.get("cpus", [])):
+        if not isinstance(cpu, str):
+            raise bad(f"cpus[{i}]", cpu, "a CPU model name")
+    return record
 
 
 def known_times(run: dict) -> dict[str, float]:
@@ -216,6 +284,14 @@ def evaluation_time(results: dict) -> float:
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
+    with contextlib.ExitStack() as held:  # one reproduce run per --out at a time
+        lock_output_folder(Path(args.out), held, "tools/reproduce.py")
+        return reproduce(args, argv)
+
+
+def reproduce(args, argv=None) -> dict:
+    """The work of :func:`main` (``argv``: its command line, recorded in ``run.json``), under
+    the lock of ``--out``."""
     if args.report_only:
         return rewrite_report(Path(args.out))
     root = resolve_cli_path(args.data_path)  # the tools/test.py processes run in the repo root
@@ -233,7 +309,7 @@ def main(argv=None) -> dict:
     setting = {"data_path": str(root), "attacks": args.attacks, "cfgs": list(map(str, cfgs)),
                "set": list(args.set_cfgs), "no_reuse": args.no_reuse}  # fmt: skip
     elapsed_before, calls = 0.0, 1
-    previous = json.loads(run_file.read_text()) if run_file.is_file() else {}
+    previous = read_run_record(run_file) if run_file.is_file() else {}
     known = known_times(previous)
     resume = not args.overwrite and previous.get("setting") == setting
     cpus = [cpu_model()]
@@ -268,8 +344,10 @@ def main(argv=None) -> dict:
         while not finished.wait(60):
             save_state()
 
+    data_fingerprints: dict = {}  # the test splits' (tools/test.py --resume), once per run
+
     def evaluate(cfg: Path) -> None:
-        results, wanted, evaluated = evaluation_of(cfg, args, root)
+        results, wanted, evaluated = evaluation_of(cfg, args, root, data_fingerprints)
         resumable = resume and evaluated is not None
         done = resumable and wanted <= evaluated
         if not done:
@@ -280,9 +358,10 @@ def main(argv=None) -> dict:
             log = results.parent.parent / "reproduce.log"
             log.parent.mkdir(parents=True, exist_ok=True)
             with log.open("a" if resumable else "w") as stream:
-                code = subprocess.run(
-                    command, stdout=stream, stderr=subprocess.STDOUT, cwd=REPO_ROOT
-                ).returncode
+                code = subprocess.run(  # killed with this process: no orphan writes on
+                    command, stdout=stream, stderr=subprocess.STDOUT, cwd=REPO_ROOT,
+                    preexec_fn=die_with_parent(),
+                ).returncode  # fmt: skip
             if code != 0:
                 raise RuntimeError(f"{cfg}: tools/test.py exited with {code}; its output: {log}")
         wall = evaluation_time(json.loads(results.read_text()))
@@ -370,7 +449,7 @@ def rewrite_report(out_dir: Path) -> dict:
     run_file = out_dir / "run.json"
     if not run_file.is_file():
         raise FileNotFoundError(f"--report_only: no {run_file} (run tools/reproduce.py first)")
-    state = json.loads(run_file.read_text())
+    state = read_run_record(run_file)
     missing = [k for k in ("runs", "command", "cpu_cores", "machine") if not state.get(k)]
     if missing:
         raise ValueError(f"--report_only: {run_file} has no {', '.join(missing)}")

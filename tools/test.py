@@ -12,7 +12,11 @@ N >= ``--start_epoch``, in epoch order. Output, per checkpoint:
 for ``checkpoint_epoch_N.pth``, the file name without ``.pth`` otherwise) with ``results.json``
 (schema in docs/evaluation.md; rewritten after each variant, so a failure keeps the variants
 done), ``<variant>/result.pkl``, the merged config and a log; the table is printed as the paper
-lays it out.
+lays it out. ``--extra_tag``, ``--eval_tag``, the checkpoint's and each variant's file name and
+the data's frame ids must each be one file or folder name (letters, digits, ``.``, ``_``, ``-``;
+not ``..``). While it writes an evaluation directory, a call (its rank 0) holds that directory's
+lock (``.<eval_tag>.lock`` beside it): a second call into it stops at once, naming the first's
+PID, host and start time.
 
 The clean variant runs first; under an attack variant, a frame whose whole model input (the
 frame, its point history and, for PTT, its proposal history) the attack leaves untouched takes
@@ -32,15 +36,17 @@ had the same merged config, checkpoint (SHA-256), batch size and process count. 
 variant is evaluated again when its merged attack config or trace library changed since
 (``extra.attack_sha256`` of its entry; an entry without it too), when its entry has targets but
 no per-run counts (a file of schema 4 or older), or when it was evaluated without the clean
-predictions that this call has (``extra.clean_predictions``); the results are those of one
-uninterrupted call.
+predictions that this call has (``extra.clean_predictions``); every finished variant is evaluated
+again when the test split's info pkls or frame files changed since (``extra.dataset_fingerprint``
+of ``results.json``, :func:`pcdet_atlas.datasets.fingerprint.dataset_fingerprint`; a file
+without it too); the results are those of one uninterrupted call.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
-import pickle
 import shutil
 from collections.abc import Mapping
 from pathlib import Path
@@ -55,6 +61,7 @@ from pcdet_atlas.config import (
     save_config,
     to_plain,
 )
+from pcdet_atlas.datasets.fingerprint import data_config_fingerprint
 from pcdet_atlas.evaluation import build_results, format_table, load_results, save_results
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.detectors.two_stage import file_sha256
@@ -71,19 +78,26 @@ from pcdet_atlas.train_utils.eval_utils import write_prediction_files
 from pcdet_atlas.train_utils.setup import (
     add_common_args,
     count_arg,
+    folder_name_arg,
     load_cfg,
+    lock_output_folder,
     output_dir_for,
     require_dataset,
     setup_runtime,
 )
 from pcdet_atlas.utils.common import create_logger, save_pickle
+from pcdet_atlas.utils.paths import join_under
+from pcdet_atlas.utils.safe_pickle import load_pickle
 
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_common_args(parser)
     parser.add_argument("--attacks", default="clean", help="'all' or a comma list of variants")
-    parser.add_argument("--eval_tag", default="default")
+    parser.add_argument(
+        "--eval_tag", type=folder_name_arg, default="default",
+        help="the evaluation's folder under eval/<checkpoint>/<split>/",
+    )  # fmt: skip
     parser.add_argument(
         "--eval_all", action="store_true", default=False,
         help="evaluate every checkpoint_epoch_N.pth of --ckpt_dir (N >= --start_epoch), in order",
@@ -129,8 +143,6 @@ def parse_args(argv=None):
         parser.error("--ckpt_dir and --start_epoch apply to --eval_all only")
     if args.resume and args.overwrite:
         parser.error("--resume keeps an earlier call's variants, --overwrite deletes them")
-    if args.eval_tag in ("", ".", "..") or "/" in args.eval_tag or "\\" in args.eval_tag:
-        parser.error(f"--eval_tag {args.eval_tag!r}: expected a folder name")
     return args
 
 
@@ -161,9 +173,12 @@ def eval_name(ckpt: Path) -> str:
 def eval_dir(cfg, output_root: str, extra_tag: str, ckpt: Path, eval_tag: str) -> Path:
     """Where one checkpoint's evaluation is written (module docstring):
     ``<output_root>/<group>/<tag>/<extra_tag>/eval/<name>/<split>/<eval_tag>/``."""
-    split = str(cfg.DATA_CONFIG.DATA_SPLIT["test"])
-    eval_root = output_dir_for(cfg, output_root, extra_tag) / "eval"
-    return eval_root / eval_name(ckpt) / split / eval_tag
+    split = cfg.DATA_CONFIG.DATA_SPLIT["test"]
+    return join_under(
+        output_dir_for(cfg, output_root, extra_tag) / "eval",
+        (eval_name(ckpt), "checkpoint name"), (split, "DATA_CONFIG.DATA_SPLIT.test"),
+        (eval_tag, "eval_tag"), source=f"the evaluation folder of checkpoint {ckpt}",
+    )  # fmt: skip
 
 
 def checkpoints_to_evaluate(args, cfg, atlas_cfg) -> list[Path]:
@@ -200,6 +215,7 @@ def finished_variants(
     batch_size: int,
     world: int,
     device: str,
+    dataset_fingerprint: str,
 ) -> tuple[dict[str, dict], dict[str, str]]:
     """``--resume``: the ``results.json`` entries of the requested variants an earlier call
     finished in ``out_dir`` that this call keeps. That call must have had the same merged config,
@@ -212,7 +228,9 @@ def finished_variants(
     schema 4 or older), or it is an attack variant evaluated without the clean predictions
     while this call evaluates ``clean``, or it is ``clean`` and a process's
     ``clean/proposals_rank<r>.pkl`` is missing where another's is there: each of those is
-    evaluated again, as one uninterrupted call would. Returns the kept entries and
+    evaluated again, as one uninterrupted call would. Every finished variant is evaluated again
+    when ``dataset_fingerprint`` (this call's test split) differs from the file's
+    ``extra.dataset_fingerprint``, or the file has none. Returns the kept entries and
     ``{variant: reason}`` of those evaluated again.
     """
     path = out_dir / "results.json"
@@ -234,12 +252,22 @@ def finished_variants(
             f"--resume: {path} was written by a call with another setting: {'; '.join(differs)}; "
             "pass --overwrite to evaluate again, or another --eval_tag / --extra_tag"
         )
+    data_changed = None
+    if "dataset_fingerprint" not in extra:
+        data_changed = "results.json has no extra.dataset_fingerprint (an older version wrote it)"
+    elif extra["dataset_fingerprint"] != dataset_fingerprint:
+        data_changed = (
+            "the test split's info pkls or frame files changed (dataset_fingerprint "
+            f"{extra['dataset_fingerprint']}, now {dataset_fingerprint})"
+        )
     kept, again = {}, {}
     for name, entry in earlier["variants"].items():
         if name not in requested or not (out_dir / name / "result.pkl").is_file():
             continue
         recorded = entry.get("extra", {})
-        if "attack_sha256" not in recorded:
+        if data_changed is not None:
+            again[name] = data_changed
+        elif "attack_sha256" not in recorded:
             again[name] = "its entry has no extra.attack_sha256 (written by an older version)"
         elif recorded["attack_sha256"] != requested[name]:
             again[name] = (
@@ -267,7 +295,13 @@ def missing_proposal_parts(variant_dir: Path, world: int) -> list[Path]:
 
 
 def main(argv=None) -> dict:
-    args = parse_args(argv)
+    with contextlib.ExitStack() as held:  # the evaluation folders' locks, released at the end
+        return evaluate(parse_args(argv), held)
+
+
+def evaluate(args, held: contextlib.ExitStack) -> dict:
+    """The work of :func:`main`; rank 0 holds each evaluation folder's one-writer lock in
+    ``held`` from its first write on."""
     cfg = load_cfg(args.cfg_file, args.set_cfgs)
     require_dataset(cfg, args.cfg_file)  # before anything is built or written
     atlas_cfg = cfg.get("ATLAS", {})
@@ -278,6 +312,7 @@ def main(argv=None) -> dict:
     data_root = check_test_split(cfg.DATA_CONFIG, cfg.CLASS_NAMES, logger)
     attacks = build_variant_attacks(variants, data_root)
     fingerprints = variant_fingerprints(variants, attacks)
+    data_fingerprint = data_config_fingerprint(cfg.DATA_CONFIG, "test")  # once per call
     batch_size = args.batch_size or world
     if batch_size % world:
         raise ValueError(f"--batch_size {batch_size} is not divisible by {world} processes")
@@ -291,7 +326,7 @@ def main(argv=None) -> dict:
         if args.resume:
             finished[out_dir], again[out_dir] = finished_variants(
                 out_dir, cfg, ckpt_sha256[ckpt], fingerprints, batch_size=batch_size, world=world,
-                device=str(device),
+                device=str(device), dataset_fingerprint=data_fingerprint,
             )  # fmt: skip
     if dist:  # every rank has checked before rank 0 writes
         torch_dist.barrier()
@@ -313,6 +348,8 @@ def main(argv=None) -> dict:
             )
         model.to(device).eval()
         if rank == 0:
+            lock_output_folder(out_dir, held, f"tools/test.py evaluating {ckpt.name}")
+            check_eval_dir(out_dir, args.overwrite or args.resume)  # again: a run since the check?
             if out_dir.exists() and not args.resume:  # --overwrite: no stale file survives
                 shutil.rmtree(out_dir)
             save_config(cfg, out_dir / f"{cfg.TAG}.yaml")
@@ -328,7 +365,7 @@ def main(argv=None) -> dict:
                 model, ckpt, out_dir, args, cfg, attacks, dist=dist, rank=rank, world=world,
                 device=device, batch_size=batch_size, logger=logger,
                 finished=finished.get(out_dir, {}), ckpt_sha256=ckpt_sha256[ckpt],
-                fingerprints=fingerprints, store=store,
+                fingerprints=fingerprints, store=store, dataset_fingerprint=data_fingerprint,
             )
         )  # fmt: skip
     if rank != 0:
@@ -338,11 +375,12 @@ def main(argv=None) -> dict:
 
 def evaluate_checkpoint(
     model, ckpt, out_dir, args, cfg, attacks, *, dist, rank, world, device, batch_size, logger,
-    finished, ckpt_sha256, fingerprints, store=None
+    finished, ckpt_sha256, fingerprints, dataset_fingerprint, store=None
 ) -> dict:  # fmt: skip
     """Every variant of one checkpoint; ``results.json`` is rewritten after each variant.
     ``finished``: the entries of the variants an earlier call finished (``--resume``), kept.
-    ``fingerprints``: ``{variant: attack_sha256}``, recorded in each new entry's ``extra``.
+    ``fingerprints``: ``{variant: attack_sha256}``, recorded in each new entry's ``extra``;
+    ``dataset_fingerprint``: the test split's, recorded in the file's ``extra``.
     ``store``: the model's ``PredictionStore`` (counted per variant), or None."""
     atlas_cfg = cfg.get("ATLAS", {})
     entries: dict = {}
@@ -354,16 +392,14 @@ def evaluate_checkpoint(
             entry = finished[variant]
             write_files = args.save_to_file and rank == 0  # the earlier call may have run without
             if variant == "clean" or write_files:
-                with open(out_dir / variant / "result.pkl", "rb") as f:
-                    kept_annos = pickle.load(f)
+                kept_annos = load_pickle(out_dir / variant / "result.pkl")
             if write_files:
                 write_prediction_files(kept_annos, out_dir / variant / "final_result" / "data")
             if variant == "clean":  # its predictions are reused, its proposals seed (below)
                 clean_annos = kept_annos
                 part = out_dir / variant / f"proposals_rank{rank}.pkl"  # this process's frames
                 if part.is_file():
-                    with open(part, "rb") as f:
-                        clean_proposals.update(pickle.load(f))
+                    clean_proposals.update(load_pickle(part))
             logger.info(f"{variant}: kept from an earlier call (--resume)")
         else:
             entry, det_annos = evaluate_variant(
@@ -388,7 +424,8 @@ def evaluate_checkpoint(
             model=atlas_cfg.get("MODEL_NAME", cfg.TAG), config=str(args.cfg_file),
             checkpoint=str(ckpt), class_names=cfg.CLASS_NAMES, variants=entries,
             extra={"processes": world, "device": str(device), "batch_size": batch_size,
-                   "checkpoint_sha256": ckpt_sha256, "variants_requested": list(attacks)},
+                   "checkpoint_sha256": ckpt_sha256, "variants_requested": list(attacks),
+                   "dataset_fingerprint": dataset_fingerprint},
         )  # fmt: skip
         path = save_results(results, out_dir / "results.json")  # atomic: temp file + rename
     if rank != 0:

@@ -14,12 +14,16 @@ count, ``--seed``, ``--use_amp``, ``--sync_bn``, ``--merge_all_iters_to_one_epoc
 merged ``CLASS_NAMES`` / ``DATA_CONFIG`` / ``MODEL`` / ``STAGE``) is refused, naming what changed,
 before any of its state is loaded. Counts below their minimum (``--epochs 0``) are usage errors;
 a bad ``OPTIMIZATION`` value and a missing ``--ckpt`` / ``--pretrained_model`` file are errors
-before anything is built or written.
+before anything is built or written. ``--extra_tag`` must be one folder name (letters, digits,
+``.``, ``_``, ``-``; not ``..``). A run (its rank 0) holds the output folder's lock
+(``.<extra_tag>.lock`` beside it) while it trains: a second run into that folder stops at once,
+naming the first's PID, host and start time.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 from pathlib import Path
 
@@ -54,6 +58,7 @@ from pcdet_atlas.train_utils.setup import (
     add_common_args,
     count_arg,
     load_cfg,
+    lock_output_folder,
     output_dir_for,
     require_dataset,
     setup_runtime,
@@ -72,6 +77,11 @@ def parse_args(argv=None):
     add_common_args(parser)
     parser.add_argument("--epochs", type=count_arg(1), default=None)
     parser.add_argument("--pretrained_model", type=str, default=None, help="weights to start from")
+    parser.add_argument(
+        "--allow_partial_stage_init", action="store_true", default=False,
+        help="a STAGE config: start from the predecessor's newest checkpoint even when it is "
+        "short of the predecessor's configured epochs (default: refuse, naming it)",
+    )  # fmt: skip
     parser.add_argument("--sync_bn", action="store_true", default=False)
     parser.add_argument("--ckpt_save_interval", type=count_arg(1), default=1)
     parser.add_argument("--max_ckpt_save_num", type=count_arg(1), default=30)
@@ -95,7 +105,13 @@ def parse_args(argv=None):
 
 
 def main(argv=None) -> dict:
-    args = parse_args(argv)
+    with contextlib.ExitStack() as held:  # the output folder's lock, released at the end
+        return train(parse_args(argv), held)
+
+
+def train(args, held: contextlib.ExitStack) -> dict:
+    """The work of :func:`main`; rank 0 holds the output folder's one-writer lock in ``held``
+    from its first write on (one lock per run, however many processes train)."""
     cfg = load_cfg(args.cfg_file, args.set_cfgs)
     # before anything is built or written
     require_dataset(cfg, args.cfg_file)
@@ -123,6 +139,8 @@ def main(argv=None) -> dict:
 
     out_dir = output_dir_for(cfg, args.output_root, args.extra_tag)
     ckpt_dir = out_dir / "ckpt"
+    if rank == 0:
+        lock_output_folder(out_dir, held, "tools/train.py training")
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
     logger = create_logger(out_dir / f"train_{stamp}.log", rank=rank)
     logger.info(f"output: {out_dir}  processes: {world}  device: {device}  batch: {batch_size}")
@@ -189,6 +207,7 @@ def main(argv=None) -> dict:
             init = stage_init_checkpoint(
                 stage, output_root=args.output_root, extra_tag=args.extra_tag,
                 pretrained_model=args.pretrained_model,
+                allow_partial=args.allow_partial_stage_init,
             )  # fmt: skip
             new = load_stage_init(model, stage, init)
         except (FileNotFoundError, ValueError) as err:

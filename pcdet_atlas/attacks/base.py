@@ -35,6 +35,7 @@ from pcdet_atlas.config import ConfigError, cfg_from_yaml_file, check_known_keys
 from pcdet_atlas.config_values import check_finite, config_device, config_value
 from pcdet_atlas.datasets.multiframe import copy_rows_except
 from pcdet_atlas.registry import ATTACKS
+from pcdet_atlas.utils.paths import safe_component
 
 __all__ = [
     "BaseAttack",
@@ -241,6 +242,8 @@ class BaseAttack(ABC):
             raise ConfigError(
                 f"attack config {cls.__name__}: missing VARIANT (from {key_source(cfg, 'NAME')})"
             )
+        # the variant names its results' folder: one safe path component
+        safe_component(str(variant), "VARIANT", key_source(cfg, "VARIANT"))
         return {
             "variant": str(variant),
             "seed": config_value(cfg, "SEED", int, default=0, expected="an integer"),

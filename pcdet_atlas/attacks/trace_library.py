@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import json
 import math
-import pickle
 import zipfile
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -41,6 +40,7 @@ from pcdet_atlas.config_values import config_files, config_value
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.ops.boxes import points_in_boxes_mask
 from pcdet_atlas.utils.common import write_atomic
+from pcdet_atlas.utils.safe_pickle import load_pickle
 from pcdet_atlas.utils.seeding import numpy_generator
 
 __all__ = ["Trace", "TraceLibrary", "TraceFilter", "build_trace_library", "TRACE_LIBRARY_KEYS"]
@@ -327,8 +327,7 @@ def build_trace_library(
         pkl = wf.sequence_pkl_path(root, seq, tag)
         if not pkl.is_file():
             raise FileNotFoundError(f"{pkl}: sequence pkl of {seq} (listed in {split}.txt) missing")
-        with open(pkl, "rb") as f:
-            infos = pickle.load(f)
+        infos = load_pickle(pkl)
         wf.validate_sequence_infos(infos, pkl)
         for info in infos:
             annos = info.get("annos")
@@ -344,7 +343,7 @@ def build_trace_library(
             npy = wf.frame_npy_path(root, seq, idx, tag)
             if not npy.is_file():
                 raise FileNotFoundError(f"{npy}: frame {idx} of {seq} missing")
-            pts = np.load(npy)
+            pts = np.load(npy, allow_pickle=False)
             wf.validate_points(pts, npy)
             inside = points_in_boxes_mask(pts[:, :3].astype(np.float64), boxes[sel])  # (S, N)
             for row, b in enumerate(sel):

@@ -22,7 +22,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing
-import pickle
 import tempfile
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -30,9 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
+from pcdet_atlas.config import to_plain
 from pcdet_atlas.datasets.augmentor.box_ops import box_index_of_points
 from pcdet_atlas.datasets.multiframe import SequenceConfig
+from pcdet_atlas.registry import DATASETS
 from pcdet_atlas.utils.common import save_pickle, write_atomic
+from pcdet_atlas.utils.safe_pickle import load_pickle
 
 __all__ = ["create_groundtruth_database", "gt_database_paths", "write_split_infos"]
 
@@ -77,9 +79,10 @@ def create_groundtruth_database(
     """Build the database of ``dataset``'s current split (a ``WaymoDataset``, ideally built
     with ``training=False`` and ``set_split('train')``). Returns :func:`gt_database_paths`.
 
-    ``workers`` > 0 cuts the frames' objects out in that many processes (spawned, each with a
-    copy of ``dataset``); the database does not depend on it (the ``.bin`` and ``_global.npy``
-    files byte for byte, the info pickle's content)."""
+    ``workers`` > 0 cuts the frames' objects out in that many processes (spawned, each
+    rebuilding ``dataset`` from its registered class, config, root and split, with its
+    ``all_infos``: :func:`_worker_job`); the database does not depend on it (the ``.bin`` and
+    ``_global.npy`` files byte for byte, the info pickle's content)."""
     if workers < 0:
         raise ValueError(f"workers must be >= 0, got {workers}")
     logger = logger if logger is not None else logging.getLogger(__name__)
@@ -92,6 +95,7 @@ def create_groundtruth_database(
     paths = gt_database_paths(
         save_path, dataset.processed_data_tag, dataset.split, sampled_interval, offset
     )
+    plain_job = _worker_job(dataset, sequence_cfg, used_classes, paths["dir"]) if workers else None
     paths["dir"].mkdir(parents=True, exist_ok=True)
 
     frames = range(0, len(dataset.all_infos), sampled_interval)
@@ -105,7 +109,7 @@ def create_groundtruth_database(
             # before it reads its start-up pipe, and a dataset-sized payload in that pipe would
             # make the pool start its workers one import after another.
             job_dir = stack.enter_context(tempfile.TemporaryDirectory(dir=save_path))
-            job_path = save_pickle(job, Path(job_dir) / "job.pkl")
+            job_path = save_pickle(plain_job, Path(job_dir) / "job.pkl")
             pool = stack.enter_context(
                 ProcessPoolExecutor(
                     workers, mp_context=multiprocessing.get_context("spawn"),
@@ -194,10 +198,45 @@ def _frame_objects(job: tuple, k: int) -> list[tuple[dict, np.ndarray]]:
 _WORKER_JOB: tuple | None = None
 
 
+def _worker_job(dataset, sequence_cfg, used_classes, db_dir) -> dict:
+    """The workers' job in plain values, read back with the restricted unpickler (no object of
+    the project's classes is pickled): the dataset's registered class name, plain config (its
+    ``DATA_SPLIT`` set to the current split), class names, mode, root and ``all_infos``."""
+    cls = type(dataset)
+    if cls.__name__ not in DATASETS or DATASETS.get(cls.__name__) is not cls:
+        raise ValueError(
+            f"workers > 0 rebuild the dataset in each worker from its registered class; "
+            f"{cls.__module__}.{cls.__qualname__} is not in the DATASETS registry: register it, "
+            "or pass workers=0"
+        )
+    cfg = to_plain(dataset.dataset_cfg)
+    cfg["DATA_SPLIT"] = {**cfg.get("DATA_SPLIT", {}), dataset.mode: dataset.split}
+    return {
+        "dataset": cls.__name__,
+        "dataset_cfg": cfg,
+        "class_names": list(dataset.class_names),
+        "training": bool(dataset.training),
+        "root_path": str(dataset.root_path),
+        "all_infos": dataset.all_infos,
+        "sequence_cfg": None
+        if sequence_cfg is None
+        else [list(sequence_cfg.sample_offset), sequence_cfg.onehot_timestamp],
+        "used_classes": None if used_classes is None else list(used_classes),
+        "db_dir": str(db_dir),
+    }
+
+
 def _load_worker_job(path: Path) -> None:
     global _WORKER_JOB
-    with open(path, "rb") as f:
-        _WORKER_JOB = pickle.load(f)
+    job = load_pickle(path)
+    dataset = DATASETS.get(job["dataset"])(
+        job["dataset_cfg"], job["class_names"], training=job["training"],
+        root_path=job["root_path"],
+    )  # fmt: skip
+    dataset.all_infos = job["all_infos"]  # the caller's (it may hold a subset)
+    seq = job["sequence_cfg"]
+    sequence_cfg = None if seq is None else SequenceConfig(seq[0], onehot_timestamp=seq[1])
+    _WORKER_JOB = (dataset, sequence_cfg, job["used_classes"], Path(job["db_dir"]))
 
 
 def _worker_frame_objects(k: int) -> list[tuple[dict, np.ndarray]]:

@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from pcdet_atlas.utils.common import save_pickle, write_atomic
+from pcdet_atlas.utils.paths import safe_component
+from pcdet_atlas.utils.safe_pickle import load_pickle
 
 PROCESSED_DATA_TAG = "waymo_processed_data_v0_5_0"
 WAYMO_CLASSES = ["unknown", "Vehicle", "Pedestrian", "Sign", "Cyclist"]
@@ -63,14 +65,21 @@ def sequence_name_from_line(line: str) -> str:
     return os.path.splitext(line.strip())[0]
 
 
+def sequence_dir(root: str | Path, sequence: str, tag: str = PROCESSED_DATA_TAG) -> Path:
+    """A sequence's folder; a name that is not one safe path component (``../x``) is an
+    :class:`~pcdet_atlas.utils.paths.UnsafePathError`: nothing outside ``root`` is read or
+    written."""
+    return data_dir(root, tag) / safe_component(sequence, "sequence name", f"data under {root}")
+
+
 def sequence_pkl_path(root: str | Path, sequence: str, tag: str = PROCESSED_DATA_TAG) -> Path:
-    return data_dir(root, tag) / sequence / f"{sequence}.pkl"
+    return sequence_dir(root, sequence, tag) / f"{sequence}.pkl"
 
 
 def frame_npy_path(
     root: str | Path, sequence: str, sample_idx: int, tag: str = PROCESSED_DATA_TAG
 ) -> Path:
-    return data_dir(root, tag) / sequence / f"{sample_idx:04d}.npy"
+    return sequence_dir(root, sequence, tag) / f"{sample_idx:04d}.npy"
 
 
 def frame_id(sequence: str, sample_idx: int) -> str:
@@ -226,6 +235,8 @@ def validate_frame_info(info: dict, where: str, index: int | None = None) -> Non
     for key in POINT_CLOUD_KEYS:
         if key not in info["point_cloud"]:
             raise WaymoFormatError(f"{at}: missing key 'point_cloud.{key}'")
+    safe_component(info["frame_id"], "frame_id", at)  # names --save_to_file's <frame_id>.txt
+    safe_component(info["point_cloud"]["lidar_sequence"], "point_cloud.lidar_sequence", at)
     pose = np.asarray(info["pose"])
     if pose.shape != (4, 4) or not np.isfinite(pose).all():
         raise WaymoFormatError(f"{at}: 'pose' must be a finite 4x4 matrix, got shape {pose.shape}")
@@ -328,6 +339,8 @@ def _read_npy_with_spare_rows(path: Path, spare_rows: int) -> np.ndarray:
             out[: loaded.shape[0]] = loaded
             return out
         out = np.empty((shape[0] + spare_rows, shape[1]), dtype=np.float32)
+        if out[: shape[0]].size == 0:  # an empty frame: nothing to read (and no byte view of it)
+            return out
         data = memoryview(out[: shape[0]]).cast("B")
         if f.readinto(data) != data.nbytes:
             raise EOFError(f"file holds fewer than the {shape[0]} rows its header declares")
@@ -338,8 +351,7 @@ def load_sequence_infos(path: str | Path) -> list[dict]:
     """Read and check one per-sequence info pkl (see :func:`validate_sequence_infos`)."""
     path = Path(path)
     try:
-        with open(path, "rb") as f:
-            infos = pickle.load(f)
+        infos = load_pickle(path)
     except FileNotFoundError as err:
         raise WaymoFormatError(f"{path}: sequence info file not found") from err
     except (OSError, EOFError, ValueError, pickle.UnpicklingError, AttributeError) as err:
@@ -367,7 +379,11 @@ def read_image_set(path: str | Path) -> list[str]:
             f"'<sequence>.tfrecord' per line)"
         )
     lines = [line.strip() for line in path.read_text().splitlines()]
-    return [sequence_name_from_line(line) for line in lines if line]
+    return [
+        safe_component(sequence_name_from_line(line), "sequence name", f"{path} line {i}")
+        for i, line in enumerate(lines, 1)
+        if line
+    ]
 
 
 def find_sequence_pkl(root: str | Path, sequence: str, tag: str = PROCESSED_DATA_TAG) -> Path:

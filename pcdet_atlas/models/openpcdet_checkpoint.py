@@ -35,11 +35,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 
 from pcdet_atlas.models.detectors.detector3d_template import (
     CheckpointMismatchError,
+    check_finite_state,
     read_checkpoint,
 )
 from pcdet_atlas.ops.spconv import SparseConv3d, SubMConv3d
@@ -48,6 +50,7 @@ from pcdet_atlas.version import __version__
 
 __all__ = [
     "OPENPCDET_IGNORED_KEYS",
+    "OPENPCDET_SAFE_GLOBALS",
     "SPCONV_LAYOUTS",
     "FoldedBias",
     "NoCounterpart",
@@ -66,6 +69,17 @@ __all__ = [
 
 #: keys of OpenPCDet's ``model_state`` that hold no weights of the model
 OPENPCDET_IGNORED_KEYS = ("global_step",)
+
+#: what OpenPCDet's checkpoints need beyond tensors and plain values: its ``adam_onecycle``
+#: schedule sets the optimizer's ``lr`` and ``betas`` to numpy float64 scalars (``np.cos``),
+#: saved in ``optimizer_state``, under numpy 1.x's name or 2.x's
+_NUMPY_SCALAR = np.float64(0).__reduce__()[0]
+OPENPCDET_SAFE_GLOBALS = (
+    (_NUMPY_SCALAR, "numpy.core.multiarray.scalar"),
+    (_NUMPY_SCALAR, "numpy._core.multiarray.scalar"),
+    np.dtype,
+    np.dtypes.Float64DType,
+)
 
 #: sparse conv weight layouts: name -> (axis order as described, permutation from ours
 #: ``(out, kD, kH, kW, in)`` to it)
@@ -498,15 +512,35 @@ def convert_openpcdet_checkpoint(
     ``it`` when present, ``version``, ``converted_from`` (the source file, its ``version``
     and the sparse conv layout found) and, for a model that records what it was built with (a
     two-stage model's RPN), ``model_info``. Returns that dict.
+
+    Raises:
+        RefusedGlobalError: ``src`` needs more than tensors, plain values and
+            :data:`OPENPCDET_SAFE_GLOBALS` to load (named; loading it could run code).
+        ValueError: ``model_state`` is not a mapping of tensors, or holds NaN/inf (naming the
+            tensors).
+        CheckpointMismatchError: no ``model_state``, or one that does not fit ``model``.
     """
-    ckpt = read_checkpoint(src)
+    ckpt = read_checkpoint(src, safe_globals=OPENPCDET_SAFE_GLOBALS)
     if "model_state" not in ckpt:
         raise CheckpointMismatchError(
             f"checkpoint {src} has no 'model_state' (keys: {sorted(ckpt)[:10]}); OpenPCDet "
             "saves the weights under that key"
         )
+    released = ckpt["model_state"]
+    if not isinstance(released, Mapping):
+        raise ValueError(
+            f"checkpoint {src}: 'model_state' is a {type(released).__name__}, expected a mapping "
+            "of tensor names to tensors (OpenPCDet's model.state_dict())"
+        )
+    not_tensors = sorted(str(k) for k, v in released.items() if not isinstance(v, torch.Tensor))
+    if not_tensors:
+        raise ValueError(
+            f"checkpoint {src}: 'model_state' entries {not_tensors[:10]} are not tensors; "
+            "expected OpenPCDet's model.state_dict() (tensors only)"
+        )
+    check_finite_state(released, str(src))
     state, layout = openpcdet_to_atlas_state(
-        ckpt["model_state"], model, spconv_layout=spconv_layout, source=str(src)
+        released, model, spconv_layout=spconv_layout, source=str(src)
     )
     out = {k: ckpt[k] for k in ("epoch", "it") if ckpt.get(k) is not None}
     info = getattr(model, "checkpoint_info", None)

@@ -22,6 +22,9 @@ with ``load_state_dict``).
 
 Entries are files ``<root>/<model key>/<k[:2]>/<k>.pt`` written atomically, so concurrent
 processes may share a root; ``<root>/<model key>/model.json`` says which model a folder holds.
+An entry records its own model key and batch key (``{'model_key', 'batch_key', 'predictions'}``),
+checked on every read: a file copied or moved over another entry is an error naming the file and
+both keys, never served. A missing entry is a miss: predicted and stored.
 """
 
 from __future__ import annotations
@@ -200,22 +203,27 @@ class PredictionStore:
                 "stored (call model.eval())"
             )
         device = next(model.parameters()).device
-        folder = self.root / self.model_key(model, device)
+        model_key = self.model_key(model, device)
+        folder = self.root / model_key
         key = self.batch_key(model, batch_dict)
         path = folder / key[:2] / f"{key}.pt"
         if path.is_file():
-            stored = self._read(path, device, int(batch_dict["batch_size"]))
+            stored = self._read(path, device, int(batch_dict["batch_size"]), (model_key, key))
             self.hits += 1
             return stored
         predictions = model.predict(batch_dict)
         self.misses += 1
         self._describe(folder, model, device)
         cpu = [{k: v.detach().cpu() for k, v in p.items()} for p in predictions]
-        write_atomic(path, lambda f: torch.save(cpu, f))
+        entry = {"model_key": model_key, "batch_key": key, "predictions": cpu}
+        write_atomic(path, lambda f: torch.save(entry, f))
         return predictions
 
-    def _read(self, path: Path, device: torch.device, batch_size: int) -> list[dict]:
-        """A stored entry, checked: one dict of tensors per sample."""
+    def _read(
+        self, path: Path, device: torch.device, batch_size: int, keys: tuple[str, str]
+    ) -> list[dict]:
+        """A stored entry, checked: the ``(model key, batch key)`` it records are ``keys``, and
+        it holds one dict of tensors per sample."""
         try:
             stored = torch.load(path, map_location=device, weights_only=True)
         except Exception as err:  # noqa: BLE001 - any unreadable file gets the same message
@@ -224,6 +232,18 @@ class PredictionStore:
                 f"prediction store entry {path} cannot be read ({type(err).__name__}: {reason}); "
                 f"delete it (or the whole store, {self.root}) and run again"
             ) from err
+        recorded = (
+            (stored.get("model_key"), stored.get("batch_key")) if isinstance(stored, dict) else None
+        )
+        if recorded != keys:
+            raise ValueError(
+                f"prediction store entry {path} records "
+                + ("no key" if recorded is None else f"the key {'/'.join(map(str, recorded))}")
+                + f", but is read for {'/'.join(keys)} (model key/batch key; a file copied or "
+                "moved over another?): "
+                f"delete it (or the whole store, {self.root}) and run again"
+            )
+        stored = stored.get("predictions")
         if not (
             isinstance(stored, list) and len(stored) == batch_size
             and all(isinstance(p, dict) and all(isinstance(v, torch.Tensor) for v in p.values())

@@ -39,6 +39,7 @@ from pcdet_atlas.train_utils.dist import all_gather_objects, get_dist_info, unwr
 from pcdet_atlas.train_utils.eval_utils import predict_dataset, write_prediction_files
 from pcdet_atlas.train_utils.proposal_bank import frame_batches
 from pcdet_atlas.utils.common import save_pickle
+from pcdet_atlas.utils.paths import safe_component
 from pcdet_atlas.utils.seeding import torch_generator
 
 __all__ = [
@@ -65,7 +66,9 @@ def resolve_variants(spec: str, atlas_cfg: Mapping) -> list[tuple[str, Path]]:
     """``--attacks`` -> ``[(variant, yaml path)]``, clean first.
 
     ``spec`` is ``all`` (the config's ``ATLAS.ATTACKS``) or a comma list of variant names (files
-    ``cfgs/attacks/<name>.yaml``) and/or YAML paths.
+    ``cfgs/attacks/<name>.yaml``) and/or YAML paths. A variant names the folder of its results:
+    a file name that is not one safe path component (``...yaml``: variant ``..``) is an
+    ``UnsafePathError``.
     """
     check_known_keys(atlas_cfg, ATLAS_KEYS, "ATLAS")
     if spec == "all":
@@ -79,13 +82,14 @@ def resolve_variants(spec: str, atlas_cfg: Mapping) -> list[tuple[str, Path]]:
     out = []
     for name in names:
         path = Path(name) if name.endswith((".yaml", ".yml")) else ATTACK_DIR / f"{name}.yaml"
+        where = key_source(atlas_cfg, "ATTACKS") if spec == "all" else "--attacks"
         if not path.is_file():
             known = sorted(p.stem for p in ATTACK_DIR.glob("*.yaml"))
-            where = key_source(atlas_cfg, "ATTACKS") if spec == "all" else "--attacks"
             raise ConfigError(
                 f"attack variant {name!r} (from {where}): no file {path}; known variants: "
                 f"{', '.join(known)}"
             )
+        safe_component(path.stem, "attack variant (its file name)", f"{where}: {path}")
         out.append((path.stem, path.resolve()))
     if len({v for v, _ in out}) != len(out):
         raise ConfigError(f"--attacks {spec!r} names a variant twice")

@@ -15,6 +15,7 @@ from torch import nn
 from pcdet_atlas.models.batch import load_data_to_device
 from pcdet_atlas.train_utils.dist import all_gather_objects, get_dist_info, unwrap_model
 from pcdet_atlas.train_utils.proposal_bank import ProposalBank
+from pcdet_atlas.utils.paths import join_under
 
 __all__ = ["predict_dataset", "eval_one_epoch", "write_prediction_files"]
 
@@ -151,13 +152,20 @@ def eval_one_epoch(
 def write_prediction_files(det_annos: Sequence[dict], out_dir: str | Path) -> Path:
     """``--save_to_file``: one ``<frame_id>.txt`` per frame in ``out_dir``, one line per box:
     ``name x y z dx dy dz heading [vx vy] score`` (LiDAR frame, metres and radians, the
-    columns of ``boxes_lidar``; ``%.4f``). A frame without detections gets an empty file."""
+    columns of ``boxes_lidar``; ``%.4f``). A frame without detections gets an empty file. A
+    ``frame_id`` that is not one safe file name (``../x``) is an ``UnsafePathError``, before any
+    file is written."""
     out_dir = Path(out_dir)
+    paths = [
+        join_under(out_dir, (anno["frame_id"], "frame_id"), source=f"prediction {i}")
+        for i, anno in enumerate(det_annos)
+    ]
+    paths = [path.with_name(f"{path.name}.txt") for path in paths]
     out_dir.mkdir(parents=True, exist_ok=True)
-    for anno in det_annos:
+    for path, anno in zip(paths, det_annos):
         lines = [
             " ".join([str(name), *(f"{v:.4f}" for v in box), f"{score:.4f}"])
             for name, box, score in zip(anno["name"], anno["boxes_lidar"], anno["score"])
         ]
-        (out_dir / f"{anno['frame_id']}.txt").write_text("".join(f"{line}\n" for line in lines))
+        path.write_text("".join(f"{line}\n" for line in lines))
     return out_dir

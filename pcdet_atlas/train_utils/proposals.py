@@ -2,10 +2,14 @@
 computed once and cached on disk (as the MSF repository's ``result.pkl`` dump).
 
 The cache file's name holds a key of everything that decides its content: the RPN checkpoint's
-SHA-256, the RPN's resolved config, the dataset root and the split. A changed RPN therefore
-never serves stale proposals: it gets a new file. The file records the same facts and they are
-checked again when it is read. Layout: ``<CACHE_DIR>/<rpn config stem>-<key>/<split>.pkl`` with
-``{'format', 'rpn_checkpoint_sha256', 'rpn_cfg', 'data_path', 'split', 'proposals'}``,
+SHA-256, the RPN's whole resolved config (``CLASS_NAMES`` and ``MODEL``, its ``_BASE_CONFIG_``
+files merged in, and its data config on this dataset), the dataset root, the split and the
+split's :func:`~pcdet_atlas.datasets.fingerprint.dataset_fingerprint` (its info pkls and frame
+files). A changed RPN, RPN setting (``SCORE_THRESH``, say) or dataset therefore never serves
+stale proposals: it gets a new file. The file records the same facts and they are checked again
+when it is read. Layout: ``<CACHE_DIR>/<rpn config stem>-<key>/<split>.pkl`` with
+``{'format', 'rpn_checkpoint_sha256', 'rpn_cfg', 'rpn_model_config', 'rpn_data_config',
+'data_path', 'split', 'dataset_fingerprint', 'proposals'}``,
 ``proposals[frame_id]`` float32 ``(R, 11)`` ``[x, y, z, dx, dy, dz, heading, vx, vy, score,
 label]`` (docs/getting_started.md, two-stage models).
 """
@@ -16,7 +20,6 @@ import copy
 import hashlib
 import json
 import logging
-import pickle
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -25,14 +28,16 @@ import torch
 
 from pcdet_atlas.config import cfg_from_yaml_file, resolve_repo_path, to_plain
 from pcdet_atlas.datasets import build_dataloader
+from pcdet_atlas.datasets.fingerprint import data_config_fingerprint
 from pcdet_atlas.models.detectors.two_stage import TwoStageDetector
 from pcdet_atlas.train_utils.dist import get_dist_info
 from pcdet_atlas.train_utils.eval_utils import predict_dataset
 from pcdet_atlas.utils.common import save_pickle
+from pcdet_atlas.utils.safe_pickle import load_pickle
 
 __all__ = ["PROPOSAL_FORMAT", "proposal_cache_file", "training_proposals"]
 
-PROPOSAL_FORMAT = 1
+PROPOSAL_FORMAT = 2
 DEFAULT_CACHE_DIR = "output/rpn_proposals"
 
 
@@ -47,38 +52,59 @@ def _rpn_data_config(model: TwoStageDetector, data_cfg: Mapping, split: str):
     return rpn_cfg, rpn_data
 
 
-def _identity(model: TwoStageDetector, rpn_data: Mapping, split: str) -> dict:
+def _identity(model: TwoStageDetector, rpn_cfg: Mapping, rpn_data: Mapping, split: str) -> dict:
+    """What decides the cached proposals (module docstring); the dataset fingerprint reads the
+    split's info pkls and stats its frame files, once per call."""
     return {
         "rpn_checkpoint_sha256": model.rpn_info["sha256"],
         "rpn_cfg": model.rpn_info["cfg"],
+        "rpn_model_config": to_plain({k: rpn_cfg[k] for k in ("CLASS_NAMES", "MODEL")}),
         "rpn_data_config": to_plain(rpn_data),
         "data_path": str(rpn_data["DATA_PATH"]),
         "split": split,
+        "dataset_fingerprint": data_config_fingerprint(rpn_data, "train"),
     }
 
 
-def proposal_cache_file(model: TwoStageDetector, data_cfg: Mapping, split: str,
-                        cache_dir: str | Path | None = None) -> Path:  # fmt: skip
-    """Where the proposals of ``split`` by ``model``'s RPN are cached (module docstring)."""
-    _, rpn_data = _rpn_data_config(model, data_cfg, split)
-    ident = _identity(model, rpn_data, split)
+def _cache_file(model: TwoStageDetector, ident: Mapping, split: str,
+                cache_dir: str | Path | None = None) -> Path:  # fmt: skip
     key = hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:16]
     root = resolve_repo_path(cache_dir or model.rpn_info.get("cache_dir") or DEFAULT_CACHE_DIR)
     return root / f"{Path(model.rpn_info['cfg']).stem}-{key}" / f"{split}.pkl"
 
 
+def proposal_cache_file(model: TwoStageDetector, data_cfg: Mapping, split: str,
+                        cache_dir: str | Path | None = None) -> Path:  # fmt: skip
+    """Where the proposals of ``split`` by ``model``'s RPN are cached (module docstring)."""
+    rpn_cfg, rpn_data = _rpn_data_config(model, data_cfg, split)
+    return _cache_file(model, _identity(model, rpn_cfg, rpn_data, split), split, cache_dir)
+
+
 def _read(path: Path, ident: Mapping) -> dict[str, np.ndarray]:
-    with open(path, "rb") as fh:
-        data = pickle.load(fh)
+    data = load_pickle(path)
     if not isinstance(data, Mapping) or data.get("format") != PROPOSAL_FORMAT:
         raise ValueError(f"{path}: not a proposal cache of format {PROPOSAL_FORMAT}")
     for key, want in ident.items():
-        if data.get(key) != want:
-            raise ValueError(
-                f"{path}: cached for {key} = {data.get(key)!r}, this run needs {want!r} (delete "
-                "the file to recompute it)"
-            )
+        got = data.get(key)
+        if got != want:
+            if isinstance(want, Mapping) and isinstance(got, Mapping):  # name the keys, not all
+                detail = f"cached for another {key}: differs at {', '.join(_differing(got, want))}"
+            else:
+                detail = f"cached for {key} = {got!r}, this run needs {want!r}"
+            raise ValueError(f"{path}: {detail} (delete the file to recompute it)")
     return data["proposals"]
+
+
+def _differing(a: Mapping, b: Mapping, prefix: str = "") -> list[str]:
+    """The dotted keys at which two nested mappings differ."""
+    out = []
+    for key in sorted(a.keys() | b.keys(), key=str):
+        x, y, name = a.get(key), b.get(key), f"{prefix}{key}"
+        if isinstance(x, Mapping) and isinstance(y, Mapping):
+            out += _differing(x, y, name + ".")
+        elif x != y:
+            out.append(name)
+    return out
 
 
 @torch.no_grad()
@@ -100,8 +126,8 @@ def training_proposals(
     logger = logger or logging.getLogger(__name__)
     split = str(data_cfg.DATA_SPLIT["train"])
     rpn_cfg, rpn_data = _rpn_data_config(model, data_cfg, split)
-    ident = _identity(model, rpn_data, split)
-    path = proposal_cache_file(model, data_cfg, split)
+    ident = _identity(model, rpn_cfg, rpn_data, split)
+    path = _cache_file(model, ident, split)
     if path.is_file():
         logger.info(f"training proposals: {path} (cached)")
         return _read(path, ident), path

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import sys
 from pathlib import Path
 
 import torch
@@ -17,11 +19,20 @@ from pcdet_atlas.config import (
 )
 from pcdet_atlas.train_utils.dist import init_dist_pytorch, init_dist_slurm
 from pcdet_atlas.utils.common import resolve_device
+from pcdet_atlas.utils.locks import FolderLock, FolderLockedError
+from pcdet_atlas.utils.paths import (
+    SAFE_COMPONENT_RULE,
+    UnsafePathError,
+    join_under,
+    safe_component,
+)
 
 __all__ = [
     "add_common_args",
     "count_arg",
     "device_arg",
+    "folder_name_arg",
+    "lock_output_folder",
     "load_cfg",
     "exp_group_and_tag",
     "output_dir_for",
@@ -62,7 +73,10 @@ def add_common_args(parser: argparse.ArgumentParser) -> None:
         help=f"dataloader workers per process (default: {DEFAULT_WORKERS}, OpenPCDet's 4 capped "
         "at the CPU count)",
     )  # fmt: skip
-    parser.add_argument("--extra_tag", type=str, default="default")
+    parser.add_argument(
+        "--extra_tag", type=folder_name_arg, default="default",
+        help="the run's folder under output/<group>/<tag>/",
+    )  # fmt: skip
     parser.add_argument("--ckpt", type=str, default=None)
     parser.add_argument(
         "--launcher", choices=["none", "pytorch", "slurm"], default="none",
@@ -138,8 +152,33 @@ def exp_group_and_tag(cfg_file: str | Path) -> tuple[str, str]:
 
 
 def output_dir_for(cfg, output_root: str | Path, extra_tag: str) -> Path:
-    """``<output_root>/<EXP_GROUP_PATH>/<TAG>/<extra_tag>/``."""
-    return Path(output_root) / cfg.EXP_GROUP_PATH / cfg.TAG / extra_tag
+    """``<output_root>/<EXP_GROUP_PATH>/<TAG>/<extra_tag>/``; each name one safe path component
+    and the folder inside ``output_root`` (:func:`~pcdet_atlas.utils.paths.join_under`)."""
+    group = [(part, "config folder") for part in str(cfg.EXP_GROUP_PATH).split("/")]
+    return join_under(
+        output_root, *group, (cfg.TAG, "config name"), (extra_tag, "extra_tag"),
+        source=f"the output folder {output_root}/{cfg.EXP_GROUP_PATH}/{cfg.TAG}/{extra_tag}",
+    )  # fmt: skip
+
+
+def folder_name_arg(text: str) -> str:
+    """The argparse ``type`` of a flag naming one output folder (``--extra_tag``,
+    ``--eval_tag``): anything but one safe name (``../x``, ``..``) is a usage error."""
+    try:
+        return safe_component(text, "folder name", "the command line")
+    except UnsafePathError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not {SAFE_COMPONENT_RULE}") from None
+
+
+def lock_output_folder(folder: Path, held: contextlib.ExitStack, purpose: str) -> None:
+    """Hold ``folder``'s one-writer lock (:class:`~pcdet_atlas.utils.locks.FolderLock`) until
+    ``held`` closes. A folder another run writes stops the tool with a one-line message naming
+    the folder and that run (exit 2)."""
+    try:
+        held.enter_context(FolderLock(folder, purpose))
+    except FolderLockedError as err:
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 def device_arg(text: str) -> str:

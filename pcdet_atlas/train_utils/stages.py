@@ -9,10 +9,13 @@
       FREEZE: [vfe, lot.score_mlp]   # taken from the predecessor's checkpoint and kept fixed
 
 A stage starts from the newest checkpoint its predecessor's run left under the same
-``--extra_tag`` (``--pretrained_model`` names another file). Every parameter outside ``TRAIN`` has
-``requires_grad`` off and its module stays in eval mode while training, so batch-norm statistics
-do not move either. A missing predecessor checkpoint, or one without the parameters of a module
-the stage freezes, stops the run with an error naming the stage and the checkpoint.
+``--extra_tag`` (``--pretrained_model`` names another file); that checkpoint must have finished
+the predecessor's configured epochs (``OPTIMIZATION.NUM_EPOCHS`` as that run had it in effect),
+unless ``allow_partial`` (``tools/train.py --allow_partial_stage_init``). Every parameter outside
+``TRAIN`` has ``requires_grad`` off and its module stays in eval mode while training, so
+batch-norm statistics do not move either. A missing predecessor checkpoint, or one without the
+parameters of a module the stage freezes, stops the run with an error naming the stage and the
+checkpoint.
 """
 
 from __future__ import annotations
@@ -84,10 +87,22 @@ def _under(name: str, prefix: str) -> bool:
 
 
 def stage_init_checkpoint(
-    stage: TrainingStage, *, output_root: str | Path, extra_tag: str, pretrained_model: str | None
+    stage: TrainingStage,
+    *,
+    output_root: str | Path,
+    extra_tag: str,
+    pretrained_model: str | None,
+    allow_partial: bool = False,
 ) -> Path:
     """The checkpoint the stage starts from: ``pretrained_model`` if given, else the newest
-    checkpoint of the ``INIT_FROM`` config's run under ``extra_tag``."""
+    checkpoint of the ``INIT_FROM`` config's run under ``extra_tag``, which must have trained
+    that run's configured epochs unless ``allow_partial``.
+
+    Raises:
+        FileNotFoundError: no such checkpoint.
+        ValueError: the predecessor's newest checkpoint is short of its configured epochs (naming
+            the checkpoint, its epoch and the configured epochs).
+    """
     if pretrained_model is not None:
         path = Path(pretrained_model)
         if not path.is_file():
@@ -102,7 +117,8 @@ def stage_init_checkpoint(
         )
     from pcdet_atlas.train_utils.setup import load_cfg, output_dir_for
 
-    ckpt_dir = output_dir_for(load_cfg(str(stage.init_from), None), output_root, extra_tag) / "ckpt"
+    predecessor = load_cfg(str(stage.init_from), None)
+    ckpt_dir = output_dir_for(predecessor, output_root, extra_tag) / "ckpt"
     found = find_latest_checkpoint(ckpt_dir)
     if found is None:
         raise FileNotFoundError(
@@ -110,7 +126,36 @@ def stage_init_checkpoint(
             f"{stage.init_from.name}, but {ckpt_dir} holds no checkpoint: train "
             f"{stage.init_from} with --extra_tag {extra_tag} first, or pass --pretrained_model"
         )
+    if not allow_partial:
+        epoch, configured, source = _predecessor_progress(found, predecessor, stage.init_from)
+        if epoch < configured:
+            raise ValueError(
+                f"stage {stage.name} ({stage.source}) would start from {found}, trained "
+                f"{epoch} of its {configured} configured epochs ({source}): finish "
+                f"{stage.init_from} with --extra_tag {extra_tag} first, or pass "
+                "--allow_partial_stage_init to start from it anyway"
+            )
     return found
+
+
+def _predecessor_progress(ckpt_path: Path, predecessor: Mapping, cfg_file: Path) -> tuple:
+    """``(epochs trained, epochs configured, where the configured count comes from)`` of a
+    predecessor's checkpoint: the ``NUM_EPOCHS`` its run had in effect (its ``train_settings``,
+    ``--epochs`` included), else that of the predecessor's config file."""
+    ckpt = read_checkpoint(ckpt_path)
+    if type(ckpt.get("epoch")) is not int:
+        raise ValueError(f"checkpoint {ckpt_path}: 'epoch' is {ckpt.get('epoch')!r}, not an int")
+    recorded = ((ckpt.get("train_settings") or {}).get("OPTIMIZATION") or {}).get("NUM_EPOCHS")
+    if recorded is not None:
+        return ckpt["epoch"], int(recorded), "as its run had them in effect"
+    configured = predecessor.get("OPTIMIZATION", {}).get("NUM_EPOCHS")
+    if configured is None:
+        raise ValueError(
+            f"checkpoint {ckpt_path} records no NUM_EPOCHS and {cfg_file} sets no "
+            "OPTIMIZATION.NUM_EPOCHS: cannot tell whether it finished its training (pass "
+            "--allow_partial_stage_init to start from it anyway)"
+        )
+    return ckpt["epoch"], int(configured), f"OPTIMIZATION.NUM_EPOCHS of {cfg_file}"
 
 
 def load_stage_init(model: nn.Module, stage: TrainingStage, checkpoint: str | Path) -> list[str]:

@@ -6,10 +6,12 @@ import hashlib
 import numpy as np
 import pytest
 from atlas_helpers import load_tool, write_tiny_waymo
+from malicious_files import malicious_pickle
 
 from pcdet_atlas.attacks.lidar_fit import top_lidar_points
 from pcdet_atlas.config import REPO_ROOT
 from pcdet_atlas.datasets import waymo_format as wf
+from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
 ATTACKS = REPO_ROOT / "cfgs" / "attacks"
 
@@ -118,3 +120,17 @@ def test_lidar_counts_sum_to_the_written_rows(tmp_path, variant):
     assert changed > 0
     if variant.startswith("rem"):
         assert any(c["num_points_of_each_lidar"][1] < 800 for c in written[32:40])
+
+
+def test_a_rerun_refuses_attack_metadata_that_would_run_code(source, tmp_path):
+    """A rerun reads each finished sequence's ``<seq>_atlas.pkl`` (to skip it) with the
+    restricted unpickler."""
+    root, cfg_path = source
+    out_dir = tmp_path / "out"
+    load_tool("generate_atlas").main(gen_args(cfg_path, out_dir))
+    (meta,) = wf.data_dir(out_dir).glob("*/*_atlas.pkl")
+    marker = tmp_path / "marker"
+    malicious_pickle(meta, marker)
+    with pytest.raises(RefusedGlobalError, match=rf"{meta}: refused to unpickle the global "):
+        load_tool("generate_atlas").main(gen_args(cfg_path, out_dir))
+    assert not marker.exists()

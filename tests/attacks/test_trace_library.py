@@ -3,10 +3,12 @@ import os
 import numpy as np
 import pytest
 from atlas_helpers import VEHICLES, load_tool, synthetic_library, write_tiny_waymo
+from malicious_files import malicious_pickle
 
 from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
-from pcdet_atlas.datasets.waymo_format import WaymoFormatError, read_image_set
+from pcdet_atlas.datasets.waymo_format import WaymoFormatError, read_image_set, sequence_pkl_path
+from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
 
 @pytest.fixture(scope="module")
@@ -149,3 +151,13 @@ def test_rebuild_with_other_filters_does_not_replace_the_shared_file(tiny_root, 
     with pytest.raises(FileExistsError, match=r"'sensor_origin': \[1\.0, 0\.0, 2\.0\]"):
         tool.main(["--cfg", str(moved), *base[2:], "--set", "TRACE_LIBRARY.MIN_POINTS", "100"])
     assert out.read_bytes() == before
+
+
+def test_a_sequence_pkl_that_would_run_code_is_refused(tmp_path):
+    root = write_tiny_waymo(tmp_path / "tiny", frames={"train": 2, "val": 1})
+    seq = read_image_set(root / "ImageSets" / "train.txt")[0]
+    marker = tmp_path / "marker"
+    pkl = malicious_pickle(sequence_pkl_path(root, seq), marker)
+    with pytest.raises(RefusedGlobalError, match=rf"{pkl}: refused to unpickle the global "):
+        build_trace_library(root, TraceFilter(min_points=50))
+    assert not marker.exists()

@@ -9,6 +9,7 @@ import shutil
 
 import numpy as np
 import pytest
+from malicious_files import malicious_pickle
 from waymo_tiny_data import CLASS_NAMES, DATASET_CFG, dataset_cfg, write_tiny_waymo
 
 from pcdet_atlas.config import ConfigError, cfg_from_yaml_file
@@ -202,6 +203,34 @@ def test_corrupt_pkl(root):
         _dataset(root)
 
 
+def test_a_pkl_that_would_run_code_is_refused(root, tmp_path):
+    marker = tmp_path / "marker"
+    path = malicious_pickle(wf.sequence_pkl_path(root, SEQ), marker)
+    with pytest.raises(wf.WaymoFormatError, match=rf"{SEQ}\.pkl: refused to unpickle the global "):
+        _dataset(root)
+    assert not marker.exists()
+    with pytest.raises(wf.WaymoFormatError, match=re.escape(str(path))):
+        wf.load_sequence_infos(path)
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize("dtype", ["<U10", object])
+def test_openpcdet_infos_with_numpy_values_load(root, dtype):
+    """OpenPCDet's infos hold numpy arrays (names as ``<U10`` or object arrays of str) and
+    numpy scalars: what the restricted unpickler reads."""
+
+    def numpy_values(infos):
+        for info in infos:
+            info["annos"]["name"] = np.asarray(info["annos"]["name"], dtype=dtype)
+            info["metadata"]["timestamp_micros"] = np.int64(info["metadata"]["timestamp_micros"])
+
+    path = _edit_infos(root, numpy_values)
+    infos = wf.load_sequence_infos(path)
+    assert infos[0]["annos"]["name"].dtype == np.dtype(dtype)
+    assert isinstance(infos[0]["metadata"]["timestamp_micros"], np.int64)
+    assert len(_dataset(root)) == 4
+
+
 def test_missing_sequence_pkl_is_not_skipped(root):
     (root / "ImageSets" / "val.txt").write_text(f"{SEQ}.tfrecord\nsegment-404.tfrecord\n")
     with pytest.raises(
@@ -329,6 +358,20 @@ def test_missing_gt_database_names_the_file(root):
         wf.WaymoFormatError, match=r"dbinfos_train_sampled_1\.pkl: GT database info file not found"
     ):
         WaymoDataset(cfg, CLASS_NAMES, training=True, root_path=root)
+
+
+def test_a_gt_database_pkl_that_would_run_code_is_refused(root, tmp_path):
+    cfg = dataset_cfg()
+    cfg.DATA_AUGMENTOR.AUG_CONFIG_LIST = cfg_from_yaml_file(
+        DATASET_CFG
+    ).DATA_AUGMENTOR.AUG_CONFIG_LIST[:1]  # gt_sampling
+    marker = tmp_path / "marker"
+    malicious_pickle(root / "waymo_processed_data_v0_5_0_waymo_dbinfos_train_sampled_1.pkl", marker)
+    with pytest.raises(
+        wf.WaymoFormatError, match=r"dbinfos_train_sampled_1\.pkl: refused to unpickle the global"
+    ):
+        WaymoDataset(cfg, CLASS_NAMES, training=True, root_path=root)
+    assert not marker.exists()
 
 
 def test_missing_required_augmentation_key(root):

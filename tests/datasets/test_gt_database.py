@@ -3,20 +3,23 @@
 from __future__ import annotations
 
 import logging
-import pickle
 import runpy
 from pathlib import Path
 
 import numpy as np
 import pytest
+from malicious_files import malicious_pickle
 from waymo_tiny_data import CLASS_NAMES, write_tiny_waymo
 
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
-from pcdet_atlas.datasets import WaymoDataset
+from pcdet_atlas.datasets import WaymoDataset, gt_database
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.datasets.gt_database import create_groundtruth_database, gt_database_paths
+from pcdet_atlas.datasets.multiframe import SequenceConfig
 from pcdet_atlas.ops.boxes import points_in_boxes_mask
 from pcdet_atlas.registry import DATASETS
+from pcdet_atlas.utils.common import save_pickle
+from pcdet_atlas.utils.safe_pickle import RefusedGlobalError, load_pickle
 
 CFG_DIR = REPO_ROOT / "cfgs" / "dataset_configs"
 TAG = wf.PROCESSED_DATA_TAG
@@ -39,8 +42,7 @@ def db_root(tmp_path_factory):
 
 
 def _load(path):
-    with open(path, "rb") as f:
-        return pickle.load(f)
+    return load_pickle(path)  # what the project's readers use: its own files load
 
 
 def test_single_frame_database(db_root):
@@ -218,6 +220,42 @@ def test_workers_build_the_same_database(db_root, tmp_path, config):
             box_a, box_b = a.pop("box3d_lidar"), b.pop("box3d_lidar")
             np.testing.assert_array_equal(box_a, box_b)
             assert a == b
+
+
+def test_the_workers_job_is_plain_values_and_one_that_would_run_code_is_refused(
+    db_root, tmp_path, monkeypatch
+):
+    """The job file holds the dataset's registered class name, plain config, root, split and
+    infos (read with the restricted unpickler): each worker rebuilds the dataset from it."""
+    dataset = WaymoDataset(
+        cfg_from_yaml_file(CFG_DIR / "waymo_dataset_multiframe.yaml"), ["Vehicle"],
+        training=False, root_path=db_root,
+    )  # fmt: skip
+    dataset.set_split("train")
+    dataset.all_infos = dataset.all_infos[::2]  # a caller's subset travels with the job
+    job = gt_database._worker_job(dataset, SequenceConfig((-4, 0)), ["Vehicle"], tmp_path / "db")
+    monkeypatch.setattr(gt_database, "_WORKER_JOB", None)
+    gt_database._load_worker_job(save_pickle(job, tmp_path / "job.pkl"))
+    rebuilt, sequence_cfg, used_classes, db_dir = gt_database._WORKER_JOB
+    assert type(rebuilt) is WaymoDataset and rebuilt.split == "train"
+    assert rebuilt.root_path == dataset.root_path and rebuilt.sequence_cfg is not None
+    assert [i["frame_id"] for i in rebuilt.all_infos] == [i["frame_id"] for i in dataset.all_infos]
+    assert sequence_cfg.sample_offset == (-4, 0) and not sequence_cfg.onehot_timestamp
+    assert used_classes == ["Vehicle"] and db_dir == tmp_path / "db"
+
+    marker = tmp_path / "marker"
+    evil = malicious_pickle(tmp_path / "evil_job.pkl", marker, job)
+    with pytest.raises(RefusedGlobalError, match=rf"{evil}: refused to unpickle the global "):
+        gt_database._load_worker_job(evil)
+    assert not marker.exists()
+
+    class Unregistered(WaymoDataset):
+        pass
+
+    other = Unregistered(dataset.dataset_cfg, ["Vehicle"], training=False, root_path=db_root)
+    with pytest.raises(ValueError, match=r"Unregistered is not in the DATASETS registry"):
+        create_groundtruth_database(other, save_path=tmp_path / "out", workers=2)
+    assert not (tmp_path / "out").exists()
 
 
 def test_negative_workers_is_an_error(db_root):

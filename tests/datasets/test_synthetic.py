@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from malicious_files import malicious_pickle
 
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.datasets.synthetic import (
@@ -34,6 +35,7 @@ from pcdet_atlas.datasets.synthetic.raycast import (
 from pcdet_atlas.datasets.synthetic.sensor import SensorModel
 from pcdet_atlas.ops.boxes import points_in_boxes_mask, transform_boxes
 from pcdet_atlas.ops.lidar_model import LidarModel
+from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
 DEVICES = [
     "cpu",
@@ -193,6 +195,16 @@ def test_determinism_idempotency_and_conflicts(tmp_path):
         _small(a, frames=3)
     with pytest.raises(SyntheticDatasetError, match="seed"):
         _small(a, seed=5)
+
+
+def test_an_existing_sequence_pkl_that_would_run_code_is_refused(tmp_path):
+    """A rerun reads the sequences already written with the restricted unpickler."""
+    _small(tmp_path, frames=1)
+    marker = tmp_path / "marker"
+    pkl = malicious_pickle(wf.sequence_pkl_path(tmp_path, _sequences(tmp_path, "train")[0]), marker)
+    with pytest.raises(RefusedGlobalError, match=rf"{pkl}: refused to unpickle the global "):
+        _small(tmp_path, frames=1)
+    assert not marker.exists()
 
 
 def test_refuses_foreign_root_and_bad_args(tmp_path):

@@ -387,6 +387,14 @@ def test_empty_frame_flows_through_getitem_and_collate(tiny_root, training, mult
     assert only_empty["points"].shape[1] == sample["points"].shape[1] + 1
 
 
+def test_empty_frame_file_reads_with_spare_rows(tiny_root):
+    """An empty frame read with room for an attack's rows: the room and nothing else."""
+    path = wf.frame_npy_path(tiny_root, SEQ_B, 2)
+    assert wf.load_frame_points(path).shape == (0, 6)
+    spare = wf.load_frame_points(path, spare_rows=7)
+    assert spare.shape == (7, 6) and spare.dtype == np.float32
+
+
 def test_collate_pads_and_keeps_unknown_keys_as_lists(tiny_root):
     ds = WaymoDataset(dataset_cfg(), CLASS_NAMES, training=False, root_path=tiny_root)
     samples = [ds[0], ds[1]]

@@ -8,6 +8,7 @@ import pickle
 
 import numpy as np
 import pytest
+from malicious_files import malicious_pickle
 
 from pcdet_atlas.config import REPO_ROOT
 from pcdet_atlas.evaluation.localization import (
@@ -19,6 +20,7 @@ from pcdet_atlas.evaluation.localization import (
     projected_ap,
 )
 from pcdet_atlas.evaluation.waymo_metric import compute_waymo_curves
+from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
 
 def shifted(boxes: np.ndarray, along: np.ndarray) -> np.ndarray:
@@ -189,3 +191,9 @@ def test_analyze_boxes_tool_on_a_test_result(synthetic_root, tmp_path, capsys):
     with pytest.raises(SystemExit, match="not in the config"):
         tool.main(["--cfg", cfg, "--result", str(result), "--set",
                    "DATA_CONFIG.DATA_PATH", str(synthetic_root)])  # fmt: skip
+    marker = tmp_path / "marker"
+    malicious_pickle(result, marker, det)
+    with pytest.raises(RefusedGlobalError, match=rf"{result}: refused to unpickle the global "):
+        tool.main(["--cfg", cfg, "--result", str(result), "--set",
+                   "DATA_CONFIG.DATA_PATH", str(synthetic_root)])  # fmt: skip
+    assert not marker.exists()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 import sys
 import zlib
 from pathlib import Path
@@ -32,6 +33,7 @@ from pcdet_atlas.evaluation.results.report import (
     lifecycle_table,
     lot_ablation_table,
     paired_table,
+    rpn_cell,
     summary_table,
     write_report,
 )
@@ -169,6 +171,14 @@ def test_report_has_every_table_row_and_figure(models, tmp_path):
     removal_tex = tex.split("% Point removal")[1].split("\\end{tabular}")[0].splitlines()
     cp4f_tex = next(line for line in removal_tex if line.startswith("CP-4f & "))
     assert cp4f_tex.removesuffix(" \\\\").split(" & ")[3:] == ["missing", "missing"]
+
+
+def test_model_table_names_each_models_rpn():
+    msf = {"config": "cfgs/atlas/synthetic/msf_4f.yaml"}
+    assert rpn_cell(msf) == "`cfgs/atlas/synthetic/cp4f.yaml` (`checkpoints/cp4f_synthetic.pth`)"
+    assert "cfgs/atlas/cp4f_voxel.yaml" in rpn_cell({"config": "cfgs/atlas/ptt_32f.yaml"})
+    assert rpn_cell({"config": "cfgs/atlas/synthetic/centerpoint.yaml"}) == "-"
+    assert rpn_cell({"config": "cfgs/nowhere.yaml"}).startswith("? (config unreadable")
 
 
 def test_summary_lot_and_centre_gap_tables(models):
@@ -376,6 +386,57 @@ def test_the_tool_reads_files_and_folders_and_refuses_duplicates(models, tmp_pat
         collect_results([tmp_path / "nope"])
     with pytest.raises(ResultsError, match="no results.json under"):
         collect_results([tmp_path / "rep"])
+
+
+def test_the_tool_refuses_an_out_that_is_a_file(models, tmp_path, capsys):
+    save_results(models[0], tmp_path / "runs" / "results.json")
+    out = tmp_path / "report.md"
+    out.write_text("an earlier report")
+    with pytest.raises(SystemExit) as exited:
+        load_tool("report").main(["--results", str(tmp_path / "runs"), "--out", str(out)])
+    assert exited.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert error.endswith(f"--out {out}: an existing file, expected a folder (or a path to create "
+                          "one)")  # fmt: skip
+    assert out.read_text() == "an earlier report"
+
+
+def test_reproduce_names_a_truncated_or_mistyped_run_json(tmp_path):
+    reproduce = load_tool("reproduce")
+    run_file = tmp_path / "run.json"
+    run_file.write_text('{"runs": [{"config": "a.yaml", "resu')  # a write cut short
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(run_file))}: not valid JSON"):
+        reproduce.main(["--out", str(tmp_path), "--report_only"])
+    data = tmp_path / "data"
+    (data / "ImageSets").mkdir(parents=True)
+    argv = ["--out", str(tmp_path), "--data_path", str(data), "--attacks", "clean",
+            "--cfgs", "cfgs/atlas/synthetic/centerpoint.yaml"]  # fmt: skip
+    with pytest.raises(ValueError, match="not valid JSON"):  # read before anything is evaluated
+        reproduce.main(argv)
+    good = {"setting": {}, "command": "", "total_wall_s": 2.0, "calls": 1, "cpus": ["x"],
+            "runs": [{"config": "a.yaml", "results": "r.json", "wall_s": 1.0}],
+            "model_wall_s": {"a.yaml": 1.0}}  # fmt: skip
+    run_file.write_text(json.dumps(good))
+    assert reproduce.read_run_record(run_file) == good
+    for mutate, key, expected in [
+        (lambda r: r.update(total_wall_s="12 min"), "total_wall_s", "int or float"),
+        (lambda r: r.update(calls=True), "calls", "int"),
+        (lambda r: r.update(runs={}), "runs", "list"),
+        (lambda r: r["runs"][0].pop("results"), "runs[0].results", "str"),
+        (lambda r: r["runs"][0].update(wall_s="1"), "runs[0].wall_s", "int or float"),
+        (lambda r: r["model_wall_s"].update({"a.yaml": None}), "model_wall_s.a.yaml", "a number"),
+        (lambda r: r["cpus"].append(3), "cpus[1]", "a CPU model name"),
+    ]:
+        bad = copy.deepcopy(good)
+        mutate(bad)
+        run_file.write_text(json.dumps(bad))
+        with pytest.raises(ValueError) as err:
+            reproduce.read_run_record(run_file)
+        assert str(err.value).startswith(f"{run_file}: key {key!r} holds "), key
+        assert f"expected {expected}" in str(err.value), key
+    run_file.write_text("[]")
+    with pytest.raises(ValueError, match="holds a JSON list, expected an object"):
+        reproduce.main(["--out", str(tmp_path), "--report_only"])
 
 
 @pytest.mark.slow

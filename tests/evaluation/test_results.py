@@ -20,6 +20,7 @@ from pcdet_atlas.evaluation.results import (
     format_comparison_table,
     format_ranks,
     format_table,
+    io,
     load_results,
     load_results_dir,
     ordered_variants,
@@ -259,6 +260,42 @@ def test_schema_4_files_load_with_run_counts_unknown(tmp_path):
     assert {**loaded, "variants": None} == {**CP, "variants": None}
     assert CP["variants"]["clean"]["runs"] == []
     assert sum(r["num_targets"] for r in CP["variants"]["rem_10"]["runs"]) == 100
+
+
+@pytest.mark.parametrize(
+    "version, variant, key",
+    [(4, "rem_10", "runs"), (3, "rem_10", "num_reused_frames"), (2, "clean", "asr_ci"),
+     (1, "clean", "rank_group"), (3, "rem_10", "lifecycle.clean_score_counts")],
+)  # fmt: skip
+def test_a_version_its_content_contradicts_is_refused(tmp_path, version, variant, key):
+    """A file of an older schema_version that holds a value under a later version's key is an
+    error naming the file, the version and the key, from load_results and the upgrade alike: the
+    upgrade never overwrites the value."""
+    results = copy.deepcopy(CP)
+    results["schema_version"] = version
+    for entry in results["variants"].values():  # a genuine file of that version...
+        entry["lifecycle"] = None
+        for newer, added in io._ADDED_IN.items():
+            if added > version and "." not in newer:
+                entry.pop(newer)
+    entry = results["variants"][variant]  # ...but for one key
+    if key == "lifecycle.clean_score_counts":
+        entry["lifecycle"] = {"clean_score_counts": [[1]]}
+    else:
+        entry[key] = {"runs": [], "num_reused_frames": 0, "asr_ci": [0.1, 0.2]}.get(key, "x")
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps(results))
+    with pytest.raises(ResultsError) as err:
+        load_results(path)
+    assert str(err.value).startswith(f"{path}['variants'][{variant!r}]: has {key!r}, a key of ")
+    assert f"says schema_version {version}: the version contradicts" in str(err.value)
+    upgrade = getattr(io, f"upgrade_v{version}")
+    with pytest.raises(ResultsError, match=rf"^results\['variants'\]\['{variant}'\]: has"):
+        upgrade(results)
+    entry.pop("lifecycle" if "." in key else key)
+    entry["lifecycle"] = None
+    path.write_text(json.dumps(results))
+    assert load_results(path)["schema_version"] == 5  # the genuine file loads
 
 
 def _broken(mutate):

@@ -5,6 +5,7 @@ from pathlib import Path
 import pytest
 import torch
 from device_params import DEVICES
+from malicious_files import malicious_checkpoint
 from model_batches import make_batch
 
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
@@ -12,6 +13,7 @@ from pcdet_atlas.models import build_network, build_network_from_config, num_poi
 from pcdet_atlas.models.detectors.detector3d_template import CheckpointMismatchError
 from pcdet_atlas.registry import DETECTORS
 from pcdet_atlas.train_utils import export_model_checkpoint
+from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
 CONFIGS = sorted((REPO_ROOT / "cfgs" / "atlas").rglob("*.yaml"))
 #: single-stage (CenterPoint) configs; two-stage ones are smoke-tested in test_msf.py
@@ -111,6 +113,32 @@ def test_build_forward_loss_gradients(path: Path):
         assert (p["pred_scores"][:-1] >= p["pred_scores"][1:]).all()
 
 
+@pytest.mark.parametrize("name", ["synthetic/centerpoint.yaml", "synthetic/cp4f_voxel.yaml"])
+def test_all_empty_batch_predicts_and_trains(name):
+    """A batch of empty frames only (0 points, 0 boxes) is legal for a single-frame pillar and
+    a multi-frame voxel model: predictions of the right shapes, a finite loss and gradients."""
+    cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "atlas" / name)
+    torch.manual_seed(0)
+    model = cropped_model(cfg)
+    nfeat = model.vfe.num_point_features
+    with_vel = model.dense_head.with_velocity
+    batch = {"points": torch.zeros(0, 1 + nfeat), "batch_size": 2}
+    model.eval()
+    with torch.no_grad():
+        preds, _ = model(batch)
+    assert len(preds) == 2
+    for p in preds:
+        k = p["pred_boxes"].shape[0]
+        assert p["pred_boxes"].shape == (k, 9 if with_vel else 7)
+        assert p["pred_scores"].shape == (k,) and torch.isfinite(p["pred_boxes"]).all()
+    model.train()
+    gt_boxes = torch.zeros(2, 1, 10 if with_vel else 8)  # padding rows only
+    ret, tb, _ = model(dict(batch, gt_boxes=gt_boxes))
+    assert torch.isfinite(ret["loss"]) and tb["loc_loss"] == 0
+    ret["loss"].backward()
+    assert all(p.grad is None or torch.isfinite(p.grad).all() for p in model.parameters())
+
+
 def test_unknown_model_key_names_key_and_file(tmp_path):
     path = tmp_path / "bad.yaml"
     src = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml"
@@ -187,6 +215,31 @@ def test_checkpoint_mismatch_is_a_clear_error(tmp_path):
     small = export_model_checkpoint(path, tmp_path / "small.pth")  # what a model zoo ships
     assert "optimizer_state" not in torch.load(small, weights_only=False)
     cp.load_params_from_file(small)
+
+
+def test_a_checkpoint_that_would_run_code_or_holds_nan_is_refused(tmp_path):
+    """What ``tools/test.py --ckpt``, ``ATLAS.CHECKPOINT`` and ``--pretrained_model`` load:
+    read with ``weights_only=True`` (a file naming a global is refused before it runs), and
+    NaN/inf weights are an error naming the tensor and the file, not a model scoring 0."""
+    cp = build_network_from_config(
+        cfg_from_yaml_file(REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "cp4f.yaml")
+    )
+    marker = tmp_path / "marker"
+    path = malicious_checkpoint(tmp_path / "evil.pth", marker, model_state=cp.state_dict())
+    with pytest.raises(RefusedGlobalError, match=rf"checkpoint {path} refused: it needs \S+"):
+        cp.load_params_from_file(path)
+    assert not marker.exists()
+
+    state = cp.state_dict()
+    name = "backbone_2d.blocks.0.2.running_var"
+    state[name] = state[name].clone()
+    state[name][3] = float("nan")
+    torch.save({"model_state": state}, path)
+    with pytest.raises(ValueError, match=rf"checkpoint {path} holds non-finite .* {name} \(1 of"):
+        cp.load_params_from_file(path)
+    torch.save({"model_state": [1, 2]}, path)
+    with pytest.raises(ValueError, match=rf"checkpoint {path}: 'model_state' is a list"):
+        cp.load_params_from_file(path)
 
 
 @pytest.mark.parametrize("device", DEVICES)

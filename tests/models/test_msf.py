@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 from device_params import DEVICES
+from malicious_files import malicious_checkpoint, malicious_pickle
 from model_batches import two_stage_batch as training_batch
 
 from pcdet_atlas.attacks import AtlasWaymoDataset
@@ -25,6 +26,7 @@ from pcdet_atlas.models.model_utils.motion_sampler import propagate_boxes
 from pcdet_atlas.ops.iou3d_nms import boxes_iou_bev
 from pcdet_atlas.train_utils import checkpoint_state, export_model_checkpoint, load_checkpoint
 from pcdet_atlas.train_utils.proposals import proposal_cache_file, training_proposals
+from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
 CFGS = REPO_ROOT / "cfgs" / "atlas"
 MSF_CONFIGS = sorted(
@@ -148,6 +150,18 @@ def test_checkpoints_record_the_rpn(tmp_path):
         load_checkpoint(path, other_model)  # resuming a training run with another RPN
 
 
+def test_an_rpn_checkpoint_that_would_run_code_is_refused(tmp_path):
+    """``MODEL.RPN.CHECKPOINT`` is read with ``weights_only=True``."""
+    rpn = torch.load(REPO_ROOT / "checkpoints" / "cp4f_synthetic.pth", weights_only=True)
+    marker = tmp_path / "marker"
+    evil = malicious_checkpoint(tmp_path / "rpn.pth", marker, **rpn)
+    cfg = cfg_from_yaml_file(CFGS / "synthetic" / "msf_4f.yaml")
+    cfg.MODEL.RPN.CHECKPOINT = str(evil)
+    with pytest.raises(RefusedGlobalError, match=rf"checkpoint {evil} refused: it needs \S+"):
+        build_network_from_config(cfg)
+    assert not marker.exists()
+
+
 def test_missing_rpn_checkpoint_names_it():
     cfg = cfg_from_yaml_file(CFGS / "msf_8f.yaml")
     with pytest.raises(FileNotFoundError, match=r"MODEL\.RPN\.CHECKPOINT.*checkpoint_epoch_36"):
@@ -208,6 +222,18 @@ def test_training_proposals_are_cached_by_rpn_hash(synthetic_root, tmp_path):
     model.rpn_info = {**model.rpn_info, "sha256": build_network_from_config(cfg).rpn_info["sha256"]}
     with pytest.raises(ValueError, match="rpn_checkpoint_sha256"):
         training_proposals(model, cfg.DATA_CONFIG, cfg.CLASS_NAMES, device=cpu)
+
+
+def test_a_proposal_cache_that_would_run_code_is_refused(synthetic_root, tmp_path):
+    cfg = cfg_from_yaml_file(CFGS / "synthetic" / "msf_4f.yaml")
+    cfg.DATA_CONFIG.DATA_PATH = str(synthetic_root)
+    cfg.MODEL.RPN.CACHE_DIR = str(tmp_path / "cache")
+    model = build_network_from_config(cfg)
+    marker = tmp_path / "marker"
+    path = malicious_pickle(proposal_cache_file(model, cfg.DATA_CONFIG, "train"), marker)
+    with pytest.raises(RefusedGlobalError, match=rf"{path}: refused to unpickle the global "):
+        training_proposals(model, cfg.DATA_CONFIG, cfg.CLASS_NAMES, device=torch.device("cpu"))
+    assert not marker.exists()
 
 
 def test_the_dataset_serves_and_augments_proposals_with_the_boxes(synthetic_root):

@@ -9,11 +9,14 @@ model then computes is checked against references that read OpenPCDet's tensors 
 
 from __future__ import annotations
 
+import collections
 import copy
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from malicious_files import malicious_checkpoint
 from model_batches import load_tool, make_batch, two_stage_batch
 
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
@@ -26,6 +29,7 @@ from pcdet_atlas.models.openpcdet_checkpoint import (
     openpcdet_to_atlas_state,
 )
 from pcdet_atlas.ops.spconv import SparseConvTensor
+from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
 SYNTHETIC = REPO_ROOT / "cfgs" / "atlas" / "synthetic"
 BN = ("weight", "bias", "running_mean", "running_var", "num_batches_tracked")
@@ -398,6 +402,66 @@ def test_convert_tool(tmp_path, capsys, monkeypatch):
     torch.save({"weights": theirs}, src)
     with pytest.raises(CheckpointMismatchError, match="no 'model_state'"):
         tool.main(["--cfg", str(cfg_path), "--ckpt", str(src), "--out", str(out), "--overwrite"])
+
+
+def openpcdet_file(path, model_state, *, numpy_1: bool = False) -> None:
+    """A checkpoint as OpenPCDet's ``save_checkpoint`` writes it: the legacy (non-zip) format,
+    an ``OrderedDict`` state, an ``optimizer_state`` whose ``lr`` and ``betas`` its
+    ``adam_onecycle`` schedule set to numpy float64 scalars; ``numpy_1``: numpy 1.x's names."""
+    param = torch.nn.Parameter(torch.ones(2))
+    optimizer = torch.optim.Adam([param], lr=0.0)
+    param.sum().backward()
+    optimizer.step()
+    optimizer.param_groups[0]["lr"] = np.float64(0.003) * np.cos(0.5)
+    optimizer.param_groups[0]["betas"] = (np.float64(0.95), np.float64(0.99))
+    state = {"epoch": 36, "it": 1234, "model_state": collections.OrderedDict(model_state),
+             "optimizer_state": optimizer.state_dict(), "version": "pcdet+0.6.0"}  # fmt: skip
+    torch.save(state, path, _use_new_zipfile_serialization=False)
+    if numpy_1:
+        path.write_bytes(path.read_bytes().replace(b"numpy._core.", b"numpy.core."))
+
+
+@pytest.mark.parametrize("numpy_1", [False, True], ids=["numpy2", "numpy1"])
+def test_convert_tool_reads_openpcdet_files_without_running_code(tmp_path, numpy_1):
+    """OpenPCDet's own files convert under ``weights_only`` (the numpy scalars of its optimizer
+    state allow-listed); a file naming anything else is refused before it runs."""
+    cfg_path = SYNTHETIC / "cp4f.yaml"
+    theirs = openpcdet_state(cfg_from_yaml_file(cfg_path))
+    src, out = tmp_path / "checkpoint_epoch_36.pth", tmp_path / "converted.pth"
+    openpcdet_file(src, theirs, numpy_1=numpy_1)
+    assert (b"numpy.core.multiarray" in src.read_bytes()) == numpy_1
+    tool = load_tool("convert_openpcdet_ckpt")
+    tool.main(["--cfg", str(cfg_path), "--ckpt", str(src), "--out", str(out)])
+    assert torch.load(out, weights_only=True)["epoch"] == 36
+
+    marker = tmp_path / "marker"
+    malicious_checkpoint(src, marker, model_state=theirs)
+    with pytest.raises(RefusedGlobalError, match=rf"checkpoint {src} refused: it needs \S+"):
+        tool.main(["--cfg", str(cfg_path), "--ckpt", str(src), "--out", str(out), "--overwrite"])
+    assert not marker.exists()
+
+
+def test_convert_tool_refuses_non_finite_weights_and_a_model_state_of_another_kind(tmp_path):
+    cfg_path = SYNTHETIC / "cp4f.yaml"
+    theirs = openpcdet_state(cfg_from_yaml_file(cfg_path))
+    src, out = tmp_path / "checkpoint_epoch_36.pth", tmp_path / "converted.pth"
+    args = ["--cfg", str(cfg_path), "--ckpt", str(src), "--out", str(out)]
+    tool = load_tool("convert_openpcdet_ckpt")
+    name = "dense_head.heads_list.0.hm.1.bias"
+    for bad in (float("nan"), float("inf")):
+        broken = {**theirs, name: theirs[name].clone()}
+        broken[name][0] = bad
+        openpcdet_file(src, broken)
+        with pytest.raises(ValueError, match=rf"checkpoint {src} holds non-finite .*{name} \(1 of"):
+            tool.main(args)
+        assert not out.exists()
+    for state, expected in (
+        ([1, 2], r"'model_state' is a list, expected a mapping"),
+        ({**theirs, "extra": 3}, r"'model_state' entries \['extra'\] are not tensors"),
+    ):
+        torch.save({"model_state": state}, src)
+        with pytest.raises(ValueError, match=rf"checkpoint {src}: {expected}"):
+            tool.main(args)
 
 
 # ------------------------------------- the MSF and PTT repositories' second stages, from facts

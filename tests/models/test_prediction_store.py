@@ -140,12 +140,45 @@ def test_an_unreadable_entry_is_named(tmp_path):
     store.predict(model, make_batch())
     (entry,) = store_files(tmp_path)
     assert entry.stat().st_mode & 0o044  # readable by others, as open() would have made it
+    written = torch.load(entry, weights_only=True)
     entry.write_bytes(b"not a torch file")
     with pytest.raises(ValueError, match=f"(?s){re.escape(str(entry))}.*delete it"):
         store.predict(model, make_batch())
-    torch.save([{"pred_scores": torch.zeros(1)}], entry)  # one sample for a batch of two
+    one = [{"pred_scores": torch.zeros(1)}]  # one sample for a batch of two
+    torch.save({**written, "predictions": one}, entry)
     with pytest.raises(ValueError, match="does not hold 2 dicts of tensors"):
         store.predict(model, make_batch())
+
+
+def test_an_entry_copied_over_another_is_refused(tmp_path):
+    """An entry records its own keys: a file copied over another entry is an error naming the
+    file and both keys, never served; a missing entry is predicted and stored again."""
+    model = small_centerpoint()
+    store = PredictionStore(tmp_path)
+    batch, moved = make_batch(), make_batch()
+    moved["points"][0, 1] += 1e-3
+    store.predict(model, batch)
+    store.predict(model, moved)
+    entries = store_files(tmp_path)
+    recorded = {p: torch.load(p, weights_only=True) for p in entries}
+    assert len(entries) == 2 and {r["batch_key"] for r in recorded.values()} == {
+        p.stem for p in entries
+    }
+    source, target = entries
+    target.write_bytes(source.read_bytes())
+    keys = [recorded[p]["model_key"] + "/" + recorded[p]["batch_key"] for p in (source, target)]
+    read_for = batch if store.batch_key(model, batch) == target.stem else moved
+    with pytest.raises(ValueError) as err:
+        store.predict(model, read_for)
+    assert str(target) in str(err.value) and all(k in str(err.value) for k in keys)
+    assert store.counts() == {"hits": 0, "misses": 2}
+    target.unlink()  # deleted as the message says: recomputed, and the right entry stored
+    store.predict(model, batch)
+    store.predict(model, moved)
+    assert store.counts() == {"hits": 1, "misses": 3}
+    assert all(
+        torch.load(p, weights_only=True)["batch_key"] == p.stem for p in store_files(tmp_path)
+    )
 
 
 def test_a_model_must_declare_what_it_reads(tmp_path):

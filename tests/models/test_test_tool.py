@@ -3,8 +3,10 @@ processes) gives the same numbers as one process; bad input fails before anythin
 results survive a failing variant; reruns and --resume; --eval_all, --save_to_file and
 --launcher slurm."""
 
+import argparse
 import copy
 import json
+import logging
 import os
 import pickle
 import re
@@ -13,17 +15,23 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+from malicious_files import malicious_pickle
 from model_batches import assert_annos_equal, load_tool
 
 from pcdet_atlas.attacks.trace_library import TraceFilter, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
+from pcdet_atlas.datasets.fingerprint import dataset_fingerprint
 from pcdet_atlas.evaluation import load_results, save_results
 from pcdet_atlas.evaluation.results import ResultsError
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.detectors.detector3d_template import CheckpointMismatchError
+from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.train_utils.atlas_eval import attack_sha256, build_variant_attacks
+from pcdet_atlas.train_utils.setup import load_cfg
+from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
 CFG = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml"
 ATTACKS = REPO_ROOT / "cfgs" / "attacks"
@@ -304,6 +312,34 @@ def test_resume_evaluates_again_what_changed(eval_setup, tmp_path, monkeypatch):
     test.main(with_flags(with_attacks(args, "clean,rem_30"), "--resume"))
     assert called == []
 
+    # the test split rewritten in place since (another fingerprint), or a file without one (an
+    # older version's): nothing is kept
+    written = load_results(eval_dir / "results.json")
+    fingerprint = dataset_fingerprint(eval_setup["root"], "val")
+    assert written["extra"]["dataset_fingerprint"] == fingerprint
+    cfg = load_cfg(str(CFG), args[args.index("--set") + 1 :])
+    requested = {name: e["extra"]["attack_sha256"] for name, e in written["variants"].items()}
+
+    def finished(now):
+        return test.finished_variants(
+            eval_dir, cfg, file_sha256(eval_setup["ckpt"]), requested, batch_size=1, world=1,
+            device="cpu", dataset_fingerprint=now,
+        )  # fmt: skip
+
+    assert set(finished(fingerprint)[0]) == {"clean", "rem_30"}
+    kept, again = finished("0" * 64)
+    assert kept == {} and set(again) == {"clean", "rem_30"}
+    assert f"frame files changed (dataset_fingerprint {fingerprint}, now {'0' * 64})" in again[
+        "clean"]  # fmt: skip
+    older = copy.deepcopy(written)
+    del older["extra"]["dataset_fingerprint"]
+    save_results(older, eval_dir / "results.json")
+    assert finished(fingerprint)[0] == {}
+    test.main(with_flags(with_attacks(args, "clean,rem_30"), "--resume"))
+    assert called == ["clean", "rem_30"]  # evaluated again, and the fingerprint recorded
+    assert load_results(eval_dir / "results.json")["extra"]["dataset_fingerprint"] == fingerprint
+    called.clear()
+
     variant = tmp_path / "rem_30.yaml"  # the same attack, then another budget
     variant.write_text(f"_BASE_CONFIG_: {ATTACKS / 'rem_30.yaml'}\n")
     resumed = with_flags(with_attacks(args, f"clean,{variant}"), "--resume")
@@ -373,6 +409,26 @@ def test_resume_names_a_corrupt_results_file(eval_setup, tmp_path):
     args = with_flags(tool_args(eval_setup, tmp_path, "corrupt"), "--resume")
     with pytest.raises(ResultsError, match=re.escape(str(eval_dir / "results.json"))):
         test.main(args)
+
+
+@pytest.mark.parametrize("evil", ["result.pkl", "proposals_rank0.pkl"])
+def test_resume_refuses_kept_files_that_would_run_code(tmp_path, evil):
+    """``--resume`` reads a finished variant's ``result.pkl`` and the clean run's proposals
+    with the restricted unpickler."""
+    test = load_tool("test")
+    clean = tmp_path / "clean"
+    clean.mkdir()
+    (clean / "result.pkl").write_bytes(pickle.dumps([{"frame_id": "f", "score": np.zeros(0)}]))
+    marker = tmp_path / "marker"
+    path = malicious_pickle(clean / evil, marker)
+    with pytest.raises(RefusedGlobalError, match=rf"{path}: refused to unpickle the global "):
+        test.evaluate_checkpoint(
+            None, tmp_path / "a.pth", tmp_path, argparse.Namespace(save_to_file=False), {},
+            {"clean": None}, dist=False, rank=0, world=1, device="cpu", batch_size=1,
+            logger=logging.getLogger("test_resume"), finished={"clean": {}}, ckpt_sha256="",
+            fingerprints={}, dataset_fingerprint=None,
+        )  # fmt: skip
+    assert not marker.exists()
 
 
 def test_eval_all_from_start_epoch_and_save_to_file(eval_setup, tmp_path, capsys, monkeypatch):

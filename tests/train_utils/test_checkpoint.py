@@ -1,5 +1,5 @@
-"""Training checkpoints: durable writes, the CUDA generators' states, and which recorded
-settings a resume compares."""
+"""Training checkpoints: durable writes, the CUDA generators' states, which recorded settings a
+resume compares, and reading them with ``weights_only=True``."""
 
 import os
 import stat
@@ -7,13 +7,19 @@ import stat
 import pytest
 import torch
 from device_params import DEVICES
+from malicious_files import malicious_checkpoint
 
+from pcdet_atlas.models.optimization import build_optimizer, build_scheduler
 from pcdet_atlas.train_utils import (
     check_resume_settings,
     checkpoint_state,
+    export_model_checkpoint,
+    find_resume_checkpoint,
     load_checkpoint,
     save_checkpoint,
 )
+from pcdet_atlas.train_utils.stages import TrainingStage, load_stage_init
+from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
 
 def test_save_checkpoint_syncs_the_file_before_the_rename_and_the_folder_after(
@@ -146,3 +152,59 @@ def test_settings_are_compared_before_the_optimizer_state_is_loaded(tmp_path):
         load_checkpoint(path, model, two_groups)
     with pytest.raises(ValueError, match=rf"cannot resume {path}: .*config_sha256\.STAGE: '"):
         load_checkpoint(path, model, two_groups, train_settings=now)
+
+
+@pytest.mark.parametrize("optimizer", ["adam_onecycle", "adam", "sgd"])
+def test_everything_a_training_checkpoint_saves_loads_under_weights_only(tmp_path, optimizer):
+    """Optimizer, scheduler (OneCycleLR; LambdaLR with warm-up and decay), AMP scaler, RNG
+    states and settings are plain: a resume reads them with ``weights_only=True``."""
+    optim_cfg = {"OPTIMIZER": optimizer, "LR": 0.003, "WEIGHT_DECAY": 0.01,
+                 "DECAY_STEP_LIST": [1], "LR_WARMUP": True, "WARMUP_EPOCH": 1}  # fmt: skip
+
+    def build():
+        torch.manual_seed(0)
+        model = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.BatchNorm1d(4))
+        opt = build_optimizer(model, optim_cfg)
+        return model, opt, build_scheduler(opt, optim_cfg, iters_per_epoch=4, total_epochs=2)
+
+    model, opt, sched = build()
+    scaler = torch.amp.GradScaler("cpu")
+    for _ in range(3):
+        opt.zero_grad()
+        model(torch.randn(8, 3)).square().sum().backward()
+        opt.step()
+        sched.step()
+    state = checkpoint_state(model, opt, sched, scaler, epoch=0, it=3, epoch_it=3,
+                             epoch_loss_sums={"loss": 1.5}, train_settings=SETTINGS)  # fmt: skip
+    path = save_checkpoint(state, tmp_path / "latest_model.pth")
+    torch.load(path, weights_only=True)  # nothing in it needs more
+    model2, opt2, sched2 = build()
+    scaler2 = torch.amp.GradScaler("cpu")
+    ckpt = load_checkpoint(path, model2, opt2, sched2, scaler2, train_settings=SETTINGS)
+    assert ckpt["epoch_loss_sums"] == {"loss": 1.5} and ckpt["epoch_it"] == 3
+    assert sched2.state_dict() == sched.state_dict() and sched2.get_last_lr() == sched.get_last_lr()
+    assert scaler2.state_dict() == scaler.state_dict()
+    for a, b in zip(opt.state_dict()["state"].values(), opt2.state_dict()["state"].values()):
+        assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_a_training_checkpoint_that_would_run_code_is_refused(tmp_path):
+    """``--ckpt``, auto-resume (``latest_model.pth``), the export of a model-zoo file and a
+    stage's initialisation all read with ``weights_only=True``."""
+    model = torch.nn.Linear(2, 1)
+    marker = tmp_path / "marker"
+    good = save_checkpoint(checkpoint_state(model, epoch=1, it=1), tmp_path / "ckpt" / "a.pth")
+    evil = malicious_checkpoint(
+        tmp_path / "ckpt" / "latest_model.pth", marker, **torch.load(good, weights_only=True)
+    )
+    refused = rf"checkpoint {evil} refused: it needs \S+ to load"
+    with pytest.raises(RefusedGlobalError, match=refused):
+        find_resume_checkpoint(evil.parent)
+    with pytest.raises(RefusedGlobalError, match=refused):
+        load_checkpoint(evil, model)
+    with pytest.raises(RefusedGlobalError, match=refused):
+        export_model_checkpoint(evil, tmp_path / "small.pth")
+    stage = TrainingStage(name="s", init_from=None, train=("weight",), freeze=(), source="s.yaml")
+    with pytest.raises(RefusedGlobalError, match=refused):
+        load_stage_init(model, stage, evil)
+    assert not marker.exists()

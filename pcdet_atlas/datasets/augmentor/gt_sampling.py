@@ -37,6 +37,7 @@ from pcdet_atlas.datasets.multiframe import compress_rows
 from pcdet_atlas.datasets.waymo_format import WAYMO_CLASSES, WaymoFormatError
 from pcdet_atlas.ops.boxes import boxes_bev_overlap
 from pcdet_atlas.registry import TRANSFORMS
+from pcdet_atlas.utils.safe_pickle import load_pickle
 
 __all__ = ["GTSampling", "parse_class_counts"]
 
@@ -237,8 +238,7 @@ class GTSampling:
         db_infos: dict[str, list[dict]] = {name: [] for name in self.class_names}
         for data_index, path in enumerate(self.db_info_paths):
             try:
-                with open(path, "rb") as f:
-                    infos = pickle.load(f)
+                infos = load_pickle(path)
             except FileNotFoundError as err:
                 raise WaymoFormatError(
                     f"{path}: GT database info file not found (build it with "

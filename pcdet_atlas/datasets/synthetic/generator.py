@@ -36,6 +36,7 @@ from pcdet_atlas.datasets.synthetic.sensor import SensorModel
 from pcdet_atlas.ops.boxes import points_in_boxes_mask
 from pcdet_atlas.ops.lidar_model import LidarModel
 from pcdet_atlas.utils.common import write_atomic
+from pcdet_atlas.utils.safe_pickle import load_pickle
 from pcdet_atlas.utils.seeding import derive_seed
 
 __all__ = [
@@ -483,8 +484,7 @@ def create_synthetic_waymo(
             if not pkl_path.exists():
                 todo.append((split, index))
                 continue
-            with open(pkl_path, "rb") as fh:
-                infos = pickle.load(fh)
+            infos = load_pickle(pkl_path)
             wf.validate_sequence_infos(infos, pkl_path)
             if len(infos) != frames[split]:
                 raise SyntheticDatasetError(

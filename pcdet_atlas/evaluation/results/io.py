@@ -7,10 +7,11 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from pcdet_atlas.evaluation.results.build import plain
-from pcdet_atlas.evaluation.results.schema import ResultsError, validate_results
+from pcdet_atlas.evaluation.results.schema import SCHEMA_VERSION, ResultsError, validate_results
 from pcdet_atlas.utils.common import write_atomic
 
 __all__ = [
+    "check_version_content",
     "load_results",
     "load_results_dir",
     "save_results",
@@ -38,24 +39,56 @@ def load_results(path: str | Path) -> dict:
     except json.JSONDecodeError as err:
         raise ResultsError(f"{path}: not valid JSON ({err})") from err
     if isinstance(results, dict) and results.get("schema_version") == 1:
-        results = upgrade_v1(results)
+        results = upgrade_v1(results, where=str(path))
     if isinstance(results, dict) and results.get("schema_version") == 2:
-        results = upgrade_v2(results)
+        results = upgrade_v2(results, where=str(path))
     if isinstance(results, dict) and results.get("schema_version") == 3:
-        results = upgrade_v3(results)
+        results = upgrade_v3(results, where=str(path))
     if isinstance(results, dict) and results.get("schema_version") == 4:
-        results = upgrade_v4(results)
+        results = upgrade_v4(results, where=str(path))
     validate_results(results, where=str(path))
     return results
 
 
 #: Schema 1 predates ``rank_group``; its only ranked families were these, each its own group.
 _V1_RANK_GROUPS = {"injection": "injection", "removal": "removal"}
+#: The keys of a ``variants`` entry (``lifecycle.``: of its lifecycle) that each schema version
+#: added; a file of an older version holds none of them, and its upgrade adds them.
+_ADDED_IN = {
+    "rank_group": 2, "asr_ci": 3, "num_runs": 3, "num_spoofed_frames": 3, "num_untargeted": 3,
+    "num_reused_frames": 4, "num_recomputed_frames": 4, "lifecycle.clean_score_counts": 4,
+    "runs": 5,
+}  # fmt: skip
 
 
-def upgrade_v1(results: dict) -> dict:
+def check_version_content(results: dict, where: str = "results") -> None:
+    """Refuse a file whose ``schema_version`` its content contradicts: a variant holding a value
+    under a key that only a later version has (upgrading it would overwrite the value; a null
+    there is what the upgrade sets anyway). Raises :class:`ResultsError` naming the file, the
+    version and the key."""
+    version, variants = results.get("schema_version"), results.get("variants")
+    if type(version) is not int or version >= SCHEMA_VERSION or not isinstance(variants, dict):
+        return  # validation names what is wrong
+    for name, entry in variants.items():
+        if not isinstance(entry, dict):
+            continue
+        lifecycle = entry.get("lifecycle") if isinstance(entry.get("lifecycle"), dict) else {}
+        for key, added in _ADDED_IN.items():
+            held = lifecycle.get(key.split(".", 1)[1]) if "." in key else entry.get(key)
+            if held is not None and added > version:
+                raise ResultsError(
+                    f"{where}['variants'][{name!r}]: has {key!r}, a key of schema {added} and "
+                    f"later, but the file says schema_version {version}: the version contradicts "
+                    "the content (an upgrade would overwrite the key); set schema_version to "
+                    "the version the file was written with"
+                )
+
+
+def upgrade_v1(results: dict, *, where: str = "results") -> dict:
     """A schema-1 results dict as schema 2: each variant gains the ``rank_group`` its family had
-    (the only change between the two)."""
+    (the only change between the two). A file whose content contradicts its version is refused
+    (:func:`check_version_content`), as by every upgrade."""
+    check_version_content(results, where)
     variants = results.get("variants")
     if not isinstance(variants, dict):
         return results  # validation names what is wrong
@@ -68,9 +101,10 @@ def upgrade_v1(results: dict) -> dict:
     return {**results, "schema_version": 2, "variants": upgraded}
 
 
-def upgrade_v2(results: dict) -> dict:
+def upgrade_v2(results: dict, *, where: str = "results") -> dict:
     """A schema-2 results dict as schema 3: each variant gains ``asr_ci``, ``num_runs``,
     ``num_spoofed_frames`` and ``num_untargeted`` as None (unknown: schema 2 did not have them)."""
+    check_version_content(results, where)
     variants = results.get("variants")
     if not isinstance(variants, dict):
         return results  # validation names what is wrong
@@ -89,10 +123,11 @@ def upgrade_v2(results: dict) -> dict:
     return {**results, "schema_version": 3, "variants": upgraded}
 
 
-def upgrade_v3(results: dict) -> dict:
+def upgrade_v3(results: dict, *, where: str = "results") -> dict:
     """A schema-3 results dict as schema 4: each variant gains ``num_reused_frames`` and
     ``num_recomputed_frames`` as None, and its lifecycle ``clean_score_counts`` as None
     (schema 3 did not record them)."""
+    check_version_content(results, where)
     variants = results.get("variants")
     if not isinstance(variants, dict):
         return results  # validation names what is wrong
@@ -106,9 +141,10 @@ def upgrade_v3(results: dict) -> dict:
     return {**results, "schema_version": 4, "variants": upgraded}
 
 
-def upgrade_v4(results: dict) -> dict:
+def upgrade_v4(results: dict, *, where: str = "results") -> dict:
     """A schema-4 results dict as schema 5: each variant gains ``runs`` (the per-run counts) as
     None (schema 4 did not record them)."""
+    check_version_content(results, where)
     variants = results.get("variants")
     if not isinstance(variants, dict):
         return results  # validation names what is wrong

@@ -202,7 +202,14 @@ RESULTS_SCHEMA = {
                 "propertyNames": {"minLength": 1},
                 "additionalProperties": _VARIANT,
             },
-            "extra": {"type": "object"},
+            # free-form, but for the keys stated; a file without them (older) stays valid
+            "extra": {
+                "type": "object",
+                "properties": {
+                    # the test split's pcdet_atlas.datasets.fingerprint.dataset_fingerprint
+                    "dataset_fingerprint": {"type": "string", "pattern": "^[0-9a-f]{64}$"},
+                },
+            },
         },
         optional=("extra",),
     ),

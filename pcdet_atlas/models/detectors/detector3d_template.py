@@ -10,6 +10,7 @@ what earlier stages determined (feature widths, grid, strides).
 from __future__ import annotations
 
 import pickle
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from torch import nn
 from pcdet_atlas.config import ConfigError, check_known_keys, key_source, require_keys
 from pcdet_atlas.models.model_utils.polar_grid import PolarGrid
 from pcdet_atlas.registry import MODEL_STAGES
+from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
 # stage attribute -> its section in MODEL (OpenPCDet's names)
 STAGE_CFG_KEYS = {
@@ -38,14 +40,34 @@ class CheckpointMismatchError(RuntimeError):
     """A checkpoint whose parameters do not fit the model built from the config."""
 
 
-def read_checkpoint(filename: str | Path, map_location: str = "cpu") -> dict:
-    """``torch.load`` a checkpoint file; a truncated or corrupt file is a ValueError naming it."""
+def read_checkpoint(
+    filename: str | Path, map_location: str = "cpu", *, safe_globals: Sequence = ()
+) -> dict:
+    """``torch.load(weights_only=True)`` a checkpoint file: tensors and plain values only, so
+    that loading never runs code. ``safe_globals``: extra globals the file may name (as
+    ``torch.serialization.safe_globals`` takes them), for formats known to need them.
+
+    Raises:
+        RefusedGlobalError: the file needs a global outside torch's allow-list (named).
+        ValueError: a truncated or corrupt file (named).
+    """
     path = Path(filename)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} not found")
     try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=False)
+        with torch.serialization.safe_globals(list(safe_globals)):
+            ckpt = torch.load(path, map_location=map_location, weights_only=True)
     except (EOFError, OSError, RuntimeError, pickle.UnpicklingError) as err:
+        refused = _weights_only_refusal(err)
+        if refused is not None:
+            name, reason = refused
+            raise RefusedGlobalError(
+                f"checkpoint {path} refused: it needs {name} to load, and checkpoints are read "
+                "with torch.load(weights_only=True), tensors and plain values only (loading "
+                f"it could run code); torch: {reason}",
+                path=str(path),
+                name=name,
+            ) from err
         raise ValueError(
             f"checkpoint {path} cannot be read ({path.stat().st_size} bytes; truncated or "
             f"corrupt?): {type(err).__name__}: {err}"
@@ -53,6 +75,33 @@ def read_checkpoint(filename: str | Path, map_location: str = "cpu") -> dict:
     if not isinstance(ckpt, Mapping):
         raise ValueError(f"checkpoint {path} holds a {type(ckpt).__name__}, not a dict of states")
     return ckpt
+
+
+def model_state_of(ckpt: Mapping, source: str | Path) -> Mapping[str, torch.Tensor]:
+    """A checkpoint's ``model_state`` (the checkpoint itself for a bare ``state_dict``).
+
+    Raises:
+        ValueError: ``model_state`` is not a mapping of names to tensors.
+    """
+    state = ckpt["model_state"] if "model_state" in ckpt else ckpt
+    if not isinstance(state, Mapping):
+        raise ValueError(
+            f"checkpoint {source}: 'model_state' is a {type(state).__name__}, expected a "
+            "mapping of parameter names to tensors (a model's state_dict())"
+        )
+    return state
+
+
+def _weights_only_refusal(err: BaseException) -> tuple[str, str] | None:
+    """``(what was refused, torch's reason)`` when ``err`` is torch's weights-only refusal
+    (None for any other error)."""
+    text = str(err)
+    if not isinstance(err, pickle.UnpicklingError) or "Weights only load failed" not in text:
+        return None
+    found = re.search(r"WeightsUnpickler error: (.*)", text)
+    reason = found.group(1).split(". Please use")[0].strip() if found else text.strip()
+    named = re.search(r"GLOBAL (\S+)", reason) or re.search(r"got <class '([^']+)'>", reason)
+    return (named.group(1) if named else "an object torch does not allow"), reason
 
 
 def stage_model_info(stage: nn.Module, name: str, info: dict) -> None:
@@ -235,9 +284,11 @@ class Detector3DTemplate(nn.Module):
             CheckpointMismatchError: naming missing, unexpected and wrongly shaped parameters
                 (with ``strict=False`` only the shape mismatches raise, and a checkpoint that
                 shares no parameter name with the model).
+            ValueError: NaN/inf weights (naming them), or a file that is corrupt or not a
+                plain checkpoint (:func:`read_checkpoint`).
         """
         ckpt = read_checkpoint(filename, map_location)
-        state = ckpt["model_state"] if "model_state" in ckpt else ckpt
+        state = model_state_of(ckpt, filename)
         load_state_dict_checked(self, state, strict=strict, source=str(filename))
         return ckpt
 
@@ -245,7 +296,8 @@ class Detector3DTemplate(nn.Module):
 def load_state_dict_checked(
     model: nn.Module, state: Mapping[str, torch.Tensor], *, strict: bool, source: str
 ) -> None:
-    """``model.load_state_dict`` with one readable error listing every mismatch."""
+    """``model.load_state_dict`` with one readable error listing every mismatch; non-finite
+    weights are refused (:func:`check_finite_state`)."""
     own = model.state_dict()
     missing = sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))
@@ -272,4 +324,28 @@ def load_state_dict_checked(
             f"checkpoint {source} does not match {type(model).__name__} built from the "
             f"config: {head}"
         )
-    model.load_state_dict({k: v for k, v in state.items() if k in own}, strict=strict)
+    loaded = {k: v for k, v in state.items() if k in own}
+    check_finite_state(loaded, source)
+    model.load_state_dict(loaded, strict=strict)
+
+
+def check_finite_state(state: Mapping[str, torch.Tensor], source: str) -> None:
+    """Refuse floating-point tensors holding NaN or inf: the model would load and then detect
+    nothing (a diverged or corrupt training), scoring 0 without an error.
+
+    Raises:
+        ValueError: naming ``source`` and each such tensor with its count of bad values.
+    """
+    bad = [
+        f"{k} ({int((~torch.isfinite(v)).sum())} of {v.numel()} values)"
+        for k, v in state.items()
+        if isinstance(v, torch.Tensor)
+        and (v.is_floating_point() or v.is_complex())
+        and not bool(torch.isfinite(v).all())
+    ]
+    if bad:
+        head = ", ".join(bad[:10]) + (f", ... ({len(bad)} tensors in all)" if len(bad) > 10 else "")
+        raise ValueError(
+            f"checkpoint {source} holds non-finite (NaN/inf) weights in {head}: a diverged or "
+            "corrupt training; expected finite values (use an earlier checkpoint)"
+        )
