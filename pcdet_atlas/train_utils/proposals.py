@@ -7,11 +7,12 @@ files merged in, and its data config on this dataset), the dataset root, the spl
 split's :func:`~pcdet_atlas.datasets.fingerprint.dataset_fingerprint` (its info pkls and frame
 files). A changed RPN, RPN setting (``SCORE_THRESH``, say) or dataset therefore never serves
 stale proposals: it gets a new file. The file records the same facts and they are checked again
-when it is read. Layout: ``<CACHE_DIR>/<rpn config stem>-<key>/<split>.pkl`` with
+when it is read. Layout: ``<CACHE_DIR>/<rpn config stem>-<key>/<split>.pt``, a torch file of
+plain values and tensors read with ``torch.load(weights_only=True)`` (it cannot carry code), with
 ``{'format', 'rpn_checkpoint_sha256', 'rpn_cfg', 'rpn_model_config', 'rpn_data_config',
 'data_path', 'split', 'dataset_fingerprint', 'proposals'}``,
 ``proposals[frame_id]`` float32 ``(R, 11)`` ``[x, y, z, dx, dy, dz, heading, vx, vy, score,
-label]`` (docs/getting_started.md, two-stage models).
+label]`` (a tensor on disk, a numpy array once read; docs/getting_started.md, two-stage models).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import copy
 import hashlib
 import json
 import logging
+import pickle
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -32,12 +34,11 @@ from pcdet_atlas.datasets.fingerprint import data_config_fingerprint
 from pcdet_atlas.models.detectors.two_stage import TwoStageDetector
 from pcdet_atlas.train_utils.dist import get_dist_info
 from pcdet_atlas.train_utils.eval_utils import predict_dataset
-from pcdet_atlas.utils.common import save_pickle
-from pcdet_atlas.utils.safe_pickle import load_pickle
+from pcdet_atlas.utils.common import write_atomic
 
 __all__ = ["PROPOSAL_FORMAT", "proposal_cache_file", "training_proposals"]
 
-PROPOSAL_FORMAT = 2
+PROPOSAL_FORMAT = 3
 DEFAULT_CACHE_DIR = "output/rpn_proposals"
 
 
@@ -70,7 +71,7 @@ def _cache_file(model: TwoStageDetector, ident: Mapping, split: str,
                 cache_dir: str | Path | None = None) -> Path:  # fmt: skip
     key = hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:16]
     root = resolve_repo_path(cache_dir or model.rpn_info.get("cache_dir") or DEFAULT_CACHE_DIR)
-    return root / f"{Path(model.rpn_info['cfg']).stem}-{key}" / f"{split}.pkl"
+    return root / f"{Path(model.rpn_info['cfg']).stem}-{key}" / f"{split}.pt"
 
 
 def proposal_cache_file(model: TwoStageDetector, data_cfg: Mapping, split: str,
@@ -80,8 +81,23 @@ def proposal_cache_file(model: TwoStageDetector, data_cfg: Mapping, split: str,
     return _cache_file(model, _identity(model, rpn_cfg, rpn_data, split), split, cache_dir)
 
 
+def _write(path: Path, ident: Mapping, proposals: Mapping[str, np.ndarray]) -> None:
+    tensors = {str(frame_id): torch.from_numpy(boxes) for frame_id, boxes in proposals.items()}
+    plain = json.loads(json.dumps(ident))  # numpy floats of the config as Python floats
+    data = {"format": PROPOSAL_FORMAT, **plain, "proposals": tensors}
+    write_atomic(path, lambda f: torch.save(data, f))
+
+
 def _read(path: Path, ident: Mapping) -> dict[str, np.ndarray]:
-    data = load_pickle(path)
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:  # needs more than tensors and plain values
+        raise ValueError(
+            f"{path}: not a proposal cache (it needs more than tensors and plain values to load, "
+            f"and loading it could run code): {err}"
+        ) from err
+    except (EOFError, OSError, RuntimeError) as err:
+        raise ValueError(f"{path}: cannot be read (delete it to recompute): {err}") from err
     if not isinstance(data, Mapping) or data.get("format") != PROPOSAL_FORMAT:
         raise ValueError(f"{path}: not a proposal cache of format {PROPOSAL_FORMAT}")
     for key, want in ident.items():
@@ -92,7 +108,7 @@ def _read(path: Path, ident: Mapping) -> dict[str, np.ndarray]:
             else:
                 detail = f"cached for {key} = {got!r}, this run needs {want!r}"
             raise ValueError(f"{path}: {detail} (delete the file to recompute it)")
-    return data["proposals"]
+    return {frame_id: boxes.numpy() for frame_id, boxes in data["proposals"].items()}
 
 
 def _differing(a: Mapping, b: Mapping, prefix: str = "") -> list[str]:
@@ -152,5 +168,5 @@ def training_proposals(
             [boxes[:, :9], anno["score"].reshape(-1, 1), anno["pred_labels"].reshape(-1, 1)], 1
         ).astype(np.float32)
     if rank == 0:
-        save_pickle({"format": PROPOSAL_FORMAT, **ident, "proposals": proposals}, path)
+        _write(path, ident, proposals)
     return proposals, path

@@ -5,14 +5,13 @@ training proposal cache."""
 from __future__ import annotations
 
 import copy
-import pickle
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from device_params import DEVICES
-from malicious_files import malicious_checkpoint, malicious_pickle
+from malicious_files import malicious_checkpoint
 from model_batches import two_stage_batch as training_batch
 
 from pcdet_atlas.attacks import AtlasWaymoDataset
@@ -214,11 +213,9 @@ def test_training_proposals_are_cached_by_rpn_hash(synthetic_root, tmp_path):
     model.rpn_info = {**model.rpn_info, "sha256": "0" * 64}
     assert proposal_cache_file(model, cfg.DATA_CONFIG, "train") != path
     # a file whose record disagrees with its name is refused
-    with open(path, "rb") as fh:
-        data = pickle.load(fh)
+    data = torch.load(path, weights_only=True)
     data["rpn_checkpoint_sha256"] = "f" * 64
-    with open(path, "wb") as fh:
-        pickle.dump(data, fh)
+    torch.save(data, path)
     model.rpn_info = {**model.rpn_info, "sha256": build_network_from_config(cfg).rpn_info["sha256"]}
     with pytest.raises(ValueError, match="rpn_checkpoint_sha256"):
         training_proposals(model, cfg.DATA_CONFIG, cfg.CLASS_NAMES, device=cpu)
@@ -230,8 +227,8 @@ def test_a_proposal_cache_that_would_run_code_is_refused(synthetic_root, tmp_pat
     cfg.MODEL.RPN.CACHE_DIR = str(tmp_path / "cache")
     model = build_network_from_config(cfg)
     marker = tmp_path / "marker"
-    path = malicious_pickle(proposal_cache_file(model, cfg.DATA_CONFIG, "train"), marker)
-    with pytest.raises(RefusedGlobalError, match=rf"{path}: refused to unpickle the global "):
+    path = malicious_checkpoint(proposal_cache_file(model, cfg.DATA_CONFIG, "train"), marker)
+    with pytest.raises(ValueError, match=rf"{path}: not a proposal cache .*could run code"):
         training_proposals(model, cfg.DATA_CONFIG, cfg.CLASS_NAMES, device=torch.device("cpu"))
     assert not marker.exists()
 

@@ -3,12 +3,12 @@ in the RPN's config file or a dataset rewritten in place gets a new file, comput
 old file is never served. The RPN and the loader are stand-ins: only the cache is under test."""
 
 import os
-import pickle
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import torch
 from easydict import EasyDict
 
 from pcdet_atlas.config import REPO_ROOT
@@ -93,11 +93,9 @@ def test_a_changed_rpn_setting_or_dataset_is_computed_again(setup):
 def test_a_file_whose_record_disagrees_with_its_name_is_refused(setup):
     model, data_cfg, _, runs = setup
     _, path = proposals_of(model, data_cfg)
-    with open(path, "rb") as fh:
-        data = pickle.load(fh)
+    data = torch.load(path, weights_only=True)
     data["rpn_model_config"]["MODEL"]["DENSE_HEAD"]["POST_PROCESSING"]["SCORE_THRESH"] = 0.9
-    with open(path, "wb") as fh:
-        pickle.dump(data, fh)
+    torch.save(data, path)
     with pytest.raises(ValueError) as err:
         proposals_of(model, data_cfg)
     assert str(path) in str(err.value)
