@@ -16,6 +16,7 @@ from pcdet_atlas.evaluation.attack_metrics import (
     robustness_ranks,
     run_counts,
 )
+from pcdet_atlas.evaluation.intervals import asr_interval, coverage_simulation
 from pcdet_atlas.evaluation.localization import ap_by_iou, localization_errors
 from pcdet_atlas.evaluation.results import (
     ResultsError,
@@ -48,10 +49,12 @@ __all__ = [
     "WAYMO_SCORE_CUTOFFS",
     "ap_by_iou",
     "asr_from_matches",
+    "asr_interval",
     "attack_success_rate",
     "build_results",
     "build_variant_result",
     "compute_waymo_curves",
+    "coverage_simulation",
     "evaluate_attack",
     "format_comparison_table",
     "format_ranks",

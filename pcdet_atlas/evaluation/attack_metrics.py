@@ -33,7 +33,6 @@ Definitions (paper §"Evaluation Metric"; docs/evaluation.md, "Attack metrics"):
 from __future__ import annotations
 
 import math
-import zlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import ClassVar
@@ -41,15 +40,14 @@ from typing import ClassVar
 import numpy as np
 import torch
 
+from pcdet_atlas.evaluation.intervals import asr_interval, paired_interval
 from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d
 
 ASR_IOU_THRESHOLD = 0.7
 HIGH_SCORE_THRESHOLD = 0.7
 NUM_SCORE_BINS = 20  # fixed bins of width 0.05 over [0, 1]
 PEAK_RESOLUTION = 1e-3  # the centre gap's resolution (the paper reports three decimals)
-CI_LEVEL = 0.95  # the ASR's interval: a cluster bootstrap over spoof runs
-CI_RESAMPLES = 4000
-CI_SEED = 0
+CI_LEVEL = 0.95  # the ASR's interval (intervals.asr_interval: sequences as clusters)
 DEFAULT_TARGET_CLASS = "Vehicle"
 #: The schedule window the attack engine records ``lifecycle_k`` for by default (docs/attacks.md,
 #: ``pcdet_atlas.attacks.schedule.DEFAULT_WINDOW``; a schedule config with another ``WINDOW``
@@ -440,37 +438,6 @@ def _rate(num: int, den: int) -> float | None:
     return None if den == 0 else num / den
 
 
-def run_bootstrap_interval(
-    run_id: np.ndarray,
-    success: np.ndarray,
-    *,
-    level: float = CI_LEVEL,
-    num_resamples: int = CI_RESAMPLES,
-    generator: np.random.Generator,
-) -> tuple[float, float] | None:
-    """Percentile interval of a success rate, resampling whole runs (a cluster bootstrap).
-
-    The targets of one spoof run share its phantom trace and placement (or its removal target),
-    so they are not independent draws: the runs are. Each resample draws as many runs as there
-    are, with replacement, and takes ``sum(successes) / sum(targets)`` over them. None with fewer
-    than two runs (the spread between runs is then unknown).
-
-    Args:
-        run_id: (T,) int, the run of every target. success: (T,) bool.
-        generator: the explicit random source (see :func:`asr_from_matches` for its key).
-    """
-    runs, inverse = np.unique(run_id, return_inverse=True)
-    if runs.size < 2:
-        return None
-    targets = np.bincount(inverse, minlength=runs.size).astype(np.float64)  # (R,)
-    hits = np.bincount(inverse, weights=success.astype(np.float64), minlength=runs.size)
-    draws = generator.integers(0, runs.size, size=(num_resamples, runs.size))  # (S, R)
-    rates = hits[draws].sum(1) / targets[draws].sum(1)
-    tail = (1.0 - level) / 2 * 100
-    lo, hi = np.percentile(rates, [tail, 100 - tail])
-    return float(lo), float(hi)
-
-
 def run_counts(matches: TargetMatches) -> list[dict]:
     """Targets and successes per spoof run of the attacked (non-shadow) targets of ``matches``:
     ``[{'sequence', 'run_id', 'num_targets', 'num_success', 'num_success_lenient'}, ...]``
@@ -502,18 +469,16 @@ def asr_from_matches(matches: TargetMatches) -> dict:
     Returns ``{'asr', 'asr_ci', 'num_runs', 'runs', 'num_targets', 'num_success',
     'asr_lenient', 'num_success_lenient', 'num_spoofed_frames', 'num_untargeted',
     'iou_threshold', 'score_threshold', 'target_class'}``; the rates are None without targets.
-    ``asr_ci`` is the 95% run-level bootstrap interval (:func:`run_bootstrap_interval`,
-    ``[lo, hi]``; None with fewer than two runs), drawn from a generator seeded by ``CI_SEED``
-    and the variant's name so that every variant's interval is reproducible on its own. ``runs``
-    are the per-run counts (:func:`run_counts`). ``num_untargeted`` spoofed frames recorded no
-    target and are not in the ASR (see :class:`TargetMatches`).
+    ``asr_ci`` is the 95% interval of :func:`pcdet_atlas.evaluation.intervals.asr_interval`
+    over the per-run counts ``runs`` (:func:`run_counts`; sequences as clusters, the runs of a
+    single sequence; ``[lo, hi]``, None with fewer than two runs). ``num_untargeted`` spoofed
+    frames recorded no target and are not in the ASR (see :class:`TargetMatches`).
     """
     attacked = matches.attacked()
     n = len(attacked)
     n_ok, n_len = int(attacked.success.sum()), int(attacked.success_lenient.sum())
-    gen = np.random.default_rng([CI_SEED, zlib.crc32(matches.variant.encode())])
-    ci = run_bootstrap_interval(attacked.run, attacked.success, generator=gen)
     runs = run_counts(matches)  # a run is (sequence, run_id): run ids repeat across sequences
+    ci = asr_interval(runs, level=CI_LEVEL)
     return {
         "asr": _rate(n_ok, n),
         "asr_ci": None if ci is None else list(ci),
@@ -535,33 +500,33 @@ def paired_asr_differences(
     runs: Mapping[str, Mapping[str, Sequence[Mapping]]],
     *,
     level: float = CI_LEVEL,
-    num_resamples: int = CI_RESAMPLES,
-    generator: np.random.Generator,
 ) -> dict:
     """Differences of the mean ASR between models scored on the same spoof runs, with paired
-    run-level bootstrap intervals.
+    intervals over the sequences.
 
     A model's mean ASR is the mean of its per-variant ASRs (the variants of one rank group, say).
     Models attacked on the same runs share the runs' difficulty (the phantom trace and
     placement, the removal target), and the variants of a family share their runs too: the
     attacks key their draws by sequence and run start, not by budget, so run r of ``rem_10``
-    removes around the same target as run r of ``rem_40``. The resampling unit is therefore the
-    run ``(sequence, run_id)`` across all the given variants: each resample draws as many runs
-    as there are (over the variants' union), with replacement, the same runs for every model and
-    every variant, and recomputes every model's mean ASR; the interval is the percentile
-    interval of the differences over the resamples. A resample that draws no run of some
-    variant (only possible where variants have different runs) is left out.
+    removes around the same target as run r of ``rem_40``. The runs of a sequence share its
+    scene. The cluster is therefore the sequence, across all the given variants (the run when
+    every run comes from one sequence): each cluster's contribution to the difference of two
+    mean ASRs is ``sum_v (d_hits_c,v - d_v * targets_c,v) / targets_v / V`` (``d_hits``: the
+    two models' successes minus each other in the cluster, ``d_v``: their ASR difference on
+    variant v), and the interval is the cluster-robust t interval of
+    :func:`pcdet_atlas.evaluation.intervals.paired_interval` (``C - 1`` degrees of freedom).
+    Closed-form: no draw, the same interval every call.
 
     Args:
         runs: model -> variant -> the variant's per-run counts (:func:`run_counts`, the
             ``runs`` of a ``results.json`` entry). Every model needs the same variants, each with
             the same runs and the same number of targets per run.
-        generator: the explicit random source.
 
     Returns:
-        ``{'models', 'variants', 'num_runs' (per variant), 'num_clusters' (runs over all the
-        variants), 'mean_asr' {model: float}, 'difference' {a: {b: mean_asr[a] - mean_asr[b]}},
-        'ci' {a: {b: [lo, hi]}}}``; ``ci`` is None with fewer than two runs.
+        ``{'models', 'variants', 'num_runs' (per variant), 'num_clusters' (sequences over all
+        the variants; runs with one sequence), 'cluster' ('sequence' | 'run'), 'mean_asr'
+        {model: float}, 'difference' {a: {b: mean_asr[a] - mean_asr[b]}}, 'ci' {a: {b: [lo,
+        hi]}}}`` (within [-1, 1]); ``ci`` is None with fewer than two runs.
 
     Raises:
         AttackMetricError: fewer than two models, no variant, a variant without targets or with
@@ -615,27 +580,31 @@ def paired_asr_differences(
             count[column[key]] = n
         hits.append(table)
         targets.append(count)
-    mean = np.mean([h.sum(1) / t.sum() for h, t in zip(hits, targets)], axis=0)  # (M,)
+    rates = [h.sum(1) / t.sum() for h, t in zip(hits, targets)]  # per variant (M,)
+    mean = np.mean(rates, axis=0)  # (M,)
+    sequences = sorted({seq for seq, _ in keys})
+    unit = "sequence" if len(sequences) >= 2 else "run"
+    cluster_of = np.array([sequences.index(seq) if unit == "sequence" else j
+                           for j, (seq, _) in enumerate(keys)])  # (R,)  # fmt: skip
+    num_clusters = int(cluster_of.max()) + 1
+    # (M, C) each model's linearised contribution per cluster to its mean ASR
+    contrib = np.zeros((len(models), num_clusters))
+    for h, t, p in zip(hits, targets, rates):
+        resid = (h - p[:, None] * t[None, :]) / t.sum() / len(variants)  # (M, R)
+        np.add.at(contrib.T, cluster_of, resid.T)
     ci = None
     if len(keys) >= 2:
-        draws = generator.integers(0, len(keys), size=(num_resamples, len(keys)))  # (S, R)
-        weight = np.zeros((num_resamples, len(keys)))  # times each run is drawn
-        np.add.at(weight, (np.arange(num_resamples)[:, None], draws), 1.0)
-        resampled = np.zeros((num_resamples, len(models)))  # (S, M) mean ASR per resample
-        with np.errstate(divide="ignore", invalid="ignore"):
-            for h, t in zip(hits, targets):
-                resampled += (weight @ h.T) / (weight @ t)[:, None]
-        resampled = resampled[np.all(np.isfinite(resampled), axis=1)] / len(variants)
-        delta = resampled[:, :, None] - resampled[:, None, :]  # (S', M, M)
-        tail = (1.0 - level) / 2 * 100
-        lo, hi = np.percentile(delta, [tail, 100 - tail], axis=0)
+        delta = mean[:, None] - mean[None, :]  # (M, M)
+        lo, hi = paired_interval(contrib[:, None, :] - contrib[None, :, :], delta, level)
+        lo, hi = np.clip(lo, -1.0, 1.0), np.clip(hi, -1.0, 1.0)  # a difference of two rates
         ci = {a: {b: [float(lo[i, j]), float(hi[i, j])] for j, b in enumerate(models)}
               for i, a in enumerate(models)}  # fmt: skip
     return {
         "models": models,
         "variants": variants,
         "num_runs": {v: int(np.count_nonzero(t)) for v, t in zip(variants, targets)},
-        "num_clusters": len(keys),
+        "num_clusters": num_clusters,
+        "cluster": unit,
         "mean_asr": {m: float(mean[i]) for i, m in enumerate(models)},
         "difference": {
             a: {b: float(mean[i] - mean[j]) for j, b in enumerate(models)}

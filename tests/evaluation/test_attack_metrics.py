@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import math
-import zlib
 
 import numpy as np
 import pytest
+import scipy.stats
 import torch
 
 from pcdet_atlas.attacks import CleanAttack, InjectionAttack, RemovalAttack
 from pcdet_atlas.evaluation.attack_metrics import (
-    CI_SEED,
     AttackMetricError,
     attack_success_rate,
     evaluate_attack,
@@ -23,11 +22,11 @@ from pcdet_atlas.evaluation.attack_metrics import (
     paired_asr_differences,
     removal_confidence,
     robustness_ranks,
-    run_bootstrap_interval,
     run_counts,
     score_histogram,
     score_peak,
 )
+from pcdet_atlas.evaluation.intervals import asr_interval, wilson_cluster_interval
 from pcdet_atlas.ops.iou3d_nms import boxes_iou3d
 
 TARGET = np.array([20.0, 2.0, 1.0, 4.0, 2.0, 2.0, 0.3], dtype=np.float32)
@@ -254,7 +253,7 @@ def test_shadow_targets_are_not_counted_by_asr():
             lambda d, i: i.__setitem__(1, {k: v for k, v in i[1].items() if k != "family"}),
             "frame 1: attack metadata lacks key 'family'",
         ),
-        # a target frame without its run would merge with other runs into one bootstrap cluster
+        # a target frame without its run would merge with other runs into one interval cluster
         (
             lambda d, i: i.__setitem__(1, {k: v for k, v in i[1].items() if k != "run_id"}),
             r"frame 1 \(s_001\): a target frame needs a 'run_id' >= 0, got None",
@@ -540,25 +539,7 @@ def test_accepts_the_attack_engine_metadata_records():
     assert out["num_targets"] == 1 and out["num_success"] == 1  # lost-target frame not counted
 
 
-# ------------------------------------------------------------------- run-level interval
-def test_run_bootstrap_interval_resamples_runs():
-    gen = np.random.default_rng(0)
-    # two runs of one target each, one hit: resampled rates 0, 1/2, 1 -> the 95% interval [0, 1]
-    lo, hi = run_bootstrap_interval(np.array([0, 1]), np.array([True, False]), generator=gen)
-    assert (lo, hi) == (0.0, 1.0)
-    # runs that agree give no spread however many targets they hold
-    runs = np.repeat(np.arange(4), 32)
-    same = np.tile(np.r_[np.ones(8, bool), np.zeros(24, bool)], 4)
-    assert run_bootstrap_interval(runs, same, generator=gen) == (0.25, 0.25)
-    # one run: the spread between runs is unknown
-    assert run_bootstrap_interval(np.zeros(32, int), same[:32], generator=gen) is None
-    # clustered targets widen the interval against the same rate spread over many runs
-    split = np.repeat(np.r_[np.ones(2, bool), np.zeros(2, bool)], 32)  # 2 runs all hit, 2 none
-    wide = run_bootstrap_interval(runs, split, generator=np.random.default_rng(1))
-    narrow = run_bootstrap_interval(np.arange(128), split, generator=np.random.default_rng(1))
-    assert wide[1] - wide[0] > 2 * (narrow[1] - narrow[0])
-
-
+# ------------------------------------------------------------------- the ASR interval
 #: Targets and successes of 12 runs with unequal rates: the interval depends on the draws.
 RUN_TARGETS = (3, 5, 4, 6, 2, 5, 7, 3, 4, 6, 5, 4)
 RUN_HITS = (0, 5, 1, 6, 2, 0, 3, 3, 1, 2, 5, 4)
@@ -578,43 +559,33 @@ def spoof_runs(sequence="seq_0", variant="inj_rel_easy", runs=range(12)):
     return dets, infos, np.array(success)
 
 
-def interval(run_of_target, success, generator) -> list[float]:
-    return list(run_bootstrap_interval(np.asarray(run_of_target), success, generator=generator))
-
-
-def test_asr_interval_is_seeded_by_ci_seed_and_the_variant():
-    """The documented key: a generator seeded with ``[CI_SEED, crc32(variant)]``; the same
-    interval every call, another for another variant name."""
-    dets, infos, success = spoof_runs()
-    runs = np.repeat(np.arange(12), RUN_TARGETS)  # (T,)
-
-    def keyed(variant):
-        return np.random.default_rng([CI_SEED, zlib.crc32(variant.encode())])
-
+def test_asr_ci_is_the_asr_interval_of_the_per_run_counts():
+    """``asr_ci`` is :func:`asr_interval` of the variant's own ``runs``: closed-form, so the
+    same every call and for any variant name; it holds the ASR."""
+    dets, infos, _ = spoof_runs()
     a, b = attack_success_rate(dets, infos), attack_success_rate(dets, infos)
     assert a["num_runs"] == 12 and a["asr_ci"] == b["asr_ci"]  # reproducible
-    assert a["asr_ci"] == interval(runs, success, keyed("inj_rel_easy"))
+    assert a["asr_ci"] == list(asr_interval(a["runs"]))
     assert a["asr_ci"][0] <= a["asr"] <= a["asr_ci"][1]
-    # the data pin the draws: another stream gives another interval
-    assert a["asr_ci"] != interval(runs, success, np.random.default_rng(CI_SEED))
     other = attack_success_rate(dets, [{**i, "variant": "inj_rel_hard"} for i in infos])
-    assert other["asr"] == a["asr"] and other["asr_ci"] != a["asr_ci"]
-    assert other["asr_ci"] == interval(runs, success, keyed("inj_rel_hard"))
+    assert other["asr"] == a["asr"] and other["asr_ci"] == a["asr_ci"]
 
 
 def test_a_run_is_its_sequence_and_run_id():
-    """Run ids are numbered per sequence: runs 0-5 of two sequences are 12 runs (12 clusters of
-    the bootstrap, ordered by sequence and run id), whatever order the frames come in; a target
-    frame without its sequence is refused rather than merged into another run."""
-    d_a, i_a, s_a = spoof_runs("seq_a", runs=range(6))
-    d_b, i_b, s_b = spoof_runs("seq_b", runs=range(6, 12))
+    """Run ids are numbered per sequence: runs 0-5 of two sequences are 12 runs (ordered by
+    sequence and run id) in 2 sequences, the interval's clusters, whatever order the frames
+    come in; a target frame without its sequence is refused rather than merged into another
+    run."""
+    d_a, i_a, _ = spoof_runs("seq_a", runs=range(6))
+    d_b, i_b, _ = spoof_runs("seq_b", runs=range(6, 12))
     i_b = [{**i, "run_id": i["run_id"] - 6} for i in i_b]  # seq_b's runs are 0-5 too
     dets, infos = d_a + d_b, i_a + i_b
     out = attack_success_rate(dets, infos)
     assert out["num_runs"] == 12 and out["num_targets"] == sum(RUN_TARGETS)
-    gen = np.random.default_rng([CI_SEED, zlib.crc32(b"inj_rel_easy")])
-    runs = np.repeat(np.arange(12), RUN_TARGETS)  # seq_a's runs 0-5, then seq_b's
-    assert out["asr_ci"] == interval(runs, np.r_[s_a, s_b], gen)
+    hits = [sum(RUN_HITS[:6]), sum(RUN_HITS[6:])]
+    targets = [sum(RUN_TARGETS[:6]), sum(RUN_TARGETS[6:])]
+    want = wilson_cluster_interval(np.array(hits), np.array(targets))  # the two sequences
+    assert out["asr_ci"] == pytest.approx([float(want[0]), float(want[1])], abs=1e-15)
     order = np.random.default_rng(0).permutation(len(dets))
     shuffled = attack_success_rate([dets[i] for i in order], [infos[i] for i in order])
     assert shuffled["num_runs"] == 12 and shuffled["asr_ci"] == out["asr_ci"]
@@ -647,46 +618,76 @@ def _runs(hits, targets, sequence="seq_0"):
              "num_success_lenient": h} for i, (h, t) in enumerate(zip(hits, targets))]  # fmt: skip
 
 
-def test_paired_differences_against_a_hand_computed_bootstrap():
-    """Two variants over the same three runs: each resample draws runs once, the same runs for
-    both models and both variants, and the interval is the percentile interval of the mean-ASR
-    differences."""
-    targets = {"inj_a": [4, 2, 6], "inj_b": [3, 3, 5]}
-    hits = {"A": {"inj_a": [4, 0, 3], "inj_b": [3, 1, 5]},
-            "B": {"inj_a": [2, 0, 1], "inj_b": [1, 0, 5]}}  # fmt: skip
-    runs = {m: {v: _runs(hits[m][v], targets[v]) for v in targets} for m in hits}
-    out = paired_asr_differences(runs, num_resamples=500, generator=np.random.default_rng(3))
-    draws = np.random.default_rng(3).integers(0, 3, size=(500, 3))
-    means = np.zeros((500, 2))
+def test_paired_differences_against_a_hand_computed_interval():
+    """Two variants over the same six runs in three sequences: per sequence, the contribution of
+    its runs to the difference of the mean ASRs; the interval is the difference -/+ t(2 df) x
+    the cluster-robust standard error, the same sequences for both models and variants, kept
+    within [-1, 1]."""
+    targets = {"inj_a": [4, 2, 6, 3, 5, 4], "inj_b": [3, 3, 5, 4, 4, 5]}
+    hits = {"A": {"inj_a": [4, 0, 3, 2, 5, 3], "inj_b": [3, 1, 5, 4, 4, 2]},
+            "B": {"inj_a": [2, 0, 1, 1, 4, 1], "inj_b": [1, 0, 5, 2, 3, 2]}}  # fmt: skip
+    seqs = ["s0", "s0", "s1", "s1", "s2", "s2"]
+    runs = {m: {v: [{**r, "sequence": q} for r, q in zip(_runs(hits[m][v], t), seqs)]
+                for v, t in targets.items()} for m in hits}  # fmt: skip
+    out = paired_asr_differences(runs)
+    rate = {(m, v): sum(hits[m][v]) / sum(t) for m in hits for v, t in targets.items()}
+    diff = (sum(rate["A", v] for v in targets) - sum(rate["B", v] for v in targets)) / 2
+    u = np.zeros(3)  # per sequence
     for v, t in targets.items():
-        for i, m in enumerate("AB"):
-            means[:, i] += np.array(hits[m][v])[draws].sum(1) / np.array(t)[draws].sum(1) / 2
-    lo, hi = np.percentile(means[:, 0] - means[:, 1], [2.5, 97.5])
-    assert out["ci"]["A"]["B"] == pytest.approx([lo, hi], abs=1e-12)
-    assert out["ci"]["B"]["A"] == pytest.approx([-hi, -lo], abs=1e-12)
-    mean_a = (7 / 12 + 9 / 11) / 2
-    assert out["mean_asr"]["A"] == pytest.approx(mean_a)
-    assert out["difference"]["A"]["B"] == pytest.approx(mean_a - (3 / 12 + 6 / 11) / 2)
-    assert out["num_runs"] == {"inj_a": 3, "inj_b": 3} and out["num_clusters"] == 3
+        d = rate["A", v] - rate["B", v]
+        for j, q in enumerate(seqs):
+            u[int(q[1])] += (hits["A"][v][j] - hits["B"][v][j] - d * t[j]) / sum(t) / 2
+    half = scipy.stats.t.ppf(0.975, 2) * math.sqrt(3 / 2 * (u**2).sum())
+    assert -1 < diff - half and diff + half < 1  # not clipped
+    assert out["difference"]["A"]["B"] == pytest.approx(diff)
+    assert out["ci"]["A"]["B"] == pytest.approx([diff - half, diff + half], abs=1e-12)
+    assert out["ci"]["B"]["A"] == pytest.approx([-diff - half, -diff + half], abs=1e-12)
+    assert out["mean_asr"]["A"] == pytest.approx((17 / 24 + 19 / 24) / 2)
+    assert out["num_runs"] == {"inj_a": 6, "inj_b": 6}
+    assert out["num_clusters"] == 3 and out["cluster"] == "sequence"
     assert out["models"] == ["A", "B"]
+    two = {m: {v: [{**r, "sequence": q[:2].replace("2", "1")} for r, q in zip(x, seqs)]
+               for v, x in by_v.items()} for m, by_v in runs.items()}  # fmt: skip
+    lo, hi = paired_asr_differences(two)["ci"]["A"]["B"]  # 2 sequences: t with 1 df
+    assert -1.0 <= lo and hi <= 1.0
 
 
-def test_variants_that_share_runs_are_resampled_together():
+def test_paired_interval_is_the_t_interval_of_per_sequence_differences():
+    """One variant, equal runs per sequence: the interval is the textbook paired t interval of
+    the per-sequence ASR differences (S - 1 degrees of freedom)."""
+    rng = np.random.default_rng(2)
+    a, b = rng.integers(0, 33, 18).tolist(), rng.integers(0, 33, 18).tolist()
+    seqs = [f"seq_{i // 3}" for i in range(18)]
+
+    def runs_of(h):
+        return [{**r, "sequence": q} for r, q in zip(_runs(h, [32] * 18), seqs)]
+
+    out = paired_asr_differences({"A": {"rem": runs_of(a)}, "B": {"rem": runs_of(b)}})
+    d = (np.array(a) - np.array(b)).reshape(6, 3).sum(1) / 96  # (6,) per sequence
+    half = scipy.stats.t.ppf(0.975, 5) * d.std(ddof=1) / math.sqrt(6)
+    assert out["ci"]["A"]["B"] == pytest.approx([d.mean() - half, d.mean() + half], abs=1e-12)
+    assert out["num_clusters"] == 6
+
+
+def test_variants_that_share_runs_are_clustered_together():
     """The variants of a family share their runs (the same target, another budget): a variant
     repeated adds no information, so its interval is the one variant's, not narrower; variants
-    with runs of their own are resampled over the union of the runs."""
+    with runs of their own are clustered over the union of the sequences."""
     rng = np.random.default_rng(1)
     targets = [32] * 12
     a, b = rng.integers(0, 33, 12).tolist(), rng.integers(0, 33, 12).tolist()
     one = {"A": {"rem_10": _runs(a, targets)}, "B": {"rem_10": _runs(b, targets)}}
     two = {m: {"rem_10": v["rem_10"], "rem_40": v["rem_10"]} for m, v in one.items()}
-    single = paired_asr_differences(one, generator=np.random.default_rng(0))
-    double = paired_asr_differences(two, generator=np.random.default_rng(0))
-    assert double["ci"] == single["ci"] and double["difference"] == single["difference"]
+    single = paired_asr_differences(one)
+    double = paired_asr_differences(two)
+    assert double["ci"]["A"]["B"] == pytest.approx(single["ci"]["A"]["B"], abs=1e-15)
+    assert double["difference"]["A"]["B"] == pytest.approx(single["difference"]["A"]["B"])
+    assert single["cluster"] == "run" and single["num_clusters"] == 12  # one sequence
     other = {"A": {**one["A"], "inj": _runs(a[:3], [32] * 3, "seq_9")},
              "B": {**one["B"], "inj": _runs(b[:3], [32] * 3, "seq_9")}}  # fmt: skip
-    union = paired_asr_differences(other, generator=np.random.default_rng(0))
-    assert union["num_clusters"] == 15 and union["num_runs"] == {"rem_10": 12, "inj": 3}
+    union = paired_asr_differences(other)
+    assert union["num_clusters"] == 2 and union["cluster"] == "sequence"
+    assert union["num_runs"] == {"rem_10": 12, "inj": 3}
     lo, hi = union["ci"]["A"]["B"]
     assert lo <= union["difference"]["A"]["B"] <= hi
 
@@ -699,13 +700,13 @@ def test_pairing_runs_narrows_the_interval():
     targets = [32] * 18
     a = np.round(32 * np.clip(difficulty + 0.1, 0, 1)).astype(int).tolist()
     b = np.round(32 * difficulty).astype(int).tolist()
-    runs = {"A": {"inj": _runs(a, targets)}, "B": {"inj": _runs(b, targets)}}
-    out = paired_asr_differences(runs, generator=np.random.default_rng(0))
+    seqs = [f"seq_{i // 3}" for i in range(18)]
+    runs = {m: {"inj": [{**r, "sequence": q} for r, q in zip(_runs(x, targets), seqs)]}
+            for m, x in (("A", a), ("B", b))}  # fmt: skip
+    out = paired_asr_differences(runs)
     lo, hi = out["ci"]["A"]["B"]
     assert 0 < lo <= out["difference"]["A"]["B"] <= hi
-    own = [run_bootstrap_interval(np.repeat(np.arange(18), 32),
-                                  np.concatenate([np.arange(32) < h for h in x]),
-                                  generator=np.random.default_rng(0)) for x in (a, b)]  # fmt: skip
+    own = [asr_interval(runs[m]["inj"]) for m in "AB"]
     assert own[0][0] < own[1][1]  # the separate intervals overlap
     assert hi - lo < 0.5 * (own[0][1] - own[0][0])
 
@@ -713,16 +714,14 @@ def test_pairing_runs_narrows_the_interval():
 def test_paired_differences_refuse_unpaired_inputs():
     one = {"inj": _runs([1, 2], [3, 3])}
     with pytest.raises(AttackMetricError, match="at least 2 models"):
-        paired_asr_differences({"A": one}, generator=np.random.default_rng(0))
+        paired_asr_differences({"A": one})
     with pytest.raises(AttackMetricError, match="different variants"):
-        paired_asr_differences({"A": one, "B": {"rem": one["inj"]}},
-                               generator=np.random.default_rng(0))  # fmt: skip
+        paired_asr_differences({"A": one, "B": {"rem": one["inj"]}})
     twice = {"inj": _runs([1, 2], [3, 3]) * 2}
     with pytest.raises(AttackMetricError, match=r"variant 'inj': run \('seq_0', 0\) twice"):
-        paired_asr_differences({"A": twice, "B": twice}, generator=np.random.default_rng(0))
+        paired_asr_differences({"A": twice, "B": twice})
     other = {"inj": _runs([1, 2], [3, 4])}
     with pytest.raises(AttackMetricError, match=r"'inj'.*'A' and 'B'.*not scored on the same"):
-        paired_asr_differences({"A": one, "B": other}, generator=np.random.default_rng(0))
-    single = paired_asr_differences({"A": {"inj": _runs([1], [3])}, "B": {"inj": _runs([2], [3])}},
-                                    generator=np.random.default_rng(0))  # fmt: skip
+        paired_asr_differences({"A": one, "B": other})
+    single = paired_asr_differences({"A": {"inj": _runs([1], [3])}, "B": {"inj": _runs([2], [3])}})
     assert single["ci"] is None and single["difference"]["B"]["A"] == pytest.approx(1 / 3)

@@ -247,9 +247,10 @@ def test_paired_comparison_per_rank_group(models, tmp_path):
     assert "### injection" in part and "### removal" in part
     removal = report_part(text, "### removal")
     assert (
-        "Over 1 variant(s), resampling 4 runs; runs per variant: Removal 10: 4." in removal
+        "Over 1 variant(s), clustered by 4 runs of one sequence; runs per variant: Removal 10: 4."
+        in removal
     )  # CP-4f lacks rem_40
-    out = paired_from_results(models, ["rem_10"], "removal")
+    out = paired_from_results(models, ["rem_10"])
     rows = md_table(removal)
     for a in out["models"]:
         assert rows[a]["mean ASR"] == f"{out['mean_asr'][a]:.2f}"
@@ -262,7 +263,19 @@ def test_paired_comparison_per_rank_group(models, tmp_path):
             cell = f"{out['difference'][a][b]:+.2f} [{lo:+.2f}, {hi:+.2f}]"
             assert rows[a][b] == (f"**{cell}**" if lo > 0 or hi < 0 else cell)
             assert out["difference"][a][b] == pytest.approx(-out["difference"][b][a])
-    assert out["ci"]["CenterPoint"]["PHiM+LOT"][0] > 0  # p_rem 0.8 vs 0.5: settled
+    # 4 runs of 2 targets in one sequence: 4 clusters, t with 3 degrees of freedom, so even
+    # 0.88 vs 0.50 is not settled; the interval stays within [-1, 1]
+    lo, hi = out["ci"]["CenterPoint"]["PHiM+LOT"]
+    assert out["difference"]["CenterPoint"]["PHiM+LOT"] == pytest.approx(0.375)
+    assert lo < 0 < hi
+    assert all(-1 <= x <= 1 for a in out["ci"].values() for ci in a.values() for x in ci)
+    settled = copy.deepcopy(models)  # the same runs, 12 times over in 12 sequences
+    for r in settled:
+        runs = r["variants"]["rem_10"]["runs"]
+        r["variants"]["rem_10"]["runs"] = [{**x, "sequence": f"seq_{i}"} for i in range(12)
+                                           for x in runs]  # fmt: skip
+    cell = md_table(paired_table(settled, "removal", ["rem_10"]))["CenterPoint"]["PHiM+LOT"]
+    assert cell.startswith("**+0.38 [+") and cell.endswith("]**")  # excludes 0: bold
     old = copy.deepcopy(models[2])
     old["variants"]["rem_10"]["runs"] = None
     assert paired_table([models[0], old], "removal", ["rem_10"]) == (

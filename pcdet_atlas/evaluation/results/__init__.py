@@ -22,7 +22,7 @@ Schema (version 5; every key required unless marked optional; unknown keys are e
           "per_class": {<class>: {"L1/AP", "L1/APH", "L2/AP", "L2/APH": float | null}},
           "num_reused_frames", "num_recomputed_frames": int | null,  # clean predictions reused
           "asr", "asr_lenient": float in [0, 1] | null,    # null when num_targets == 0
-          "asr_ci": [lo, hi] | null,     # 95% run-level bootstrap interval (null below 2 runs)
+          "asr_ci": [lo, hi] | null,     # 95% interval, asr_interval (null below 2 runs)
           "num_runs": int | null,        # spoof runs the targets come from
           "runs": [{"sequence": str, "run_id": int, "num_targets": int, "num_success": int,
                     "num_success_lenient": int}, ...] | null,  # per run, sorted (null: before

@@ -3,14 +3,12 @@ ranks of several runs."""
 
 from __future__ import annotations
 
-import zlib
 from collections.abc import Mapping, Sequence
 from datetime import datetime, timezone
 
 import numpy as np
 
 from pcdet_atlas.evaluation.attack_metrics import (
-    CI_SEED,
     AttackMetricError,
     paired_asr_differences,
     robustness_ranks,
@@ -188,12 +186,9 @@ def ranks_from_results(
     return robustness_ranks(asr, groups, tie_method=tie_method)
 
 
-def paired_from_results(
-    results_list: Sequence[Mapping], variants: Sequence[str], group: str
-) -> dict:
+def paired_from_results(results_list: Sequence[Mapping], variants: Sequence[str]) -> dict:
     """:func:`attack_metrics.paired_asr_differences` of several models' results over
-    ``variants`` (one rank group's, say), from their per-run counts; the bootstrap's generator is
-    seeded by ``CI_SEED`` and ``group``, so each group's intervals are reproducible on their own.
+    ``variants`` (one rank group's, say), from their per-run counts.
 
     Raises:
         ResultsError: a model without one of the variants, or whose file has no per-run counts
@@ -212,8 +207,7 @@ def paired_from_results(
                     "before schema 5; evaluate it again)"
                 )
             runs[r["model"]][name] = entry["runs"]
-    gen = np.random.default_rng([CI_SEED, zlib.crc32(group.encode())])
     try:
-        return paired_asr_differences(runs, generator=gen)
+        return paired_asr_differences(runs)
     except AttackMetricError as err:
         raise ResultsError(str(err)) from err

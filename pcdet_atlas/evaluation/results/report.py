@@ -337,13 +337,13 @@ def _ranks_text(results_list) -> str:
 
 def paired_table(results_list: Sequence[Mapping], group: str, variants: Sequence[str]) -> str:
     """Markdown: each model's mean ASR over ``variants`` (a rank group's) and, per pair, the
-    difference row - column with its paired run-level 95% interval
+    difference row - column with its paired 95% interval over the sequences
     (:func:`paired_from_results`), **bold** where the interval excludes 0; or why it cannot be
     computed."""
     if len(results_list) < 2 or not variants:
         return f"needs at least 2 models with a common {group} variant"
     try:
-        out = paired_from_results(results_list, variants, group)
+        out = paired_from_results(results_list, variants)
     except ResultsError as err:
         return f"not computed: {err}"
     models = out["models"]
@@ -365,8 +365,9 @@ def paired_table(results_list: Sequence[Mapping], group: str, variants: Sequence
         rows.append(row)
     runs = ", ".join(f"{variant_label(v)}: {n}" for v, n in out["num_runs"].items())
     table = _render("markdown", None, header, rows)
-    return (f"{table}\n\nOver {len(variants)} variant(s), resampling {out['num_clusters']} runs; "
-            f"runs per variant: {runs}.")  # fmt: skip
+    unit = "sequences" if out["cluster"] == "sequence" else "runs of one sequence"
+    return (f"{table}\n\nOver {len(variants)} variant(s), clustered by {out['num_clusters']} "
+            f"{unit}; runs per variant: {runs}.")  # fmt: skip
 
 
 def _paired_text(results_list) -> str:
@@ -380,10 +381,10 @@ def _paired_text(results_list) -> str:
         return "needs at least 2 models with a common ranked variant"
     parts = [
         "Row minus column: the difference of the two models' mean ASR over the group's "
-        "variants, with its 95% interval from a paired bootstrap that resamples the spoof runs, "
-        "the same runs for every model and variant (docs/evaluation.md); **bold**: the interval "
-        "excludes 0. Each pair is judged on its own (no correction for the number of pairs), "
-        "and with few runs (under ~10) a bootstrap interval is too narrow."
+        "variants, with its 95% paired interval over the sequences the spoof runs lie in "
+        "(a cluster-robust t interval on the per-sequence differences, the same runs for every "
+        "model and variant; docs/evaluation.md); **bold**: the interval excludes 0. Each pair "
+        "is judged on its own (no correction for the number of pairs)."
     ]
     for group, names in groups.items():
         parts += [f"### {group}", paired_table(results_list, group, names)]
@@ -431,7 +432,7 @@ def write_report(
                      f"| {rpn_cell(r)} | {r['pcdet_atlas_version']} | {src} |")  # fmt: skip
     lines += [
         "",
-        "L2 mAP and mAPH x100; ASR with its 95% run-level bootstrap interval "
+        "L2 mAP and mAPH x100; ASR with its 95% interval over the sequences "
         "(docs/evaluation.md); best **bold**, second _italic_ per variant (point estimates); "
         f"`{MISSING}`: the model was not evaluated on that variant; `{MISSING} (n of m variants)`: "
         "a mean or pooled value over a family of m variants, of which the model has n with an "

@@ -161,7 +161,7 @@ _VARIANT = _closed(
             "additionalProperties": _closed({k: _nullable(_FRAC) for k in CLASS_METRIC_KEYS}),
         },
         "asr": _nullable(_FRAC),
-        # [lo, hi] run-level bootstrap interval; None with < 2 runs or from before schema 3
+        # [lo, hi] intervals.asr_interval; None with < 2 runs or from before schema 3
         "asr_ci": _nullable({"type": "array", "items": _FRAC, "minItems": 2, "maxItems": 2}),
         "num_runs": _nullable(_COUNT),
         # per-run counts, sorted by (sequence, run_id); None before schema 5
