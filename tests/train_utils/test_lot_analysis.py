@@ -85,3 +85,18 @@ def test_range_prior_is_the_best_constant_per_range_cell():
             assert loss(moved) >= best - 1e-9
     q = forecast_quality([(prior.expand_as(targets), targets)], prior)
     assert q["forecast"] == pytest.approx(q["range_prior"], rel=1e-5)
+
+
+def test_the_tool_prints_keep_rates_and_forecast_quality(synthetic_root, capsys):
+    from pcdet_atlas.utils.common import load_tool
+
+    tool = load_tool("lot_filter")
+    out = tool.main(
+        ["--cfg", str(STAGE3), "--data_path", str(synthetic_root), "--fit_frames", "2",
+         "--frames", "2"]
+    )  # fmt: skip
+    assert 0.0 <= out["fitted_thresh"] <= 1.0 and out["configured_thresh"] == 0.1
+    assert out["keep"]["in_box"]["fitted"] >= 0.95 and out["keep"]["background"]["voxels"] > 0
+    assert set(out["forecast_focal_loss"]) == {"forecast", "range_prior"}
+    printed = capsys.readouterr().out
+    assert "kept @ rule" in printed and "range prior" in printed
