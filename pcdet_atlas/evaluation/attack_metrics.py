@@ -443,8 +443,14 @@ def run_counts(matches: TargetMatches) -> list[dict]:
     ``[{'sequence', 'run_id', 'num_targets', 'num_success', 'num_success_lenient'}, ...]``
     sorted by ``(sequence, run_id)``, one entry per run with at least one target. The unit of
     the ASR's interval, and what a paired comparison of two models needs
-    (:func:`paired_asr_differences`)."""
+    (:func:`paired_asr_differences`). ``run_counts(matches.select(mask))`` counts any subset
+    (the lifecycle counts the targets at one position k, shadows included)."""
     attacked = matches.attacked()
+    return _counts_per_run(attacked)
+
+
+def _counts_per_run(attacked: TargetMatches) -> list[dict]:
+    """:func:`run_counts` of every target of ``attacked``."""
     run = attacked.run  # (T,) index of (sequence, run_id) in sorted order
     first = np.unique(run, return_index=True)[1]  # (R,) a target of each run
     num = first.size
@@ -845,7 +851,10 @@ def lifecycle_asr(
     schedule window position 2W only holds frames after a sequence's last run.
 
     Returns column lists over k: ``{'window', 'recorded_window', 'k', 'attacked' (bool: k in
-    1..W), 'num_targets', 'num_success', 'asr', 'num_success_lenient', 'asr_lenient',
+    1..W), 'num_targets', 'num_success', 'asr', 'asr_ci' (per k the
+    :func:`~pcdet_atlas.evaluation.intervals.asr_interval` of that position's targets grouped
+    by their spoof run, None below two runs), 'runs' (per k those per-run counts, as
+    :func:`run_counts`, for intervals of pooled variants), 'num_success_lenient', 'asr_lenient',
     'score_bin_edges', 'score_counts' (per k: histogram of the matched scores),
     'clean_score_counts'}``: per k the histogram of ``clean_scores`` (T,), the clean run's
     matched score of the same targets (:func:`clean_matched_scores`, NaN = not detected), the
@@ -863,6 +872,8 @@ def lifecycle_asr(
         "num_targets": [],
         "num_success": [],
         "asr": [],
+        "asr_ci": [],
+        "runs": [],
         "num_success_lenient": [],
         "asr_lenient": [],
         "score_bin_edges": score_histogram(np.zeros(0), num_bins)["bin_edges"],
@@ -879,6 +890,10 @@ def lifecycle_asr(
         out["num_targets"].append(n)
         out["num_success"].append(n_ok)
         out["asr"].append(_rate(n_ok, n))
+        runs = _counts_per_run(matches.select(at)) if n else []
+        ci = asr_interval(runs, level=CI_LEVEL) if n else None
+        out["asr_ci"].append(None if ci is None else [float(ci[0]), float(ci[1])])
+        out["runs"].append(runs)
         out["num_success_lenient"].append(n_len)
         out["asr_lenient"].append(_rate(n_len, n))
         scores = matches.matched_score[at & matches.detected]

@@ -17,6 +17,7 @@ import pytest
 from pcdet_atlas.attacks.metadata import make_meta
 from pcdet_atlas.config import REPO_ROOT
 from pcdet_atlas.evaluation.attack_metrics import evaluate_attack
+from pcdet_atlas.evaluation.intervals import asr_interval
 from pcdet_atlas.evaluation.results import (
     ResultsError,
     build_results,
@@ -213,7 +214,21 @@ def test_summary_lot_and_centre_gap_tables(models):
     for cell, k in zip(row[5:], (0, 1, WINDOW, WINDOW + 1)):
         hits = sum(lc["num_success"][k] for lc in lcs)
         total = sum(lc["num_targets"][k] for lc in lcs)
-        assert cell.strip() == f"{hits / total:.2f} ({hits}/{total})" and total == 8
+        # the interval of each run's counts summed over the two variants (they share runs)
+        pooled = {}
+        for lc in lcs:
+            for run in lc["runs"][k]:
+                n, s = pooled.get((run["sequence"], run["run_id"]), (0, 0))
+                pooled[(run["sequence"], run["run_id"])] = (
+                    n + run["num_targets"],
+                    s + run["num_success"],
+                )
+        lo, hi = asr_interval([
+            {"sequence": q, "run_id": r, "num_targets": n, "num_success": s}
+            for (q, r), (n, s) in pooled.items()
+        ])  # fmt: skip
+        assert cell.strip() == f"{hits / total:.2f} [{lo:.2f}, {hi:.2f}] ({hits}/{total})"
+        assert total == 8
     assert row[0].strip() == str(WINDOW)
     # CP-4f was not evaluated on rem_40: its removal lifecycle is not pooled over rem_10 alone
     cp4f = [c.strip() for c in next(r for r in lifecycle if r.startswith("| CP-4f |")).split("|")]

@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 
 from pcdet_atlas.evaluation.attack_metrics import evaluate_attack
+from pcdet_atlas.evaluation.intervals import asr_interval
 from pcdet_atlas.evaluation.results import (
     PAPER_VARIANTS,
     RESULTS_SCHEMA,
+    SCHEMA_VERSION,
     ResultsError,
     build_results,
     build_variant_result,
@@ -235,27 +237,92 @@ def test_schema_3_files_load_with_reuse_counts_unknown(tmp_path):
         attack=attack("rem_10", "removal", 0.5), rank_group="removal", num_reused_frames=120,
     )  # fmt: skip
     assert entry["num_reused_frames"] == 120 and entry["num_recomputed_frames"] == 80
-    old = copy.deepcopy(CP)
+    old = _without_lifecycle_intervals(copy.deepcopy(CP), None)
     old["schema_version"] = 3
     for v in old["variants"].values():
         v.pop("num_reused_frames"), v.pop("num_recomputed_frames"), v.pop("runs")
     path = tmp_path / "v3.json"
     path.write_text(json.dumps(old))
-    expected = copy.deepcopy(CP)  # CP records no reuse: both None
+    expected = _without_lifecycle_intervals(copy.deepcopy(CP), "null")  # no reuse: both None
     for v in expected["variants"].values():
         v["runs"] = None
     assert load_results(path) == expected
 
 
+def _without_lifecycle_intervals(results: dict, how: str | None) -> dict:
+    """``results`` as a schema-5 writer left its lifecycles: ``asr_ci`` and ``runs`` absent
+    (``how`` None) or ``null`` (``'null'``, as the upgrade sets them)."""
+    for v in results["variants"].values():
+        if v.get("lifecycle") is not None:
+            for key in ("asr_ci", "runs"):
+                v["lifecycle"].pop(key)
+                if how == "null":
+                    v["lifecycle"][key] = None
+    return results
+
+
+def lifecycle_entry(num_sequences: int = 3) -> dict:
+    """A real ``inj_rel_hard`` entry with a 4-frame lifecycle over ``num_sequences`` sequences of
+    one run (frames 1-4 spoofed; the phantom detected at 1-3 in sequence 0, at 1-2 elsewhere)."""
+    dets, infos = [], []
+    for q in range(num_sequences):
+        for k in range(9):
+            hit = 1 <= k <= (3 if q == 0 else 2)
+            dets.append({
+                "frame_id": f"s{q}_{k:03d}", "name": np.array(["Vehicle"] if hit else []),
+                "boxes_lidar": np.array([TARGET] if hit else np.zeros((0, 7))),
+                "score": np.array([0.8] if hit else []),
+            })  # fmt: skip
+            infos.append({
+                "variant": "inj_rel_hard", "family": "injection", "spoofed": 1 <= k <= 4,
+                "sequence_name": f"seq_{q}", "run_id": 0,
+                "run_position": k - 1 if 1 <= k <= 4 else -1, "lifecycle_k": k,
+                "target_box": TARGET, "target_is_shadow": not 1 <= k <= 4, **INJECTION_SCORING,
+            })  # fmt: skip
+    atk = evaluate_attack(dets, infos, window=4, recorded_window=4)
+    return build_variant_result(
+        "inj_rel_hard", family="injection", num_frames=9 * num_sequences, metrics=metrics(0.6),
+        class_names=CLASSES, attack=atk,
+    )  # fmt: skip
+
+
+def test_lifecycle_positions_carry_run_level_intervals():
+    lc = lifecycle_entry()["lifecycle"]
+    assert lc["num_success"][:4] == [0, 3, 3, 1]
+    for k in range(9):
+        runs = lc["runs"][k]
+        assert sum(r["num_targets"] for r in runs) == lc["num_targets"][k] == 3
+        assert lc["asr_ci"][k] == list(asr_interval(runs))
+        assert lc["asr_ci"][k][0] <= lc["asr"][k] <= lc["asr_ci"][k][1]
+    assert lifecycle_entry(1)["lifecycle"]["asr_ci"] == [None] * 9  # one run: no spread seen
+
+
+def test_schema_5_files_load_with_lifecycle_intervals_unknown(tmp_path):
+    results = copy.deepcopy(CP)
+    results["variants"]["inj_rel_hard"] = lifecycle_entry()
+    validate_results(results)
+    old = _without_lifecycle_intervals(copy.deepcopy(results), None)
+    old["schema_version"] = 5
+    path = tmp_path / "v5.json"
+    path.write_text(json.dumps(old))
+    loaded = load_results(path)
+    assert loaded["schema_version"] == SCHEMA_VERSION == 6
+    assert loaded == _without_lifecycle_intervals(copy.deepcopy(results), "null")
+    broken = copy.deepcopy(results)
+    broken["variants"]["inj_rel_hard"]["lifecycle"]["runs"][2][0]["num_targets"] += 1
+    with pytest.raises(ResultsError, match=r"\[k=2\]\['runs'\]"):
+        validate_results(broken)
+
+
 def test_schema_4_files_load_with_run_counts_unknown(tmp_path):
-    old = copy.deepcopy(CP)
+    old = _without_lifecycle_intervals(copy.deepcopy(CP), None)
     old["schema_version"] = 4
     for v in old["variants"].values():
         v.pop("runs")
     path = tmp_path / "v4.json"
     path.write_text(json.dumps(old))
     loaded = load_results(path)
-    assert loaded["schema_version"] == 5
+    assert loaded["schema_version"] == SCHEMA_VERSION
     assert all(v["runs"] is None for v in loaded["variants"].values())
     assert {**loaded, "variants": None} == {**CP, "variants": None}
     assert CP["variants"]["clean"]["runs"] == []
@@ -265,7 +332,8 @@ def test_schema_4_files_load_with_run_counts_unknown(tmp_path):
 @pytest.mark.parametrize(
     "version, variant, key",
     [(4, "rem_10", "runs"), (3, "rem_10", "num_reused_frames"), (2, "clean", "asr_ci"),
-     (1, "clean", "rank_group"), (3, "rem_10", "lifecycle.clean_score_counts")],
+     (1, "clean", "rank_group"), (3, "rem_10", "lifecycle.clean_score_counts"),
+     (5, "rem_10", "lifecycle.asr_ci")],
 )  # fmt: skip
 def test_a_version_its_content_contradicts_is_refused(tmp_path, version, variant, key):
     """A file of an older schema_version that holds a value under a later version's key is an
@@ -279,8 +347,8 @@ def test_a_version_its_content_contradicts_is_refused(tmp_path, version, variant
             if added > version and "." not in newer:
                 entry.pop(newer)
     entry = results["variants"][variant]  # ...but for one key
-    if key == "lifecycle.clean_score_counts":
-        entry["lifecycle"] = {"clean_score_counts": [[1]]}
+    if key.startswith("lifecycle."):
+        entry["lifecycle"] = {key.split(".")[1]: [[1]]}
     else:
         entry[key] = {"runs": [], "num_reused_frames": 0, "asr_ci": [0.1, 0.2]}.get(key, "x")
     path = tmp_path / "results.json"
@@ -295,7 +363,7 @@ def test_a_version_its_content_contradicts_is_refused(tmp_path, version, variant
     entry.pop("lifecycle" if "." in key else key)
     entry["lifecycle"] = None
     path.write_text(json.dumps(results))
-    assert load_results(path)["schema_version"] == 5  # the genuine file loads
+    assert load_results(path)["schema_version"] == SCHEMA_VERSION  # the genuine file loads
 
 
 def _broken(mutate):

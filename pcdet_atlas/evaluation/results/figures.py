@@ -252,9 +252,10 @@ def _shade_attack(ax, window: int) -> None:
 def lifecycle_curves(
     results_list: Sequence[Mapping], family: str, path: Path, notes: list[str] | None = None
 ) -> Path | str:
-    """ASR by lifecycle position k per model (a panel each) and variant (a line each): k = 1..W
-    spoofed (shaded), the dashed line the onset/decay boundary, k > W the clean frames after
-    the run (paper Figs. 4 and 6)."""
+    """ASR by lifecycle position k per model (a panel each) and variant (a line each, its band
+    the run-level 95% interval where the results have one): k = 1..W spoofed (shaded), the
+    dashed line the onset/decay boundary, k > W the clean frames after the run (paper Figs. 4
+    and 6)."""
     models = _lifecycle_models(results_list, family, notes)
     if not models:
         return f"no {family} variant with lifecycle data"
@@ -265,7 +266,13 @@ def lifecycle_curves(
         for name in names:
             lc = r["variants"][name]["lifecycle"]
             asr = np.array([np.nan if a is None else a for a in lc["asr"]], dtype=float)
-            ax.plot(lc["k"], asr, marker=".", ms=3, lw=1, label=variant_label(name))
+            (line,) = ax.plot(lc["k"], asr, marker=".", ms=3, lw=1, label=variant_label(name))
+            if lc.get("asr_ci") is not None:  # the run-level 95% interval as a band
+                lo, hi = (
+                    np.array([np.nan if c is None else c[i] for c in lc["asr_ci"]], dtype=float)
+                    for i in (0, 1)
+                )
+                ax.fill_between(lc["k"], lo, hi, color=line.get_color(), alpha=0.12, lw=0)
         ax.set_ylim(-0.02, 1.02)
         ax.set_xlabel("lifecycle position k")
         ax.set_ylabel("ASR")

@@ -46,6 +46,8 @@ def load_results(path: str | Path) -> dict:
         results = upgrade_v3(results, where=str(path))
     if isinstance(results, dict) and results.get("schema_version") == 4:
         results = upgrade_v4(results, where=str(path))
+    if isinstance(results, dict) and results.get("schema_version") == 5:
+        results = upgrade_v5(results, where=str(path))
     validate_results(results, where=str(path))
     return results
 
@@ -57,7 +59,7 @@ _V1_RANK_GROUPS = {"injection": "injection", "removal": "removal"}
 _ADDED_IN = {
     "rank_group": 2, "asr_ci": 3, "num_runs": 3, "num_spoofed_frames": 3, "num_untargeted": 3,
     "num_reused_frames": 4, "num_recomputed_frames": 4, "lifecycle.clean_score_counts": 4,
-    "runs": 5,
+    "runs": 5, "lifecycle.asr_ci": 6, "lifecycle.runs": 6,
 }  # fmt: skip
 
 
@@ -153,6 +155,21 @@ def upgrade_v4(results: dict, *, where: str = "results") -> dict:
         for name, entry in variants.items()
     }
     return {**results, "schema_version": 5, "variants": upgraded}
+
+
+def upgrade_v5(results: dict, *, where: str = "results") -> dict:
+    """A schema-5 results dict as schema 6: each lifecycle gains ``asr_ci`` and ``runs`` as None
+    (schema 5 did not record the lifecycle's intervals)."""
+    check_version_content(results, where)
+    variants = results.get("variants")
+    if not isinstance(variants, dict):
+        return results  # validation names what is wrong
+    upgraded = {}
+    for name, entry in variants.items():
+        if isinstance(entry, dict) and isinstance(entry.get("lifecycle"), dict):
+            entry = {**entry, "lifecycle": {**entry["lifecycle"], "asr_ci": None, "runs": None}}
+        upgraded[name] = entry
+    return {**results, "schema_version": 6, "variants": upgraded}
 
 
 def load_results_dir(root: str | Path, pattern: str = "**/results.json") -> list[dict]:

@@ -19,6 +19,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from pcdet_atlas.config import cfg_from_yaml_file, resolve_repo_path
+from pcdet_atlas.evaluation.intervals import asr_interval
 from pcdet_atlas.evaluation.results import figures
 from pcdet_atlas.evaluation.results.build import paired_from_results, ranks_from_results
 from pcdet_atlas.evaluation.results.io import load_results
@@ -248,13 +249,31 @@ def confident_phantom_table(results_list: Sequence[Mapping], fmt: str = "markdow
     return _confidence_table(results_list, "injection", cell, fmt)
 
 
+def _pooled_lifecycle_interval(lcs: Sequence[Mapping], k: int) -> tuple[float, float] | None:
+    """The run-level interval of position ``k`` pooled over lifecycles ``lcs``: each spoof run's
+    counts summed over the variants (the variants of a family share their runs), None when a
+    lifecycle lacks per-run counts (schema 5 and older) or there are fewer than two runs."""
+    pooled: dict[tuple[str, int], dict] = {}
+    for lc in lcs:
+        if lc.get("runs") is None or k not in lc["k"]:
+            return None
+        for run in lc["runs"][lc["k"].index(k)]:
+            key = (run["sequence"], run["run_id"])
+            into = pooled.setdefault(key, {"sequence": run["sequence"], "run_id": run["run_id"],
+                                           "num_targets": 0, "num_success": 0})  # fmt: skip
+            into["num_targets"] += run["num_targets"]
+            into["num_success"] += run["num_success"]
+    return asr_interval(list(pooled.values())) if pooled else None
+
+
 def lifecycle_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str | None:
     """The attack lifecycle at the positions the paper's Finding 3 compares, per model and family
     (the family's variants pooled): k = 0 (the last clean frame: the clean model's own rate, a
     missed removal target or a detection where the phantom will be), k = 1 (only the current
     frame spoofed), k = W (the whole W-frame input spoofed) and k = W + 1 (the current frame
     clean again, the rest of the input still spoofed), as ASR with the successes and targets
-    behind it (pooling repeats the clean k = 0 frames, which every variant shares). A model is
+    behind it and its run-level 95% interval (each run's counts summed over the variants;
+    pooling repeats the clean k = 0 frames, which every variant shares). A model is
     pooled over every variant of the family that any of the models has, each with an ASR and
     lifecycle data, or its cells read ``missing (n of m variants)``; None without lifecycle
     data."""
@@ -282,7 +301,9 @@ def lifecycle_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> s
                 k = position(window)
                 hits = sum(lc["num_success"][lc["k"].index(k)] for lc in lcs if k in lc["k"])
                 total = sum(lc["num_targets"][lc["k"].index(k)] for lc in lcs if k in lc["k"])
-                row.append("-" if not total else f"{hits / total:.2f} ({hits}/{total})")
+                ci = _pooled_lifecycle_interval(lcs, k)
+                interval = "" if ci is None else f" [{ci[0]:.2f}, {ci[1]:.2f}]"
+                row.append("-" if not total else f"{hits / total:.2f}{interval} ({hits}/{total})")
         rows.append(row[:1] + ["-" if window is None else str(window)] + row[1:])
     if fmt == "latex":
         rows = [[latex_escape(c) for c in row] for row in rows]

@@ -20,7 +20,7 @@ __all__ = [
     "validate_variant",
 ]
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 METRIC_KEYS = ("L1/mAP", "L1/mAPH", "L2/mAP", "L2/mAPH")
 CLASS_METRIC_KEYS = ("L1/AP", "L1/APH", "L2/AP", "L2/APH")
 ATTACK_KEYS = (
@@ -121,6 +121,16 @@ _CONFIDENCE = {
         for kind, schema in _CONFIDENCE_KINDS.items()
     ],
 }
+#: One spoof run's counts (``attack_metrics.run_counts``).
+_RUN = _closed(
+    {
+        "sequence": _NAME,
+        "run_id": _COUNT,
+        "num_targets": {"type": "integer", "minimum": 1},
+        "num_success": _COUNT,
+        "num_success_lenient": _COUNT,
+    }
+)
 _LIFECYCLE = _closed(
     {
         "window": {"type": "integer", "minimum": 1},
@@ -131,6 +141,15 @@ _LIFECYCLE = _closed(
         "num_targets": {"type": "array", "items": _COUNT},
         "num_success": {"type": "array", "items": _COUNT},
         "asr": {"type": "array", "items": _nullable(_FRAC)},
+        # per k the run-level interval of the ASR; None before schema 6
+        "asr_ci": _nullable(
+            {
+                "type": "array",
+                "items": _nullable({"type": "array", "items": _FRAC, "minItems": 2, "maxItems": 2}),
+            }
+        ),  # fmt: skip
+        # per k the per-run counts behind it (pooled intervals); None before schema 6
+        "runs": _nullable({"type": "array", "items": {"type": "array", "items": _RUN}}),
         "num_success_lenient": {"type": "array", "items": _COUNT},
         "asr_lenient": {"type": "array", "items": _nullable(_FRAC)},
         "score_counts": {"type": "array", "items": {"type": "array", "items": _COUNT}},
@@ -138,16 +157,6 @@ _LIFECYCLE = _closed(
         "clean_score_counts": _nullable(
             {"type": "array", "items": {"type": "array", "items": _COUNT}}
         ),
-    }
-)
-#: One spoof run's counts (``attack_metrics.run_counts``).
-_RUN = _closed(
-    {
-        "sequence": _NAME,
-        "run_id": _COUNT,
-        "num_targets": {"type": "integer", "minimum": 1},
-        "num_success": _COUNT,
-        "num_success_lenient": _COUNT,
     }
 )
 _VARIANT = _closed(
@@ -293,7 +302,8 @@ def _lifecycle(lc: Mapping, path: str) -> None:
         _fail(f"{path}['recorded_window']", f"must be >= window {w}")
     if lc["k"] != list(range(2 * w + 1)):
         _fail(f"{path}['k']", f"expected [0, ..., {2 * w}], got {lc['k']!r}")
-    for key in ("attacked", "num_targets", "num_success", "asr", "num_success_lenient",
+    for key in ("attacked", "num_targets", "num_success", "asr", "asr_ci", "runs",
+                "num_success_lenient",
                 "asr_lenient", "score_counts", "clean_score_counts"):  # fmt: skip
         if lc[key] is not None and len(lc[key]) != 2 * w + 1:
             _fail(f"{path}['{key}']", f"expected a list of {2 * w + 1} entries")
@@ -303,6 +313,15 @@ def _lifecycle(lc: Mapping, path: str) -> None:
         at, n = f"{path}[k={k}]", lc["num_targets"][k]
         for num_key, rate_key in (("num_success", "asr"), ("num_success_lenient", "asr_lenient")):
             _rate(lc[rate_key][k], lc[num_key][k], n, f"{at}['{rate_key}']", f"{at}['{num_key}']")
+        if lc["runs"] is not None:
+            counts = [(sum(r[c] for r in lc["runs"][k])) for c in ("num_targets", "num_success")]
+            if counts != [n, lc["num_success"][k]]:
+                _fail(
+                    f"{at}['runs']", f"add up to {counts}, not the {n} targets and their successes"
+                )
+        ci = None if lc["asr_ci"] is None else lc["asr_ci"][k]
+        if ci is not None and not (n and ci[0] <= lc["asr"][k] <= ci[1]):
+            _fail(f"{at}['asr_ci']", f"{ci} must hold the ASR {lc['asr'][k]} (targets {n})")
         hist = {"bin_edges": lc["score_bin_edges"], "counts": lc["score_counts"][k]}
         _histogram(hist, f"{at}['score_counts']")
         if sum(lc["score_counts"][k]) > n:
