@@ -18,6 +18,8 @@ import argparse
 import copy
 import itertools
 
+from torch.utils.data import DataLoader, Subset
+
 from pcdet_atlas.config import resolve_cli_path, resolve_repo_path
 from pcdet_atlas.datasets import build_dataloader
 from pcdet_atlas.models import build_network_from_config
@@ -45,10 +47,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def spread(loader, dataset, count: int):
-    """About ``count`` batches of single frames spread evenly over ``dataset``."""
+def spread(dataset, count: int) -> DataLoader:
+    """Batches of single frames, ``count`` of them spread evenly over ``dataset`` (only those
+    frames are read)."""
     step = max(1, len(dataset) // count)
-    return itertools.islice(loader, 0, None, step)
+    frames = Subset(dataset, range(0, len(dataset), step)[:count])
+    return DataLoader(frames, batch_size=1, collate_fn=dataset.collate_batch)
 
 
 def main(argv=None) -> dict:
@@ -69,10 +73,10 @@ def main(argv=None) -> dict:
     for split, count in (("train", args.fit_frames), ("test", args.frames)):
         data_cfg = copy.deepcopy(cfg.DATA_CONFIG)  # the split read without augmentation
         data_cfg.DATA_SPLIT["test"] = cfg.DATA_CONFIG.DATA_SPLIT[split]
-        dataset, loader, _ = build_dataloader(
+        dataset, _, _ = build_dataloader(
             data_cfg, cfg.CLASS_NAMES, batch_size=1, dist=False, workers=0, training=False
         )
-        batches[split] = spread(loader, dataset, count)
+        batches[split] = spread(dataset, count)
     fit, fit_maps = collect_confidences(model, batches["train"])
     thresh = threshold_for_recall(fit.of("in_box"), args.recall)
     prior = range_prior(fit_maps)

@@ -38,16 +38,9 @@ def load_results(path: str | Path) -> dict:
             results = json.load(f)
     except json.JSONDecodeError as err:
         raise ResultsError(f"{path}: not valid JSON ({err})") from err
-    if isinstance(results, dict) and results.get("schema_version") == 1:
-        results = upgrade_v1(results, where=str(path))
-    if isinstance(results, dict) and results.get("schema_version") == 2:
-        results = upgrade_v2(results, where=str(path))
-    if isinstance(results, dict) and results.get("schema_version") == 3:
-        results = upgrade_v3(results, where=str(path))
-    if isinstance(results, dict) and results.get("schema_version") == 4:
-        results = upgrade_v4(results, where=str(path))
-    if isinstance(results, dict) and results.get("schema_version") == 5:
-        results = upgrade_v5(results, where=str(path))
+    for version, upgrade in enumerate(UPGRADES, start=1):  # each version to the next in turn
+        if isinstance(results, dict) and results.get("schema_version") == version:
+            results = upgrade(results, where=str(path))
     validate_results(results, where=str(path))
     return results
 
@@ -103,32 +96,11 @@ def upgrade_v1(results: dict, *, where: str = "results") -> dict:
     return {**results, "schema_version": 2, "variants": upgraded}
 
 
-def upgrade_v2(results: dict, *, where: str = "results") -> dict:
-    """A schema-2 results dict as schema 3: each variant gains ``asr_ci``, ``num_runs``,
-    ``num_spoofed_frames`` and ``num_untargeted`` as None (unknown: schema 2 did not have them)."""
-    check_version_content(results, where)
-    variants = results.get("variants")
-    if not isinstance(variants, dict):
-        return results  # validation names what is wrong
-    upgraded = {
-        name: {
-            **entry,
-            "asr_ci": None,
-            "num_runs": None,
-            "num_spoofed_frames": None,
-            "num_untargeted": None,
-        }  # fmt: skip
-        if isinstance(entry, dict)
-        else entry
-        for name, entry in variants.items()
-    }
-    return {**results, "schema_version": 3, "variants": upgraded}
-
-
-def upgrade_v3(results: dict, *, where: str = "results") -> dict:
-    """A schema-3 results dict as schema 4: each variant gains ``num_reused_frames`` and
-    ``num_recomputed_frames`` as None, and its lifecycle ``clean_score_counts`` as None
-    (schema 3 did not record them)."""
+def _with_nulls(
+    results: dict, version: int, where: str, keys: tuple[str, ...], lifecycle_keys: tuple[str, ...]
+) -> dict:
+    """``results`` as schema ``version``: every variant gains ``keys`` and its lifecycle (when
+    it has one) ``lifecycle_keys``, all None (the older schema did not record them)."""
     check_version_content(results, where)
     variants = results.get("variants")
     if not isinstance(variants, dict):
@@ -136,40 +108,42 @@ def upgrade_v3(results: dict, *, where: str = "results") -> dict:
     upgraded = {}
     for name, entry in variants.items():
         if isinstance(entry, dict):
-            entry = {**entry, "num_reused_frames": None, "num_recomputed_frames": None}
-            if isinstance(entry.get("lifecycle"), dict):
-                entry["lifecycle"] = {**entry["lifecycle"], "clean_score_counts": None}
+            entry = {**entry, **dict.fromkeys(keys)}
+            if lifecycle_keys and isinstance(entry.get("lifecycle"), dict):
+                entry["lifecycle"] = {**entry["lifecycle"], **dict.fromkeys(lifecycle_keys)}
         upgraded[name] = entry
-    return {**results, "schema_version": 4, "variants": upgraded}
+    return {**results, "schema_version": version, "variants": upgraded}
+
+
+def upgrade_v2(results: dict, *, where: str = "results") -> dict:
+    """A schema-2 results dict as schema 3: each variant gains ``asr_ci``, ``num_runs``,
+    ``num_spoofed_frames`` and ``num_untargeted`` as None (unknown: schema 2 did not have them)."""
+    keys = ("asr_ci", "num_runs", "num_spoofed_frames", "num_untargeted")
+    return _with_nulls(results, 3, where, keys, ())
+
+
+def upgrade_v3(results: dict, *, where: str = "results") -> dict:
+    """A schema-3 results dict as schema 4: each variant gains ``num_reused_frames`` and
+    ``num_recomputed_frames`` as None, and its lifecycle ``clean_score_counts`` as None
+    (schema 3 did not record them)."""
+    keys = ("num_reused_frames", "num_recomputed_frames")
+    return _with_nulls(results, 4, where, keys, ("clean_score_counts",))
 
 
 def upgrade_v4(results: dict, *, where: str = "results") -> dict:
     """A schema-4 results dict as schema 5: each variant gains ``runs`` (the per-run counts) as
     None (schema 4 did not record them)."""
-    check_version_content(results, where)
-    variants = results.get("variants")
-    if not isinstance(variants, dict):
-        return results  # validation names what is wrong
-    upgraded = {
-        name: {**entry, "runs": None} if isinstance(entry, dict) else entry
-        for name, entry in variants.items()
-    }
-    return {**results, "schema_version": 5, "variants": upgraded}
+    return _with_nulls(results, 5, where, ("runs",), ())
 
 
 def upgrade_v5(results: dict, *, where: str = "results") -> dict:
     """A schema-5 results dict as schema 6: each lifecycle gains ``asr_ci`` and ``runs`` as None
     (schema 5 did not record the lifecycle's intervals)."""
-    check_version_content(results, where)
-    variants = results.get("variants")
-    if not isinstance(variants, dict):
-        return results  # validation names what is wrong
-    upgraded = {}
-    for name, entry in variants.items():
-        if isinstance(entry, dict) and isinstance(entry.get("lifecycle"), dict):
-            entry = {**entry, "lifecycle": {**entry["lifecycle"], "asr_ci": None, "runs": None}}
-        upgraded[name] = entry
-    return {**results, "schema_version": 6, "variants": upgraded}
+    return _with_nulls(results, 6, where, (), ("asr_ci", "runs"))
+
+
+#: ``UPGRADES[v - 1]`` turns a schema-``v`` dict into schema ``v + 1``
+UPGRADES = (upgrade_v1, upgrade_v2, upgrade_v3, upgrade_v4, upgrade_v5)
 
 
 def load_results_dir(root: str | Path, pattern: str = "**/results.json") -> list[dict]:
