@@ -60,7 +60,6 @@ from pcdet_atlas.config import (
 )
 from pcdet_atlas.datasets.fingerprint import data_config_fingerprint
 from pcdet_atlas.evaluation.results import ResultsError, collect_results, write_report
-from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.train_utils.atlas_eval import (
     build_variant_attacks,
     resolve_variants,
@@ -68,6 +67,7 @@ from pcdet_atlas.train_utils.atlas_eval import (
 )
 from pcdet_atlas.train_utils.setup import load_cfg, lock_output_folder
 from pcdet_atlas.utils.common import load_tool, resolve_device, write_atomic
+from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.processes import die_with_parent
 
 DEFAULT_DATA = REPO_ROOT / "data" / "synthetic_waymo_val6"

@@ -64,7 +64,6 @@ from pcdet_atlas.config import (
 from pcdet_atlas.datasets.fingerprint import data_config_fingerprint
 from pcdet_atlas.evaluation import build_results, format_table, load_results, save_results
 from pcdet_atlas.models import build_network_from_config
-from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.models.prediction_store import PredictionStore, use_prediction_store
 from pcdet_atlas.train_utils.atlas_eval import (
     build_variant_attacks,
@@ -86,6 +85,7 @@ from pcdet_atlas.train_utils.setup import (
     setup_runtime,
 )
 from pcdet_atlas.utils.common import create_logger, save_pickle
+from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.paths import join_under
 from pcdet_atlas.utils.safe_pickle import load_pickle
 

@@ -19,16 +19,9 @@ from pathlib import Path
 
 from pcdet_atlas.config import resolve_repo_path
 from pcdet_atlas.datasets.waymo_format import PROCESSED_DATA_TAG, find_sequence_pkl, read_image_set
+from pcdet_atlas.utils.hashing import file_sha256
 
 __all__ = ["data_config_fingerprint", "dataset_fingerprint"]
-
-
-def _file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def dataset_fingerprint(root: str | Path, split: str, tag: str = PROCESSED_DATA_TAG) -> str:
@@ -41,10 +34,10 @@ def dataset_fingerprint(root: str | Path, split: str, tag: str = PROCESSED_DATA_
     split_file = root / "ImageSets" / f"{split}.txt"
     sequences = read_image_set(split_file)
     digest = hashlib.sha256(f"split={split}|tag={tag}|".encode())
-    digest.update(_file_sha256(split_file).encode())
+    digest.update(file_sha256(split_file).encode())
     for sequence in sequences:
         pkl = find_sequence_pkl(root, sequence, tag)
-        digest.update(f"|{pkl.parent.name}/{pkl.name}:{_file_sha256(pkl)}".encode())
+        digest.update(f"|{pkl.parent.name}/{pkl.name}:{file_sha256(pkl)}".encode())
         with os.scandir(pkl.parent) as entries:
             frames = [e for e in entries if e.name.endswith(".npy") and e.is_file()]
         for entry in sorted(frames, key=lambda e: e.name):

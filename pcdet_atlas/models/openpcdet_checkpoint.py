@@ -32,7 +32,7 @@ shape and kind:
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +43,14 @@ from pcdet_atlas.models.detectors.detector3d_template import (
     CheckpointMismatchError,
     check_finite_state,
     read_checkpoint,
+)
+from pcdet_atlas.models.model_utils.released_names import (
+    FoldedBias,
+    NoCounterpart,
+    PermutedInputs,
+    ReleasedName,
+    Reshaped,
+    renamed,
 )
 from pcdet_atlas.ops.spconv import SparseConv3d, SubMConv3d
 from pcdet_atlas.utils.common import write_atomic
@@ -88,59 +96,6 @@ SPCONV_LAYOUTS: dict[str, tuple[str, tuple[int, ...]]] = {
     "spconv2-native": ("(kD, kH, kW, out, in), spconv 2.x native algorithm", (1, 2, 3, 0, 4)),
     "spconv1": ("(kD, kH, kW, in, out), spconv 1.x", (1, 2, 3, 4, 0)),
 }
-
-
-@dataclass(frozen=True)
-class Reshaped:
-    """The released tensor ``name``, of ``shape``: ours with the same elements in the same order
-    (a ``Conv1d`` kernel of size 1 for a ``Linear`` weight, a token with other unit axes)."""
-
-    name: str
-    shape: tuple[int, ...]
-
-
-@dataclass(frozen=True)
-class FoldedBias:
-    """Our BatchNorm's ``running_mean`` where the layer before it has no bias and the released
-    one has: the released ``running_mean`` minus that ``bias``. BN(Wx + b) with mean m is
-    BN(Wx) with mean m - b, with batch statistics (training) as with running ones."""
-
-    running_mean: str
-    bias: str
-
-
-@dataclass(frozen=True)
-class PermutedInputs:
-    """The released weight ``name`` ``(out, in)`` whose input columns come in another order:
-    our column ``j`` is the released column ``order[j]``."""
-
-    name: str
-    order: tuple[int, ...]
-
-
-@dataclass(frozen=True)
-class NoCounterpart:
-    """A tensor of ours that no released tensor matches: the released modules of that step
-    (``released``: a key or a module prefix) compute something else, ``reason`` says what."""
-
-    reason: str
-    released: tuple[str, ...] = ()
-
-
-#: what a stage's ``openpcdet_names()`` gives for one key of its ``state_dict``: the released
-#: name, ``None`` (not saved: the value comes from the config) or a rule
-ReleasedName = str | Reshaped | FoldedBias | PermutedInputs | NoCounterpart | None
-
-
-def renamed(key: str, modules: Mapping[str, str]) -> str | None:
-    """``key`` with its longest module prefix in ``modules`` replaced by the released name
-    (``None``: no prefix of ``key`` is in ``modules``)."""
-    parts = key.split(".")
-    for n in range(len(parts), 0, -1):
-        theirs = modules.get(".".join(parts[:n]))
-        if theirs is not None:
-            return ".".join([theirs, *parts[n:]])
-    return None
 
 
 def _sources(name: ReleasedName) -> tuple[str, ...]:

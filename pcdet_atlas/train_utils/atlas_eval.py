@@ -32,13 +32,13 @@ from pcdet_atlas.config import (
 from pcdet_atlas.datasets.loader import ContiguousBatchSampler, worker_init_fn
 from pcdet_atlas.datasets.multiframe import SequenceConfig
 from pcdet_atlas.evaluation import build_variant_result, evaluate_attack
-from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.models.prediction_store import PredictionStore
 from pcdet_atlas.registry import DATASETS
 from pcdet_atlas.train_utils.dist import all_gather_objects, get_dist_info, unwrap_model
 from pcdet_atlas.train_utils.eval_utils import predict_dataset, write_prediction_files
 from pcdet_atlas.train_utils.proposal_bank import frame_batches
 from pcdet_atlas.utils.common import save_pickle
+from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.paths import safe_component
 from pcdet_atlas.utils.seeding import torch_generator
 

@@ -32,6 +32,7 @@ from pcdet_atlas.models.detectors.detector3d_template import (
     read_checkpoint,
 )
 from pcdet_atlas.train_utils.checkpoint import find_latest_checkpoint
+from pcdet_atlas.train_utils.setup import load_cfg, output_dir_for
 
 __all__ = [
     "TrainingStage",
@@ -115,8 +116,6 @@ def stage_init_checkpoint(
             f"stage {stage.name} ({stage.source}) starts from a trained model: give "
             "STAGE.INIT_FROM or --pretrained_model"
         )
-    from pcdet_atlas.train_utils.setup import load_cfg, output_dir_for
-
     predecessor = load_cfg(str(stage.init_from), None)
     ckpt_dir = output_dir_for(predecessor, output_root, extra_tag) / "ckpt"
     found = find_latest_checkpoint(ckpt_dir)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import logging
 import math
 import os
@@ -14,6 +15,8 @@ from typing import BinaryIO
 
 import numpy as np
 import torch
+
+from pcdet_atlas.config import REPO_ROOT
 
 LOG_FORMAT = "%(asctime)s  %(levelname)5s  %(message)s"
 
@@ -84,11 +87,8 @@ def deterministic_algorithms(enabled: bool, warn_only: bool = False) -> Iterator
 
 def load_tool(name: str):
     """Import ``tools/<name>.py`` of the repository as a module (tools are scripts, not a
-    package), so a tool can call another's ``main(argv)`` in its own process."""
-    import importlib.util
-
-    from pcdet_atlas.config import REPO_ROOT
-
+    package), so that a test can call its ``main(argv)`` in the test's process. Tools never
+    import each other (tests/test_tools.py): what two tools share lives in the package."""
     path = REPO_ROOT / "tools" / f"{name}.py"
     if not path.is_file():
         raise FileNotFoundError(f"no tool {path}")

@@ -28,9 +28,9 @@ from pcdet_atlas.evaluation import load_results, save_results
 from pcdet_atlas.evaluation.results import ResultsError
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.detectors.detector3d_template import CheckpointMismatchError
-from pcdet_atlas.models.detectors.two_stage import file_sha256
 from pcdet_atlas.train_utils.atlas_eval import attack_sha256, build_variant_attacks
 from pcdet_atlas.train_utils.setup import load_cfg
+from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
 CFG = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml"

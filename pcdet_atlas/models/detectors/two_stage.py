@@ -14,9 +14,7 @@ clean data from the batch (``roi_boxes``; :mod:`pcdet_atlas.train_utils.proposal
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Mapping
-from pathlib import Path
 
 import torch
 
@@ -27,15 +25,17 @@ from pcdet_atlas.config import (
     key_source,
     resolve_repo_path,
 )
+from pcdet_atlas.models.build import build_network_from_config, num_point_features_of
 from pcdet_atlas.models.detectors.detector3d_template import (
     CheckpointMismatchError,
     Detector3DTemplate,
 )
 from pcdet_atlas.models.model_utils.motion_sampler import frame_of_points
 from pcdet_atlas.models.model_utils.roi_utils import fuse_scores, select_detections
+from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.seeding import torch_generator
 
-__all__ = ["RPN_KEYS", "TwoStageDetector", "file_sha256", "load_rpn"]
+__all__ = ["RPN_KEYS", "TwoStageDetector", "load_rpn"]
 
 RPN_KEYS = ("CFG", "CHECKPOINT", "CACHE_DIR")
 #: keys ``MODEL.POST_PROCESSING.NMS_CONFIG`` may hold (``NMS_TYPE`` and ``MULTI_CLASSES_NMS``
@@ -43,15 +43,6 @@ RPN_KEYS = ("CFG", "CHECKPOINT", "CACHE_DIR")
 NMS_CONFIG_KEYS = (
     "NMS_THRESH", "NMS_PRE_MAXSIZE", "NMS_POST_MAXSIZE", "NMS_TYPE", "MULTI_CLASSES_NMS",
 )  # fmt: skip
-
-
-def file_sha256(path: str | Path) -> str:
-    """Hex SHA-256 of a file's bytes."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def rpn_window(rpn_cfg: Mapping) -> int:
@@ -66,8 +57,6 @@ def rpn_window(rpn_cfg: Mapping) -> int:
 def load_rpn(rpn_section: Mapping) -> tuple[Detector3DTemplate, dict]:
     """Build and load the RPN of a ``MODEL.RPN`` section; returns it (eval mode, gradients off)
     and its identity ``{'cfg', 'checkpoint', 'sha256', 'window', 'cfg_dict'}``."""
-    from pcdet_atlas.models import build_network_from_config, num_point_features_of
-
     check_known_keys(rpn_section, RPN_KEYS, "MODEL.RPN")
     for key in ("CFG", "CHECKPOINT"):
         if not rpn_section.get(key):

@@ -26,6 +26,7 @@ from torch import nn
 from pcdet_atlas.config import check_known_keys
 from pcdet_atlas.config_values import check_finite
 from pcdet_atlas.models.model_utils.motion_sampler import propagate_boxes, sample_batch_points
+from pcdet_atlas.models.model_utils.released_names import Reshaped, renamed
 from pcdet_atlas.models.model_utils.roi_sampler import RoiSamplerConfig
 from pcdet_atlas.models.roi_heads.roi_head_template import TemporalRoIHead
 from pcdet_atlas.ops.boxes import boxes_to_corners_3d
@@ -386,8 +387,6 @@ class MSFHead(TemporalRoIHead):
         Every tensor has one counterpart; the query tokens are ``(T, 1, C)`` there. The names say
         nothing of the forward: the released BiFA groups points otherwise (module docstring).
         """
-        # imported here: that module imports the detectors, which import this head
-        from pcdet_atlas.models.openpcdet_checkpoint import Reshaped, renamed
 
         def mlp_layers(ours: str, theirs: str, mlp: nn.Sequential) -> dict[str, str]:
             linear = [i for i, m in enumerate(mlp) if isinstance(m, nn.Linear)]

@@ -42,6 +42,13 @@ from torch import nn
 from pcdet_atlas.config import check_known_keys
 from pcdet_atlas.config_values import check_finite
 from pcdet_atlas.models.model_utils.motion_sampler import sample_batch_points
+from pcdet_atlas.models.model_utils.released_names import (
+    FoldedBias,
+    NoCounterpart,
+    PermutedInputs,
+    Reshaped,
+    renamed,
+)
 from pcdet_atlas.models.model_utils.trajectory import associate_trajectories, future_boxes
 from pcdet_atlas.models.roi_heads.msf_head import mlp, spherical_offsets
 from pcdet_atlas.models.roi_heads.roi_head_template import TemporalRoIHead
@@ -260,15 +267,6 @@ class PTTHead(TemporalRoIHead):
         counterpart: the released code reads them as 128 pairs of points (two points' channels
         side by side) at twice the width, here they stay 256 points.
         """
-        # imported here: that module imports the detectors, which import this head
-        from pcdet_atlas.models.openpcdet_checkpoint import (
-            FoldedBias,
-            NoCounterpart,
-            PermutedInputs,
-            Reshaped,
-            renamed,
-        )
-
         linear_bn = {  # ours -> the released (conv or linear, BatchNorm) pair
             "future_proj": ("ptt.conv_future", "ptt.bn_future"),
             "memory_proj": ("ptt.conv2", "ptt.bn2"),
