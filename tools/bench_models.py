@@ -443,10 +443,12 @@ def reuse_table(cfg_files: list[str], data_path: Path, args, device: torch.devic
     suite with its own attack objects), so both see the same machine load and caches. Their
     results must agree (schema fields other than the reuse counts and timings)."""
     from pcdet_atlas.train_utils.atlas_eval import (
+        EvalContext,
         build_variant_attacks,
         evaluate_variant,
         resolve_variants,
     )
+    from pcdet_atlas.train_utils.eval_caches import EvalCaches
 
     print(f"\nevaluation suite with and without reuse, {data_path.name}, batch 1, {device}")
     print("| config | variants | frames | recomputed (reuse) | RPN frames without / with reuse | "
@@ -465,6 +467,11 @@ def reuse_table(cfg_files: list[str], data_path: Path, args, device: torch.devic
         seconds = {False: 0.0, True: 0.0}
         rpn = {False: 0, True: 0}  # frames through a proposal bank's RPN (PTT)
         frames = recomputed = 0
+        context = EvalContext(
+            data_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES, device=device,
+            workers=args.workers, temporal_window=cfg.ATLAS.get("TEMPORAL_WINDOW"),
+            show_progress=False,
+        )  # fmt: skip
         clean = None
         proposals: dict = {}  # the clean run's proposal bank, seeding the reusing runs
         for i, name in enumerate(attacks):
@@ -473,13 +480,13 @@ def reuse_table(cfg_files: list[str], data_path: Path, args, device: torch.devic
             order = (False, True) if i % 2 else (True, False)
             for reuse in order if clean is not None else (False,):
                 t0 = time.perf_counter()
+                caches = EvalCaches(reuse=reuse)
+                caches.clean_proposals = proposals  # the clean run fills it, the others read it
+                if clean is not None:
+                    caches.keep_clean(clean)
                 entry, annos = evaluate_variant(
-                    model, name, suites[reuse][name], data_cfg=cfg.DATA_CONFIG,
-                    class_names=cfg.CLASS_NAMES, device=device, batch_size=1, dist=False,
-                    workers=args.workers, seed=0, clean_det_annos=clean,
-                    temporal_window=cfg.ATLAS.get("TEMPORAL_WINDOW"), out_dir=None,
-                    show_progress=False, reuse_clean=reuse, clean_proposals=proposals,
-                )  # fmt: skip
+                    model, name, suites[reuse][name], context, caches=caches
+                )
                 elapsed = time.perf_counter() - t0
                 entries[reuse] = entry
                 bank = entry["extra"].get("proposal_bank", {}).get("rpn_frames", 0)

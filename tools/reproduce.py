@@ -51,6 +51,9 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from tqdm import tqdm
+
+from pcdet_atlas.attacks.trace_library import write_trace_library
 from pcdet_atlas.config import (
     REPO_ROOT,
     cfg_from_yaml_file,
@@ -65,8 +68,9 @@ from pcdet_atlas.train_utils.atlas_eval import (
     resolve_variants,
     variant_fingerprints,
 )
+from pcdet_atlas.train_utils.eval_folder import eval_dir, finished_variants, resolve_checkpoint
 from pcdet_atlas.train_utils.setup import load_cfg, lock_output_folder
-from pcdet_atlas.utils.common import load_tool, resolve_device, write_atomic
+from pcdet_atlas.utils.common import create_logger, resolve_device, write_atomic
 from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.processes import die_with_parent
 
@@ -127,9 +131,10 @@ def ensure_trace_libraries(root: Path, cfgs: list[Path], attacks: str) -> None:
             path = path if path.is_absolute() else root / path
             if not path.is_file():  # the config's split, filters and LIDAR origin
                 print(f"building the trace library {path}", flush=True)
-                load_tool("build_trace_library").main(
-                    ["--cfg", str(attack_path), "--data_path", str(root)]
-                )
+                write_trace_library(
+                    attack_path, root, logger=create_logger(),
+                    progress=lambda it: tqdm(list(it), desc="sequences", unit="seq"),
+                )  # fmt: skip
 
 
 def test_argv(
@@ -173,22 +178,21 @@ def evaluation_of(
     ``tools/test.py --resume`` keeps them), or ``None`` when that folder cannot be resumed
     (another model or setting wrote it). ``data_fingerprints``: the run's fingerprints by
     (split, processed-data tag), filled as they are computed (once per run)."""
-    test = load_tool("test")
     model_cfg = load_cfg(str(REPO_ROOT / cfg), ["DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs])
     output_root = args.output_root or str(REPO_ROOT / "output")
-    ckpt = test.resolve_checkpoint(None, model_cfg.get("ATLAS", {}))
+    ckpt = resolve_checkpoint(None, model_cfg.get("ATLAS", {}))
     variants = resolve_variants(args.attacks, model_cfg.get("ATLAS", {}))
     wanted = {name for name, _ in variants}
     attacks = build_variant_attacks(variants, root)
     requested = variant_fingerprints(variants, attacks)
-    out_dir = test.eval_dir(model_cfg, output_root, TAG, ckpt, TAG)
+    out_dir = eval_dir(model_cfg, output_root, TAG, ckpt, TAG)
     data_cfg = model_cfg.DATA_CONFIG
     split = (str(data_cfg.DATA_SPLIT["test"]), str(data_cfg.get("PROCESSED_DATA_TAG")))
     data_fingerprints = {} if data_fingerprints is None else data_fingerprints
     if split not in data_fingerprints:
         data_fingerprints[split] = data_config_fingerprint(data_cfg, "test")
     try:  # the setting tools/test.py gets from test_argv: one process, batch size 1
-        kept, _ = test.finished_variants(
+        kept, _ = finished_variants(
             out_dir, model_cfg, file_sha256(ckpt), requested, batch_size=1, world=1,
             device=str(resolve_device(args.device)), dataset_fingerprint=data_fingerprints[split],
         )  # fmt: skip

@@ -122,7 +122,10 @@ def train(args, held: contextlib.ExitStack) -> dict:
     for flag, path in (("--ckpt", args.ckpt), ("--pretrained_model", args.pretrained_model)):
         if path is not None and not Path(path).is_file():
             raise FileNotFoundError(f"{flag} {path}: no such checkpoint file")
-    dist, rank, world, device = setup_runtime(args)
+    dist, rank, world, device = setup_runtime(
+        device=args.device, launcher=args.launcher, tcp_port=args.tcp_port, threads=args.threads,
+        seed=args.seed, fix_random_seed=args.fix_random_seed,
+    )  # fmt: skip
     retained = device.type == "cpu" and not args.default_malloc and retain_freed_cpu_memory()
     batch_size = (
         args.batch_size if args.batch_size is not None else optim_cfg.BATCH_SIZE_PER_GPU * world

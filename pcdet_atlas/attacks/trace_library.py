@@ -35,15 +35,23 @@ from typing import Any
 
 import numpy as np
 
-from pcdet_atlas.config import ConfigError, check_known_keys
+from pcdet_atlas.config import ConfigError, cfg_from_list, cfg_from_yaml_file, check_known_keys
 from pcdet_atlas.config_values import config_files, config_value
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.ops.boxes import points_in_boxes_mask
+from pcdet_atlas.ops.lidar_model import LidarModel
 from pcdet_atlas.utils.common import write_atomic
 from pcdet_atlas.utils.safe_pickle import load_pickle
 from pcdet_atlas.utils.seeding import numpy_generator
 
-__all__ = ["Trace", "TraceLibrary", "TraceFilter", "build_trace_library", "TRACE_LIBRARY_KEYS"]
+__all__ = [
+    "Trace",
+    "TraceLibrary",
+    "TraceFilter",
+    "build_trace_library",
+    "write_trace_library",
+    "TRACE_LIBRARY_KEYS",
+]
 
 #: Keys of the ``TRACE_LIBRARY`` section of an injection YAML.
 TRACE_LIBRARY_KEYS = {
@@ -407,3 +415,65 @@ def build_trace_library(
             f"{len(sequences)} sequences of {split}"
         )
     return library
+
+
+def write_trace_library(
+    cfg_path: str | Path,
+    data_root: str | Path,
+    *,
+    set_cfgs: Sequence[str] | None = None,
+    out: str | Path | None = None,
+    overwrite: bool = False,
+    progress: Callable[[Iterable], Iterable] | None = None,
+    logger=None,
+) -> Path:
+    """Build the trace library of the injection YAML at ``cfg_path`` (with the ``KEY VALUE``
+    pairs ``set_cfgs``) from the dataset at ``data_root`` and write it; returns the file.
+
+    Filters and split (``SPLIT``, train by default) come from its ``TRACE_LIBRARY`` section, the
+    sensor origin from its ``LIDAR`` section; the file is ``out`` if given, else
+    ``TRACE_LIBRARY.PATH`` (relative: under ``data_root``). Every injection variant naming that
+    file shares it, so an existing library built with other filters (or another split, or
+    another ``LIDAR.ORIGIN``) is not replaced unless ``overwrite``: a ``FileExistsError`` names
+    both builds.
+    """
+    cfg = cfg_from_yaml_file(cfg_path)
+    if set_cfgs:
+        cfg_from_list(list(set_cfgs), cfg)
+    if "TRACE_LIBRARY" not in cfg:
+        raise ConfigError(f"{cfg_path}: no TRACE_LIBRARY section (not an injection attack?)")
+    filters = TraceFilter.from_config(cfg.TRACE_LIBRARY)
+    root = Path(data_root)
+    out = Path(out) if out is not None else Path(filters.path)
+    if not out.is_absolute():
+        out = root / out
+    lidar = LidarModel.from_config(cfg.get("LIDAR"))
+    if out.is_file() and not overwrite:
+        check_same_build(out, filters, list(lidar.origin_xyz))
+    library = build_trace_library(
+        root, filters, split=filters.split, sensor_origin=lidar.origin.tolist(),
+        progress=progress, logger=logger,
+    )  # fmt: skip
+    library.save(out)
+    if logger is not None:
+        sizes = library.trace_sizes()
+        logger.info(
+            f"wrote {out}: {len(library)} traces, points per trace min/median/max "
+            f"{sizes.min()}/{int(np.median(sizes))}/{sizes.max()}"
+        )
+    return out
+
+
+def check_same_build(path: Path, filters: TraceFilter, sensor_origin: list[float]) -> None:
+    """Refuse to replace the library at ``path`` when it was built with other filters, split or
+    sensor origin: the injection variants that share it would stop loading (or, read by an older
+    copy of their YAML, run on other traces)."""
+    differs = TraceLibrary.load(path).build_mismatch(filters, sensor_origin)
+    if differs:
+        have = {key: pair[0] for key, pair in differs.items()}
+        want = {key: pair[1] for key, pair in differs.items()}
+        raise FileExistsError(
+            f"{path} holds a trace library built with {have}, not {want}; every injection variant "
+            "whose TRACE_LIBRARY.PATH names this file shares it. Write this one elsewhere (--out, "
+            "or another TRACE_LIBRARY.PATH in its YAML) or pass --overwrite to replace it"
+        )

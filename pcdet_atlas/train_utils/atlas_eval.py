@@ -13,6 +13,7 @@ import json
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -32,11 +33,10 @@ from pcdet_atlas.config import (
 from pcdet_atlas.datasets.loader import ContiguousBatchSampler, worker_init_fn
 from pcdet_atlas.datasets.multiframe import SequenceConfig
 from pcdet_atlas.evaluation import build_variant_result, evaluate_attack
-from pcdet_atlas.models.prediction_store import PredictionStore
 from pcdet_atlas.registry import DATASETS
-from pcdet_atlas.train_utils.dist import all_gather_objects, get_dist_info, unwrap_model
+from pcdet_atlas.train_utils.dist import get_dist_info, unwrap_model
+from pcdet_atlas.train_utils.eval_caches import EvalCaches
 from pcdet_atlas.train_utils.eval_utils import predict_dataset, write_prediction_files
-from pcdet_atlas.train_utils.proposal_bank import frame_batches
 from pcdet_atlas.utils.common import save_pickle
 from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.paths import safe_component
@@ -51,6 +51,7 @@ __all__ = [
     "loader_batches",
     "check_test_split",
     "build_attack_loader",
+    "EvalContext",
     "evaluate_variant",
     "frames_to_compute",
     "input_attacked",
@@ -252,88 +253,86 @@ def build_attack_loader(
     return dataset, loader
 
 
+@dataclass(frozen=True)
+class EvalContext:
+    """What the variants of one evaluation share: the test split's data config and class names,
+    the device and process layout (``batch_size``: per process; ``dist``: under a process
+    group), the loader (``workers``, ``seed``), the attack metrics' ``temporal_window``
+    (``ATLAS.TEMPORAL_WINDOW``), the progress bar, ``save_to_file`` (one text file per frame,
+    :func:`write_prediction_files`) and the logger of the per-variant line."""
+
+    data_cfg: Mapping
+    class_names: Sequence[str]
+    device: torch.device
+    batch_size: int = 1
+    dist: bool = False
+    workers: int = 0
+    seed: int = 0
+    temporal_window: int | None = None
+    show_progress: bool = True
+    save_to_file: bool = False
+    logger: logging.Logger | None = None
+
+
 def evaluate_variant(
     model: torch.nn.Module,
     variant: str,
     attack: Mapping | Path | BaseAttack,
+    context: EvalContext,
     *,
-    data_cfg: Mapping,
-    class_names: Sequence[str],
-    device: torch.device,
-    batch_size: int,
-    dist: bool,
-    workers: int,
-    seed: int,
-    temporal_window: int | None,
-    clean_det_annos: Sequence[Mapping] | None,
-    out_dir: Path | None,
-    logger: logging.Logger | None = None,
-    show_progress: bool = True,
-    save_to_file: bool = False,
-    reuse_clean: bool = False,
-    clean_proposals: dict | None = None,
-    prediction_store: PredictionStore | None = None,
+    caches: EvalCaches | None = None,
+    out_dir: Path | None = None,
 ) -> tuple[dict | None, list[dict]]:
     """Predict one variant and score it.
 
-    With ``reuse_clean`` (and ``clean_det_annos``, predicted with the same batch size), the
-    frames whose whole model input the attack leaves untouched (:func:`frames_to_compute` over
-    the model's :func:`input_reach`) take the clean run's predictions instead of running the
-    model; only the batches holding an attacked input run, in their full-run composition, so
-    the result is bitwise that of a full run (docs/evaluation.md "Reusing clean predictions").
-    The entry's ``num_reused_frames`` / ``num_recomputed_frames`` count both kinds.
-    ``clean_proposals`` (a dict; models with a proposal history, PTT): the clean variant fills it
-    with the frames its proposal bank holds at the end, and a reusing run of another variant
-    seeds its bank with those whose whole RPN batch (the frames the bank proposes together,
-    :func:`~pcdet_atlas.train_utils.proposal_bank.frame_batches`) has RPN inputs the attack
-    leaves untouched, so that only the other frames go through the RPN again
-    (:class:`ProposalBank`; still bitwise a full run).
-    ``prediction_store``: the store the model (or its RPN) uses (``use_prediction_store``);
-    the entry's ``extra.prediction_store`` counts the batches it served and those it stored
-    (all processes).
+    ``caches`` (:class:`~pcdet_atlas.train_utils.eval_caches.EvalCaches`, one per run; None:
+    none) hold what the run knows already. With its clean predictions (predicted with the same
+    batch size) and ``reuse``, the frames whose whole model input the attack leaves untouched
+    (:func:`frames_to_compute` over the model's :func:`input_reach`) take the clean run's
+    predictions instead of running the model; only the batches holding an attacked input run,
+    in their full-run composition, so the result is bitwise that of a full run
+    (docs/evaluation.md "Reusing clean predictions"). The entry's ``num_reused_frames`` /
+    ``num_recomputed_frames`` count both kinds. The clean predictions also score the attack's
+    confidence. For a model with a proposal history (PTT), the clean variant gives its proposal
+    bank's frames to the caches, and a reusing run of another variant seeds its bank with those
+    whose whole RPN batch has RPN inputs the attack leaves untouched
+    (:meth:`EvalCaches.for_variant`). With the caches' prediction store, the entry's
+    ``extra.prediction_store`` counts the batches it served and those it stored (all processes).
 
     Returns:
         ``(entry, det_annos)``: the ``results.json`` variant entry (None on ranks > 0; its
-        ``extra.clean_predictions`` says whether ``clean_det_annos`` were given) and the
+        ``extra.clean_predictions`` says whether clean predictions were known) and the
         detections (every rank). ``out_dir/result.pkl`` holds the detections with each frame's
-        ``attack`` record (rank 0); with ``save_to_file`` also one text file per frame in
-        ``out_dir/final_result/data/`` (:func:`write_prediction_files`).
+        ``attack`` record (rank 0); with ``context.save_to_file`` also one text file per frame
+        in ``out_dir/final_result/data/`` (:func:`write_prediction_files`).
     """
+    ctx, logger = context, context.logger
+    data_cfg, class_names = ctx.data_cfg, ctx.class_names
     rank, _ = get_dist_info()
-    reuse = reuse_clean and clean_det_annos is not None
+    clean_det_annos = caches.clean_predictions if caches is not None else None
+    reuse = caches is not None and caches.reuses_clean()
     reach = input_reach(model, data_cfg) if reuse else None
     dataset, loader = build_attack_loader(
-        data_cfg, class_names, attack, batch_size=batch_size, dist=dist, workers=workers,
-        seed=seed, logger=logger, reuse_reach=reach,
+        data_cfg, class_names, attack, batch_size=ctx.batch_size, dist=ctx.dist,
+        workers=ctx.workers, seed=ctx.seed, logger=logger, reuse_reach=reach,
     )  # fmt: skip
-    world = torch_dist.get_world_size() if dist else 1
-    batches = loader_batches(len(dataset), batch_size, world)
-    proposal_seed = proposals_out = None
-    if clean_proposals is not None and dataset.attack.family == "clean":
-        proposals_out = clean_proposals
-    elif clean_proposals and reuse:
+    world = torch_dist.get_world_size() if ctx.dist else 1
+    batches = loader_batches(len(dataset), ctx.batch_size, world)
+    cache = None
+    if caches is not None:
         rpn_reach = point_history(data_cfg)  # the RPN reads the sample's points only
         attacked = functools.cache(lambda seq, idx: input_attacked(dataset, seq, idx, rpn_reach))
-        batch_of = frame_batches(dataset, batches)  # a frame no batch holds is proposed alone
-        proposal_seed = {
-            frame: rows for frame, rows in clean_proposals.items()
-            if not any(attacked(*member) for member in batch_of.get(frame, (frame,)))
-        }  # fmt: skip
+        cache = caches.for_variant(dataset, batches, attacked)
     timings: dict = {}
-    store_before = prediction_store.counts() if prediction_store is not None else None
+    store_before = caches.store_counts() if caches is not None else None
     t0 = time.perf_counter()
     det_annos, extras = predict_dataset(
-        model, loader, device=device, desc=variant, show_progress=show_progress, timings=timings,
-        reuse=clean_det_annos if reuse else None, proposal_seed=proposal_seed,
-        proposals_out=proposals_out, proposal_batches=batches,
+        model, loader, device=ctx.device, desc=variant, show_progress=ctx.show_progress,
+        timings=timings, cache=cache,
     )  # fmt: skip
     timings["predict_wall"] = time.perf_counter() - t0
     bank_stats = timings.pop("bank", None)
-    store_stats = None
-    if prediction_store is not None:
-        mine = {k: v - store_before[k] for k, v in prediction_store.counts().items()}
-        parts = all_gather_objects(mine)  # every process's batches
-        store_stats = {k: sum(part[k] for part in parts) for k in mine}
+    store_stats = caches.store_counts_since(store_before) if caches is not None else None
     if rank != 0:
         return None, det_annos
     reused = np.array([e["reused"] for e in extras], dtype=bool)
@@ -351,7 +350,7 @@ def evaluate_variant(
     attack_metrics = None
     if has_targets:
         attack_metrics = evaluate_attack(
-            det_annos, attack_infos, clean_det_annos=clean_det_annos, window=temporal_window,
+            det_annos, attack_infos, clean_det_annos=clean_det_annos, window=ctx.temporal_window,
             recorded_window=getattr(dataset.attack, "window", None),
         )  # fmt: skip
     timings["metric"] = time.perf_counter() - t1
@@ -366,7 +365,7 @@ def evaluate_variant(
     )  # fmt: skip
     if out_dir is not None:
         save_pickle(det_annos, out_dir / "result.pkl")
-        if save_to_file:
+        if ctx.save_to_file:
             write_prediction_files(det_annos, out_dir / "final_result" / "data")
     if logger is not None:
         asr, l2 = entry["asr"], entry["L2/mAP"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import copy
 import logging
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
@@ -14,6 +14,7 @@ from torch import nn
 
 from pcdet_atlas.models.batch import load_data_to_device
 from pcdet_atlas.train_utils.dist import all_gather_objects, get_dist_info, unwrap_model
+from pcdet_atlas.train_utils.eval_caches import VariantCache
 from pcdet_atlas.train_utils.proposal_bank import ProposalBank
 from pcdet_atlas.utils.paths import join_under
 
@@ -29,24 +30,21 @@ def predict_dataset(
     desc: str = "eval",
     show_progress: bool = True,
     timings: dict | None = None,
-    reuse: Sequence[dict] | None = None,
-    proposal_seed: Mapping | None = None,
-    proposals_out: dict | None = None,
-    proposal_batches: Sequence[Sequence[int]] | None = None,
+    cache: VariantCache | None = None,
 ) -> tuple[list[dict], list[dict]]:
     """Run the model over the loader; gather every rank's results in dataset order.
 
-    ``reuse``: predictions (anno dicts with ``frame_id``) that stand for the frames the loader
-    does not yield, as the clean run's do for the frames an attack leaves untouched
+    ``cache``: what the run's caches give this loader
+    (:meth:`~pcdet_atlas.train_utils.eval_caches.EvalCaches.for_variant`). Its ``reused``
+    predictions (anno dicts with ``frame_id``) stand for the frames the loader does not yield,
+    as the clean run's do for the frames an attack leaves untouched
     (``ContiguousBatchSampler(compute=...)``): each such frame gets a copy of its reused
     prediction and, from an ``AtlasWaymoDataset``, its attack record (no simulation: the frame
-    is clean). A frame neither yielded nor in ``reuse`` is an error.
-
-    For a model reading earlier frames' proposals (its :class:`ProposalBank`):
-    ``proposal_batches`` are the loader's batches over all processes (indices into
-    ``dataset.infos``), with which the bank proposes each frame (``ProposalBank(batches=...)``);
-    ``proposal_seed`` seeds the bank (:meth:`ProposalBank.seed`), and ``proposals_out``
-    receives the bank's frames at the end (:meth:`ProposalBank.seedable`).
+    is clean). A frame neither yielded nor reused is an error. For a model reading earlier
+    frames' proposals (its :class:`ProposalBank`), the bank proposes each frame with the frames
+    of its batch in ``cache.batches`` (``ProposalBank(batches=...)``), starts from
+    ``cache.proposal_seed`` (:meth:`ProposalBank.seed`) and gives its frames back at the end
+    (``cache.proposals_out``, :meth:`ProposalBank.seedable`).
 
     Returns:
         ``(det_annos, extras)``: one OpenPCDet anno dict per frame of ``dataloader.dataset``
@@ -63,11 +61,11 @@ def predict_dataset(
     model.eval()
     core = unwrap_model(model)
     bank = (  # models reading earlier frames' proposals: each frame's computed once
-        ProposalBank(core, dataset, device=device, batches=proposal_batches)
+        ProposalBank(core, dataset, device=device, batches=cache.batches if cache else None)
         if getattr(core, "proposal_history", 0) else None
     )  # fmt: skip
-    if bank is not None and proposal_seed:
-        bank.seed(proposal_seed)
+    if bank is not None and cache is not None:
+        cache.seed(bank)
     local: list[tuple[str, dict, dict]] = []
     bar = tqdm.tqdm(
         total=len(dataloader), desc=desc, leave=False, dynamic_ncols=True,
@@ -94,8 +92,8 @@ def predict_dataset(
         bar.update()
         t_end = time.perf_counter()
     bar.close()
-    if bank is not None and proposals_out is not None:
-        proposals_out.update(bank.seedable())
+    if bank is not None and cache is not None:
+        cache.keep(bank)
     if bank is not None and timings is not None:
         timings["bank"] = bank.stats()
     gathered = all_gather_objects(local) if world > 1 else [local]
@@ -104,8 +102,8 @@ def predict_dataset(
         for frame_id, anno, extra in part:
             by_frame.setdefault(frame_id, (anno, extra))  # DistributedSampler pads by repeating
     order = [info["frame_id"] for info in dataset.infos]
-    if reuse is not None:
-        _fill_reused(dataset, by_frame, reuse)
+    if cache is not None and cache.reused is not None:
+        _fill_reused(dataset, by_frame, cache.reused)
     missing = [f for f in order if f not in by_frame]
     if missing:
         raise RuntimeError(f"no predictions for {len(missing)} frames, e.g. {missing[:3]}")

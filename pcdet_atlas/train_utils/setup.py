@@ -40,6 +40,7 @@ __all__ = [
 ]
 
 DEFAULT_SEED = 666  # OpenPCDet's fixed seed
+DEFAULT_TCP_PORT = 18888  # master port of --launcher slurm
 #: OpenPCDet's default of 4 loader workers, capped at this machine's CPU count
 DEFAULT_WORKERS = min(4, os.cpu_count() or 1)
 
@@ -83,7 +84,7 @@ def add_common_args(parser: argparse.ArgumentParser) -> None:
         help="pytorch: under torchrun; slurm: under srun (one process per task)",
     )  # fmt: skip
     parser.add_argument(
-        "--tcp_port", type=count_arg(1), default=18888,
+        "--tcp_port", type=count_arg(1), default=DEFAULT_TCP_PORT,
         help="master port of --launcher slurm (torchrun sets its own)",
     )  # fmt: skip
     parser.add_argument("--local_rank", type=int, default=None, help="unused: from LOCAL_RANK")
@@ -191,28 +192,37 @@ def device_arg(text: str) -> str:
     return text
 
 
-def setup_runtime(args) -> tuple[bool, int, int, torch.device]:
-    """Device, process group (``--launcher pytorch`` / ``slurm``), CPU threads and seeds.
+def setup_runtime(
+    *,
+    device: str | None = None,
+    launcher: str = "none",
+    tcp_port: int = DEFAULT_TCP_PORT,
+    threads: int | None = None,
+    seed: int = DEFAULT_SEED,
+    fix_random_seed: bool = False,
+) -> tuple[bool, int, int, torch.device]:
+    """Device, process group (``launcher`` ``pytorch`` / ``slurm``), CPU threads and seeds: the
+    flags of :func:`add_common_args` of the same names.
 
     Returns:
         ``(dist, rank, world_size, device)``. Model initialisation uses the global torch RNG,
-        which is seeded from ``--seed`` so that builds are reproducible.
+        which is seeded from ``seed`` so that builds are reproducible.
     """
     # a missing GPU is an error before any process group is joined
-    backend = "nccl" if resolve_device(args.device).type == "cuda" else "gloo"
-    if args.launcher == "pytorch":
+    backend = "nccl" if resolve_device(device).type == "cuda" else "gloo"
+    if launcher == "pytorch":
         world, rank, local_rank = init_dist_pytorch(backend)
-    elif args.launcher == "slurm":
-        world, rank, local_rank = init_dist_slurm(args.tcp_port, backend)
+    elif launcher == "slurm":
+        world, rank, local_rank = init_dist_slurm(tcp_port, backend)
     else:
         world, rank, local_rank = 1, 0, 0
-    device = resolve_device(args.device, local_rank)
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
-    torch.manual_seed(args.seed)
-    if args.fix_random_seed:
+    resolved = resolve_device(device, local_rank)
+    if threads is not None:
+        torch.set_num_threads(threads)
+    torch.manual_seed(seed)
+    if fix_random_seed:
         # cuBLAS is deterministic only with a fixed workspace (read when it first starts)
         os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
         torch.use_deterministic_algorithms(True, warn_only=True)
         torch.backends.cudnn.benchmark = False
-    return args.launcher != "none", rank, world, device
+    return launcher != "none", rank, world, resolved

@@ -21,7 +21,8 @@ from pcdet_atlas.models.prediction_store import (
     model_fingerprint,
     use_prediction_store,
 )
-from pcdet_atlas.train_utils.atlas_eval import evaluate_variant
+from pcdet_atlas.train_utils.atlas_eval import EvalContext, evaluate_variant
+from pcdet_atlas.train_utils.eval_caches import EvalCaches
 
 CFGS = REPO_ROOT / "cfgs" / "atlas" / "synthetic"
 ATTACKS = REPO_ROOT / "cfgs" / "attacks"
@@ -196,12 +197,14 @@ def test_a_model_must_declare_what_it_reads(tmp_path):
 
 
 def evaluate(model, cfg, data_cfg, attack, clean, store=None):
-    return evaluate_variant(
-        model, attack.stem, attack, data_cfg=data_cfg, class_names=cfg.CLASS_NAMES, device=CPU,
-        batch_size=1, dist=False, workers=0, seed=0,
-        temporal_window=cfg.ATLAS.get("TEMPORAL_WINDOW"), clean_det_annos=clean, out_dir=None,
-        show_progress=False, reuse_clean=True, clean_proposals={}, prediction_store=store,
+    context = EvalContext(
+        data_cfg=data_cfg, class_names=cfg.CLASS_NAMES, device=CPU,
+        temporal_window=cfg.ATLAS.get("TEMPORAL_WINDOW"), show_progress=False,
     )  # fmt: skip
+    caches = EvalCaches(reuse=True, store=store)
+    if clean is not None:
+        caches.keep_clean(clean)
+    return evaluate_variant(model, attack.stem, attack, context, caches=caches)
 
 
 def shipped(name: str, root):

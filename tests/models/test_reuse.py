@@ -22,11 +22,13 @@ from pcdet_atlas.datasets.loader import ContiguousBatchSampler
 from pcdet_atlas.evaluation import load_results, save_results
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.train_utils.atlas_eval import (
+    EvalContext,
     build_attack_loader,
     evaluate_variant,
     frames_to_compute,
     input_reach,
 )
+from pcdet_atlas.train_utils.eval_caches import EvalCaches
 from pcdet_atlas.train_utils.eval_utils import predict_dataset
 from pcdet_atlas.train_utils.proposal_bank import ProposalBank
 
@@ -54,14 +56,26 @@ def setup_model(name: str, root):
     return model.eval(), cfg
 
 
-def run(model, cfg, attack, clean, *, reuse: bool, batch_size: int = 1, proposals=None):
+def caches_of(clean, *, reuse: bool, proposals=None) -> EvalCaches:
+    """A run's caches holding the ``clean`` predictions and the ``proposals`` dict (the clean
+    run's proposal bank: a clean variant fills it, an attack variant's bank starts from it)."""
+    caches = EvalCaches(reuse=reuse)
+    if proposals is not None:
+        caches.clean_proposals = proposals
+    if clean is not None:
+        caches.keep_clean(clean)
+    return caches
+
+
+def run(model, cfg, attack, clean, *, reuse: bool, batch_size: int = 1, proposals=None,
+        workers: int = 0):  # fmt: skip
     variant = attack.stem if hasattr(attack, "stem") else attack.VARIANT
-    return evaluate_variant(
-        model, variant, attack, data_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES,
-        device=CPU, batch_size=batch_size, dist=False, workers=0, seed=0,
-        temporal_window=cfg.ATLAS.get("TEMPORAL_WINDOW"), clean_det_annos=clean, out_dir=None,
-        show_progress=False, reuse_clean=reuse, clean_proposals=proposals,
+    context = EvalContext(
+        data_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES, device=CPU, batch_size=batch_size,
+        workers=workers, temporal_window=cfg.ATLAS.get("TEMPORAL_WINDOW"), show_progress=False,
     )  # fmt: skip
+    caches = caches_of(clean, reuse=reuse, proposals=proposals)
+    return evaluate_variant(model, variant, attack, context, caches=caches)
 
 
 def strip(entry: dict) -> dict:
@@ -309,13 +323,8 @@ def test_ptt_predictions_do_not_depend_on_the_workers(synthetic_root, injection,
     composition_sensitive_rpn(model, monkeypatch)
 
     def predict(attack, clean, *, reuse, workers, proposals=None):
-        variant = attack.stem if hasattr(attack, "stem") else attack.VARIANT
-        return evaluate_variant(
-            model, variant, attack, data_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES,
-            device=CPU, batch_size=3, dist=False, workers=workers, seed=0,
-            temporal_window=cfg.ATLAS.get("TEMPORAL_WINDOW"), clean_det_annos=clean,
-            out_dir=None, show_progress=False, reuse_clean=reuse, clean_proposals=proposals,
-        )  # fmt: skip
+        return run(model, cfg, attack, clean, reuse=reuse, batch_size=3, proposals=proposals,
+                   workers=workers)  # fmt: skip
 
     proposals = {}
     _, clean = predict(ATTACKS / "clean.yaml", None, reuse=False, workers=2, proposals=proposals)

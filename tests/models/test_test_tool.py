@@ -3,7 +3,6 @@ processes) gives the same numbers as one process; bad input fails before anythin
 results survive a failing variant; reruns and --resume; --eval_all, --save_to_file and
 --launcher slurm."""
 
-import argparse
 import copy
 import json
 import logging
@@ -28,7 +27,10 @@ from pcdet_atlas.evaluation import load_results, save_results
 from pcdet_atlas.evaluation.results import ResultsError
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.detectors.detector3d_template import CheckpointMismatchError
+from pcdet_atlas.train_utils import atlas_run
 from pcdet_atlas.train_utils.atlas_eval import attack_sha256, build_variant_attacks
+from pcdet_atlas.train_utils.eval_caches import EvalCaches
+from pcdet_atlas.train_utils.eval_folder import finished_variants, resolve_checkpoint
 from pcdet_atlas.train_utils.setup import load_cfg
 from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
@@ -123,9 +125,22 @@ def test_bad_inputs_are_clear_errors(eval_setup, tmp_path):
     assert not (tmp_path / "atlas").exists()  # a failed start-up writes nothing
 
 
+def test_settings_are_the_flags_with_their_defaults():
+    """tools/test.py maps its flags onto the library's EvalSettings: a call with only --cfg gets
+    the settings' defaults; contradicting settings are refused by the library too."""
+    test = load_tool("test")
+    assert test.parse_args(["--cfg", str(CFG)]).settings == atlas_run.EvalSettings(str(CFG))
+    flags = test.parse_args(["--cfg", str(CFG), "--no_reuse", "--no_progress", "--set", "A", "1"])
+    assert flags.settings == atlas_run.EvalSettings(
+        str(CFG), set_cfgs=("A", "1"), reuse_clean=False, show_progress=False
+    )
+    with pytest.raises(ValueError, match="--eval_all evaluates the checkpoints of --ckpt_dir"):
+        atlas_run.EvalSettings(str(CFG), eval_all=True, ckpt="a.pth")
+
+
 def test_ckpt_is_read_from_the_working_directory(tmp_path, monkeypatch):
     """--ckpt as typed (the working directory); ATLAS.CHECKPOINT from the repository root."""
-    resolve = load_tool("test").resolve_checkpoint
+    resolve = resolve_checkpoint
     atlas_cfg = cfg_from_yaml_file(CFG).ATLAS
     shipped = REPO_ROOT / atlas_cfg.CHECKPOINT
     monkeypatch.chdir(tmp_path)
@@ -175,21 +190,21 @@ def test_results_survive_a_failing_variant_and_reruns_need_overwrite(
     test = load_tool("test")
     args = tool_args(eval_setup, tmp_path, "rerun")
     eval_dir = tmp_path / "atlas/synthetic/centerpoint/rerun/eval/random/val/default"
-    real = test.evaluate_variant
+    real = atlas_run.evaluate_variant
 
     def fail_on_injection(model, variant, *a, **kw):
         if variant == "inj_global_hard":
             raise RuntimeError("variant failed")
         return real(model, variant, *a, **kw)
 
-    monkeypatch.setattr(test, "evaluate_variant", fail_on_injection)
+    monkeypatch.setattr(atlas_run, "evaluate_variant", fail_on_injection)
     with pytest.raises(RuntimeError, match="variant failed"):
         test.main(args)
     kept = load_results(eval_dir / "results.json")  # the clean variant done before the failure
     assert list(kept["variants"]) == ["clean"]
     assert kept["extra"]["variants_requested"] == ["clean", "inj_global_hard"]
     assert not list(eval_dir.glob("*.tmp"))
-    monkeypatch.setattr(test, "evaluate_variant", real)
+    monkeypatch.setattr(atlas_run, "evaluate_variant", real)
 
     before = (eval_dir / "results.json").read_bytes()
     with pytest.raises(FileExistsError, match=f"{eval_dir} already holds .*--overwrite"):
@@ -215,7 +230,7 @@ def test_resume_goes_on_from_the_last_finished_variant(eval_setup, tmp_path, mon
     whole = test.main(tool_args(setup, tmp_path, "whole"))
     args = tool_args(setup, tmp_path, "resume")
     eval_dir = tmp_path / "atlas/synthetic/centerpoint/resume/eval/random/val/default"
-    real = test.evaluate_variant
+    real = atlas_run.evaluate_variant
     called = []
 
     def fail_on_injection(model, variant, *a, **kw):
@@ -224,17 +239,17 @@ def test_resume_goes_on_from_the_last_finished_variant(eval_setup, tmp_path, mon
             raise RuntimeError("interrupted")
         return real(model, variant, *a, **kw)
 
-    monkeypatch.setattr(test, "evaluate_variant", fail_on_injection)
+    monkeypatch.setattr(atlas_run, "evaluate_variant", fail_on_injection)
     with pytest.raises(RuntimeError, match="interrupted"):
         test.main(args)
     assert list(load_results(eval_dir / "results.json")["variants"]) == ["clean"]
-    monkeypatch.setattr(test, "evaluate_variant", real)
+    monkeypatch.setattr(atlas_run, "evaluate_variant", real)
     with pytest.raises(FileExistsError, match="--overwrite"):
         test.main(args)  # neither --resume nor --overwrite
 
     called.clear()
     monkeypatch.setattr(
-        test, "evaluate_variant", lambda model, variant, *a, **kw: (
+        atlas_run, "evaluate_variant", lambda model, variant, *a, **kw: (
             called.append(variant) or real(model, variant, *a, **kw)
         ),
     )  # fmt: skip
@@ -298,9 +313,9 @@ def test_resume_evaluates_again_what_changed(eval_setup, tmp_path, monkeypatch):
     eval_dir = tmp_path / "atlas/synthetic/centerpoint/parts/eval/random/val/default"
     alone = test.main(args)["results"]["variants"]["rem_30"]
     assert alone["confidence"] is None and alone["extra"]["clean_predictions"] is False
-    real, called = test.evaluate_variant, []
+    real, called = atlas_run.evaluate_variant, []
     monkeypatch.setattr(
-        test, "evaluate_variant", lambda model, variant, *a, **kw: (
+        atlas_run, "evaluate_variant", lambda model, variant, *a, **kw: (
             called.append(variant) or real(model, variant, *a, **kw)
         ),
     )  # fmt: skip
@@ -321,7 +336,7 @@ def test_resume_evaluates_again_what_changed(eval_setup, tmp_path, monkeypatch):
     requested = {name: e["extra"]["attack_sha256"] for name, e in written["variants"].items()}
 
     def finished(now):
-        return test.finished_variants(
+        return finished_variants(
             eval_dir, cfg, file_sha256(eval_setup["ckpt"]), requested, batch_size=1, world=1,
             device="cpu", dataset_fingerprint=now,
         )  # fmt: skip
@@ -415,18 +430,21 @@ def test_resume_names_a_corrupt_results_file(eval_setup, tmp_path):
 def test_resume_refuses_kept_files_that_would_run_code(tmp_path, evil):
     """``--resume`` reads a finished variant's ``result.pkl`` and the clean run's proposals
     with the restricted unpickler."""
-    test = load_tool("test")
+    cfg = cfg_from_yaml_file(CFG)
+    run = atlas_run.EvalRun(
+        settings=atlas_run.EvalSettings(cfg_file=str(CFG)), cfg=cfg, attacks={"clean": None},
+        fingerprints={}, dataset_fingerprint=None, device=torch.device("cpu"), batch_size=1,
+        caches=EvalCaches(),
+    )  # fmt: skip
     clean = tmp_path / "clean"
     clean.mkdir()
     (clean / "result.pkl").write_bytes(pickle.dumps([{"frame_id": "f", "score": np.zeros(0)}]))
     marker = tmp_path / "marker"
     path = malicious_pickle(clean / evil, marker)
     with pytest.raises(RefusedGlobalError, match=rf"{path}: refused to unpickle the global "):
-        test.evaluate_checkpoint(
-            None, tmp_path / "a.pth", tmp_path, argparse.Namespace(save_to_file=False), {},
-            {"clean": None}, dist=False, rank=0, world=1, device="cpu", batch_size=1,
-            logger=logging.getLogger("test_resume"), finished={"clean": {}}, ckpt_sha256="",
-            fingerprints={}, dataset_fingerprint=None,
+        atlas_run.evaluate_checkpoint(
+            run, None, tmp_path / "a.pth", tmp_path, finished={"clean": {}}, ckpt_sha256="",
+            logger=logging.getLogger("test_resume"),
         )  # fmt: skip
     assert not marker.exists()
 
@@ -473,14 +491,14 @@ def test_eval_all_from_start_epoch_and_save_to_file(eval_setup, tmp_path, capsys
             with_flags(args, "--eval_all", "--ckpt_dir", str(ckpt_dir), "--start_epoch", "11")
         )
     # a checkpoint rewritten between the hash results.json records and the load
-    real_check = test.check_eval_dir
+    real_check = atlas_run.check_eval_dir
 
     def rewritten_then_check(*a, **kw):
         target = ckpt_dir / "checkpoint_epoch_10.pth"
         torch.save({**torch.load(target), "epoch": 11}, target)
         return real_check(*a, **kw)
 
-    monkeypatch.setattr(test, "check_eval_dir", rewritten_then_check)
+    monkeypatch.setattr(atlas_run, "check_eval_dir", rewritten_then_check)
     with pytest.raises(RuntimeError, match="checkpoint_epoch_10.pth changed since this call"):
         test.main(with_flags(args, "--eval_all", "--ckpt_dir", str(ckpt_dir), "--start_epoch",
                              "10", "--overwrite"))  # fmt: skip
