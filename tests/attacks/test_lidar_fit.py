@@ -19,7 +19,7 @@ def first_sequence(root):
 
 def test_fit_recovers_the_synthetic_sensor_table(synthetic_root):
     """The synthetic sensor casts the default Waymo TOP table; fitting its points recovers it."""
-    lidar = fit_lidar_from_sequence(synthetic_root, first_sequence(synthetic_root))
+    lidar = fit_lidar_from_sequence(synthetic_root, first_sequence(synthetic_root)).lidar
     truth = LidarModel.waymo_top()
     err = (lidar.inclinations - truth.inclinations).abs()
     spacing = float(torch.diff(truth.inclinations).min())
