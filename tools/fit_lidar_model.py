@@ -6,7 +6,7 @@ Options: ``--origin X Y Z`` (where the sensor sits in the vehicle frame; default
 mount), ``--num_beams N``, ``--azimuth_bins M`` or ``--estimate_azimuth_bins``, ``--offsets
 auto|on|off`` (per-laser vertical offsets), ``--frames``. The fit report (share of points on a
 beam, per-beam residuals, warnings when the origin looks wrong) is printed as comments above the
-``LIDAR:`` block; paste the block into an attack YAML (docs/attacks.md, "Fitting the sensor").
+``LIDAR:`` block; paste the block into an attack YAML (docs/attacks.md, "Fitting the sensor model").
 """
 
 from __future__ import annotations

@@ -34,8 +34,13 @@ __all__ = [
     "check_known_sensor",
 ]
 
-#: fit methods compared: (init, offsets) of :meth:`LidarModel.fit`
-FIT_METHODS = {"old": ("default_table", "off"), "new": ("data", "auto")}
+#: fit methods compared, as (init, offsets) of :meth:`LidarModel.fit`: the older fit (Lloyd
+#: from Waymo's table), the data-initialised single-origin table, and the full fit
+FIT_METHODS = {
+    "old": ("default_table", "off"),
+    "single": ("data", "off"),
+    "new": ("data", "auto"),
+}
 PHANTOM_RANGES_M = (10.0, 20.0, 40.0)
 #: default azimuth of a phantom (rad); :func:`open_azimuth` finds one the scene leaves open
 _PHANTOM_AZIMUTH = math.radians(18.0)
