@@ -1,7 +1,8 @@
 """``results.json``: one file per evaluated model. ``schema`` states and checks it (a JSON Schema
 plus the invariants between fields), ``build`` makes its entries, ``io`` reads and writes it and
 ``tables`` prints the paper's tables from it; ``report`` and ``figures`` write the paper's
-report (tables and PNG figures) from several of them (``tools/report.py``).
+report (tables and PNG figures) from several of them (``tools/report.py``), and ``archive``
+keeps the files a report was made from beside it, gzip-compressed.
 
 Schema (version 5; every key required unless marked optional; unknown keys are errors)::
 
@@ -44,6 +45,7 @@ mAP values are fractions as :func:`waymo_evaluate` returns them; the printers sh
 one decimal and ASR with two decimals, as the paper's tables do.
 """
 
+from pcdet_atlas.evaluation.results.archive import archive_results, archive_run_results
 from pcdet_atlas.evaluation.results.build import (
     build_results,
     build_variant_result,
@@ -74,6 +76,8 @@ __all__ = [
     "RESULTS_SCHEMA",
     "ResultsError",
     "SCHEMA_VERSION",
+    "archive_results",
+    "archive_run_results",
     "build_results",
     "build_variant_result",
     "collect_results",

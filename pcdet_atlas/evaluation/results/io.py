@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import gzip
 import json
+import zlib
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -11,9 +13,12 @@ from pcdet_atlas.evaluation.results.schema import SCHEMA_VERSION, ResultsError, 
 from pcdet_atlas.utils.common import write_atomic
 
 __all__ = [
+    "RESULTS_FILE_PATTERNS",
     "check_version_content",
+    "find_results_files",
     "load_results",
     "load_results_dir",
+    "read_results_bytes",
     "save_results",
     "upgrade_v1",
     "upgrade_v2",
@@ -30,12 +35,42 @@ def save_results(results: Mapping, path: str | Path) -> Path:
     return write_atomic(path, lambda f: f.write(text.encode()))
 
 
+#: The names of results files a folder is searched for (``**/`` below it): the ``results.json``
+#: of ``tools/test.py`` and the archived ``<model>.results.json.gz`` of a report
+#: (:mod:`~pcdet_atlas.evaluation.results.archive`), either plain or gzip-compressed.
+RESULTS_FILE_PATTERNS = ("results.json", "results.json.gz", "*.results.json", "*.results.json.gz")
+
+
+def find_results_files(folder: str | Path) -> list[Path]:
+    """Every results file below ``folder`` (:data:`RESULTS_FILE_PATTERNS`), sorted by path."""
+    folder = Path(folder)
+    return sorted({p for pattern in RESULTS_FILE_PATTERNS for p in folder.glob(f"**/{pattern}")})
+
+
+def read_results_bytes(path: str | Path) -> bytes:
+    """The JSON bytes of a results file: a name ending in ``.gz`` is gunzipped (a file that is not
+    a whole gzip stream is a :class:`ResultsError` naming it), any other is read as it is."""
+    path = Path(path)
+    data = path.read_bytes()
+    if not path.name.endswith(".gz"):
+        return data
+    try:
+        return gzip.decompress(data)
+    except (OSError, EOFError, zlib.error) as err:  # BadGzipFile is an OSError; EOF: truncated
+        raise ResultsError(
+            f"{path}: not a readable gzip file ({type(err).__name__}: {err}); a name ending in "
+            ".gz must hold a whole gzip-compressed results.json (truncated or not compressed?)"
+        ) from err
+
+
 def load_results(path: str | Path) -> dict:
-    """Read and validate one ``results.json``; errors name the file and the key."""
+    """Read and validate one ``results.json`` (gzip-compressed when its name ends in ``.gz``),
+    upgrading an older schema version; errors name the file and the key."""
     path = Path(path)
     try:
-        with open(path) as f:
-            results = json.load(f)
+        results = json.loads(read_results_bytes(path).decode("utf-8"))
+    except UnicodeDecodeError as err:
+        raise ResultsError(f"{path}: not UTF-8 text ({err})") from err
     except json.JSONDecodeError as err:
         raise ResultsError(f"{path}: not valid JSON ({err})") from err
     for version, upgrade in enumerate(UPGRADES, start=1):  # each version to the next in turn

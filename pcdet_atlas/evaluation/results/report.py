@@ -22,7 +22,7 @@ from pcdet_atlas.config import cfg_from_yaml_file, resolve_repo_path
 from pcdet_atlas.evaluation.intervals import asr_interval
 from pcdet_atlas.evaluation.results import figures
 from pcdet_atlas.evaluation.results.build import paired_from_results, ranks_from_results
-from pcdet_atlas.evaluation.results.io import load_results
+from pcdet_atlas.evaluation.results.io import find_results_files, load_results
 from pcdet_atlas.evaluation.results.schema import ResultsError
 from pcdet_atlas.evaluation.results.tables import (
     MISSING,
@@ -74,15 +74,20 @@ FIGURES = {
 
 
 def collect_results(paths: Sequence[str | Path]) -> list[tuple[Path, dict]]:
-    """``(file, results)`` for every given ``results.json`` and every one under a given folder
-    (sorted), each validated. Two files of the same model name are an error naming both."""
+    """``(file, results)`` for every given results file and every one under a given folder
+    (:data:`~pcdet_atlas.evaluation.results.io.RESULTS_FILE_PATTERNS`: ``results.json`` and
+    ``<model>.results.json``, either also gzip-compressed as ``.gz``; sorted), each validated.
+    Two files of the same model name are an error naming both."""
     found: list[Path] = []
     for arg in paths:
         path = Path(arg)
         if path.is_dir():
-            inside = sorted(path.glob("**/results.json"))
+            inside = find_results_files(path)
             if not inside:
-                raise ResultsError(f"{path}: no results.json under this folder")
+                raise ResultsError(
+                    f"{path}: no results.json under this folder (nor results.json.gz, "
+                    "<model>.results.json or <model>.results.json.gz)"
+                )
             found += inside
         elif path.is_file():
             found.append(path)
