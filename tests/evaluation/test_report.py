@@ -40,6 +40,7 @@ from pcdet_atlas.evaluation.results.report import (
     summary_table,
     write_report,
 )
+from pcdet_atlas.evaluation.results.seeds import seed_groups, seed_spread_text
 
 sys.path.insert(0, str(REPO_ROOT / "tests" / "models"))
 from model_batches import load_tool  # noqa: E402
@@ -507,6 +508,8 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     assert json.loads((tmp_path / "report" / "run.json").read_text())["runs"] == run["runs"]
     assert run["model_wall_s"] == {r["config"]: r["wall_s"] for r in run["runs"]}
     results = collect_results([run["runs"][0]["results"]])[0][1]
+    # CenterPoint's config declares its checkpoint's seed; both record their model's digest
+    assert results["training_seed"] == 666 and len(results["model_sha256"]) == 64
     rem = results["variants"]["rem_30"]
     # frames 0, 14, 28, 42, 56: the run 32..63 spoofs 42 and 56, the other three are reused
     assert rem["num_reused_frames"] == 3 and rem["num_recomputed_frames"] == 2
@@ -706,3 +709,85 @@ def test_reproduce_report_only_rebuilds_from_the_report_folder_alone(models, tmp
     (out / "results" / "cp-4f.results.json.gz").unlink()
     with pytest.raises(ResultsError, match=r"runs\[1\] \(cfgs/CP-4f.yaml\): neither its results"):
         reproduce.main(["--out", str(out), "--report_only"])
+
+
+def _seeded(results: dict, seed: int | None, digest: str | None = "c" * 64) -> dict:
+    return {**results, "training_seed": seed, "model_sha256": digest}
+
+
+def test_seed_to_seed_spread(models, tmp_path):
+    """Two results of one model config with different training seeds (the second: CenterPoint
+    drawn again at slightly other rates): per variant both ASRs with their intervals and the
+    paired difference; per rank group the difference of the means; each other pair of models
+    classed against the spread exactly as their paired differences and intervals say."""
+    seed_a = _seeded(models[0], 666)
+    seed_b = _seeded(model("CenterPoint seed 2", 0.61, 0.35, 0.75, 40.0), 2)
+    sturdy = model("Sturdy", 0.70, 0.0, 0.0, 50.0)  # never attacked successfully
+    results_list = [seed_a, *models[1:], sturdy, seed_b]
+    text = write_report(results_list, tmp_path)["report"].read_text()
+    part = report_part(text, "## Seed-to-seed spread")
+    tables = part.split("\n\n| ")
+    per_variant = md_table("| " + tables[1].split("\n\n")[0])
+    a_label, b_label = "CenterPoint (seed 666)", "CenterPoint seed 2 (seed 2)"
+    diff_col = f"{b_label} - seed 666"
+    assert set(per_variant) == {"Rel-Fixed Easy", "Global Hard", "Removal 10", "Removal 40"}
+    for name, label in (("inj_global_hard", "Global Hard"), ("rem_40", "Removal 40")):
+        row = per_variant[label]
+        for r, col in ((seed_a, a_label), (seed_b, b_label)):
+            entry = r["variants"][name]
+            lo, hi = entry["asr_ci"]
+            assert row[f"{col} ASR"] == f"{entry['asr']:.2f} [{lo:.2f}, {hi:.2f}]"
+        paired = paired_from_results([seed_a, seed_b], [name])
+        d = seed_b["variants"][name]["asr"] - seed_a["variants"][name]["asr"]
+        lo, hi = paired["ci"][seed_b["model"]][seed_a["model"]]
+        assert row[diff_col] == f"{d:+.2f} [{lo:+.2f}, {hi:+.2f}]"
+    per_group = md_table("| " + tables[2].split("\n\n")[0])
+    spread = {}
+    for group, names in (("injection", ["inj_rel_easy", "inj_global_hard"]),
+                         ("removal", ["rem_10", "rem_40"])):  # fmt: skip
+        d = np.mean([seed_b["variants"][n]["asr"] - seed_a["variants"][n]["asr"] for n in names])
+        assert per_group[group][diff_col].startswith(f"{d:+.2f} [")
+        spread[group] = abs(d)
+    # the statement: every pair of different models in exactly the class its numbers put it in
+    statement = part.split("pairs of one model's seeds are left out:")[1]
+    classes = set()
+    variants, _ = figures.ranked_variants(results_list)  # CP-4f lacks rem_40: over 3 variants
+    assert variants == ["inj_rel_easy", "inj_global_hard", "rem_10"]
+    for group, names in (("injection", variants[:2]), ("removal", variants[2:])):
+        line = next(x for x in statement.splitlines() if x.startswith(f"- **{group}**"))
+        s = abs(figures.mean_asr(seed_b, names) - figures.mean_asr(seed_a, names))
+        assert f"(seed spread {s:.2f}:" in line
+        beyond = line.split("Interval beyond the spread: ")[1].split(". Above")[0]
+        above = line.split("its interval not: ")[1].split(". Within")[0]
+        within = line.split("Within the spread: ")[1]
+        out = paired_from_results(results_list, names)
+        ms = out["models"]
+        for i, x in enumerate(ms):
+            for y in ms[i + 1 :]:
+                a, b = (x, y) if out["difference"][x][y] >= 0 else (y, x)
+                d, (lo, hi) = out["difference"][a][b], out["ci"][a][b]
+                cell = f"{a} - {b} {d:+.2f} [{lo:+.2f}, {hi:+.2f}]"
+                if {a, b} == {seed_a["model"], seed_b["model"]}:
+                    assert cell not in line
+                    continue
+                kind = "beyond" if lo > s and d > s else "above" if d > s else "within"
+                assert cell in {"beyond": beyond, "above": above, "within": within}[kind], cell
+                classes.add(kind)
+                assert sum(cell in part for part in (beyond, above, within)) == 1
+    assert classes == {"beyond", "above", "within"}  # the fixture has pairs of each class
+    assert seed_spread_text(models) is None  # no seed pair: no section
+
+
+def test_seed_pairs_need_a_known_and_different_seed():
+    a = _seeded(model("A", 0.6, 0.3, 0.8, 40.0), 1)
+    assert seed_groups([a, _seeded(model("B", 0.6, 0.3, 0.8, 40.0), 2)])[0][0][1]["model"] == "B"
+    groups, notes = seed_groups([a, _seeded(model("B", 0.6, 0.3, 0.8, 40.0), None)])
+    assert not groups and "the training seed of B is not recorded" in notes[0]
+    groups, notes = seed_groups([a, _seeded(model("B", 0.6, 0.3, 0.8, 40.0), 1)])
+    assert not groups and "share a model config and a training seed" in notes[0]
+    other_config = _seeded(model("B", 0.6, 0.3, 0.8, 40.0), 2, digest="d" * 64)
+    assert seed_groups([a, other_config]) == ([], [])
+    assert seed_spread_text([a, other_config]) is None
+    assert seed_spread_text([a, _seeded(model("B", 0.6, 0.3, 0.8, 40.0), None)]).startswith(
+        "No seed pair to measure."
+    )

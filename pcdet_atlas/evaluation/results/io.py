@@ -24,6 +24,8 @@ __all__ = [
     "upgrade_v2",
     "upgrade_v3",
     "upgrade_v4",
+    "upgrade_v5",
+    "upgrade_v6",
 ]
 
 
@@ -89,6 +91,8 @@ _ADDED_IN = {
     "num_reused_frames": 4, "num_recomputed_frames": 4, "lifecycle.clean_score_counts": 4,
     "runs": 5, "lifecycle.asr_ci": 6, "lifecycle.runs": 6,
 }  # fmt: skip
+#: The top-level keys each schema version added (as :data:`_ADDED_IN` for a variant's).
+_TOP_ADDED_IN = {"training_seed": 7, "model_sha256": 7}
 
 
 def check_version_content(results: dict, where: str = "results") -> None:
@@ -99,6 +103,14 @@ def check_version_content(results: dict, where: str = "results") -> None:
     version, variants = results.get("schema_version"), results.get("variants")
     if type(version) is not int or version >= SCHEMA_VERSION or not isinstance(variants, dict):
         return  # validation names what is wrong
+    for key, added in _TOP_ADDED_IN.items():
+        if results.get(key) is not None and added > version:
+            raise ResultsError(
+                f"{where}: has {key!r}, a key of schema {added} and later, but the file says "
+                f"schema_version {version}: the version contradicts the content (an upgrade "
+                "would overwrite the key); set schema_version to the version the file was "
+                "written with"
+            )
     for name, entry in variants.items():
         if not isinstance(entry, dict):
             continue
@@ -132,10 +144,16 @@ def upgrade_v1(results: dict, *, where: str = "results") -> dict:
 
 
 def _with_nulls(
-    results: dict, version: int, where: str, keys: tuple[str, ...], lifecycle_keys: tuple[str, ...]
+    results: dict,
+    version: int,
+    where: str,
+    keys: tuple[str, ...],
+    lifecycle_keys: tuple[str, ...],
+    top_keys: tuple[str, ...] = (),
 ) -> dict:
     """``results`` as schema ``version``: every variant gains ``keys`` and its lifecycle (when
-    it has one) ``lifecycle_keys``, all None (the older schema did not record them)."""
+    it has one) ``lifecycle_keys``, and the file ``top_keys``, all None (the older schema did not
+    record them)."""
     check_version_content(results, where)
     variants = results.get("variants")
     if not isinstance(variants, dict):
@@ -147,7 +165,8 @@ def _with_nulls(
             if lifecycle_keys and isinstance(entry.get("lifecycle"), dict):
                 entry["lifecycle"] = {**entry["lifecycle"], **dict.fromkeys(lifecycle_keys)}
         upgraded[name] = entry
-    return {**results, "schema_version": version, "variants": upgraded}
+    top = dict.fromkeys(top_keys)
+    return {**results, **top, "schema_version": version, "variants": upgraded}
 
 
 def upgrade_v2(results: dict, *, where: str = "results") -> dict:
@@ -177,8 +196,14 @@ def upgrade_v5(results: dict, *, where: str = "results") -> dict:
     return _with_nulls(results, 6, where, (), ("asr_ci", "runs"))
 
 
+def upgrade_v6(results: dict, *, where: str = "results") -> dict:
+    """A schema-6 results dict as schema 7: the file gains ``training_seed`` and
+    ``model_sha256`` as None (schema 6 did not record what the weights were trained with)."""
+    return _with_nulls(results, 7, where, (), (), ("training_seed", "model_sha256"))
+
+
 #: ``UPGRADES[v - 1]`` turns a schema-``v`` dict into schema ``v + 1``
-UPGRADES = (upgrade_v1, upgrade_v2, upgrade_v3, upgrade_v4, upgrade_v5)
+UPGRADES = (upgrade_v1, upgrade_v2, upgrade_v3, upgrade_v4, upgrade_v5, upgrade_v6)
 
 
 def load_results_dir(root: str | Path, pattern: str = "**/results.json") -> list[dict]:
