@@ -73,7 +73,12 @@ from pcdet_atlas.train_utils.atlas_eval import (
     resolve_variants,
     variant_fingerprints,
 )
-from pcdet_atlas.train_utils.checkpoint import CHECKPOINT_NAME, list_epoch_checkpoints
+from pcdet_atlas.train_utils.checkpoint import (
+    CHECKPOINT_NAME,
+    list_epoch_checkpoints,
+    model_config_sha256,
+)
+from pcdet_atlas.train_utils.checkpoint import training_seed as checkpoint_training_seed
 from pcdet_atlas.train_utils.eval_utils import write_prediction_files
 from pcdet_atlas.train_utils.setup import (
     add_common_args,
@@ -340,7 +345,8 @@ def evaluate(args, held: contextlib.ExitStack) -> dict:
         store = store if users else None
     runs = []
     for ckpt, out_dir in zip(checkpoints, out_dirs):
-        model.load_params_from_file(ckpt)  # strict: CheckpointMismatchError names what differs
+        state = model.load_params_from_file(ckpt)  # strict: CheckpointMismatchError names it
+        seed = checkpoint_training_seed(state, cfg.get("ATLAS", {}).get("TRAINING_SEED"), ckpt)
         if file_sha256(ckpt) != ckpt_sha256[ckpt]:  # results.json records the hash taken above
             raise RuntimeError(
                 f"checkpoint {ckpt} changed since this call started (a training run rewriting "
@@ -366,6 +372,7 @@ def evaluate(args, held: contextlib.ExitStack) -> dict:
                 device=device, batch_size=batch_size, logger=logger,
                 finished=finished.get(out_dir, {}), ckpt_sha256=ckpt_sha256[ckpt],
                 fingerprints=fingerprints, store=store, dataset_fingerprint=data_fingerprint,
+                training_seed=seed,
             )
         )  # fmt: skip
     if rank != 0:
@@ -375,13 +382,14 @@ def evaluate(args, held: contextlib.ExitStack) -> dict:
 
 def evaluate_checkpoint(
     model, ckpt, out_dir, args, cfg, attacks, *, dist, rank, world, device, batch_size, logger,
-    finished, ckpt_sha256, fingerprints, dataset_fingerprint, store=None
+    finished, ckpt_sha256, fingerprints, dataset_fingerprint, store=None, training_seed=None
 ) -> dict:  # fmt: skip
     """Every variant of one checkpoint; ``results.json`` is rewritten after each variant.
     ``finished``: the entries of the variants an earlier call finished (``--resume``), kept.
     ``fingerprints``: ``{variant: attack_sha256}``, recorded in each new entry's ``extra``;
     ``dataset_fingerprint``: the test split's, recorded in the file's ``extra``.
-    ``store``: the model's ``PredictionStore`` (counted per variant), or None."""
+    ``store``: the model's ``PredictionStore`` (counted per variant), or None.
+    ``training_seed``: the checkpoint's (``results.json``'s ``training_seed``), or None."""
     atlas_cfg = cfg.get("ATLAS", {})
     entries: dict = {}
     clean_annos = None
@@ -423,6 +431,7 @@ def evaluate_checkpoint(
         results = build_results(
             model=atlas_cfg.get("MODEL_NAME", cfg.TAG), config=str(args.cfg_file),
             checkpoint=str(ckpt), class_names=cfg.CLASS_NAMES, variants=entries,
+            training_seed=training_seed, model_sha256=model_config_sha256(cfg),
             extra={"processes": world, "device": str(device), "batch_size": batch_size,
                    "checkpoint_sha256": ckpt_sha256, "variants_requested": list(attacks),
                    "dataset_fingerprint": dataset_fingerprint},
