@@ -76,6 +76,10 @@ def build_network_from_config(cfg: Mapping) -> Detector3DTemplate:
     require_keys(cfg["DATA_CONFIG"], ["POINT_CLOUD_RANGE"], "DATA_CONFIG")
     from pcdet_atlas.datasets.augmentor.processors import processor_voxel_size
 
+    require_keys(cfg["MODEL"], ["NAME"], "MODEL")
+    check_data = getattr(DETECTORS.get(cfg["MODEL"]["NAME"]), "check_data_config", None)
+    if check_data is not None:  # what the detector needs of its samples
+        check_data(cfg["MODEL"], cfg["DATA_CONFIG"])
     return build_network(
         cfg["MODEL"],
         class_names=cfg["CLASS_NAMES"],
