@@ -8,14 +8,31 @@ per frame, all three classes):
   difference between the two (a large-scale cross-check of the fixtures' result);
 - the price of exactness: greedy score-first matching (COCO style) vs Hungarian, time and AP.
 
+Both sides run with ``--threads`` threads (torch intra-op for pcdet_atlas, TensorFlow intra- and
+inter-op for the official op), and the machine's load average is printed beside every figure: the
+ratio between the two moves with the load (the official op's threads lose more).
+
+``--scale`` instead measures ``waymo_evaluate`` at Waymo's size: Waymo-like frames (Poisson
+~27 GT and ~25 predictions per frame, the same class mix, difficulties and noise) at each
+``--scale_frames`` count (default 4,000 and 40,000: the val split is 39,987 frames, ~1.1 M
+GT), each in a fresh process (``--threads`` threads, BLAS pools too), printing the metric's
+time, the process's peak resident memory (``ru_maxrss``, inputs included) and what the inputs
+alone held, and the growth from the smallest to the largest count; ``--profile`` adds the
+largest count's cProfile top 15.
+
 Usage: ``python tools/bench_metric.py [--frames 200] [--gt 100] [--det 300] [--repeats 3]
-[--threads 1] [--venv .cache/waymo_official_venv]``
+[--threads 1] [--venv .cache/waymo_official_venv]``, or
+``python tools/bench_metric.py --scale [--scale_frames 4000 40000] [--profile]``
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import resource
 import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -118,7 +135,94 @@ def timed(fn, repeats: int):
     return best, out
 
 
-def run_official(venv: Path, scene: dict, repeats: int) -> tuple[float, dict] | None:
+def load() -> str:
+    """The machine's 1-minute load average, for the output."""
+    return f"{os.getloadavg()[0]:.1f}"
+
+
+def waymo_like_frames(frames: int, seed: int) -> tuple[list[dict], list[dict]]:
+    """``frames`` seeded Waymo-like frames: Poisson(27) GT and Poisson(25) predictions each."""
+    gts, dets = [], []
+    for f in range(frames):
+        rng = numpy_generator(seed, "bench_metric_scale", f)
+        gt, det = make_frame(rng, int(rng.poisson(27)), int(rng.poisson(25)))
+        gts.append(gt)
+        dets.append(det)
+    return gts, dets
+
+
+def scale_child(frames: int, seed: int, profile: bool) -> dict:
+    """One ``--scale`` size in this process: inputs, then the metric, timed and measured."""
+    gts, dets = waymo_like_frames(frames, seed)
+    inputs_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    profiler = None
+    if profile:
+        import cProfile
+
+        profiler = cProfile.Profile()
+        profiler.enable()
+    start = time.perf_counter()
+    result = waymo_evaluate(gts, dets, CLASSES)
+    seconds = time.perf_counter() - start
+    if profiler is not None:
+        import io
+        import pstats
+
+        profiler.disable()
+        text = io.StringIO()
+        pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(15)
+        print(text.getvalue(), file=sys.stderr)
+    return {
+        "frames": frames,
+        "gt": sum(len(g["name"]) for g in gts),
+        "det": sum(len(d["name"]) for d in dets),
+        "seconds": seconds,
+        "inputs_mib": inputs_mib,
+        "peak_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "l2_map": result["L2/mAP"],
+    }
+
+
+def scale_table(args) -> None:
+    """Run every ``--scale_frames`` size in a fresh process and print the table."""
+    threads = str(args.threads)
+    env = dict(os.environ, OMP_NUM_THREADS=threads, OPENBLAS_NUM_THREADS=threads,
+               MKL_NUM_THREADS=threads)  # fmt: skip
+    print(
+        f"waymo_evaluate at scale: {args.threads} thread(s), torch {torch.__version__}, "
+        f"numpy {np.__version__}; load average {load()} at the start"
+    )
+    print("| frames | GT | predictions | metric s | peak RSS MiB | of it inputs MiB | load |")
+    print("|---|---|---|---|---|---|---|")
+    rows = []
+    for i, frames in enumerate(sorted(args.scale_frames)):
+        last = i == len(args.scale_frames) - 1
+        cmd = [sys.executable, __file__, "--scale_child", str(frames), "--seed", str(args.seed),
+               "--threads", threads] + (["--profile"] if args.profile and last else [])  # fmt: skip
+        out = subprocess.run(cmd, env=env, capture_output=True, text=True)
+        if out.returncode:
+            raise SystemExit(f"--scale {frames} frames failed:\n{out.stderr[-3000:]}")
+        row = json.loads(out.stdout.strip().splitlines()[-1])
+        rows.append(row)
+        print(
+            f"| {frames:,} | {row['gt']:,} | {row['det']:,} | {row['seconds']:.1f} "
+            f"| {row['peak_mib']:,.0f} | {row['inputs_mib']:,.0f} | {load()} |"
+        )
+        if out.stderr.strip():
+            print(out.stderr)
+    if len(rows) > 1:
+        small, large = rows[0], rows[-1]
+        size = large["frames"] / small["frames"]
+        growth = large["seconds"] / small["seconds"]
+        print(
+            f"\ngrowth {small['frames']:,} -> {large['frames']:,} frames ({size:.0f}x): time "
+            f"{growth:.2f}x ({growth / size:.2f}x linear), peak RSS "
+            f"{large['peak_mib'] / small['peak_mib']:.2f}x; L2 mAP {small['l2_map']:.4f} / "
+            f"{large['l2_map']:.4f}"
+        )
+
+
+def run_official(venv: Path, scene: dict, repeats: int, threads: int) -> tuple[float, dict] | None:
     python = venv / "bin" / "python"
     if not python.exists():
         return None
@@ -126,7 +230,8 @@ def run_official(venv: Path, scene: dict, repeats: int) -> tuple[float, dict] | 
         src, dst = Path(tmp) / "scene.npz", Path(tmp) / "official.npz"
         np.savez(src, **scene)
         script = REPO / "tools" / "official_waymo_metric" / "official_eval.py"
-        cmd = [str(python), str(script), str(src), str(dst), "--repeat", str(repeats)]
+        cmd = [str(python), str(script), str(src), str(dst), "--repeat", str(repeats),
+               "--threads", str(threads)]  # fmt: skip
         subprocess.run(cmd, check=True, capture_output=True)
         with np.load(dst) as res:
             out = {k: res[k] for k in res.files}
@@ -142,8 +247,20 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--venv", type=Path, default=REPO / ".cache" / "waymo_official_venv")
+    parser.add_argument("--scale", action="store_true", help="time the metric at Waymo's size")
+    parser.add_argument(
+        "--scale_frames", type=int, nargs="+", default=[4000, 40000], help="--scale sizes"
+    )
+    parser.add_argument("--profile", action="store_true", help="--scale: profile the largest")
+    parser.add_argument("--scale_child", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.scale_child is not None:
+        print(json.dumps(scale_child(args.scale_child, args.seed, args.profile)))
+        return
+    if args.scale:
+        scale_table(args)
+        return
 
     gts, dets = [], []
     for f in range(args.frames):
@@ -153,16 +270,20 @@ def main() -> None:
     n_gt = sum(len(g["name"]) for g in gts)
     n_det = sum(len(d["name"]) for d in dets)
     print(f"input: {args.frames} frames, {n_gt} GT, {n_det} predictions, classes {CLASSES}")
+    print(f"threads: {args.threads} on both sides; load average {load()} at the start")
 
     t_exact, exact = timed(lambda: waymo_evaluate(gts, dets, CLASSES), args.repeats)
     t_greedy, greedy = timed(
         lambda: waymo_evaluate(gts, dets, CLASSES, matcher="score_first"), args.repeats
     )
-    print(f"pcdet_atlas waymo_evaluate (exact Hungarian): {t_exact:.3f} s")
+    print(f"pcdet_atlas waymo_evaluate (exact Hungarian): {t_exact:.3f} s (load {load()})")
 
-    official = run_official(args.venv, to_official_scene(gts, dets), args.repeats)
+    official = run_official(args.venv, to_official_scene(gts, dets), args.repeats, args.threads)
     if official is None:
-        print(f"official op: not measured (no venv at {args.venv}; see setup_venv.sh)")
+        print(
+            f"official op: SKIPPED, not measured: no venv at {args.venv} (build it with "
+            "tools/official_waymo_metric/setup_venv.sh); no ratio is printed"
+        )
     else:
         t_off, res = official
         names = list(res["names"])
@@ -175,7 +296,7 @@ def main() -> None:
                     abs(exact[f"{cls}/L{level}/AP"] - float(res["ap"][row])),
                     abs(exact[f"{cls}/L{level}/APH"] - float(res["aph"][row])),
                 )
-        print(f"official py_metrics_ops.detection_metrics: {t_off:.3f} s")
+        print(f"official py_metrics_ops.detection_metrics: {t_off:.3f} s (load {load()})")
         print(f"ratio official / pcdet_atlas: {t_off / t_exact:.2f}x")
         print(f"max |AP or APH difference| vs official over 6 breakdowns: {worst:.2e}")
 

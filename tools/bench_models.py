@@ -79,6 +79,11 @@ and says whether both trees' predictions on the timed frames are bitwise equal; 
 needs the same checkpoints (``git archive <commit> pcdet_atlas cfgs checkpoints | tar -x -C DIR``):
 
     python tools/bench_models.py --cfgs cfgs/atlas/synthetic/msf_8f.yaml --baseline_src /tmp/old
+
+For a two-stage model that table also counts the aten operators its second stage calls per frame
+(``torch.profiler`` on the CPU, in an untimed pass over the same frames; each is one dispatch: a
+kernel launch on a GPU, or a view), and for PTT the time and operators of its association
+(``roi_head.trajectories``) inside that stage.
 """
 
 from __future__ import annotations
@@ -642,6 +647,8 @@ def _timed_runs(
         )  # fmt: skip
         if getattr(model, "lot", None) is not None:  # time LOT inside the frames
             runs[-1]["lot_times"] = _time_module(model.lot)
+        runs[-1]["assoc_calls"] = _time_association(model, device)
+        runs[-1]["assoc_times"] = [] if runs[-1]["assoc_calls"] is not None else None
         if _reads_proposal_history(cfg):  # PTT: the bank already holding the frames' history
             runs[-1]["bank"] = _warm_bank(model, dataset, batches[0], device)
 
@@ -659,6 +666,7 @@ def _timed_runs(
             batch = run["batches"][min(i, len(run["batches"]) - 1)]
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
+            calls = len(run["assoc_calls"]) if run["assoc_calls"] is not None else 0
             t0 = time.perf_counter()
             if "bank" in run:  # PTT: the frame's RPN pass into the bank, then the head
                 batch = run["bank"].attach(batch, batch)
@@ -677,12 +685,24 @@ def _timed_runs(
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             run["times"].append(time.perf_counter() - t0)
+            if run["assoc_calls"] is not None:
+                run["assoc_times"].append(sum(run["assoc_calls"][calls:]))
             for pred in preds:  # outside the timing
                 for key in sorted(pred):
                     if isinstance(pred[key], torch.Tensor):
                         run["digest"].update(pred[key].detach().cpu().contiguous().numpy())
     for run in runs:
         run["digest"] = run["digest"].hexdigest()
+        run["ops"] = []  # per timed frame: (second-stage operators, of them association's)
+        if not run["rpn_times"]:
+            continue
+        for batch in run["batches"][1 : args.frames + 1]:  # untimed, the RPN outside
+            if "bank" in run:  # the bank holds the frame now: attach runs no RPN
+                batch = run["bank"].attach(batch, batch)
+                run["ops"].append(_operator_calls(run["model"].predict, batch))
+            else:
+                proposals = run["model"].propose(batch)
+                run["ops"].append(_operator_calls(run["model"].refine, batch, proposals))
     return runs, unbuilt
 
 
@@ -692,7 +712,7 @@ def _latency_child(cfg_files: list[str], data_path: Path, args, device: torch.de
     import pcdet_atlas
 
     runs, unbuilt = _timed_runs(cfg_files, data_path, args, device)
-    keys = ("cfg", "times", "rpn_times", "digest", "trained", "peak_mib")
+    keys = ("cfg", "times", "rpn_times", "digest", "trained", "peak_mib", "assoc_times", "ops")
     return {
         "package": str(Path(pcdet_atlas.__file__).parent), "threads": torch.get_num_threads(),
         "runs": [{k: run[k] for k in keys} for run in runs], "unbuilt": unbuilt,
@@ -737,13 +757,13 @@ def latency_compare_table(
     )
     print(
         "| config | tree | latency ms | speed-up | RPN + 2nd stage ms | 2nd stage speed-up "
-        "| peak MiB | predictions |"
+        "| 2nd stage ops | association ms | association ops | peak MiB | predictions |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for cfg in rel:
         name = str(cfg).replace("cfgs/atlas/", "")
         if cfg in unbuilt:
-            print(f"| {name} | not built ({unbuilt[cfg]}) | | | | | | |")
+            print(f"| {name} | not built ({unbuilt[cfg]}) | | | | | | | | | |")
             continue
         if len({r["trained"] for t in trees for r in results[(t, cfg)]}) > 1:
             raise SystemExit(
@@ -756,7 +776,13 @@ def latency_compare_table(
             runs = results[(tree, cfg)]
             med = statistics.median(t for r in runs for t in r["times"])
             base = base or med
-            split = second_ratio = "-"
+            split = second_ratio = ops = assoc_ms = assoc_ops = "-"
+            if runs[0]["ops"]:
+                ops = f"{statistics.median(o for r in runs for o, _ in r['ops']):,.0f}"
+            if runs[0]["assoc_times"] is not None:
+                assoc = statistics.median(t for r in runs for t in r["assoc_times"])
+                assoc_ms = f"{assoc * 1e3:,.1f}"
+                assoc_ops = f"{statistics.median(a for r in runs for _, a in r['ops']):,.0f}"
             if runs[0]["rpn_times"]:
                 pairs = [(t, p) for r in runs for t, p in zip(r["times"], r["rpn_times"])]
                 rpn = statistics.median(p for _, p in pairs)
@@ -773,7 +799,7 @@ def latency_compare_table(
                 same = "bitwise equal" if digests["baseline"] == digests[tree] else "differ"
             print(
                 f"| {name} | {tree} | {med * 1e3:,.0f} | {base / med:.2f}x | {split} | "
-                f"{second_ratio} | {peak:,.0f} | {same} |"
+                f"{second_ratio} | {ops} | {assoc_ms} | {assoc_ops} | {peak:,.0f} | {same} |"
             )
 
 
@@ -902,6 +928,52 @@ def _time_module(module: torch.nn.Module) -> list[float]:
     module.register_forward_pre_hook(lambda m, i: start.append(time.perf_counter()))
     module.register_forward_hook(lambda m, i, o: times.append(time.perf_counter() - start.pop()))
     return times
+
+
+#: the profiler annotation around a second stage's association (``roi_head.trajectories``)
+ASSOCIATION = "bench::association"
+
+
+def _time_association(model, device: torch.device) -> list[float] | None:
+    """Seconds of every call of the model's ``roi_head.trajectories`` (PTT's association) from
+    now on, each call also annotated for the profiler; ``None`` for a model without one."""
+    head = getattr(model, "roi_head", None)
+    if not callable(getattr(head, "trajectories", None)):
+        return None
+    times: list[float] = []
+    inner = head.trajectories
+
+    def timed(*args, **kwargs):
+        with torch.profiler.record_function(ASSOCIATION):
+            t0 = time.perf_counter()
+            out = inner(*args, **kwargs)
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            times.append(time.perf_counter() - t0)
+        return out
+
+    head.trajectories = timed
+    return times
+
+
+def _operator_calls(fn, *args) -> tuple[int, int]:
+    """Run ``fn(*args)`` under the CPU profiler: the aten operators it calls directly (not from
+    within another operator: one dispatch each, a kernel launch or a view), all and those inside
+    the association's annotation."""
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+        fn(*args)
+    total = inside = 0
+    for event in prof.events():
+        if not event.name.startswith("aten::"):
+            continue
+        parent, annotated = event.cpu_parent, False
+        while parent is not None and not parent.name.startswith("aten::"):
+            annotated |= parent.name == ASSOCIATION
+            parent = parent.cpu_parent
+        if parent is None:  # called from Python
+            total += 1
+            inside += annotated
+    return total, inside
 
 
 def ssm_table(lengths: list[int], frames: int, device: torch.device) -> None:

@@ -2,11 +2,14 @@
 
     python tools/report.py --results output/atlas/synthetic --out report/
     python tools/report.py --results a/results.json b/results.json --out report/ --latex
+    python tools/report.py --results docs/results/results --out /tmp/report  # the committed one
 
-``--results`` takes results.json files and/or folders (every results.json below a folder is
-read); each model must appear once. ``--out`` receives ``report.md``, the PNG figures and, with
-``--latex``, ``report.tex`` (booktabs tables). What each table and figure shows:
-docs/evaluation.md "Report".
+``--results`` (alias ``--results_dir``) takes results files and/or folders (below a folder every
+``results.json`` and ``<model>.results.json`` is read, and each of them gzip-compressed as
+``.gz``, as ``tools/reproduce.py`` archives the results its report was made from in the report's
+``results/``); each model must appear once. ``--out`` (alias ``--out_dir``) receives
+``report.md``, the PNG figures and, with ``--latex``, ``report.tex`` (booktabs tables). What each
+table and figure shows: docs/evaluation.md "Report".
 """
 
 from __future__ import annotations
@@ -22,8 +25,9 @@ from pcdet_atlas.evaluation.results.report import DEFAULT_LOT_PAIR, collect_resu
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--results", nargs="+", required=True, help="results.json files or folders")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--results", "--results_dir", dest="results", nargs="+", required=True,
+                   help="results files (.json, .json.gz) or folders holding them")  # fmt: skip
+    p.add_argument("--out", "--out_dir", dest="out", required=True, help="output folder")
     p.add_argument("--latex", action="store_true", help="also write report.tex")
     p.add_argument(
         "--lot_pair", nargs=2, default=list(DEFAULT_LOT_PAIR), metavar=("BASE", "DEFENDED"),

@@ -8,9 +8,12 @@ For each model config (default: every config under ``cfgs/atlas/synthetic/`` who
 ``ATLAS.CHECKPOINT`` file exists) this runs ``tools/test.py --attacks all`` on the dataset at
 ``--data_path`` (clean predictions reused where an attack leaves a frame's input untouched), then
 ``tools/report.py`` over the results into ``--out``, with the wall time of each model and of the
-whole run appended to ``report.md`` and written to ``run.json``. The injection variants' trace
-library is built from the dataset's train split first if it is missing. The dataset:
-docs/synthetic.md "A larger validation split".
+whole run appended to ``report.md`` and written to ``run.json``. The report is made from copies
+of the results files archived in ``--out``'s ``results/`` (gzip-compressed, deterministic bytes;
+``run.json`` names each by its path relative to ``--out``), so ``--report_only`` or
+``tools/report.py --results <out>/results`` rebuild it from that folder alone. The injection
+variants' trace library is built from the dataset's train split first if it is missing. The
+dataset: docs/synthetic.md "A larger validation split".
 
 ``--jobs N`` evaluates N models at once, each a ``tools/test.py`` process with ``--threads``
 torch threads (default: the cores divided among the jobs); its output goes to ``reproduce.log``
@@ -63,6 +66,7 @@ from pcdet_atlas.config import (
 )
 from pcdet_atlas.datasets.fingerprint import data_config_fingerprint
 from pcdet_atlas.evaluation.results import ResultsError, collect_results, write_report
+from pcdet_atlas.evaluation.results.archive import archive_run_results
 from pcdet_atlas.train_utils.atlas_eval import (
     build_variant_attacks,
     resolve_variants,
@@ -403,8 +407,10 @@ def cpu_model() -> str:
 
 def write_run_report(state: dict, out_dir: Path) -> dict:
     """The report of a run (``state``: its ``run.json``) into ``out_dir``, with how it was
-    produced (command, machine, wall times); sets ``state['device']``."""
-    found = collect_results([r["results"] for r in state["runs"]])
+    produced (command, machine, wall times), from the results archived in ``out_dir/results``
+    (``state['runs'][i]['archived']``); sets ``state['device']``."""
+    state["runs"] = archive_run_results(state["runs"], out_dir)
+    found = collect_results([out_dir / r["archived"] for r in state["runs"]])
     results = [r for _, r in found]
     device = str(results[0].get("extra", {}).get("device", "?"))
     frames = next(iter(results[0]["variants"].values()))["num_frames"]
@@ -440,7 +446,7 @@ def write_run_report(state: dict, out_dir: Path) -> dict:
         lines.append(
             f"| {r['model']} | {run['wall_s'] / 60:.1f} | {recomputed} | {reused} | {per_frame} |"
         )
-    sources = [str(repo_relative(Path(r["results"]))) for r in state["runs"]]
+    sources = [str(repo_relative(out_dir / r["archived"])) for r in state["runs"]]
     state["device"] = device
     return write_report(
         results, out_dir, sources=sources, latex=True, command=None, appendix="\n".join(lines),
@@ -458,6 +464,7 @@ def rewrite_report(out_dir: Path) -> dict:
     if missing:
         raise ValueError(f"--report_only: {run_file} has no {', '.join(missing)}")
     out = write_run_report(state, out_dir)
+    write_atomic(run_file, lambda f: f.write((json.dumps(state, indent=2) + "\n").encode()))
     print(f"report: {out['report']}")
     return {**out, "run": state}
 

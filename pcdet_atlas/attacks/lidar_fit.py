@@ -1,4 +1,5 @@
-"""Fit a :class:`LidarModel` beam table from a sequence's TOP-LiDAR points (docs/attacks.md).
+"""Fit a :class:`LidarModel` from a sequence's TOP-LiDAR points (docs/attacks.md): the reading
+of the frames; the fit itself is :mod:`pcdet_atlas.ops.beam_fit`.
 
 OpenPCDet's ``.npy`` frames do not keep the per-frame calibration, so the real 64 TOP inclinations
 are estimated from the points themselves: the first ``num_points_of_each_lidar[0]`` rows of each
@@ -8,6 +9,7 @@ frame are the TOP returns (both returns, vehicle frame).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -19,9 +21,10 @@ from pcdet_atlas.datasets.waymo_format import (
     load_sequence_infos,
     sequence_pkl_path,
 )
-from pcdet_atlas.ops.lidar_model import WAYMO_TOP_ORIGIN, LidarModel
+from pcdet_atlas.ops.beam_fit import FitReport, estimate_azimuth_bins, fit_report
+from pcdet_atlas.ops.lidar_model import WAYMO_AZIMUTH_BINS, WAYMO_TOP_ORIGIN, LidarModel
 
-__all__ = ["top_lidar_points", "fit_lidar_from_sequence"]
+__all__ = ["top_lidar_points", "sequence_top_points", "fit_lidar_from_sequence", "SequenceFit"]
 
 
 def top_lidar_points(points: np.ndarray, info: dict, where: str) -> np.ndarray:
@@ -48,25 +51,23 @@ def top_lidar_points(points: np.ndarray, info: dict, where: str) -> np.ndarray:
     return np.concatenate([top, points[points.shape[0] - injected :]]) if injected else top
 
 
-def fit_lidar_from_sequence(
+@dataclass
+class SequenceFit:
+    """A fitted :class:`LidarModel`, its :class:`FitReport` on the points it was fitted to, and
+    the share of azimuth gaps that are whole firing steps (``None`` unless estimated)."""
+
+    lidar: LidarModel
+    report: FitReport
+    azimuth_share: float | None = None
+
+
+def sequence_top_points(
     root: str | Path,
     sequence: str,
     frames: Sequence[int] | None = None,
-    max_points: int = 400_000,
-    origin: Sequence[float] = WAYMO_TOP_ORIGIN,
     tag: str = PROCESSED_DATA_TAG,
-    **kwargs,
-) -> LidarModel:
-    """Fit the beam table from the TOP points of some frames of one sequence.
-
-    Args:
-        root: dataset root (the folder holding ``ImageSets`` and ``tag``).
-        sequence: sequence name (folder under ``tag``).
-        frames: sample indices to use; default: 10 frames spread over the sequence.
-        max_points: at most this many points are used (evenly strided, deterministic).
-        origin: sensor position in the vehicle frame, metres.
-        **kwargs: passed to :class:`LidarModel` (``azimuth_bins``, ``max_range``).
-    """
+) -> list[np.ndarray]:
+    """The ``(n_f, 3)`` TOP points of some frames of one sequence (default: 10 spread over it)."""
     infos = load_sequence_infos(sequence_pkl_path(root, sequence, tag))
     if not infos:
         raise ValueError(f"{sequence_pkl_path(root, sequence, tag)}: sequence has no frames")
@@ -78,7 +79,46 @@ def fit_lidar_from_sequence(
             raise ValueError(f"{sequence}: frame {idx} out of range [0, {len(infos)})")
         path = frame_npy_path(root, sequence, int(idx), tag)
         chunks.append(top_lidar_points(load_frame_points(path), infos[int(idx)], str(path))[:, :3])
+    return chunks
+
+
+def fit_lidar_from_sequence(
+    root: str | Path,
+    sequence: str,
+    frames: Sequence[int] | None = None,
+    max_points: int = 400_000,
+    origin: Sequence[float] = WAYMO_TOP_ORIGIN,
+    tag: str = PROCESSED_DATA_TAG,
+    num_beams: int = 64,
+    offsets: str = "auto",
+    azimuth_bins: int | str | None = None,
+    **kwargs,
+) -> SequenceFit:
+    """Fit the sensor model from the TOP points of some frames of one sequence.
+
+    Args:
+        root: dataset root (the folder holding ``ImageSets`` and ``tag``).
+        sequence: sequence name (folder under ``tag``).
+        frames: sample indices to use; default: 10 frames spread over the sequence.
+        max_points: at most this many points are used (evenly strided, deterministic).
+        origin: sensor position in the vehicle frame, metres.
+        num_beams, offsets: see :meth:`LidarModel.fit`.
+        azimuth_bins: firings per turn, ``"estimate"`` (from the beams' azimuth gaps, frame by
+            frame) or ``None`` (the paper's 2651).
+        **kwargs: passed to :class:`LidarModel` (``max_range``).
+    """
+    chunks = sequence_top_points(root, sequence, frames, tag)
     pts = np.concatenate(chunks)
     if pts.shape[0] > max_points:
         pts = pts[:: int(np.ceil(pts.shape[0] / max_points))]
-    return LidarModel.fit(pts, origin=origin, **kwargs)
+    estimate = azimuth_bins == "estimate"
+    if estimate or azimuth_bins is None:
+        azimuth_bins = WAYMO_AZIMUTH_BINS
+    lidar = LidarModel.fit(
+        pts, num_beams, origin, offsets=offsets, azimuth_bins=int(azimuth_bins), **kwargs
+    )
+    share = None
+    if estimate:
+        bins, share = estimate_azimuth_bins(chunks, lidar)
+        lidar = LidarModel(lidar.inclinations, bins, origin, lidar.max_range, offsets=lidar.offsets)
+    return SequenceFit(lidar, fit_report(lidar, pts), share)

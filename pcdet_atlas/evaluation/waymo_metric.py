@@ -67,6 +67,8 @@ KMAX_IOU = np.float32(1e6)
 MIN_BOX_DIM, MAX_BOX_DIM = 0.01, 1e6
 DISTANCE_LIMIT_M = 1000.5
 MATCHERS = ("hungarian", "score_first")
+#: candidate (prediction, GT) pairs bounded at once (~100 MB of float64 temporaries)
+EDGE_CHUNK = 1 << 20
 
 
 # --------------------------------------------------------------------------------------------
@@ -156,48 +158,120 @@ def _gt_fields(anno: Mapping, class_names: Sequence[str], where: str):
 
 
 def _collect_gt(gt_annos: Sequence[dict], class_names: Sequence[str]) -> _Objects:
-    frames, classes, boxes, levels = [], [], [], []
+    """The evaluated GT of all frames, checked and converted in one pass over the concatenated
+    fields; a frame that fails a check is handed to :func:`_gt_fields` for its error."""
+    fields = []
     for i, anno in enumerate(gt_annos):
-        cls, box, level, keep = _gt_fields(anno, class_names, f"gt_annos[{i}]")
-        frames.append(np.full(int(keep.sum()), i, dtype=np.int64))
-        classes.append(cls[keep])
-        boxes.append(box[keep])
-        levels.append(level[keep])
-    return _Objects(
-        _cat(frames, np.int64),
-        _cat(classes, np.int64),
-        _cat_boxes(boxes),
-        None,
-        _cat(levels, np.int64),
+        try:
+            names = np.asarray(anno["name"]).reshape(-1)
+            boxes = np.asarray(anno["gt_boxes_lidar"])
+            boxes = boxes.reshape(0, 7) if boxes.size == 0 else boxes
+            num_points = np.asarray(anno["num_points_in_gt"]).reshape(-1)
+            difficulty = np.asarray(anno["difficulty"]).reshape(-1)
+            n = len(names)
+            if boxes.ndim != 2 or boxes.shape[1] < 7 or boxes.shape[0] != n:
+                raise ValueError
+            if len(num_points) != n or len(difficulty) != n:
+                raise ValueError
+        except (KeyError, ValueError):
+            _first_error(gt_annos, i, _gt_fields, class_names, "gt_annos")
+            raise
+        fields.append((names, boxes[:, :7].astype(np.float32), num_points, difficulty))
+    if not fields:
+        return _Objects(*(np.zeros(0, np.int64),) * 2, _cat_boxes([]), None, np.zeros(0, np.int64))
+    frame = np.repeat(np.arange(len(fields)), [len(f[0]) for f in fields])
+    boxes, num_points, difficulty = (np.concatenate(f) for f in list(zip(*fields))[1:])
+    difficulty = difficulty.astype(np.int64)
+    cls = _class_indices([f[0] for f in fields], class_names)
+    bad = ~np.isfinite(boxes).all(axis=1) | ~np.isin(difficulty, (0, 1, 2))
+    if cls is None:  # names numpy cannot compare: the frames' own lookups
+        _first_error(gt_annos, len(gt_annos) - 1, _gt_fields, class_names, "gt_annos")
+        cls = np.concatenate([_gt_fields(a, class_names, "")[0] for a in gt_annos])
+    if bad.any() or (cls < -1).any():
+        _first_error(gt_annos, int(frame[bad | (cls < -1)].min()), _gt_fields, class_names,
+                     "gt_annos")  # fmt: skip
+    boxes[:, 6] = limit_period(boxes[:, 6], offset=0.5, period=np.float32(2 * np.pi))
+    level = difficulty.copy()
+    level[(difficulty == 0) & (num_points > 5)] = 1
+    level[(difficulty == 0) & (num_points <= 5)] = 2
+    keep = (cls >= 0) & (num_points > 0) & _in_range(boxes)
+    return _Objects(frame[keep], cls[keep], boxes[keep], None, level[keep])
+
+
+def _first_error(annos, last: int, fields_fn, class_names, name: str) -> None:
+    """Run the one-frame checks ``fields_fn`` on frames ``0 .. last``: the first bad frame
+    raises its error (as checking frame by frame would)."""
+    for i in range(last + 1):
+        fields_fn(annos[i], class_names, f"{name}[{i}]")
+
+
+def _class_indices(names: list[np.ndarray], class_names: Sequence[str]) -> np.ndarray | None:
+    """``(M,)`` int64 index into ``class_names`` of the frames' names, concatenated (as
+    :func:`_class_index`), -1 for a Waymo class not evaluated, -2 for a name that is not a Waymo
+    class; ``None`` for names numpy cannot concatenate or sort (mixed types)."""
+    try:
+        unique, inverse = np.unique(np.concatenate(names), return_inverse=True)
+    except TypeError:
+        return None
+    lookup = {name: i for i, name in enumerate(class_names)}
+    index = np.array(
+        [lookup.get(str(u), -1 if str(u) in WAYMO_OBJECT_NAMES else -2) for u in unique],
+        dtype=np.int64,
     )
+    return index[inverse.reshape(-1)]
 
 
 def _collect_det(det_annos: Sequence[dict], class_names: Sequence[str]) -> _Objects:
-    frames, classes, boxes, scores = [], [], [], []
-    max_score = -np.inf  # over every prediction in range, of any class (OpenPCDet's rule)
+    """The evaluated predictions of all frames, in one pass as :func:`_collect_gt` (checks by
+    :func:`_det_fields`)."""
+    fields = []
     for i, anno in enumerate(det_annos):
-        where = f"det_annos[{i}]"
-        names = _field(anno, "name", where).reshape(-1)
-        n = len(names)
-        box = _boxes(anno, "boxes_lidar", where, n)
-        score = _field(anno, "score", where).reshape(-1).astype(np.float32)
-        if len(score) != n:
-            raise ValueError(f"{where}: 'score' has {len(score)} entries for {n} boxes")
-        if not np.isfinite(score).all():
-            raise ValueError(f"{where}: 'score' contains non-finite values")
-        cls = _class_index(names, class_names, where)
-        in_range = _in_range(box)
-        if in_range.any():
-            max_score = max(max_score, float(score[in_range].max()))
-        keep = (cls >= 0) & in_range
-        frames.append(np.full(int(keep.sum()), i, dtype=np.int64))
-        classes.append(cls[keep])
-        boxes.append(box[keep])
-        scores.append(score[keep])
-    score = _cat(scores, np.float32)
-    if max_score > 1:  # OpenPCDet: logits are squashed
-        score = (1.0 / (1.0 + np.exp(-score.astype(np.float64)))).astype(np.float32)
-    return _Objects(_cat(frames, np.int64), _cat(classes, np.int64), _cat_boxes(boxes), score, None)
+        try:
+            names = np.asarray(anno["name"]).reshape(-1)
+            boxes = np.asarray(anno["boxes_lidar"])
+            boxes = boxes.reshape(0, 7) if boxes.size == 0 else boxes
+            score = np.asarray(anno["score"]).reshape(-1)
+            n = len(names)
+            if boxes.ndim != 2 or boxes.shape[1] < 7 or boxes.shape[0] != n or len(score) != n:
+                raise ValueError
+        except (KeyError, ValueError):
+            _first_error(det_annos, i, _det_fields, class_names, "det_annos")
+            raise
+        fields.append((names, boxes[:, :7].astype(np.float32), score.astype(np.float32)))
+    if not fields:
+        return _Objects(
+            *(np.zeros(0, np.int64),) * 2, _cat_boxes([]), np.zeros(0, np.float32), None
+        )
+    frame = np.repeat(np.arange(len(fields)), [len(f[0]) for f in fields])
+    boxes, score = (np.concatenate(f) for f in list(zip(*fields))[1:])
+    cls = _class_indices([f[0] for f in fields], class_names)
+    bad = ~np.isfinite(boxes).all(axis=1) | ~np.isfinite(score)
+    if cls is None:  # names numpy cannot compare: the frames' own lookups
+        _first_error(det_annos, len(det_annos) - 1, _det_fields, class_names, "det_annos")
+        cls = np.concatenate([_det_fields(a, class_names, "")[0] for a in det_annos])
+    if bad.any() or (cls < -1).any():
+        _first_error(det_annos, int(frame[bad | (cls < -1)].min()), _det_fields, class_names,
+                     "det_annos")  # fmt: skip
+    boxes[:, 6] = limit_period(boxes[:, 6], offset=0.5, period=np.float32(2 * np.pi))
+    in_range = _in_range(boxes)
+    keep = (cls >= 0) & in_range
+    score_kept = score[keep]
+    if in_range.any() and float(score[in_range].max()) > 1:  # OpenPCDet: logits are squashed
+        score_kept = (1.0 / (1.0 + np.exp(-score_kept.astype(np.float64)))).astype(np.float32)
+    return _Objects(frame[keep], cls[keep], boxes[keep], score_kept, None)
+
+
+def _det_fields(anno: Mapping, class_names: Sequence[str], where: str):
+    """``(cls, boxes, score)`` of one prediction anno (its checks, raising naming ``where``)."""
+    names = _field(anno, "name", where).reshape(-1)
+    n = len(names)
+    box = _boxes(anno, "boxes_lidar", where, n)
+    score = _field(anno, "score", where).reshape(-1).astype(np.float32)
+    if len(score) != n:
+        raise ValueError(f"{where}: 'score' has {len(score)} entries for {n} boxes")
+    if not np.isfinite(score).all():
+        raise ValueError(f"{where}: 'score' contains non-finite values")
+    return _class_index(names, class_names, where), box, score
 
 
 def _cat(parts, dtype) -> np.ndarray:
@@ -230,37 +304,58 @@ def _candidate_edges(gt: _Objects, det: _Objects, thr: np.ndarray) -> tuple[np.n
     A pair is dropped only if a cheap upper bound of its 3D IoU (BEV overlap bounded by the
     overlap of the axis-aligned hulls and by the smaller footprint, times the z-overlap) is below
     the class threshold (with a 1e-6 relative margin), so no pair that can match is ever lost.
+    Pairs come ordered by (frame, class), then prediction, then GT (each in input order), in
+    blocks of at most :data:`EDGE_CHUNK` pairs.
     """
     gt_key = gt.frame * 64 + gt.cls
     det_key = det.frame * 64 + det.cls
     g_order = np.argsort(gt_key, kind="stable")
     g_sorted = gt_key[g_order]
     d_order = np.argsort(det_key, kind="stable")
-    d_sorted = det_key[d_order]
-    keys = np.intersect1d(g_sorted, d_sorted)
-    g_lo, g_hi = np.searchsorted(g_sorted, keys), np.searchsorted(g_sorted, keys, side="right")
-    d_lo, d_hi = np.searchsorted(d_sorted, keys), np.searchsorted(d_sorted, keys, side="right")
+    d_key = det_key[d_order]
+    g_lo = np.searchsorted(g_sorted, d_key)  # (P,) each prediction's GTs: g_order[g_lo:g_hi]
+    counts = np.searchsorted(g_sorted, d_key, side="right") - g_lo
     gb, db = _hull(gt.boxes), _hull(det.boxes)  # (K, 9): x, y, z, dx, dy, dz, ex, ey, footprint
+    d_hi, d_lo = (
+        [db[:, j] + db[:, h] for j, h in ((0, 6), (1, 7))],
+        [db[:, j] - db[:, h] for j, h in ((0, 6), (1, 7))],
+    )  # per axis (K,): the hull's upper and lower bound
+    g_hi, g_lo_xy = (
+        [gb[:, j] + gb[:, h] for j, h in ((0, 6), (1, 7))],
+        [gb[:, j] - gb[:, h] for j, h in ((0, 6), (1, 7))],
+    )
+    ends = np.cumsum(counts)
     pred_idx, gt_idx = [], []
-    for k in range(len(keys)):
-        gi = g_order[g_lo[k] : g_hi[k]]
-        di = d_order[d_lo[k] : d_hi[k]]
-        a, b = db[di, None, :], gb[None, gi, :]  # (P, 1, 9), (1, G, 9)
-        over = [
-            np.minimum(a[..., j] + a[..., h], b[..., j] + b[..., h])
-            - np.maximum(a[..., j] - a[..., h], b[..., j] - b[..., h])
-            for j, h in ((0, 6), (1, 7))
-        ]
-        zo = np.minimum(a[..., 2] + a[..., 5] / 2, b[..., 2] + b[..., 5] / 2) - np.maximum(
-            a[..., 2] - a[..., 5] / 2, b[..., 2] - b[..., 5] / 2
+    start = 0
+    while start < len(d_order):
+        # predictions [start, stop) whose pairs fill about one block
+        stop = int(np.searchsorted(ends, ends[start] - counts[start] + EDGE_CHUNK, side="right"))
+        stop = max(start + 1, stop)
+        rows = np.arange(start, stop)
+        row = np.repeat(rows, counts[rows])  # (E,) position in d_order of each pair
+        first = ends[rows] - counts[rows]  # (R,) each row's first pair, counted over all rows
+        offset = np.arange(len(row)) - np.repeat(first - first[0], counts[rows])  # within row
+        di, gi = d_order[row], g_order[g_lo[row] + offset]
+        # the hulls' overlap along x and y first, from per-box bounds (the same floats as
+        # per pair): a pair without both has bound 0 and is dropped below anyway
+        over_x = np.minimum(d_hi[0][di], g_hi[0][gi]) - np.maximum(d_lo[0][di], g_lo_xy[0][gi])
+        near = over_x > 0
+        di, gi, over_x = di[near], gi[near], over_x[near]
+        over_y = np.minimum(d_hi[1][di], g_hi[1][gi]) - np.maximum(d_lo[1][di], g_lo_xy[1][gi])
+        near = over_y > 0
+        di, gi, over = di[near], gi[near], (over_x[near], over_y[near])
+        a, b = db[di], gb[gi]  # (E, 9)
+        zo = np.minimum(a[:, 2] + a[:, 5] / 2, b[:, 2] + b[:, 5] / 2) - np.maximum(
+            a[:, 2] - a[:, 5] / 2, b[:, 2] - b[:, 5] / 2
         )
-        area = np.minimum(np.clip(over[0], 0, None) * np.clip(over[1], 0, None), a[..., 8])
-        inter = np.minimum(area, b[..., 8]) * np.clip(zo, 0, None)  # (P, G) upper bound
-        union = a[..., 8] * a[..., 5] + b[..., 8] * b[..., 5] - inter
+        area = np.minimum(np.clip(over[0], 0, None) * np.clip(over[1], 0, None), a[:, 8])
+        inter = np.minimum(area, b[:, 8]) * np.clip(zo, 0, None)  # (E,) upper bound
+        union = a[:, 8] * a[:, 5] + b[:, 8] * b[:, 5] - inter
         bound = np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
-        p, g = np.nonzero((bound >= thr[keys[k] % 64] * (1 - 1e-6)) & (zo >= 0))
-        pred_idx.append(di[p])
-        gt_idx.append(gi[g])
+        keep = (bound >= thr[det.cls[di]] * (1 - 1e-6)) & (zo >= 0)
+        pred_idx.append(di[keep])
+        gt_idx.append(gi[keep])
+        start = stop
     return _cat(pred_idx, np.int64), _cat(gt_idx, np.int64)
 
 

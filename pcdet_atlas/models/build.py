@@ -58,6 +58,10 @@ def build_network_from_config(cfg: Mapping) -> Detector3DTemplate:
     """Build the model of a full config (``CLASS_NAMES``, ``DATA_CONFIG``, ``MODEL``)."""
     require_keys(cfg, ["CLASS_NAMES", "DATA_CONFIG", "MODEL"], "config")
     require_keys(cfg["DATA_CONFIG"], ["POINT_CLOUD_RANGE"], "DATA_CONFIG")
+    require_keys(cfg["MODEL"], ["NAME"], "MODEL")
+    check_data = getattr(DETECTORS.get(cfg["MODEL"]["NAME"]), "check_data_config", None)
+    if check_data is not None:  # what the detector needs of its samples
+        check_data(cfg["MODEL"], cfg["DATA_CONFIG"])
     return build_network(
         cfg["MODEL"],
         class_names=cfg["CLASS_NAMES"],

@@ -33,11 +33,14 @@ __all__ = [
     "boxes_overlap_bev",
     "boxes_aligned_iou_bev",
     "boxes_aligned_iou3d",
+    "boxes_iou3d_grouped",
     "nms_bev",
 ]
 
 #: Pairs processed at once by the clipping kernel (~0.3 GB peak on float64 at this size).
 PAIR_CHUNK = 1 << 16
+#: relative tolerance of the conservative overlap tests
+_TOL = 1 + 1e-9
 
 
 def _check_boxes(boxes: torch.Tensor, name: str) -> torch.Tensor:
@@ -121,7 +124,12 @@ def _pair_intersection_area(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def _candidate_pairs(
-    a: torch.Tensor, b: torch.Tensor, use_z: bool = False, upper: bool = False
+    a: torch.Tensor,
+    b: torch.Tensor,
+    use_z: bool = False,
+    upper: bool = False,
+    groups: tuple[torch.Tensor, torch.Tensor] | None = None,
+    min_iou: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Indices ``(ia, ib)`` of the pairs that may overlap (float64 ``(N, 7)``, ``(M, 7)`` inputs).
 
@@ -129,6 +137,10 @@ def _candidate_pairs(
     the exact circle test and the separating-axis test for two rectangles drop the pairs that
     certainly do not overlap; ``use_z`` also drops pairs with disjoint z-extents, ``upper`` keeps
     only ``ia < ib``. Rows come out in ascending order of ``ia``. Conservative by a relative 1e-9.
+    ``groups`` ``(group_a (N,), group_b (M,))`` int64 ``>= 0``: only pairs within a group, each
+    group swept as if it were a call of its own (the same pairs as that call). ``min_iou > 0``
+    also drops pairs whose 3D IoU is certainly below it (:func:`_iou3d_upper_bound`, with a
+    margin of 1e-6).
     """
     device = a.device
     empty = torch.zeros(0, dtype=torch.long, device=device)
@@ -137,11 +149,14 @@ def _candidate_pairs(
         return empty, empty
     ra = 0.5 * torch.hypot(a[:, 3].clamp(min=0), a[:, 4].clamp(min=0))
     rb = 0.5 * torch.hypot(b[:, 3].clamp(min=0), b[:, 4].clamp(min=0))
-    order = torch.argsort(b[:, 0])
-    bx = b[order, 0].contiguous()
-    slack = 1e-9 * (1.0 + a[:, 0].abs() + ra + rb.max())
-    lo = torch.searchsorted(bx, a[:, 0] - ra - rb.max() - slack)
-    hi = torch.searchsorted(bx, a[:, 0] + ra + rb.max() + slack, right=True)
+    if groups is None:
+        order = torch.argsort(b[:, 0])
+        bx = b[order, 0].contiguous()
+        slack = 1e-9 * (1.0 + a[:, 0].abs() + ra + rb.max())
+        lo = torch.searchsorted(bx, a[:, 0] - ra - rb.max() - slack)
+        hi = torch.searchsorted(bx, a[:, 0] + ra + rb.max() + slack, right=True)
+    else:
+        order, lo, hi = _group_sweep(a[:, 0], ra, b[:, 0], rb, *groups)
     counts = hi - lo  # (N,)
     ends = torch.cumsum(counts, 0)
     starts = ends - counts
@@ -149,6 +164,7 @@ def _candidate_pairs(
     found_a, found_b = [], []
     block_starts = torch.searchsorted(ends, torch.arange(0, total, PAIR_CHUNK * 4, device=device))
     bounds = sorted(set(block_starts.tolist()) | {0, n})
+    circle_a, circle_b = _circle_radius(a), _circle_radius(b)
     for r0, r1 in zip(bounds[:-1], bounds[1:]):
         rows = torch.arange(r0, r1, device=device)
         ia = torch.repeat_interleave(rows, counts[r0:r1])
@@ -156,7 +172,14 @@ def _candidate_pairs(
             continue
         offs = torch.arange(ia.numel(), device=device) - (starts[ia] - starts[r0])
         ib = order[lo[ia] + offs]
+        # _may_overlap's circle test first, on the box columns alone (the same floats): most
+        # pairs of the sweep stop here before the rows are gathered
+        dx, dy = a[ia, 0] - b[ib, 0], a[ia, 1] - b[ib, 1]
+        near = dx * dx + dy * dy <= ((circle_a[ia] + circle_b[ib]) * _TOL) ** 2 + 1e-12
+        ia, ib = ia[near], ib[near]
         keep = _may_overlap(a[ia], b[ib], use_z)
+        if min_iou > 0:
+            keep &= _iou3d_upper_bound(a[ia], b[ib]) >= min_iou - 1e-6
         if upper:
             keep &= ia < ib
         found_a.append(ia[keep])
@@ -166,9 +189,66 @@ def _candidate_pairs(
     return torch.cat(found_a), torch.cat(found_b)
 
 
+def _group_sweep(
+    ax: torch.Tensor,
+    ra: torch.Tensor,
+    bx: torch.Tensor,
+    rb: torch.Tensor,
+    group_a: torch.Tensor,
+    group_b: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The sweep of :func:`_candidate_pairs` within groups: ``order`` (M,) sorts b by (group, x)
+    and ``[lo, hi)`` (N,) are the positions of a's window in that order. The window's bounds are
+    those of an ungrouped call on the group alone (its largest ``rb``); b is keyed by its group and
+    its x rank (exact integers), so the search sees the same x comparisons."""
+    num_groups = int(torch.maximum(group_a.max(), group_b.max())) + 1
+    rb_max = rb.new_zeros(num_groups).scatter_reduce(0, group_b, rb, "amax", include_self=False)
+    rb_a = rb_max[group_a]  # (N,) the largest radius of a's group (0 if the group has no b)
+    slack = 1e-9 * (1.0 + ax.abs() + ra + rb_a)
+    by_x = torch.argsort(bx, stable=True)
+    rank = torch.empty_like(by_x)
+    rank[by_x] = torch.arange(bx.shape[0], device=bx.device)  # (M,) position of b in x order
+    width = bx.shape[0] + 1
+    key = group_b * width + rank  # (M,) distinct, ordered by (group, x)
+    key_sorted, order = torch.sort(key)
+    sorted_x = bx[by_x].contiguous()
+    first = torch.searchsorted(sorted_x, ax - ra - rb_a - slack)  # b with x >= bound: rank >= it
+    last = torch.searchsorted(sorted_x, ax + ra + rb_a + slack, right=True)  # x <= bound: < it
+    lo = torch.searchsorted(key_sorted, group_a * width + first)
+    hi = torch.searchsorted(key_sorted, group_a * width + last)
+    return order, lo, hi
+
+
+def _circle_radius(boxes: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` radius of the BEV circumscribed circle, as :func:`_may_overlap` computes it."""
+    return torch.hypot(boxes[:, 3].clamp(min=0) / 2, boxes[:, 4].clamp(min=0) / 2)
+
+
+def _iou3d_upper_bound(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """An upper bound of the 3D IoU of aligned float64 pairs ``(P, 7)``: the BEV intersection
+    is within each box's overlap with the other's bounding rectangle in its axes, and within
+    either box; the volume within that times the z-overlap. ``(P,)``; NaN where a volume is 0."""
+    dx, dy = a[:, 0] - b[:, 0], a[:, 1] - b[:, 1]
+    area = None
+    for own, other in ((a, b), (b, a)):  # the other box's bounding rectangle in own's axes
+        c, s = torch.cos(other[:, 6] - own[:, 6]).abs(), torch.sin(other[:, 6] - own[:, 6]).abs()
+        cos_h, sin_h = torch.cos(own[:, 6]), torch.sin(own[:, 6])
+        u = (cos_h * dx + sin_h * dy).abs()  # centre offset along own's axes
+        v = (-sin_h * dx + cos_h * dy).abs()
+        hx, hy = other[:, 3].clamp(min=0) / 2, other[:, 4].clamp(min=0) / 2
+        ex, ey = c * hx + s * hy, s * hx + c * hy
+        own_x, own_y = own[:, 3].clamp(min=0) / 2, own[:, 4].clamp(min=0) / 2
+        over_x = (torch.minimum(u + ex, own_x) - torch.maximum(u - ex, -own_x)).clamp(min=0)
+        over_y = (torch.minimum(v + ey, own_y) - torch.maximum(v - ey, -own_y)).clamp(min=0)
+        area = over_x * over_y if area is None else torch.minimum(area, over_x * over_y)
+    vol_a, vol_b = a[:, 3:6].clamp(min=0).prod(dim=1), b[:, 3:6].clamp(min=0).prod(dim=1)
+    inter = torch.minimum(area * _z_overlap(a, b), torch.minimum(vol_a, vol_b))
+    return inter / (vol_a + vol_b - inter)
+
+
 def _may_overlap(a: torch.Tensor, b: torch.Tensor, use_z: bool) -> torch.Tensor:
     """Conservative overlap test of aligned pairs (circles, separating axes, z): ``(P,)`` bool."""
-    tol = 1 + 1e-9
+    tol = _TOL
     hxa, hya = a[:, 3].clamp(min=0) / 2, a[:, 4].clamp(min=0) / 2
     hxb, hyb = b[:, 3].clamp(min=0) / 2, b[:, 4].clamp(min=0) / 2
     dx, dy = a[:, 0] - b[:, 0], a[:, 1] - b[:, 1]
@@ -258,6 +338,47 @@ def boxes_iou3d(boxes_a: torch.Tensor, boxes_b: torch.Tensor) -> torch.Tensor:
         ``(N, M)`` IoU in [0, 1], promoted floating dtype of the inputs, on the inputs' device.
     """
     return _pairwise(boxes_a, boxes_b, "3d")
+
+
+def boxes_iou3d_grouped(
+    boxes_a: torch.Tensor,
+    group_a: torch.Tensor,
+    boxes_b: torch.Tensor,
+    group_b: torch.Tensor,
+    min_iou: float = 0.0,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Exact 3D IoU of many small problems at once: box ``i`` of A against the boxes of B in its
+    group, as sparse pairs.
+
+    Equal, pair by pair and bit by bit, to :func:`boxes_iou3d` of each group's A rows against
+    its B rows: the pairs returned are those that may overlap (the rest have IoU exactly 0), in
+    ascending order of ``ia``; with ``min_iou > 0`` only those whose IoU may reach ``min_iou``
+    (every pair at or above it is returned, some below it may be).
+
+    Args:
+        boxes_a: ``(N, 7+)`` boxes; group_a ``(N,)`` int64 group ids ``>= 0``.
+        boxes_b: ``(M, 7+)`` boxes; group_b ``(M,)`` int64 group ids ``>= 0``.
+        min_iou: leave out pairs certainly below this IoU (``<= 0``: none).
+
+    Returns:
+        ``ia`` ``(P,)``, ``ib`` ``(P,)`` int64 and their IoU ``(P,)`` (promoted floating dtype of
+        the inputs), with ``group_a[ia] == group_b[ib]``.
+    """
+    a = _check_boxes(boxes_a, "boxes_a")
+    b = _check_boxes(boxes_b, "boxes_b").to(a.device)
+    for name, group, boxes in (("group_a", group_a, a), ("group_b", group_b, b)):
+        if group.shape != (boxes.shape[0],) or group.dtype != torch.long:
+            raise ValueError(
+                f"{name}: expected an int64 tensor of shape ({boxes.shape[0]},), got "
+                f"{group.dtype} {tuple(group.shape)}"
+            )
+    dtype = _out_dtype(a, b)
+    a64, b64 = a.to(torch.float64), b.to(torch.float64)
+    groups = (group_a.to(a.device), group_b.to(a.device))
+    if a.shape[0] and b.shape[0] and bool(torch.cat(groups).min() < 0):
+        raise ValueError("group_a / group_b: group ids must be >= 0")
+    ia, ib = _candidate_pairs(a64, b64, use_z=True, groups=groups, min_iou=float(min_iou))
+    return ia, ib, _pair_values(a64[ia], b64[ib], "3d").to(dtype)
 
 
 def boxes_aligned_iou_bev(boxes_a: torch.Tensor, boxes_b: torch.Tensor) -> torch.Tensor:

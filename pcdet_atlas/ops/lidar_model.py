@@ -25,6 +25,10 @@ WAYMO_AZIMUTH_BINS = math.ceil(360.0 / 0.1358)
 WAYMO_TOP_ORIGIN = (1.43, 0.0, 2.184)
 #: Spacing at the top of the fan relative to the mean spacing (the rest grows linearly downward).
 _TOP_SPACING_RATIO = 4.0 / 7.0
+#: Points closer to the sensor axis than this (m) are binned as if at this distance (offsets).
+_MIN_HORIZ_M = 1e-6
+#: Points per chunk of the offset binning (bounds its (n, B) float64 work arrays).
+_OFFSET_CHUNK = 65536
 
 
 def waymo_top_inclinations_deg(num_beams: int = 64) -> np.ndarray:
@@ -70,6 +74,10 @@ class LidarModel:
         azimuth_bins: number of azimuth columns ``M`` over 360°.
         origin: sensor position in the vehicle frame, metres.
         max_range: maximum return range, metres.
+        offsets: ``(B,)`` height of each laser above the origin, metres (``None`` or all zeros:
+            every laser at the origin). With offsets, a point at horizontal distance ``d`` from
+            the origin is seen by beam ``k`` at elevation ``atan(tan(theta_k) + c_k / d)``, and
+            the binning picks the beam whose elevation *at the point's distance* is nearest.
     """
 
     def __init__(
@@ -78,6 +86,7 @@ class LidarModel:
         azimuth_bins: int = WAYMO_AZIMUTH_BINS,
         origin: Sequence[float] = WAYMO_TOP_ORIGIN,
         max_range: float = 75.0,
+        offsets: Sequence[float] | np.ndarray | torch.Tensor | None = None,
     ):
         incl = torch.as_tensor(np.asarray(inclinations, dtype=np.float64)).flatten()
         if incl.numel() < 2:
@@ -92,6 +101,17 @@ class LidarModel:
             raise ValueError(f"origin must have 3 finite values (x, y, z), got {origin}")
         if not max_range > 0:
             raise ValueError(f"max_range must be > 0, got {max_range}")
+        if offsets is not None:
+            offsets = torch.as_tensor(np.asarray(offsets, dtype=np.float64)).flatten()
+            if offsets.shape != incl.shape or not torch.isfinite(offsets).all():
+                raise ValueError(
+                    f"LidarModel offsets must be {incl.numel()} finite values (one per beam, m), "
+                    f"got {offsets.numel()}"
+                )
+            if not offsets.any():
+                offsets = None  # all lasers at the origin: the single-origin binning
+        #: ``(B,)`` float64 laser heights above the origin (m), or ``None`` (single origin)
+        self.offsets = offsets
         self.inclinations = incl  # (B,) float64, radians
         self.azimuth_bins = int(azimuth_bins)
         self.origin = torch.tensor([float(v) for v in origin], dtype=torch.float64)
@@ -131,43 +151,45 @@ class LidarModel:
         return cls(np.deg2rad(waymo_top_inclinations_deg()), **kwargs)
 
     @classmethod
+    def preset(cls, name: str, **kwargs) -> LidarModel:
+        """A named sensor of :mod:`pcdet_atlas.ops.lidar_presets` (``waymo_top``, ``hdl64e``,
+        ``hdl32e``): its beam table, laser offsets and azimuth bins; ``kwargs`` (``origin``,
+        ``max_range``, ``azimuth_bins``) override."""
+        from pcdet_atlas.ops.lidar_presets import lidar_preset
+
+        spec = lidar_preset(name)
+        kwargs.setdefault("azimuth_bins", spec.azimuth_bins)
+        return cls(np.deg2rad(spec.inclinations_deg), offsets=spec.offsets_m, **kwargs)
+
+    @classmethod
     def fit(
         cls,
         points_xyz,
         num_beams: int = 64,
         origin: Sequence[float] = WAYMO_TOP_ORIGIN,
-        iterations: int = 30,
+        offsets: str = "auto",
+        init: str = "data",
         **kwargs,
     ) -> LidarModel:
-        """Estimate the beam table from TOP-LiDAR points (the first ``num_points_of_each_lidar[0]``
-        rows of a frame, ideally several frames of one sequence).
-
-        1-D Lloyd iterations on point elevations, started from the default table: each point goes
-        to its nearest beam, each beam moves to the median elevation of its points. Beams that
-        receive no points (e.g. sky beams) keep their default elevation.
+        """Estimate the beam table (and, where the data shows parallax, each laser's vertical
+        offset) from TOP-LiDAR points: :func:`pcdet_atlas.ops.beam_fit.fit_beam_table`.
 
         Args:
-            points_xyz: ``(N, 3+)`` points in the vehicle frame (numpy or torch).
+            points_xyz: ``(N, 3+)`` points in the vehicle frame (numpy or torch), ideally
+                several frames of one sequence.
+            offsets: ``"auto"`` (fit them, keep them when they bring the points closer to their
+                beams), ``"on"`` or ``"off"``.
+            init: ``"data"`` (elevation-histogram peaks) or ``"default_table"`` (Lloyd from
+                the default Waymo table, the older method, kept for comparison).
+            **kwargs: passed to :class:`LidarModel` (``azimuth_bins``, ``max_range``).
         """
-        pts = torch.as_tensor(np.asarray(points_xyz)[:, :3], dtype=torch.float64)
-        if pts.shape[0] < num_beams:
-            raise ValueError(
-                f"LidarModel.fit needs at least {num_beams} points, got {pts.shape[0]}"
-            )
-        rel = pts - torch.tensor([float(v) for v in origin], dtype=torch.float64)
-        elev = torch.atan2(rel[:, 2], torch.linalg.norm(rel[:, :2], dim=1))
-        centers = torch.as_tensor(np.deg2rad(waymo_top_inclinations_deg(num_beams)))
-        for _ in range(iterations):
-            mids = (centers[1:] + centers[:-1]) / 2
-            beam = torch.bucketize(elev, mids)
-            new = centers.clone()
-            for b in torch.unique(beam).tolist():
-                new[b] = elev[beam == b].median()
-            new, _ = torch.sort(new)
-            if torch.allclose(new, centers, atol=1e-9, rtol=0):
-                break
-            centers = new
-        return cls(centers, origin=origin, **kwargs)
+        from pcdet_atlas.ops.beam_fit import fit_beam_table
+
+        pts = np.asarray(
+            points_xyz.detach().cpu().numpy() if torch.is_tensor(points_xyz) else points_xyz
+        )
+        fitted = fit_beam_table(pts, num_beams, origin, offsets=offsets, init=init)
+        return cls(fitted.inclinations, origin=origin, offsets=fitted.offsets, **kwargs)
 
     @classmethod
     def from_config(cls, cfg: Mapping | None) -> LidarModel:
@@ -179,14 +201,25 @@ class LidarModel:
         cfg = cfg or {}
         check_known_keys(
             cfg,
-            {"INCLINATIONS", "INCLINATIONS_DEG", "AZIMUTH_BINS", "ORIGIN", "MAX_RANGE"},
+            {
+                "PRESET", "INCLINATIONS", "INCLINATIONS_DEG", "OFFSETS", "AZIMUTH_BINS", "ORIGIN",
+                "MAX_RANGE",
+            },
             "LIDAR",
-        )
-        if "INCLINATIONS" in cfg and "INCLINATIONS_DEG" in cfg:
-            raise ConfigError("LIDAR: give INCLINATIONS (rad) or INCLINATIONS_DEG, not both")
+        )  # fmt: skip
+        tables = [k for k in ("PRESET", "INCLINATIONS", "INCLINATIONS_DEG") if k in cfg]
+        if len(tables) > 1:
+            raise ConfigError(
+                f"LIDAR: give one of PRESET, INCLINATIONS (rad), INCLINATIONS_DEG, not {tables}"
+            )
+        if "OFFSETS" in cfg and tables not in (["INCLINATIONS"], ["INCLINATIONS_DEG"]):
+            raise ConfigError(
+                "LIDAR.OFFSETS needs an explicit table (INCLINATIONS or INCLINATIONS_DEG): a "
+                "preset carries its own offsets"
+            )
         kwargs = {
             "azimuth_bins": config_value(
-                cfg, "AZIMUTH_BINS", int, "LIDAR", WAYMO_AZIMUTH_BINS,
+                cfg, "AZIMUTH_BINS", int, "LIDAR", None,
                 valid=lambda m: m >= 1, expected="a positive integer",
             ),
             "origin": config_value(
@@ -198,6 +231,16 @@ class LidarModel:
                 valid=lambda r: r > 0, expected="a positive range in metres",
             ),
         }  # fmt: skip
+        if kwargs["azimuth_bins"] is None:
+            del kwargs["azimuth_bins"]  # the preset's, or the paper's 2651
+        if "PRESET" in cfg:
+            from pcdet_atlas.ops.lidar_presets import LIDAR_PRESETS
+
+            name = config_value(
+                cfg, "PRESET", str, "LIDAR", valid=lambda n: n in LIDAR_PRESETS,
+                expected=f"one of the LiDAR presets {', '.join(sorted(LIDAR_PRESETS))}",
+            )  # fmt: skip
+            return cls.preset(name, **kwargs)
         for key in ("INCLINATIONS", "INCLINATIONS_DEG"):
             if key in cfg:
                 unit = "radians" if key == "INCLINATIONS" else "degrees"
@@ -208,6 +251,14 @@ class LidarModel:
                 )  # fmt: skip
                 if key == "INCLINATIONS_DEG":
                     angles = np.deg2rad(np.asarray(angles, dtype=np.float64))
+                if "OFFSETS" in cfg:
+                    num = len(angles)
+                    kwargs["offsets"] = config_value(
+                        cfg, "OFFSETS", lambda a: [float(v) for v in a], "LIDAR",
+                        valid=lambda a, n=num: len(a) == n,
+                        expected=f"{num} laser heights above ORIGIN in metres, one per beam of "
+                        f"{key}",
+                    )  # fmt: skip
                 return cls(angles, **kwargs)
         return cls.waymo_top(**kwargs)
 
@@ -251,13 +302,60 @@ class LidarModel:
             torch.floor((azimuth + math.pi) / width), 0, self.azimuth_bins - 1
         ).long()
 
-    def beam_index(self, elevation: torch.Tensor) -> torch.Tensor:
-        """Index of the nearest inclination (a tie at a midpoint goes to the lower beam)."""
-        return torch.bucketize(elevation, self._constants(elevation.device)[1])
+    def beam_index(
+        self, elevation: torch.Tensor, horiz: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Index of the nearest inclination (a tie at a midpoint goes to the lower beam).
 
-    def in_fov(self, elevation: torch.Tensor) -> torch.Tensor:
-        """Whether an elevation lies in the fan (within half a spacing of the outermost beams)."""
-        return (elevation >= self.fov_min) & (elevation <= self.fov_max)
+        With laser offsets, the nearest beam elevation at each point's horizontal distance
+        ``horiz`` (m, required then) from the origin: :meth:`beam_elevations`.
+        """
+        if self.offsets is None:
+            return torch.bucketize(elevation, self._constants(elevation.device)[1])
+        return self._offset_binning(elevation, self._need_horiz(horiz))[0]
+
+    def in_fov(self, elevation: torch.Tensor, horiz: torch.Tensor | None = None) -> torch.Tensor:
+        """Whether an elevation lies in the fan (within half a spacing of the outermost beams;
+        with laser offsets, of their elevations at the horizontal distance ``horiz``)."""
+        if self.offsets is None:
+            return (elevation >= self.fov_min) & (elevation <= self.fov_max)
+        return self._offset_binning(elevation, self._need_horiz(horiz))[1]
+
+    def beam_elevations(self, horiz: torch.Tensor) -> torch.Tensor:
+        """``(N, B)`` float64 elevation of each beam seen from the origin at horizontal
+        distances ``(N,)`` (m): ``atan(tan(theta_k) + c_k / d)`` (``theta_k`` without offsets)."""
+        incl = self.inclinations.to(horiz.device)
+        if self.offsets is None:
+            return incl.expand(horiz.shape[0], -1)
+        d = horiz.to(torch.float64).clamp(min=_MIN_HORIZ_M)[:, None]
+        return torch.atan(torch.tan(incl) + self.offsets.to(horiz.device) / d)
+
+    def _need_horiz(self, horiz: torch.Tensor | None) -> torch.Tensor:
+        if horiz is None:
+            raise ValueError(
+                "this LidarModel has laser offsets: beam_index / in_fov need each point's "
+                "horizontal distance from the origin (horiz)"
+            )
+        return horiz
+
+    def _offset_binning(
+        self, elevation: torch.Tensor, horiz: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Beam (nearest beam elevation at the point's distance, ties to the lower index) and
+        FOV flag of points with laser offsets, in chunks of bounded ``(n, B)`` memory."""
+        incl = self.inclinations
+        lo_half = float(incl[1] - incl[0]) / 2
+        hi_half = float(incl[-1] - incl[-2]) / 2
+        beams, fovs = [], []
+        for start in range(0, elevation.shape[0], _OFFSET_CHUNK):
+            el = elevation[start : start + _OFFSET_CHUNK].to(torch.float64)
+            pred = self.beam_elevations(horiz[start : start + _OFFSET_CHUNK])  # (n, B)
+            beams.append(torch.argmin((el[:, None] - pred).abs(), dim=1))
+            fovs.append((el >= pred[:, 0] - lo_half) & (el <= pred[:, -1] + hi_half))
+        if not beams:
+            empty = torch.zeros(0, dtype=torch.long, device=elevation.device)
+            return empty, empty.bool()
+        return torch.cat(beams), torch.cat(fovs)
 
     def bin_index(self, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Ray id, FOV flag and range of ``(N, 3)`` points.
@@ -268,21 +366,30 @@ class LidarModel:
             range: ``(N,)`` float64 metres from the sensor origin.
         """
         azimuth, elevation, rng = self.spherical(xyz)
-        beam = self.beam_index(elevation)
-        return beam * self.azimuth_bins + self.azimuth_index(azimuth), self.in_fov(elevation), rng
+        if self.offsets is None:
+            beam, fov = self.beam_index(elevation), self.in_fov(elevation)
+        else:
+            beam, fov = self._offset_binning(elevation, rng * torch.cos(elevation))
+        return beam * self.azimuth_bins + self.azimuth_index(azimuth), fov, rng
 
     def to_config(self) -> dict:
         """A ``LIDAR`` config section that rebuilds this model exactly."""
-        return {
-            "INCLINATIONS": [float(v) for v in self.inclinations],
-            "AZIMUTH_BINS": self.azimuth_bins,
-            "ORIGIN": [float(v) for v in self.origin],
-            "MAX_RANGE": self.max_range,
-        }
+        cfg = {"INCLINATIONS": [float(v) for v in self.inclinations]}
+        if self.offsets is not None:
+            cfg["OFFSETS"] = [float(v) for v in self.offsets]
+        cfg.update(
+            AZIMUTH_BINS=self.azimuth_bins,
+            ORIGIN=[float(v) for v in self.origin],
+            MAX_RANGE=self.max_range,
+        )
+        return cfg
 
     def __repr__(self) -> str:
+        lo, hi = (0.0, 0.0) if self.offsets is None else (self.offsets.min(), self.offsets.max())
         return (
             f"LidarModel(beams={self.num_beams}, azimuth_bins={self.azimuth_bins}, "
             f"fov_deg=({math.degrees(self.fov_min):.2f}, {math.degrees(self.fov_max):.2f}), "
-            f"origin={tuple(round(float(v), 3) for v in self.origin)}, max_range={self.max_range})"
+            f"origin={tuple(round(float(v), 3) for v in self.origin)}, max_range={self.max_range}"
+            + ("" if self.offsets is None else f", offsets_m=({lo:.3f}..{hi:.3f})")
+            + ")"
         )

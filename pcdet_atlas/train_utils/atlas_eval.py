@@ -59,7 +59,9 @@ __all__ = [
     "point_history",
 ]
 
-ATLAS_KEYS = ("MODEL_NAME", "ATTACKS", "CHECKPOINT", "TEMPORAL_WINDOW")
+#: the ``ATLAS`` section's keys (``TRAINING_SEED``: the seed a checkpoint that does not record
+#: its own was trained with; ``pcdet_atlas.train_utils.checkpoint.training_seed``)
+ATLAS_KEYS = ("MODEL_NAME", "ATTACKS", "CHECKPOINT", "TEMPORAL_WINDOW", "TRAINING_SEED")
 ATTACK_DIR = REPO_ROOT / "cfgs" / "attacks"
 
 

@@ -39,7 +39,11 @@ from pcdet_atlas.train_utils.atlas_eval import (
     resolve_variants,
     variant_fingerprints,
 )
-from pcdet_atlas.train_utils.checkpoint import list_epoch_checkpoints
+from pcdet_atlas.train_utils.checkpoint import (
+    list_epoch_checkpoints,
+    model_config_sha256,
+    training_seed,
+)
 from pcdet_atlas.train_utils.eval_caches import EvalCaches
 from pcdet_atlas.train_utils.eval_folder import (
     check_eval_dir,
@@ -226,7 +230,8 @@ def _run(settings: EvalSettings, held: contextlib.ExitStack) -> dict:
     )  # fmt: skip
     runs = []
     for ckpt, out_dir in zip(checkpoints, out_dirs):
-        model.load_params_from_file(ckpt)  # strict: CheckpointMismatchError names what differs
+        state = model.load_params_from_file(ckpt)  # strict: CheckpointMismatchError names it
+        seed = training_seed(state, cfg.get("ATLAS", {}).get("TRAINING_SEED"), ckpt)
         if file_sha256(ckpt) != ckpt_sha256[ckpt]:  # results.json records the hash taken above
             raise RuntimeError(
                 f"checkpoint {ckpt} changed since this call started (a training run rewriting "
@@ -249,7 +254,7 @@ def _run(settings: EvalSettings, held: contextlib.ExitStack) -> dict:
         runs.append(
             evaluate_checkpoint(
                 run, model, ckpt, out_dir, finished=finished.get(out_dir, {}),
-                ckpt_sha256=ckpt_sha256[ckpt], logger=logger,
+                ckpt_sha256=ckpt_sha256[ckpt], logger=logger, training_seed=seed,
             )
         )  # fmt: skip
     if rank != 0:
@@ -279,12 +284,13 @@ def evaluate_checkpoint(
     finished: Mapping[str, dict],
     ckpt_sha256: str,
     logger: logging.Logger,
+    training_seed: int | None = None,
 ) -> dict:
     """Every variant of one checkpoint; ``results.json`` is rewritten after each variant.
     ``finished``: the entries of the variants an earlier call finished (``resume``), kept; the
     clean one's predictions (and this process's clean proposals) are read back for the others.
     Each new entry's ``extra`` records its ``attack_sha256``, the file's the test split's
-    fingerprint."""
+    fingerprint; ``training_seed``: the checkpoint's (``results.json``'s), or None."""
     settings, cfg, rank, caches = run.settings, run.cfg, run.rank, run.caches
     atlas_cfg = cfg.get("ATLAS", {})
     context = run.context(logger)
@@ -319,6 +325,7 @@ def evaluate_checkpoint(
         results = build_results(
             model=atlas_cfg.get("MODEL_NAME", cfg.TAG), config=str(settings.cfg_file),
             checkpoint=str(ckpt), class_names=cfg.CLASS_NAMES, variants=entries,
+            training_seed=training_seed, model_sha256=model_config_sha256(cfg),
             extra={"processes": run.world, "device": str(run.device),
                    "batch_size": run.batch_size, "checkpoint_sha256": ckpt_sha256,
                    "variants_requested": list(run.attacks),

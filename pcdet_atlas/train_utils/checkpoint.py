@@ -43,6 +43,8 @@ __all__ = [
     "list_epoch_checkpoints",
     "check_resume_settings",
     "export_model_checkpoint",
+    "model_config_sha256",
+    "training_seed",
 ]
 
 CHECKPOINT_NAME = re.compile(r"checkpoint_epoch_(\d+)\.pth")
@@ -256,14 +258,45 @@ def check_resume_settings(ckpt: Mapping, settings: Mapping, path: str | Path) ->
         )
 
 
+def model_config_sha256(cfg: Mapping) -> str:
+    """SHA-256 of what makes a model and its training apart from the seed: the merged config's
+    ``CLASS_NAMES``, ``MODEL``, ``OPTIMIZATION`` and ``DATA_CONFIG`` without ``DATA_PATH``
+    (``ATLAS``, naming the checkpoint and the display name, is left out). Two evaluations with
+    the same digest and different training seeds are the same model retrained
+    (``results.json``'s ``model_sha256``)."""
+    data = {k: v for k, v in to_plain(cfg["DATA_CONFIG"]).items() if k != "DATA_PATH"}
+    parts = {key: to_plain(cfg[key]) for key in ("CLASS_NAMES", "MODEL", "OPTIMIZATION")}
+    return _sha256({**parts, "DATA_CONFIG": data})
+
+
+def training_seed(ckpt: Mapping, declared: int | None, path: str | Path) -> int | None:
+    """The seed a checkpoint's weights were trained with: its ``train_settings['seed']``
+    (``tools/train.py`` records it), else ``declared`` (the config's ``ATLAS.TRAINING_SEED``,
+    for a checkpoint written before the record was kept), else None (unknown).
+
+    Raises:
+        ValueError: a ``declared`` seed that is not an integer, or that contradicts the one the
+            checkpoint records, naming the file.
+    """
+    if declared is not None and (isinstance(declared, bool) or not isinstance(declared, int)):
+        raise ValueError(f"ATLAS.TRAINING_SEED {declared!r}: expected an integer (for {path})")
+    recorded = (ckpt.get("train_settings") or {}).get("seed")
+    if recorded is not None and declared is not None and int(recorded) != declared:
+        raise ValueError(
+            f"{path}: trained with seed {recorded} (its train_settings), but the config's "
+            f"ATLAS.TRAINING_SEED says {declared}; remove the key or correct it"
+        )
+    return int(recorded) if recorded is not None else declared
+
+
 def export_model_checkpoint(src: str | Path, dst: str | Path) -> Path:
-    """Keep only ``epoch``, ``it``, ``model_state``, ``model_info`` and ``version`` of a training
-    checkpoint (the small file a model zoo ships; ``tools/test.py`` and ``--pretrained_model``
-    read it)."""
+    """Keep only ``epoch``, ``it``, ``model_state``, ``model_info``, ``train_settings`` (the
+    seed and schedule the weights were trained with: :func:`training_seed`) and ``version`` of a
+    training checkpoint (the small file a model zoo ships; ``tools/test.py`` and
+    ``--pretrained_model`` read it)."""
     ckpt = read_checkpoint(src)
     if "model_state" not in ckpt:
         raise KeyError(f"{src} is not a pcdet_atlas checkpoint (no 'model_state')")
-    keep = {
-        k: ckpt[k] for k in ("epoch", "it", "model_state", "model_info", "version") if k in ckpt
-    }
+    names = ("epoch", "it", "model_state", "model_info", "train_settings", "version")
+    keep = {k: ckpt[k] for k in names if k in ckpt}
     return save_checkpoint(keep, dst)

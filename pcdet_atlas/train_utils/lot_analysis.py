@@ -73,6 +73,7 @@ def voxel_confidences(model, batch: Mapping) -> tuple[dict[str, torch.Tensor], t
     filter.
     """
     model = _lot_model(model)
+    batch = model.split_frames(batch)  # the current frame's points; LOT's history maps
     out = model.lot.occupancy_maps(model.vfe(dict(batch)))
     conf = out["lot_voxel_confidence"]  # (V,)
     points = batch["points"]

@@ -19,7 +19,7 @@ def first_sequence(root):
 
 def test_fit_recovers_the_synthetic_sensor_table(synthetic_root):
     """The synthetic sensor casts the default Waymo TOP table; fitting its points recovers it."""
-    lidar = fit_lidar_from_sequence(synthetic_root, first_sequence(synthetic_root))
+    lidar = fit_lidar_from_sequence(synthetic_root, first_sequence(synthetic_root)).lidar
     truth = LidarModel.waymo_top()
     err = (lidar.inclinations - truth.inclinations).abs()
     spacing = float(torch.diff(truth.inclinations).min())
@@ -76,3 +76,32 @@ def test_top_rows_of_a_written_atlas_frame():
     info["atlas"]["num_injected_rows"] = 4
     with pytest.raises(ValueError, match="num_injected_rows = 4"):
         top_lidar_points(rows, info, "f")
+
+
+def _fit_cli(root, *args) -> str:
+    import subprocess
+    import sys
+
+    from pcdet_atlas.config import REPO_ROOT
+
+    run = subprocess.run(
+        [sys.executable, str(REPO_ROOT / "tools" / "fit_lidar_model.py"), "--data_path",
+         str(root), "--sequence", first_sequence(root), "--frames", "0", "3", *args],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-2000:]
+    return run.stdout
+
+
+def test_fit_cli_estimates_the_bins_and_warns_on_a_wrong_origin(synthetic_root):
+    """The synthetic sensor (Waymo TOP table, 2651 columns, at Waymo's mount): the CLI recovers
+    its columns with no warning; measured from the vehicle origin it warns and says why."""
+    import yaml
+
+    out = _fit_cli(synthetic_root, "--estimate_azimuth_bins")
+    assert "azimuth bins estimated: 2651" in out and "WARNING" not in out
+    lidar = LidarModel.from_config(yaml.safe_load(out)["LIDAR"])
+    err = (lidar.inclinations - LidarModel.waymo_top().inclinations).abs().max()
+    assert float(err) < np.deg2rad(0.01)
+    wrong = _fit_cli(synthetic_root, "--origin", "0", "0", "0", "--azimuth_bins", "2651")
+    assert "WARNING" in wrong and "--origin" in wrong

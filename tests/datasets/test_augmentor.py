@@ -19,6 +19,7 @@ from pcdet_atlas.datasets.augmentor.processors import (
     ShufflePoints,
     mask_boxes_outside_range,
     mask_points_by_range,
+    row_hash_order,
 )
 from pcdet_atlas.datasets.augmentor.world_transforms import (
     RandomWorldFlip,
@@ -212,6 +213,36 @@ def test_shuffle_is_a_permutation():
     np.testing.assert_array_equal(np.sort(out["points"][:, 0]), data["points"][:, 0])
     same = ShufflePoints(False)(dict(data), np.random.default_rng(0))
     np.testing.assert_array_equal(same["points"], data["points"])
+
+
+def _row_bytes(rows: np.ndarray) -> np.ndarray:
+    return (
+        np.ascontiguousarray(rows)
+        .view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1])))
+        .ravel()
+    )
+
+
+def test_shuffle_order_depends_on_the_rows_not_their_order():
+    """A subset of the rows comes out in its order within the whole set, whatever order the
+    rows came in: the newest frames of a longer sample keep a shorter sample's order."""
+    rng = np.random.default_rng(3)
+    points = rng.standard_normal((400, 6)).astype(np.float32)
+    points[10] = points[20]  # equal rows are interchangeable
+    full = points[row_hash_order(points, 11)]
+    subset = rng.random(400) < 0.4
+    part = points[subset]
+    shuffled = part[rng.permutation(len(part))]
+    for rows in (part, shuffled):
+        got = rows[row_hash_order(rows, 11)]
+        in_full = np.isin(_row_bytes(full), _row_bytes(part))
+        np.testing.assert_array_equal(got, full[in_full])
+    other_seed = points[row_hash_order(points, 12)]
+    assert not np.array_equal(other_seed, full)
+    np.testing.assert_array_equal(np.sort(full, axis=0), np.sort(points, axis=0))
+    for odd in (points[:, :5], points.astype(np.float64)):  # rows not a multiple of 8 bytes
+        order = row_hash_order(odd, 11)
+        np.testing.assert_array_equal(np.sort(order), np.arange(400))
 
 
 def test_registered_transforms():

@@ -306,7 +306,7 @@ def test_schema_5_files_load_with_lifecycle_intervals_unknown(tmp_path):
     path = tmp_path / "v5.json"
     path.write_text(json.dumps(old))
     loaded = load_results(path)
-    assert loaded["schema_version"] == SCHEMA_VERSION == 6
+    assert loaded["schema_version"] == SCHEMA_VERSION == 7
     assert loaded == _without_lifecycle_intervals(copy.deepcopy(results), "null")
     broken = copy.deepcopy(results)
     broken["variants"]["inj_rel_hard"]["lifecycle"]["runs"][2][0]["num_targets"] += 1
@@ -327,6 +327,26 @@ def test_schema_4_files_load_with_run_counts_unknown(tmp_path):
     assert {**loaded, "variants": None} == {**CP, "variants": None}
     assert CP["variants"]["clean"]["runs"] == []
     assert sum(r["num_targets"] for r in CP["variants"]["rem_10"]["runs"]) == 100
+
+
+def test_schema_6_files_load_with_the_training_unknown(tmp_path):
+    """What the weights were trained with (schema 7) is recorded by build_results; a schema-6
+    file loads with both keys null; a schema-6 file holding one is refused naming it."""
+    results = build_results(
+        model="CenterPoint", config="cfgs/cp.yaml", checkpoint=None, class_names=CLASSES,
+        variants=CP["variants"], created=CP["created"], training_seed=7, model_sha256="ab" * 32,
+    )  # fmt: skip
+    assert (results["training_seed"], results["model_sha256"]) == (7, "ab" * 32)
+    path = tmp_path / "v6.json"
+    old = {k: v for k, v in results.items() if k not in ("training_seed", "model_sha256")}
+    path.write_text(json.dumps({**old, "schema_version": 6}))
+    assert load_results(path) == {**results, "training_seed": None, "model_sha256": None}
+    path.write_text(json.dumps({**results, "schema_version": 6}))
+    with pytest.raises(ResultsError, match=r"v6.json: has 'training_seed', a key of schema 7"):
+        load_results(path)
+    for key, bad in (("training_seed", "7"), ("model_sha256", "abc")):
+        with pytest.raises(ResultsError, match=key):
+            validate_results({**results, key: bad})
 
 
 @pytest.mark.parametrize(

@@ -11,7 +11,7 @@ import pytest
 import torch
 from model_batches import make_batch
 
-from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.backbones_3d.polar_sector_mamba import polar_neighbours
 from pcdet_atlas.models.model_utils.mamba import Mamba, pack_sequences
@@ -187,6 +187,23 @@ def test_mamba_valid_outputs_do_not_depend_on_padding():
 
 
 # ------------------------------------------------------------------- the PHiM detector
+def with_lag(batch: dict, lag_s: float) -> torch.Tensor:
+    """``batch['points']`` with a time-lag column."""
+    points = batch["points"]
+    return torch.cat([points, torch.full_like(points[:, :1], lag_s)], dim=1)
+
+
+def with_history(batch: dict, frames: int) -> dict:
+    """``batch`` with ``frames`` previous frames (other points, lags 0.1 s apart) and a
+    time-lag column, for a LOT that forecasts from frames; ``batch`` as it is for 0."""
+    if not frames:
+        return batch
+    history = [make_batch(num_point_features=5, points_per_box=50, background=300, seed=1 + j)
+               for j in range(frames)]  # fmt: skip
+    points = [with_lag(f, 0.1 * j) for j, f in enumerate([batch, *history])]
+    return {**batch, "points": torch.cat(points)}
+
+
 @pytest.mark.parametrize(
     "path",
     [
@@ -207,6 +224,7 @@ def test_phim_configs_build_train_and_predict(path: Path):
         apply_stage_freezing(model, stage)
     assert (model.lot is not None) == ("LOT" in cfg.MODEL)
     batch = make_batch(num_point_features=5, points_per_box=50, background=300)
+    batch = with_history(batch, model.lot.history_frames if model.lot is not None else 0)
     model.train()
     losses = model.loss(batch)
     assert all(torch.isfinite(v) for v in losses.values())
@@ -379,9 +397,75 @@ def test_stage_configs_say_what_trains():
             ["detection"],
         ),
     }
-    for folder in (CFGS / "phim_lot", CFGS / "synthetic" / "phim_lot"):
+    for folder in (
+        CFGS / "phim_lot",
+        CFGS / "synthetic" / "phim_lot",
+        CFGS / "synthetic" / "phim_lot_fine",
+    ):
         for name, (train, freeze, terms) in expect.items():
             cfg = cfg_from_yaml_file(folder / f"{name}.yaml")
             stage = stage_from_config(cfg)
             assert (stage.name, set(stage.train), set(stage.freeze)) == (name, train, freeze)
             assert list(cfg.MODEL.LOSS_TERMS) == terms
+
+
+# ------------------------------------------------------------ LOT forecasting from frames
+SYN_FRAME_STAGES = [CFGS / "synthetic" / "phim_lot_fine" / f for f in
+                    ("stage1_score.yaml", "stage2_ssm.yaml", "stage3_finetune.yaml")]  # fmt: skip
+
+
+def frame_model(path: Path, **overrides):
+    """A LOT-from-frames config on a small polar grid (0.8 m x 2pi/192 x 1.5 m to 38.4 m)."""
+    small = {"VFE.RANGE_M": [0.0, 38.4], "VFE.GRID_SIZE": [48, 192, 4], **overrides}
+    return build(path, **small)
+
+
+def four_frames(history_seed: int = 1) -> tuple[dict, list[dict]]:
+    """A 4-frame batch (current frame of ``make_batch``, 3 previous frames of other points,
+    lags 0.1 / 0.2 / 0.3 s) and its frames as single-frame batches, current first."""
+    frames = [make_batch(num_point_features=5)] + [
+        make_batch(num_point_features=5, seed=history_seed + j, background=500) for j in range(3)
+    ]
+    points = torch.cat([with_lag(f, 0.1 * j) for j, f in enumerate(frames)])
+    return {**frames[0], "points": points}, frames
+
+
+def test_lot_forecasts_from_the_previous_frames_and_detects_on_the_current_one():
+    model, _ = frame_model(SYN_FRAME_STAGES[2], **{"LOT.FILTER_THRESH": 0.0})
+    model.eval()
+    stages = super(type(model), model).run_stages  # the stages without splitting frames
+    batch, frames = four_frames()
+    split = model.split_frames(batch)
+    assert torch.equal(split["points"], frames[0]["points"])  # the detector's points
+    history = split["lot_history"]  # (B, 3, A', R'), oldest first
+    for j in (1, 2, 3):
+        want = model.lot.current_map(model.vfe(dict(frames[j])))
+        torch.testing.assert_close(history[:, 3 - j], want, rtol=0, atol=0)
+    # nothing filtered: the history changes only the forecast, never what the detector sees
+    alone = stages({**frames[0], "lot_history": history})
+    full = model.run_stages(batch)
+    assert torch.equal(full["lot_current"], alone["lot_current"])
+    assert bool(full["lot_keep"].all())
+    for key in ("pred_boxes", "pred_scores"):
+        want = model.dense_head.predict(alone["head_outputs"])[0][key]
+        torch.testing.assert_close(model.predict(batch)[0][key], want)
+    other, _ = four_frames(history_seed=7)
+    moved = model.run_stages(other)
+    assert torch.equal(moved["lot_current"], full["lot_current"])
+    assert not torch.allclose(moved["lot_forecast_logits"], full["lot_forecast_logits"])
+    # frames before the sequence start: empty maps, finite forecast
+    first = model.run_stages({**frames[0], "points": with_lag(frames[0], 0.0)})
+    assert torch.isfinite(first["lot_final"]).all()
+    with pytest.raises(ValueError, match=r"t-3\.\.t.*time lag 0\.4"):
+        model.split_frames({**frames[0], "points": with_lag(frames[0], 0.4)})
+
+
+def test_lot_frames_need_the_matching_sequence_config():
+    cfg = cfg_from_yaml_file(SYN_FRAME_STAGES[0])
+    cfg.DATA_CONFIG.SEQUENCE_CONFIG.SAMPLE_OFFSET = [-2, 0]
+    with pytest.raises(ConfigError, match=r"BUFFER_LENGTH 3 .*SAMPLE_OFFSET \[-3, 0\]"):
+        build_network_from_config(cfg)
+    phim = cfg_from_yaml_file(SYN_PHIM_FINE)
+    phim.DATA_CONFIG.SEQUENCE_CONFIG = {"ENABLED": True, "SAMPLE_OFFSET": [-3, 0]}
+    with pytest.raises(ConfigError, match="PHiM reads one frame"):
+        build_network_from_config(phim)

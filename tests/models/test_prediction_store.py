@@ -222,10 +222,13 @@ def shipped(name: str, root):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["msf_4f", "ptt_32f"])
+@pytest.mark.parametrize("name", ["msf_4f", "msf_8f", "ptt_32f"])
 def test_two_stage_models_read_the_proposals_cp4f_stored(name, synthetic_root, tmp_path):
     """CP-4f evaluated with the store first; the two-stage model then runs its RPN on none of
-    the frames CP-4f predicted, and its detections equal those computed without the store."""
+    the frames CP-4f predicted, and its detections equal those computed without the store.
+    MSF-8f's 8-frame samples hold CP-4f's 4 frames in CP-4f's order (``shuffle_points`` orders
+    rows by their hash), but for frames 0-2: there the clipped history repeats frame 0 more
+    often in 8 frames than in 4 (OpenPCDet's clipping), so frame 0 of the 14 misses."""
     attack = ATTACKS / "clean.yaml"
     cp4f, cp4f_cfg, cp4f_data = shipped("cp4f", synthetic_root)
     store = PredictionStore(tmp_path)
@@ -242,5 +245,6 @@ def test_two_stage_models_read_the_proposals_cp4f_stored(name, synthetic_root, t
     # (every frame up to the last: 66), which CP-4f did not predict
     proposed = entry["extra"].get("proposal_bank", {}).get("rpn_frames", 14)
     assert proposed == (66 if name == "ptt_32f" else 14)
-    assert entry["extra"]["prediction_store"] == {"hits": 14, "misses": proposed - 14}
+    hits = 13 if name == "msf_8f" else 14
+    assert entry["extra"]["prediction_store"] == {"hits": hits, "misses": proposed - hits}
     assert_annos_equal(got, want)

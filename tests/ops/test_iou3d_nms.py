@@ -1,4 +1,5 @@
-"""Exact rotated IoU and BEV NMS against slow, obvious references (shapely, a Python NMS)."""
+"""Exact rotated IoU and BEV NMS against slow, obvious references (shapely, a Python NMS); the
+grouped sparse IoU against the dense one group by group."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from pcdet_atlas.ops.iou3d_nms import (
     boxes_aligned_iou3d,
     boxes_aligned_iou_bev,
     boxes_iou3d,
+    boxes_iou3d_grouped,
     boxes_iou_bev,
     boxes_overlap_bev,
     nms_bev,
@@ -305,3 +307,47 @@ def test_hypothesis_shifted_copies_have_exact_iou(dims, fx, fy, heading, offset,
     assert boxes_iou_bev(a, b).item() == pytest.approx(expected, abs=tol)
     assert boxes_iou3d(a, b).item() == pytest.approx(expected, abs=tol)
     assert boxes_aligned_iou3d(b, a).item() == pytest.approx(expected, abs=tol)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("min_iou", [0.0, 0.3, 0.5])
+def test_grouped_iou_is_the_dense_iou_of_each_group_bit_for_bit(device, min_iou):
+    """Groups of various sizes (one without A boxes, one without B boxes, B ids not starting at
+    0), shuffled: every pair the dense op gives a nonzero IoU comes back with exactly its value
+    (with ``min_iou``: every pair at or above it), no pair crosses groups, none is returned twice,
+    and the pairs left out are the dense op's zeros (or below ``min_iou``)."""
+    gen = torch.Generator().manual_seed(3)
+    a = _random_boxes(300, 1, spread=6.0).float()
+    b = _random_boxes(260, 2, spread=6.0).float()
+    b[:80] = a[:80] + 0.2 * torch.rand(80, 7, generator=gen)  # heavy overlaps, near-ties
+    b[80:90] = b[70:80]  # exact duplicates within a group: equal IoUs
+    group_a = torch.randint(0, 5, (300,), generator=gen) * 2  # groups 0, 2, ..., 8
+    group_b = torch.randint(1, 6, (260,), generator=gen) * 2  # groups 2, ..., 10
+    group_b[:80] = group_a[:80].clamp(min=2)  # the overlapping copies in their box's group
+    group_b[80:90] = group_b[70:80]
+    ia, ib, iou = boxes_iou3d_grouped(
+        a.to(device), group_a.to(device), b.to(device), group_b.to(device), min_iou=min_iou
+    )
+    ia, ib, iou = ia.cpu(), ib.cpu(), iou.cpu()
+    assert iou.dtype == torch.float32 and torch.all(ia[1:] >= ia[:-1])
+    assert torch.equal(group_a[ia], group_b[ib])
+    assert len(set(zip(ia.tolist(), ib.tolist()))) == len(ia)
+    got = torch.full((300, 260), -1.0)
+    got[ia, ib] = iou
+    for g in range(12):
+        rows, cols = (group_a == g).nonzero()[:, 0], (group_b == g).nonzero()[:, 0]
+        dense = boxes_iou3d(a[rows], b[cols])  # (|rows|, |cols|)
+        mine = got[rows][:, cols]
+        back = mine >= 0
+        assert torch.equal(mine[back], dense[back])  # bit for bit where returned
+        assert bool((dense[~back] < max(min_iou, 1e-30)).all())  # left out: 0 or below min_iou
+        if min_iou == 0:
+            assert bool((dense[~back] == 0).all())
+    assert bool((iou >= 0.5).sum() > 20)  # the heavy overlaps are in
+    empty = torch.zeros(0, dtype=torch.long)
+    ia, ib, iou = boxes_iou3d_grouped(a[:0], empty, b, group_b)
+    assert ia.shape == ib.shape == iou.shape == (0,)
+    with pytest.raises(ValueError, match="group_a: expected an int64 tensor of shape"):
+        boxes_iou3d_grouped(a, group_a.int(), b, group_b)
+    with pytest.raises(ValueError, match="group ids must be >= 0"):
+        boxes_iou3d_grouped(a, group_a - 1, b, group_b)

@@ -128,3 +128,65 @@ def test_spherical_on_cpu_is_the_shared_numpy_arithmetic():
     )
     with pytest.raises(ValueError, match="read-only"):
         lidar.origin_np[0] = 0.0
+
+
+# ------------------------------------------------------------------ laser offsets and presets
+def _offset_beam_reference(lidar, xyz):
+    """Per point, the beam whose elevation at the point's horizontal distance is nearest (a
+    plain loop) and whether it lies within half the outermost spacings of the fan there."""
+    incl = lidar.inclinations.tolist()
+    beams, fov = [], []
+    for x, y, z in (np.asarray(xyz) - lidar.origin_np).tolist():
+        d = math.hypot(x, y)
+        phi = math.atan2(z, d)
+        pred = [math.atan(math.tan(t) + c / d) for t, c in zip(incl, lidar.offsets.tolist())]
+        err = [abs(phi - p) for p in pred]
+        beams.append(err.index(min(err)))
+        fov.append(pred[0] - (incl[1] - incl[0]) / 2 <= phi <= pred[-1] + (incl[-1] - incl[-2]) / 2)
+    return np.array(beams), np.array(fov)
+
+
+def test_offset_binning_matches_a_per_point_loop():
+    gen = torch.Generator().manual_seed(0)
+    incl = np.deg2rad([-20.0, -12.0, -6.0, -3.0, -1.0, 0.0, 1.5])
+    lidar = LidarModel(incl, azimuth_bins=360, origin=(1.0, 0.5, 2.0),
+                       offsets=[0.1, 0.12, 0.15, 0.2, 0.2, 0.25, 0.3])  # fmt: skip
+    xyz = torch.rand((3000, 3), generator=gen, dtype=torch.float64) * torch.tensor(
+        [60.0, 60.0, 6.0], dtype=torch.float64
+    ) - torch.tensor([30.0, 30.0, 1.0], dtype=torch.float64)
+    bins, fov, _ = lidar.bin_index(xyz)
+    beams, ref_fov = _offset_beam_reference(lidar, xyz.numpy())
+    np.testing.assert_array_equal((bins // lidar.azimuth_bins).numpy(), beams)
+    np.testing.assert_array_equal(fov.numpy(), ref_fov)
+    az, el, rng = lidar.spherical(xyz)
+    np.testing.assert_array_equal(lidar.beam_index(el, rng * torch.cos(el)).numpy(), beams)
+    with pytest.raises(ValueError, match="horizontal distance"):
+        lidar.beam_index(el)
+    # near points see the offset lasers far above their angle: the single-origin table differs
+    single = LidarModel(incl, azimuth_bins=360, origin=(1.0, 0.5, 2.0))
+    assert (single.bin_index(xyz)[0] != bins).float().mean() > 0.1
+
+
+def test_zero_offsets_are_the_single_origin_model():
+    incl = np.deg2rad(waymo_top_inclinations_deg())
+    zero = LidarModel(incl, offsets=np.zeros(64))
+    assert zero.offsets is None and "OFFSETS" not in zero.to_config()
+    with pytest.raises(ValueError, match="one per beam"):
+        LidarModel(incl, offsets=np.zeros(3))
+
+
+def test_presets_and_offsets_from_config():
+    lidar = LidarModel.from_config({"PRESET": "hdl64e", "ORIGIN": [0.0, 0.0, 1.9]})
+    assert lidar.num_beams == 64 and lidar.azimuth_bins == 2005 and lidar.offsets is not None
+    assert LidarModel.from_config({"PRESET": "hdl32e", "AZIMUTH_BINS": 1085}).azimuth_bins == 1085
+    with pytest.raises(ConfigError, match="hdl32e, hdl64e, waymo_top"):
+        LidarModel.from_config({"PRESET": "vlp16"})
+    with pytest.raises(ConfigError, match="preset carries its own offsets"):
+        LidarModel.from_config({"PRESET": "hdl32e", "OFFSETS": [0.0] * 32})
+    with pytest.raises(ConfigError, match="not"):
+        LidarModel.from_config({"PRESET": "hdl32e", "INCLINATIONS_DEG": [0.0, 1.0]})
+    with pytest.raises(ConfigError, match="2 laser heights"):
+        LidarModel.from_config({"INCLINATIONS_DEG": [0.0, 1.0], "OFFSETS": [0.1]})
+    rebuilt = LidarModel.from_config(lidar.to_config())
+    assert torch.equal(rebuilt.offsets, lidar.offsets)
+    assert torch.equal(rebuilt.inclinations, lidar.inclinations)

@@ -1,6 +1,7 @@
 """Training checkpoints: durable writes, the CUDA generators' states, which recorded settings a
 resume compares, and reading them with ``weights_only=True``."""
 
+import copy
 import os
 import stat
 
@@ -9,6 +10,7 @@ import torch
 from device_params import DEVICES
 from malicious_files import malicious_checkpoint
 
+from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.models.optimization import build_optimizer, build_scheduler
 from pcdet_atlas.train_utils import (
     check_resume_settings,
@@ -18,6 +20,7 @@ from pcdet_atlas.train_utils import (
     load_checkpoint,
     save_checkpoint,
 )
+from pcdet_atlas.train_utils.checkpoint import model_config_sha256, training_seed
 from pcdet_atlas.train_utils.stages import TrainingStage, load_stage_init
 from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
@@ -208,3 +211,32 @@ def test_a_training_checkpoint_that_would_run_code_is_refused(tmp_path):
     with pytest.raises(RefusedGlobalError, match=refused):
         load_stage_init(model, stage, evil)
     assert not marker.exists()
+
+
+def test_the_training_seed_and_model_digest_that_results_record(tmp_path):
+    """results.json's training_seed: the checkpoint's train_settings, else the config's
+    ATLAS.TRAINING_SEED (a contradiction or a non-integer is refused, naming the file); its
+    model_sha256: the same for one model config under another checkpoint, display name or data
+    path, another for another model; export keeps the record."""
+    assert training_seed({"train_settings": {"seed": 3}}, None, "a.pth") == 3
+    assert training_seed({"train_settings": {"seed": 3}}, 3, "a.pth") == 3
+    assert training_seed({"model_state": {}}, 666, "a.pth") == 666
+    assert training_seed({"train_settings": None}, None, "a.pth") is None
+    with pytest.raises(ValueError, match=r"a\.pth: trained with seed 3 .* says 4"):
+        training_seed({"train_settings": {"seed": 3}}, 4, "a.pth")
+    with pytest.raises(ValueError, match="TRAINING_SEED '1': expected an integer"):
+        training_seed({}, "1", "a.pth")
+    cfg = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml")
+    digest = model_config_sha256(cfg)
+    other = copy.deepcopy(cfg)
+    other.ATLAS.CHECKPOINT, other.ATLAS.MODEL_NAME = "ckpt/seed2.pth", "CenterPoint seed 2"
+    other.DATA_CONFIG.DATA_PATH = "/elsewhere"
+    assert model_config_sha256(other) == digest
+    other.MODEL.DENSE_HEAD.SHARED_CONV_CHANNEL = 64
+    assert model_config_sha256(other) != digest
+    cp4f = cfg_from_yaml_file(REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "cp4f.yaml")
+    assert model_config_sha256(cp4f) != digest
+    path = tmp_path / "full.pth"
+    torch.save({"model_state": {}, "optimizer_state": {}, "train_settings": {"seed": 5}}, path)
+    small = torch.load(export_model_checkpoint(path, tmp_path / "small.pth"), weights_only=True)
+    assert training_seed(small, None, "small.pth") == 5 and "optimizer_state" not in small

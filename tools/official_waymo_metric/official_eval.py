@@ -13,7 +13,8 @@ here, plainly and independently of pcdet_atlas: keep GT of the evaluated classes
 difficulty 0 -> 2 if <= 5 points else 1, distance mask < 1000.5 m, heading ``limit_period`` in
 float32, sigmoid on scores if their max (in range, any class) is > 1.
 
-CLI: ``python official_eval.py IN.npz OUT.npz [--matcher hungarian|score_first] [--repeat N]``
+CLI: ``python official_eval.py IN.npz OUT.npz [--matcher hungarian|score_first] [--repeat N]
+[--threads N]``
 writes ``names`` (B,), ``ap``, ``aph`` (B,), ``pr`` (B, 101, 5) = (P, R, TP, FP, FN) per cutoff,
 ``pr_h`` (B, 101, 2) and ``seconds`` (best wall time of the op over ``--repeat`` runs).
 """
@@ -126,7 +127,11 @@ def main() -> None:
     parser.add_argument("output")
     parser.add_argument("--matcher", default="hungarian", choices=["hungarian", "score_first"])
     parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument("--threads", type=int, default=None, help="TF intra/inter-op threads")
     args = parser.parse_args()
+    if args.threads:  # before the first op: TensorFlow fixes its pools then
+        tf.config.threading.set_intra_op_parallelism_threads(args.threads)
+        tf.config.threading.set_inter_op_parallelism_threads(args.threads)
     with np.load(args.input) as data:
         scene = {k: data[k] for k in data.files}
     result = run_official(scene, args.matcher, args.repeat)

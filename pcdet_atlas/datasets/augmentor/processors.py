@@ -7,6 +7,7 @@ import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+import torch
 
 from pcdet_atlas.config import ConfigError, key_source
 from pcdet_atlas.datasets.multiframe import compress_rows
@@ -19,6 +20,7 @@ __all__ = [
     "VoxelSizePlaceholder",
     "mask_points_by_range",
     "processor_voxel_size",
+    "row_hash_order",
 ]
 
 
@@ -108,9 +110,52 @@ class MaskPointsAndBoxesOutsideRange:
         return data_dict
 
 
+_MIX_1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX_2 = np.uint64(0x94D049BB133111EB)
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+
+
+def _splitmix64(z: np.ndarray) -> np.ndarray:
+    """SplitMix64's finaliser on a ``uint64`` array (wrapping arithmetic)."""
+    z = z + _GOLDEN
+    z = (z ^ (z >> np.uint64(30))) * _MIX_1
+    z = (z ^ (z >> np.uint64(27))) * _MIX_2
+    return z ^ (z >> np.uint64(31))
+
+
+def row_hash_order(points: np.ndarray, seed: int) -> np.ndarray:
+    """``(N,)`` int64: the rows of ``points`` ``(N, C)`` sorted by a seeded hash of their bytes.
+
+    A permutation that depends only on the set of rows, not on their input order: any subset of
+    the rows comes out in the same relative order as within the whole set (equal rows are
+    interchangeable; the sort is stable, so distinct rows whose 64-bit hashes collide keep
+    their input order). A multi-frame sample's newest frames therefore keep the order the
+    shorter sample of those frames gets, so a model reading them sees the same array.
+    """
+    rows = np.ascontiguousarray(points)
+    if rows.ndim != 2:
+        raise ValueError(f"shuffle_points needs (N, C) points, got shape {rows.shape}")
+    row_bytes = rows.view(np.uint8).reshape(rows.shape[0], -1)
+    pad = -row_bytes.shape[1] % 8
+    if pad:
+        row_bytes = np.concatenate([row_bytes, np.zeros((rows.shape[0], pad), np.uint8)], axis=1)
+    words = row_bytes.view(np.uint64)  # (N, ceil(C * itemsize / 8))
+    with np.errstate(over="ignore"):
+        h = np.full(rows.shape[0], np.uint64(seed), dtype=np.uint64)
+        for column in range(words.shape[1]):
+            h = _splitmix64(h ^ words[:, column])
+    keys = torch.from_numpy(h.view(np.int64))
+    return torch.sort(keys, stable=True).indices.numpy()
+
+
 @TRANSFORMS.register("shuffle_points")
 class ShufflePoints:
-    """Randomly permute the points (``SHUFFLE_ENABLED: {train: bool, test: bool}``)."""
+    """Randomly permute the points (``SHUFFLE_ENABLED: {train: bool, test: bool}``).
+
+    The permutation sorts the rows by a hash of their bytes seeded from the frame's generator
+    (:func:`row_hash_order`), so the points a sample shares with a shorter sample of the same
+    frame come out in the same order (docs/data.md).
+    """
 
     CONFIG_KEYS = ("SHUFFLE_ENABLED",)
 
@@ -128,7 +173,8 @@ class ShufflePoints:
     def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
         if self.enabled and data_dict.get("points") is not None:
             points = data_dict["points"]
-            data_dict["points"] = np.take(points, rng.permutation(points.shape[0]), axis=0)
+            order = row_hash_order(points, int(rng.integers(0, 2**63)))
+            data_dict["points"] = np.take(points, order, axis=0)
         return data_dict
 
 

@@ -1,17 +1,22 @@
 """``results.json``: one file per evaluated model. ``schema`` states and checks it (a JSON Schema
 plus the invariants between fields), ``build`` makes its entries, ``io`` reads and writes it and
 ``tables`` prints the paper's tables from it; ``report`` and ``figures`` write the paper's
-report (tables and PNG figures) from several of them (``tools/report.py``).
+report (tables and PNG figures) from several of them (``tools/report.py``), and ``archive``
+keeps the files a report was made from beside it, gzip-compressed.
 
-Schema (version 5; every key required unless marked optional; unknown keys are errors)::
+Schema (version 7; every key required unless marked optional; unknown keys are errors)::
 
     {
-      "schema_version": 5,
+      "schema_version": 7,
       "model": str,                      # display name, e.g. "CenterPoint-4f"
       "checkpoint": str | null,          # path of the evaluated weights
       "config": str,                     # path of the model config
       "pcdet_atlas_version": str,
       "created": str,                    # ISO 8601 time, e.g. "2026-11-21T08:00:00+00:00"
+      "training_seed": int | null,       # the seed the weights were trained with (the
+                                         # checkpoint's train_settings, else ATLAS.TRAINING_SEED)
+      "model_sha256": str | null,        # digest of the config's CLASS_NAMES, MODEL, OPTIMIZATION
+                                         # and DATA_CONFIG (no DATA_PATH): same model, seed aside
       "class_names": [str, ...],         # e.g. ["Vehicle", "Pedestrian", "Cyclist"]
       "variants": {                      # variant name -> entry, e.g. "clean", "rem_40"
         <variant>: {
@@ -33,7 +38,8 @@ Schema (version 5; every key required unless marked optional; unknown keys are e
           "iou_threshold": float, "score_threshold": float | null, "target_class": str | null,
           "confidence": {...} | null,    # attack_metrics.injection_confidence / removal_confidence
           "lifecycle": {...} | null,     # attack_metrics.lifecycle_asr (clean_score_counts:
-                                         # the clean run's scores of the same targets per k)
+                                         # the clean run's scores of the same targets per k;
+                                         # asr_ci and runs per k, null before schema 6)
           "extra": {...}                 # optional, free-form
         }
       },
@@ -44,6 +50,7 @@ mAP values are fractions as :func:`waymo_evaluate` returns them; the printers sh
 one decimal and ASR with two decimals, as the paper's tables do.
 """
 
+from pcdet_atlas.evaluation.results.archive import archive_results, archive_run_results
 from pcdet_atlas.evaluation.results.build import (
     build_results,
     build_variant_result,
@@ -74,6 +81,8 @@ __all__ = [
     "RESULTS_SCHEMA",
     "ResultsError",
     "SCHEMA_VERSION",
+    "archive_results",
+    "archive_run_results",
     "build_results",
     "build_variant_result",
     "collect_results",

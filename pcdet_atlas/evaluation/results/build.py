@@ -133,8 +133,14 @@ def build_results(
     variants: Mapping[str, Mapping],
     created: str | None = None,
     extra: Mapping | None = None,
+    training_seed: int | None = None,
+    model_sha256: str | None = None,
 ) -> dict:
-    """A complete, validated results dict (``created`` defaults to now, UTC)."""
+    """A complete, validated results dict (``created`` defaults to now, UTC). ``training_seed``:
+    the seed the checkpoint was trained with; ``model_sha256``: the digest of the model's config
+    without the seed (``pcdet_atlas.train_utils.checkpoint.model_config_sha256``): two results
+    with the same digest and different seeds measure the seed's share of a difference (the
+    report's "Seed-to-seed spread"); None: not recorded."""
     results = {
         "schema_version": SCHEMA_VERSION,
         "model": model,
@@ -142,6 +148,8 @@ def build_results(
         "config": str(config),
         "pcdet_atlas_version": __version__,
         "created": created or datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "training_seed": None if training_seed is None else int(training_seed),
+        "model_sha256": model_sha256,
         "class_names": list(class_names),
         "variants": {name: dict(entry) for name, entry in variants.items()},
     }

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import gzip
 import json
+import zlib
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -11,14 +13,19 @@ from pcdet_atlas.evaluation.results.schema import SCHEMA_VERSION, ResultsError, 
 from pcdet_atlas.utils.common import write_atomic
 
 __all__ = [
+    "RESULTS_FILE_PATTERNS",
     "check_version_content",
+    "find_results_files",
     "load_results",
     "load_results_dir",
+    "read_results_bytes",
     "save_results",
     "upgrade_v1",
     "upgrade_v2",
     "upgrade_v3",
     "upgrade_v4",
+    "upgrade_v5",
+    "upgrade_v6",
 ]
 
 
@@ -30,12 +37,42 @@ def save_results(results: Mapping, path: str | Path) -> Path:
     return write_atomic(path, lambda f: f.write(text.encode()))
 
 
+#: The names of results files a folder is searched for (``**/`` below it): the ``results.json``
+#: of ``tools/test.py`` and the archived ``<model>.results.json.gz`` of a report
+#: (:mod:`~pcdet_atlas.evaluation.results.archive`), either plain or gzip-compressed.
+RESULTS_FILE_PATTERNS = ("results.json", "results.json.gz", "*.results.json", "*.results.json.gz")
+
+
+def find_results_files(folder: str | Path) -> list[Path]:
+    """Every results file below ``folder`` (:data:`RESULTS_FILE_PATTERNS`), sorted by path."""
+    folder = Path(folder)
+    return sorted({p for pattern in RESULTS_FILE_PATTERNS for p in folder.glob(f"**/{pattern}")})
+
+
+def read_results_bytes(path: str | Path) -> bytes:
+    """The JSON bytes of a results file: a name ending in ``.gz`` is gunzipped (a file that is not
+    a whole gzip stream is a :class:`ResultsError` naming it), any other is read as it is."""
+    path = Path(path)
+    data = path.read_bytes()
+    if not path.name.endswith(".gz"):
+        return data
+    try:
+        return gzip.decompress(data)
+    except (OSError, EOFError, zlib.error) as err:  # BadGzipFile is an OSError; EOF: truncated
+        raise ResultsError(
+            f"{path}: not a readable gzip file ({type(err).__name__}: {err}); a name ending in "
+            ".gz must hold a whole gzip-compressed results.json (truncated or not compressed?)"
+        ) from err
+
+
 def load_results(path: str | Path) -> dict:
-    """Read and validate one ``results.json``; errors name the file and the key."""
+    """Read and validate one ``results.json`` (gzip-compressed when its name ends in ``.gz``),
+    upgrading an older schema version; errors name the file and the key."""
     path = Path(path)
     try:
-        with open(path) as f:
-            results = json.load(f)
+        results = json.loads(read_results_bytes(path).decode("utf-8"))
+    except UnicodeDecodeError as err:
+        raise ResultsError(f"{path}: not UTF-8 text ({err})") from err
     except json.JSONDecodeError as err:
         raise ResultsError(f"{path}: not valid JSON ({err})") from err
     for version, upgrade in enumerate(UPGRADES, start=1):  # each version to the next in turn
@@ -54,6 +91,8 @@ _ADDED_IN = {
     "num_reused_frames": 4, "num_recomputed_frames": 4, "lifecycle.clean_score_counts": 4,
     "runs": 5, "lifecycle.asr_ci": 6, "lifecycle.runs": 6,
 }  # fmt: skip
+#: The top-level keys each schema version added (as :data:`_ADDED_IN` for a variant's).
+_TOP_ADDED_IN = {"training_seed": 7, "model_sha256": 7}
 
 
 def check_version_content(results: dict, where: str = "results") -> None:
@@ -64,6 +103,14 @@ def check_version_content(results: dict, where: str = "results") -> None:
     version, variants = results.get("schema_version"), results.get("variants")
     if type(version) is not int or version >= SCHEMA_VERSION or not isinstance(variants, dict):
         return  # validation names what is wrong
+    for key, added in _TOP_ADDED_IN.items():
+        if results.get(key) is not None and added > version:
+            raise ResultsError(
+                f"{where}: has {key!r}, a key of schema {added} and later, but the file says "
+                f"schema_version {version}: the version contradicts the content (an upgrade "
+                "would overwrite the key); set schema_version to the version the file was "
+                "written with"
+            )
     for name, entry in variants.items():
         if not isinstance(entry, dict):
             continue
@@ -97,10 +144,16 @@ def upgrade_v1(results: dict, *, where: str = "results") -> dict:
 
 
 def _with_nulls(
-    results: dict, version: int, where: str, keys: tuple[str, ...], lifecycle_keys: tuple[str, ...]
+    results: dict,
+    version: int,
+    where: str,
+    keys: tuple[str, ...],
+    lifecycle_keys: tuple[str, ...],
+    top_keys: tuple[str, ...] = (),
 ) -> dict:
     """``results`` as schema ``version``: every variant gains ``keys`` and its lifecycle (when
-    it has one) ``lifecycle_keys``, all None (the older schema did not record them)."""
+    it has one) ``lifecycle_keys``, and the file ``top_keys``, all None (the older schema did not
+    record them)."""
     check_version_content(results, where)
     variants = results.get("variants")
     if not isinstance(variants, dict):
@@ -112,7 +165,8 @@ def _with_nulls(
             if lifecycle_keys and isinstance(entry.get("lifecycle"), dict):
                 entry["lifecycle"] = {**entry["lifecycle"], **dict.fromkeys(lifecycle_keys)}
         upgraded[name] = entry
-    return {**results, "schema_version": version, "variants": upgraded}
+    top = dict.fromkeys(top_keys)
+    return {**results, **top, "schema_version": version, "variants": upgraded}
 
 
 def upgrade_v2(results: dict, *, where: str = "results") -> dict:
@@ -142,8 +196,14 @@ def upgrade_v5(results: dict, *, where: str = "results") -> dict:
     return _with_nulls(results, 6, where, (), ("asr_ci", "runs"))
 
 
+def upgrade_v6(results: dict, *, where: str = "results") -> dict:
+    """A schema-6 results dict as schema 7: the file gains ``training_seed`` and
+    ``model_sha256`` as None (schema 6 did not record what the weights were trained with)."""
+    return _with_nulls(results, 7, where, (), (), ("training_seed", "model_sha256"))
+
+
 #: ``UPGRADES[v - 1]`` turns a schema-``v`` dict into schema ``v + 1``
-UPGRADES = (upgrade_v1, upgrade_v2, upgrade_v3, upgrade_v4, upgrade_v5)
+UPGRADES = (upgrade_v1, upgrade_v2, upgrade_v3, upgrade_v4, upgrade_v5, upgrade_v6)
 
 
 def load_results_dir(root: str | Path, pattern: str = "**/results.json") -> list[dict]:

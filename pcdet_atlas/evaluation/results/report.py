@@ -6,8 +6,10 @@ mean ASR per family), the injection table (paper Table 3) and the removal table 
 per-variant L2 mAP and ASR with its run-level interval (best and second best marked), the LOT
 ablation (Tables 5 and 6) when both models of the pair are given, the lifecycle's onset and
 decay (Finding 3: ASR at k = 0, 1, W, W + 1), the share of phantoms detected with confidence above
-0.7 (Fig. 5), the centre-gap table, the robustness ranks, and each model's full table with its
-runs and targets. A model that was not evaluated on a variant shows ``missing`` there, never a
+0.7 (Fig. 5), the centre-gap table, the robustness ranks, the paired model comparison, the
+seed-to-seed spread (when two results are one model config trained with different seeds:
+:mod:`~pcdet_atlas.evaluation.results.seeds`), and each model's full table with its runs and
+targets. A model that was not evaluated on a variant shows ``missing`` there, never a
 zero; a mean or pooled value over a family needs every variant of the family that any model has,
 each with an ASR, and otherwise reads ``missing (n of m variants)``. The ranks name the variants
 they are over and those left out; under each figure the report names what it leaves out.
@@ -22,8 +24,9 @@ from pcdet_atlas.config import cfg_from_yaml_file, resolve_repo_path
 from pcdet_atlas.evaluation.intervals import asr_interval
 from pcdet_atlas.evaluation.results import figures
 from pcdet_atlas.evaluation.results.build import paired_from_results, ranks_from_results
-from pcdet_atlas.evaluation.results.io import load_results
+from pcdet_atlas.evaluation.results.io import find_results_files, load_results
 from pcdet_atlas.evaluation.results.schema import ResultsError
+from pcdet_atlas.evaluation.results.seeds import seed_spread_text
 from pcdet_atlas.evaluation.results.tables import (
     MISSING,
     _render,
@@ -74,15 +77,20 @@ FIGURES = {
 
 
 def collect_results(paths: Sequence[str | Path]) -> list[tuple[Path, dict]]:
-    """``(file, results)`` for every given ``results.json`` and every one under a given folder
-    (sorted), each validated. Two files of the same model name are an error naming both."""
+    """``(file, results)`` for every given results file and every one under a given folder
+    (:data:`~pcdet_atlas.evaluation.results.io.RESULTS_FILE_PATTERNS`: ``results.json`` and
+    ``<model>.results.json``, either also gzip-compressed as ``.gz``; sorted), each validated.
+    Two files of the same model name are an error naming both."""
     found: list[Path] = []
     for arg in paths:
         path = Path(arg)
         if path.is_dir():
-            inside = sorted(path.glob("**/results.json"))
+            inside = find_results_files(path)
             if not inside:
-                raise ResultsError(f"{path}: no results.json under this folder")
+                raise ResultsError(
+                    f"{path}: no results.json under this folder (nor results.json.gz, "
+                    "<model>.results.json or <model>.results.json.gz)"
+                )
             found += inside
         elif path.is_file():
             found.append(path)
@@ -464,6 +472,9 @@ def write_report(
         lines += [f"## {title}", "", table, ""]
     lines += ["## Robustness ranks", "", _ranks_text(results_list), ""]
     lines += ["## Paired model comparison", "", _paired_text(results_list), ""]
+    seeds = seed_spread_text(results_list)
+    if seeds is not None:
+        lines += ["## Seed-to-seed spread", "", seeds, ""]
     drawn: dict = {}
     lines += ["## Figures", ""]
     for name, (caption, draw) in FIGURES.items():

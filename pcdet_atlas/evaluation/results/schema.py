@@ -20,7 +20,7 @@ __all__ = [
     "validate_variant",
 ]
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 METRIC_KEYS = ("L1/mAP", "L1/mAPH", "L2/mAP", "L2/mAPH")
 CLASS_METRIC_KEYS = ("L1/AP", "L1/APH", "L2/AP", "L2/APH")
 ATTACK_KEYS = (
@@ -204,6 +204,10 @@ RESULTS_SCHEMA = {
             "config": _NAME,
             "pcdet_atlas_version": _NAME,
             "created": _NAME,
+            # the seed the weights were trained with (null: not recorded)
+            "training_seed": {"type": ["integer", "null"]},
+            # the model config's digest, seed aside (null: not recorded)
+            "model_sha256": {"type": ["string", "null"], "pattern": "^[0-9a-f]{64}$"},
             "class_names": {"type": "array", "items": _NAME, "minItems": 1},
             "variants": {
                 "type": "object",

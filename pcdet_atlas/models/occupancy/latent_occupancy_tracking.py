@@ -3,12 +3,22 @@ Implementation Details"; docs/model_zoo.md "PHiM+LOT").
 
 Between the VFE and the backbone: a score MLP (Linear, GELU, Linear) gives every polar voxel an
 occupancy probability; the scores fill a dense ``(z, azimuth, range)`` grid, which is collapsed
-over height by a masked mean and average-pooled over azimuth and range. The map is cut into the
-frame's sectors; a fixed-length buffer holds the ``K`` sector maps streamed before each sector
-(empty at the start of every frame) and a :class:`~pcdet_atlas.models.ssm.ConvSSM` forecasts the
-sector from them. ``X_final = 0.5 X_current + 0.5 X_forecast``; a voxel's confidence is the
-value of the confidence map at its cell, and voxels below ``filter_thresh`` are removed (with
-their points) before the detector sees them.
+over height by a masked mean and average-pooled over azimuth and range: the frame's occupancy
+map. A :class:`~pcdet_atlas.models.ssm.ConvSSM` forecasts the current map from ``K`` earlier
+maps (``forecast_from``):
+
+- ``frames``: the maps of the ``K`` previous frames, each made by the same VFE and score MLP
+  from that frame's points, which the data pipeline has already moved into the current vehicle
+  frame by ego motion (``SEQUENCE_CONFIG.SAMPLE_OFFSET [-K, 0]``), so a cell of every map is the
+  same place in the world. The forecast needs nothing of the current frame: a streaming
+  detector has it before the frame's first sector arrives.
+- ``sectors``: the ``K`` sector maps streamed before each sector of the same frame, laid on the
+  same relative grid with nothing aligning them (the first design; it learns little beyond a
+  range prior, docs/model_zoo.md "PHiM+LOT").
+
+``X_final = 0.5 X_current + 0.5 X_forecast``; a voxel's confidence is the value of the
+confidence map at its cell, and voxels below ``filter_thresh`` are removed (with their points)
+before the detector sees them.
 """
 
 from __future__ import annotations
@@ -29,17 +39,22 @@ from pcdet_atlas.models.occupancy.occupancy_targets import occupancy_target
 from pcdet_atlas.models.ssm import ConvSSM
 from pcdet_atlas.registry import MODEL_STAGES
 
-__all__ = ["LatentOccupancyTracking"]
+__all__ = ["DEFAULT_BUFFER_LENGTH", "DEFAULT_FORECAST_FROM", "LatentOccupancyTracking"]
 
 CONFIDENCE_MAPS = ("final", "forecast")
+FORECAST_SOURCES = ("frames", "sectors")
+DEFAULT_BUFFER_LENGTH = 4
+DEFAULT_FORECAST_FROM = "frames"
 
 
 @MODEL_STAGES.register()
 class LatentOccupancyTracking(nn.Module):
     """Reads ``voxel_features`` (V, C), ``voxel_coords`` (V, 4) ``[b, z, a, r]``,
-    ``voxel_point_idx``, ``voxel_point_xy`` and ``batch_size``; writes the kept voxels (and
-    points) under the same keys, and ``lot_current``, ``lot_forecast_logits``, ``lot_final``
-    (B, A', R') maps, ``lot_voxel_confidence`` (V,) and ``lot_keep`` (V,) of the input voxels."""
+    ``voxel_point_idx``, ``voxel_point_xy``, ``batch_size`` and, forecasting from frames,
+    ``lot_history`` (B, K, A', R'): the previous frames' :meth:`current_map`, oldest first (the
+    detector makes them); writes the kept voxels (and points) under the same keys, and
+    ``lot_current``, ``lot_forecast_logits``, ``lot_final`` (B, A', R') maps,
+    ``lot_voxel_confidence`` (V,) and ``lot_keep`` (V,) of the input voxels."""
 
     def __init__(
         self,
@@ -48,12 +63,13 @@ class LatentOccupancyTracking(nn.Module):
         grid: PolarGrid,
         hidden_channels: int = 32,
         pool_size: tuple[int, int] = (2, 2),
-        buffer_length: int = 4,
+        buffer_length: int = DEFAULT_BUFFER_LENGTH,
         state_channels: int = 16,
         kernel_size: int = 3,
         filter_thresh: float = 0.1,
         confidence_map: str = "final",
         gt_min_sigma: float = 0.5,
+        forecast_from: str = DEFAULT_FORECAST_FROM,
     ):
         """
         Args:
@@ -61,10 +77,11 @@ class LatentOccupancyTracking(nn.Module):
             grid: the VFE's polar grid.
             pool_size: ``(azimuth, range)`` grid cells per occupancy cell; a sector's azimuth
                 bins must be a multiple of the first.
-            buffer_length: K, historical sector maps the ConvSSM reads.
+            buffer_length: K, the earlier maps the ConvSSM reads: previous frames or sectors.
             filter_thresh: voxels whose confidence is below it are removed.
             confidence_map: ``final`` (0.5 current + 0.5 forecast) or ``forecast``.
             gt_min_sigma: smallest Gaussian sigma of the occupancy target, in cells.
+            forecast_from: ``frames`` or ``sectors`` (module docstring).
         """
         super().__init__()
         pa, pr = (int(v) for v in pool_size)
@@ -79,6 +96,11 @@ class LatentOccupancyTracking(nn.Module):
             )
         if buffer_length < 1:
             raise ValueError(f"LOT: BUFFER_LENGTH must be >= 1, got {buffer_length}")
+        if forecast_from not in FORECAST_SOURCES:
+            raise ValueError(
+                f"LOT: FORECAST_FROM must be one of {FORECAST_SOURCES}, got {forecast_from!r}"
+            )
+        self.forecast_from = forecast_from
         self.grid = grid
         self.pool_size = (pa, pr)
         self.buffer_length = int(buffer_length)
@@ -97,6 +119,7 @@ class LatentOccupancyTracking(nn.Module):
             "BUFFER_LENGTH": "buffer_length", "STATE_CHANNELS": "state_channels",
             "KERNEL_SIZE": "kernel_size", "FILTER_THRESH": "filter_thresh",
             "CONFIDENCE_MAP": "confidence_map", "GT_MIN_SIGMA": "gt_min_sigma",
+            "FORECAST_FROM": "forecast_from",
         }  # fmt: skip
         check_known_keys(cfg, ["NAME", *keys], "MODEL.LOT")
         grid = model_info.get("polar_grid")
@@ -107,14 +130,17 @@ class LatentOccupancyTracking(nn.Module):
             kwargs["pool_size"] = tuple(kwargs["pool_size"])
         return cls(input_channels=model_info["num_point_features"], grid=grid, **kwargs)
 
-    def occupancy_maps(self, batch_dict: Mapping) -> dict[str, torch.Tensor]:
-        """``lot_current``, ``lot_forecast_logits``, ``lot_final`` (B, A', R') and the
-        confidence of every voxel ``lot_voxel_confidence`` (V,)."""
+    @property
+    def history_frames(self) -> int:
+        """Previous frames whose maps the forecast reads (0 when it reads sectors)."""
+        return self.buffer_length if self.forecast_from == "frames" else 0
+
+    def current_map(self, batch_dict: Mapping) -> torch.Tensor:
+        """(B, A', R') occupancy map of the voxels in ``batch_dict``: the score MLP's
+        probabilities, a masked mean over height, average-pooled to occupancy cells."""
         feats, coords = batch_dict["voxel_features"], batch_dict["voxel_coords"]
         B = int(batch_dict["batch_size"])
         nr, na, nz = self.grid.grid_size
-        pa, pr = self.pool_size
-        S, K = self.grid.num_sectors, self.buffer_length
         score = torch.sigmoid(self.score_mlp(feats)).squeeze(1)  # (V,)
         b, z, a, r = coords.unbind(1)
         flat = ((b * nz + z) * na + a) * nr + r
@@ -122,17 +148,38 @@ class LatentOccupancyTracking(nn.Module):
         valid = score.new_zeros(B * nz * na * nr).index_put((flat,), torch.ones_like(score))
         valid = valid.view(B, nz, na, nr)
         occ_2d = occ.sum(1) / valid.sum(1).clamp(min=1)  # (B, na, nr) masked mean over height
-        current = F.avg_pool2d(occ_2d[:, None], (pa, pr))  # (B, 1, A', R')
-        A, R = current.shape[2:]
+        return F.avg_pool2d(occ_2d[:, None], self.pool_size)[:, 0]  # (B, A', R')
+
+    def forecast_logits(self, batch_dict: Mapping, current: torch.Tensor) -> torch.Tensor:
+        """(B, A', R') forecast logits of the current map (module docstring)."""
+        B, A, R = current.shape
+        K = self.buffer_length
+        if self.forecast_from == "frames":
+            history = batch_dict.get("lot_history")
+            if history is None or tuple(history.shape) != (B, K, A, R):
+                got = None if history is None else tuple(history.shape)
+                raise ValueError(
+                    f"LOT forecasting from frames needs batch_dict['lot_history'] of shape "
+                    f"{(B, K, A, R)} (the previous frames' maps), got {got}"
+                )
+            return self.convssm(history[:, :, None]).view(B, A, R)  # (B, A', R')
+        S = self.grid.num_sectors
         sectors = current.view(B, S, A // S, R)  # (B, S, A/S, R') in streaming order
         # the buffer of each sector: the K sectors streamed before it, empty before the first
         padded = torch.cat([sectors.new_zeros(B, K, A // S, R), sectors], dim=1)
         history = torch.stack([padded[:, k : k + S] for k in range(K)], dim=2)  # (B, S, K, ...)
         logits = self.convssm(history.reshape(B * S, K, 1, A // S, R))  # (B*S, 1, A/S, R')
-        logits = logits.view(B, A, R)
-        current = current[:, 0]
+        return logits.view(B, A, R)
+
+    def occupancy_maps(self, batch_dict: Mapping) -> dict[str, torch.Tensor]:
+        """``lot_current``, ``lot_forecast_logits``, ``lot_final`` (B, A', R') and the
+        confidence of every voxel ``lot_voxel_confidence`` (V,)."""
+        current = self.current_map(batch_dict)
+        logits = self.forecast_logits(batch_dict, current)
         final = 0.5 * current + 0.5 * torch.sigmoid(logits)
         conf_map = final if self.confidence_map == "final" else torch.sigmoid(logits)
+        b, _, a, r = batch_dict["voxel_coords"].unbind(1)
+        pa, pr = self.pool_size
         confidence = conf_map[b, a // pa, r // pr]  # (V,)
         return {
             "lot_current": current, "lot_forecast_logits": logits, "lot_final": final,
