@@ -31,6 +31,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from pcdet_atlas.ops.lidar_presets import waymo_top_inclinations_deg
+
 __all__ = [
     "BeamFit",
     "FitReport",
@@ -140,8 +142,6 @@ def _lloyd(phi: np.ndarray, centers: np.ndarray, iterations: int = 30) -> np.nda
 
 def _single_origin(phi: np.ndarray, num_beams: int, init: str) -> tuple[np.ndarray, int]:
     if init == "default_table":
-        from pcdet_atlas.ops.lidar_model import waymo_top_inclinations_deg
-
         return _lloyd(phi, np.deg2rad(waymo_top_inclinations_deg(num_beams))), 0
     if init != "data":
         raise ValueError(f"init must be 'data' or 'default_table', got {init!r}")

@@ -14,37 +14,29 @@ import torch
 
 from pcdet_atlas.config import ConfigError, check_known_keys
 from pcdet_atlas.config_values import config_value
+from pcdet_atlas.ops.beam_fit import fit_beam_table
+from pcdet_atlas.ops.lidar_presets import (
+    LIDAR_PRESETS,
+    WAYMO_AZIMUTH_BINS,
+    WAYMO_TOP_FOV_DEG,
+    WAYMO_TOP_ORIGIN,
+    lidar_preset,
+    waymo_top_inclinations_deg,
+)
 
-__all__ = ["LidarModel", "WAYMO_TOP_FOV_DEG", "spherical_offsets", "waymo_top_inclinations_deg"]
+__all__ = [
+    "LidarModel",
+    "WAYMO_AZIMUTH_BINS",
+    "WAYMO_TOP_FOV_DEG",
+    "WAYMO_TOP_ORIGIN",
+    "spherical_offsets",
+    "waymo_top_inclinations_deg",
+]
 
-#: Vertical field of view of the Waymo TOP LiDAR (published spec), degrees.
-WAYMO_TOP_FOV_DEG = (-17.6, 2.4)
-#: Azimuth bins: ceil(360 / 0.1358) as in the ATLAS paper.
-WAYMO_AZIMUTH_BINS = math.ceil(360.0 / 0.1358)
-#: Sensor position in the vehicle frame (m): Waymo's TOP extrinsic, rounded.
-WAYMO_TOP_ORIGIN = (1.43, 0.0, 2.184)
-#: Spacing at the top of the fan relative to the mean spacing (the rest grows linearly downward).
-_TOP_SPACING_RATIO = 4.0 / 7.0
 #: Points closer to the sensor axis than this (m) are binned as if at this distance (offsets).
 _MIN_HORIZ_M = 1e-6
 #: Points per chunk of the offset binning (bounds its (n, B) float64 work arrays).
 _OFFSET_CHUNK = 65536
-
-
-def waymo_top_inclinations_deg(num_beams: int = 64) -> np.ndarray:
-    """The documented default TOP beam table, ascending, in degrees.
-
-    The real 64 values live in each frame's calibration, which OpenPCDet's ``.npy`` files do not
-    keep and which is not public elsewhere. This default is an **assumption**: the beams span the
-    published FOV [-17.6°, +2.4°] with spacing that shrinks linearly toward the horizon, from
-    about 0.45° at the bottom to 0.18° at the top (denser near the horizon, as on the real
-    sensor). With real data, use :meth:`LidarModel.fit` on a sequence's TOP points instead.
-    """
-    lo, hi = WAYMO_TOP_FOV_DEG
-    a = _TOP_SPACING_RATIO
-    u = np.linspace(0.0, 1.0, num_beams)
-    warp = a * u + (1.0 - a) * (1.0 - (1.0 - u) ** 2)  # g(0)=0, g(1)=1, g'(1)=a, g'(0)=2-a
-    return lo + (hi - lo) * warp
 
 
 def spherical_offsets(
@@ -155,8 +147,6 @@ class LidarModel:
         """A named sensor of :mod:`pcdet_atlas.ops.lidar_presets` (``waymo_top``, ``hdl64e``,
         ``hdl32e``): its beam table, laser offsets and azimuth bins; ``kwargs`` (``origin``,
         ``max_range``, ``azimuth_bins``) override."""
-        from pcdet_atlas.ops.lidar_presets import lidar_preset
-
         spec = lidar_preset(name)
         kwargs.setdefault("azimuth_bins", spec.azimuth_bins)
         return cls(np.deg2rad(spec.inclinations_deg), offsets=spec.offsets_m, **kwargs)
@@ -183,8 +173,6 @@ class LidarModel:
                 the default Waymo table, the older method, kept for comparison).
             **kwargs: passed to :class:`LidarModel` (``azimuth_bins``, ``max_range``).
         """
-        from pcdet_atlas.ops.beam_fit import fit_beam_table
-
         pts = np.asarray(
             points_xyz.detach().cpu().numpy() if torch.is_tensor(points_xyz) else points_xyz
         )
@@ -234,8 +222,6 @@ class LidarModel:
         if kwargs["azimuth_bins"] is None:
             del kwargs["azimuth_bins"]  # the preset's, or the paper's 2651
         if "PRESET" in cfg:
-            from pcdet_atlas.ops.lidar_presets import LIDAR_PRESETS
-
             name = config_value(
                 cfg, "PRESET", str, "LIDAR", valid=lambda n: n in LIDAR_PRESETS,
                 expected=f"one of the LiDAR presets {', '.join(sorted(LIDAR_PRESETS))}",

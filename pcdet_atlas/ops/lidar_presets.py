@@ -20,11 +20,46 @@ Sources of the published facts (tables are generated from them, nothing is copie
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["LidarPreset", "LIDAR_PRESETS", "lidar_preset", "hdl64e_inclinations_deg"]
+__all__ = [
+    "LidarPreset",
+    "LIDAR_PRESETS",
+    "WAYMO_AZIMUTH_BINS",
+    "WAYMO_TOP_FOV_DEG",
+    "WAYMO_TOP_ORIGIN",
+    "lidar_preset",
+    "hdl64e_inclinations_deg",
+    "waymo_top_inclinations_deg",
+]
+
+#: Vertical field of view of the Waymo TOP LiDAR (published spec), degrees.
+WAYMO_TOP_FOV_DEG = (-17.6, 2.4)
+#: Azimuth bins: ceil(360 / 0.1358) as in the ATLAS paper.
+WAYMO_AZIMUTH_BINS = math.ceil(360.0 / 0.1358)
+#: Sensor position in the vehicle frame (m): Waymo's TOP extrinsic, rounded.
+WAYMO_TOP_ORIGIN = (1.43, 0.0, 2.184)
+#: Spacing at the top of the fan relative to the mean spacing (the rest grows linearly downward).
+_TOP_SPACING_RATIO = 4.0 / 7.0
+
+
+def waymo_top_inclinations_deg(num_beams: int = 64) -> np.ndarray:
+    """The documented default TOP beam table, ascending, in degrees.
+
+    The real 64 values live in each frame's calibration, which OpenPCDet's ``.npy`` files do not
+    keep and which is not public elsewhere. This default is an **assumption**: the beams span the
+    published FOV [-17.6°, +2.4°] with spacing that shrinks linearly toward the horizon, from
+    about 0.45° at the bottom to 0.18° at the top (denser near the horizon, as on the real
+    sensor). With real data, use :meth:`LidarModel.fit` on a sequence's TOP points instead.
+    """
+    lo, hi = WAYMO_TOP_FOV_DEG
+    a = _TOP_SPACING_RATIO
+    u = np.linspace(0.0, 1.0, num_beams)
+    warp = a * u + (1.0 - a) * (1.0 - (1.0 - u) ** 2)  # g(0)=0, g(1)=1, g'(1)=a, g'(0)=2-a
+    return lo + (hi - lo) * warp
 
 
 @dataclass(frozen=True)
@@ -48,8 +83,6 @@ def hdl64e_inclinations_deg() -> tuple[np.ndarray, np.ndarray]:
 
 
 def _waymo_top() -> LidarPreset:
-    from pcdet_atlas.ops.lidar_model import WAYMO_AZIMUTH_BINS, waymo_top_inclinations_deg
-
     return LidarPreset(
         tuple(float(v) for v in waymo_top_inclinations_deg()),
         None,

@@ -240,6 +240,7 @@ def test_shuffle_order_depends_on_the_rows_not_their_order():
     other_seed = points[row_hash_order(points, 12)]
     assert not np.array_equal(other_seed, full)
     np.testing.assert_array_equal(np.sort(full, axis=0), np.sort(points, axis=0))
+    assert row_hash_order(points[:0], 11).shape == (0,)  # an empty frame
     for odd in (points[:, :5], points.astype(np.float64)):  # rows not a multiple of 8 bytes
         order = row_hash_order(odd, 11)
         np.testing.assert_array_equal(np.sort(order), np.arange(400))

@@ -135,6 +135,8 @@ def row_hash_order(points: np.ndarray, seed: int) -> np.ndarray:
     rows = np.ascontiguousarray(points)
     if rows.ndim != 2:
         raise ValueError(f"shuffle_points needs (N, C) points, got shape {rows.shape}")
+    if rows.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
     row_bytes = rows.view(np.uint8).reshape(rows.shape[0], -1)
     pad = -row_bytes.shape[1] % 8
     if pad:
