@@ -8,7 +8,12 @@ without this package (its fixture script reads its evaluation script's helpers).
 from __future__ import annotations
 
 import ast
+import os
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
 
 from pcdet_atlas.config import REPO_ROOT
 
@@ -65,3 +70,45 @@ def test_the_check_finds_a_tool_importing_a_tool(tmp_path):
         "tools/reproduce.py:3 imports test",
         "tools/reproduce.py:7 calls load_tool",
     ]
+
+
+def test_every_tool_ends_user_errors_in_one_line():
+    """Each tool runs its ``main`` through ``run_tool`` and lists ``--debug`` in its help."""
+    missing = []
+    for path in sorted(TOOLS.glob("*.py")):
+        text = path.read_text()
+        if 'if __name__ == "__main__":' not in text:
+            continue
+        if "run_tool(main)" not in text or "add_debug_flag(" not in text:
+            missing.append(path.name)
+    assert missing == [], "tools without run_tool(main) / add_debug_flag(parser)"
+
+
+def test_a_user_error_is_one_line_and_exit_2_and_debug_shows_the_traceback():
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, str(TOOLS / "report.py"), "--results", "/nonexistent/results", "--out"]
+    cmd.append(str(Path("/nonexistent/report")))
+    run = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert run.returncode == 2, run.stderr[-2000:]
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("report.py: error: "), run.stderr[-2000:]
+    assert "/nonexistent/results" in lines[0] and "--debug" in lines[0]
+    run = subprocess.run([*cmd, "--debug"], capture_output=True, text=True, env=env, timeout=300)
+    assert run.returncode == 1 and "Traceback" in run.stderr, run.stderr[-2000:]
+    helped = subprocess.run([*cmd[:2], "--help"], capture_output=True, text=True, env=env)
+    assert "--debug" in helped.stdout
+
+
+def test_a_bug_keeps_its_traceback():
+    from pcdet_atlas.utils.cli import is_user_error, run_tool
+
+    def buggy():
+        raise IndexError("a bug")
+
+    with pytest.raises(IndexError):
+        run_tool(buggy, argv=[])
+    assert not is_user_error(IndexError("x")) and is_user_error(FileNotFoundError("x"))
+    from pcdet_atlas.config import ConfigError
+    from pcdet_atlas.registry import RegistryError
+
+    assert is_user_error(ConfigError("x")) and is_user_error(RegistryError("x"))

@@ -26,6 +26,7 @@ from pcdet_atlas.evaluation.localization import (
     localization_errors,
     projected_ap,
 )
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 from pcdet_atlas.utils.safe_pickle import load_pickle
 
 #: Components scaled by ``--project`` (the centre's along / across errors move together).
@@ -34,6 +35,7 @@ PROJECTED = ("center", "z", "length", "width", "height", "heading")
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_debug_flag(parser)
     parser.add_argument("--cfg", "--cfg_file", dest="cfg", required=True, help="model config")
     parser.add_argument("--result", required=True, help="result.pkl of tools/test.py")
     parser.add_argument("--class_name", default="Vehicle")
@@ -103,4 +105,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

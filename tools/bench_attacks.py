@@ -40,6 +40,7 @@ from pcdet_atlas.attacks.counters import COUNTERS, AttackCounters
 from pcdet_atlas.attacks.raycast import raycast_merge
 from pcdet_atlas.config import REPO_ROOT
 from pcdet_atlas.ops.lidar_model import LidarModel
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 
 
 def time_interleaved(fns: dict, repeats: int, sync=None, block: int = 5) -> dict[str, float]:
@@ -411,6 +412,7 @@ PARTS = {"raycast": bench_raycast, "getitem": bench_getitem, "visible": visible_
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_debug_flag(parser)
     parser.add_argument("--part", choices=["all", *PARTS], default="all")  # all: the timings
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
@@ -440,4 +442,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

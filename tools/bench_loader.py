@@ -26,6 +26,7 @@ from pathlib import Path
 
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import build_dataloader
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 
 CFG_DIR = REPO_ROOT / "cfgs" / "dataset_configs"
 CLASS_NAMES = ["Vehicle", "Pedestrian", "Cyclist"]
@@ -145,6 +146,7 @@ def _compare(args, root: Path) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_debug_flag(parser)
     parser.add_argument("--data_path", default=str(DEFAULT_ROOT))
     parser.add_argument("--frames", type=int, default=40, help="frames timed per setting")
     parser.add_argument("--workers", type=int, default=0)
@@ -177,4 +179,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

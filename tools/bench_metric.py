@@ -41,6 +41,7 @@ import numpy as np
 import torch
 
 from pcdet_atlas.evaluation.waymo_metric import waymo_evaluate
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 from pcdet_atlas.utils.seeding import numpy_generator
 
 REPO = Path(__file__).resolve().parents[1]
@@ -240,6 +241,7 @@ def run_official(venv: Path, scene: dict, repeats: int, threads: int) -> tuple[f
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_debug_flag(parser)
     parser.add_argument("--frames", type=int, default=200)
     parser.add_argument("--gt", type=int, default=100)
     parser.add_argument("--det", type=int, default=300)
@@ -315,4 +317,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

@@ -111,6 +111,7 @@ from pcdet_atlas.train_utils import eval_one_epoch
 from pcdet_atlas.train_utils.atlas_eval import point_history
 from pcdet_atlas.train_utils.proposal_bank import ProposalBank
 from pcdet_atlas.train_utils.setup import device_arg
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 from pcdet_atlas.utils.common import deterministic_algorithms
 
 
@@ -176,6 +177,7 @@ def _peak_memory_mib(
 
 def parse_args():
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_debug_flag(p)
     p.add_argument(
         "--cfgs", nargs="*", default=None, help="model configs (default: all; none: skip)"
     )
@@ -1277,4 +1279,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

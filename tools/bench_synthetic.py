@@ -29,6 +29,7 @@ from pcdet_atlas.datasets.synthetic.raycast import (
 from pcdet_atlas.datasets.synthetic.scene import SyntheticScene
 from pcdet_atlas.datasets.synthetic.sensor import SensorModel
 from pcdet_atlas.ops.lidar_model import LidarModel
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 
 
 def brute_force(origin, dirs, prims, max_range):
@@ -50,6 +51,7 @@ def brute_force(origin, dirs, prims, max_range):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_debug_flag(parser)
     parser.add_argument("--frames", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
@@ -97,4 +99,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

@@ -20,11 +20,13 @@ from tqdm import tqdm
 
 from pcdet_atlas.attacks.trace_library import write_trace_library
 from pcdet_atlas.config import REPO_ROOT, resolve_cli_path
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 from pcdet_atlas.utils.common import create_logger
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_debug_flag(parser)
     parser.add_argument("--cfg", "--cfg_file", dest="cfg", required=True, help="injection YAML")
     parser.add_argument(
         "--data_path", default=str(REPO_ROOT / "data" / "synthetic_waymo"), help="dataset root"
@@ -48,4 +50,4 @@ def main(argv=None) -> Path:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

@@ -16,10 +16,12 @@ import argparse
 
 from pcdet_atlas.attacks.lidar_check import FIT_METHODS, PHANTOM_RANGES_M, check_known_sensor
 from pcdet_atlas.ops.lidar_presets import LIDAR_PRESETS
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_debug_flag(parser)
     parser.add_argument(
         "--sensors", nargs="+", choices=sorted(LIDAR_PRESETS), default=sorted(LIDAR_PRESETS),
         help="presets to scan and fit",
@@ -55,4 +57,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

@@ -26,10 +26,12 @@ from pathlib import Path
 from pcdet_atlas.config import cfg_from_list, cfg_from_yaml_file
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.openpcdet_checkpoint import SPCONV_LAYOUTS, convert_openpcdet_checkpoint
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_debug_flag(parser)
     parser.add_argument("--cfg_file", "--cfg", dest="cfg_file", required=True, help="model YAML")
     parser.add_argument("--ckpt", required=True, help="OpenPCDet checkpoint (.pth)")
     parser.add_argument("--out", required=True, help="converted checkpoint to write")
@@ -82,4 +84,4 @@ def main(argv: list[str] | None = None) -> Path:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

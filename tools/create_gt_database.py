@@ -14,11 +14,13 @@ import argparse
 from pcdet_atlas.config import cfg_from_list, cfg_from_yaml_file, resolve_cli_path
 from pcdet_atlas.datasets import WaymoDataset
 from pcdet_atlas.datasets.gt_database import create_groundtruth_database, write_split_infos
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 from pcdet_atlas.utils.common import create_logger
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_debug_flag(parser)
     parser.add_argument("--cfg_file", "--cfg", nargs="+", required=True, help="dataset configs")
     parser.add_argument("--data_path", default=None, help="data root (default: DATA_PATH)")
     parser.add_argument("--split", default="train")
@@ -54,4 +56,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

@@ -23,6 +23,7 @@ from pcdet_atlas.datasets.synthetic import (
     format_summary,
 )
 from pcdet_atlas.train_utils.setup import device_arg
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 from pcdet_atlas.utils.common import create_logger
 
 DEFAULT_ROOT = REPO_ROOT / "data" / "synthetic_waymo"
@@ -30,6 +31,7 @@ DEFAULT_ROOT = REPO_ROOT / "data" / "synthetic_waymo"
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_debug_flag(parser)
     parser.add_argument("--root", type=Path, default=DEFAULT_ROOT, help="output dataset root")
     parser.add_argument("--train-sequences", type=int, default=DEFAULT_NUM_SEQUENCES["train"])
     parser.add_argument("--val-sequences", type=int, default=DEFAULT_NUM_SEQUENCES["val"])
@@ -65,4 +67,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

@@ -30,6 +30,7 @@ from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
 from pcdet_atlas.attacks.counters import COUNTERS
 from pcdet_atlas.config import REPO_ROOT, cfg_from_list, cfg_from_yaml_file
 from pcdet_atlas.datasets.synthetic import create_synthetic_waymo, format_summary
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 from pcdet_atlas.utils.common import create_logger
 
 SYNTHETIC_ROOT = REPO_ROOT / "data" / "synthetic_waymo"
@@ -40,7 +41,7 @@ CLASS_NAMES = ["Vehicle", "Pedestrian", "Cyclist"]
 OUT_DIR = REPO_ROOT / "output" / "demo"
 
 
-def run_tool(script: str, *args: str) -> None:
+def run_child(script: str, *args: str) -> None:
     """Run a tool of this repo in a child process; a failure stops the demo with its exit code."""
     cmd = [sys.executable, str(REPO_ROOT / "tools" / script), *args]
     print("$", " ".join(cmd[1:]), flush=True)
@@ -54,7 +55,7 @@ def ensure_trace_library(root: Path) -> None:
     if path.is_file():
         print(f"trace library: {path} (built earlier)")
         return
-    run_tool("build_trace_library.py", "--cfg", "cfgs/attacks/inj_global_hard.yaml",
+    run_child("build_trace_library.py", "--cfg", "cfgs/attacks/inj_global_hard.yaml",
              "--data_path", str(root))  # fmt: skip
 
 
@@ -110,6 +111,7 @@ def print_showcase(rows: list[dict], first: int, last: int) -> None:
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_debug_flag(parser)
     parser.add_argument("--root", default=str(SYNTHETIC_ROOT), help="synthetic dataset root")
     parser.add_argument("--frames", type=int, nargs=2, default=[30, 66], metavar=("FIRST", "LAST"))
     args = parser.parse_args(argv)
@@ -142,15 +144,15 @@ def main(argv=None) -> dict:
     for variant in VARIANTS[1:]:
         out = str(OUT_DIR / f"{variant}_0040.png")
         attack = f"cfgs/attacks/{variant}.yaml"
-        run_tool("visualize_attack.py", "--data_cfg", str(DATA_CFG), "--data_path", str(root),
+        run_child("visualize_attack.py", "--data_cfg", str(DATA_CFG), "--data_path", str(root),
                  "--attack", attack, "--frame", "40", "--out", out)  # fmt: skip
 
     # the demo's own evaluation directory: a rerun replaces it (tools/test.py refuses otherwise)
-    run_tool("test.py", "--cfg", str(MODEL_CFG), "--attacks", ",".join(VARIANTS), "--overwrite",
+    run_child("test.py", "--cfg", str(MODEL_CFG), "--attacks", ",".join(VARIANTS), "--overwrite",
              "--set", "DATA_CONFIG.DATA_PATH", str(root))  # fmt: skip
     return {"summary": summary, "attacks": rows}
 
 
 if __name__ == "__main__":
     np.set_printoptions(precision=3)
-    main()
+    run_tool(main)

@@ -13,17 +13,18 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 
 import numpy as np
 import yaml
 
 from pcdet_atlas.attacks.lidar_fit import fit_lidar_from_sequence
 from pcdet_atlas.ops.lidar_model import WAYMO_AZIMUTH_BINS, WAYMO_TOP_ORIGIN
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_debug_flag(parser)
     parser.add_argument("--data_path", required=True, help="dataset root (holds ImageSets/)")
     parser.add_argument("--sequence", required=True, help="sequence folder name")
     parser.add_argument(
@@ -48,19 +49,12 @@ def main() -> None:
         "--offsets", choices=("auto", "on", "off"), default="auto",
         help="per-laser vertical offsets: fitted and kept when the data shows parallax (auto)",
     )  # fmt: skip
-    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     args = parser.parse_args()
-    try:
-        fit = fit_lidar_from_sequence(
-            args.data_path, args.sequence, frames=args.frames, origin=args.origin,
-            num_beams=args.num_beams, offsets=args.offsets,
-            azimuth_bins="estimate" if args.estimate_azimuth_bins else args.azimuth_bins,
-        )  # fmt: skip
-    except (OSError, ValueError) as err:
-        if args.debug:
-            raise
-        print(f"fit_lidar_model: {err}", file=sys.stderr)
-        sys.exit(2)
+    fit = fit_lidar_from_sequence(
+        args.data_path, args.sequence, frames=args.frames, origin=args.origin,
+        num_beams=args.num_beams, offsets=args.offsets,
+        azimuth_bins="estimate" if args.estimate_azimuth_bins else args.azimuth_bins,
+    )  # fmt: skip
     lidar = fit.lidar
     incl_deg = np.degrees(lidar.inclinations.numpy())
     offsets = None if lidar.offsets is None else lidar.offsets.numpy()
@@ -79,4 +73,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

@@ -49,6 +49,7 @@ from pcdet_atlas.config import (
     to_plain,
 )
 from pcdet_atlas.datasets import waymo_format as wf
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 from pcdet_atlas.utils.common import create_logger, save_pickle
 from pcdet_atlas.utils.safe_pickle import load_pickle
 
@@ -57,6 +58,7 @@ CLASS_NAMES = ["Vehicle", "Pedestrian", "Cyclist"]
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_debug_flag(parser)
     parser.add_argument("--data_cfg", required=True, help="DATA_CONFIG yaml of the source")
     parser.add_argument("--attack", required=True, help="attack yaml (cfgs/attacks/*.yaml)")
     parser.add_argument("--out_dir", required=True, help="root of the written dataset")
@@ -223,4 +225,4 @@ def main(argv=None) -> Path:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

@@ -14,6 +14,7 @@ from pcdet_atlas.evaluation.intervals import (
     format_coverage_table,
     paired_simulation,
 )
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 
 RATES = (0.02, 0.05, 0.1, 0.3, 0.5, 0.7, 0.9, 0.95, 0.98)
 SEQUENCES = (6, 12, 20)
@@ -21,6 +22,7 @@ SEQUENCES = (6, 12, 20)
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_debug_flag(parser)
     sim = parser.add_argument_group("simulation")
     sim.add_argument("--replicates", type=int, default=2000, help="data sets per scenario")
     sim.add_argument("--seed", type=int, default=0, help="key of every scenario's generator")
@@ -42,4 +44,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

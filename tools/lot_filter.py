@@ -32,10 +32,12 @@ from pcdet_atlas.train_utils.lot_analysis import (
     threshold_for_recall,
 )
 from pcdet_atlas.train_utils.setup import count_arg, load_cfg, require_dataset
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_debug_flag(parser)
     parser.add_argument("--cfg", "--cfg_file", dest="cfg", required=True, help="PHiM+LOT config")
     parser.add_argument("--ckpt", default=None, help="checkpoint (default: ATLAS.CHECKPOINT)")
     parser.add_argument("--data_path", default=None, help="dataset root (default: DATA_PATH)")
@@ -121,4 +123,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

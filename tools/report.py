@@ -21,10 +21,12 @@ from pathlib import Path
 
 from pcdet_atlas.config import repo_relative
 from pcdet_atlas.evaluation.results.report import DEFAULT_LOT_PAIR, collect_results, write_report
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_debug_flag(p)
     p.add_argument("--results", "--results_dir", dest="results", nargs="+", required=True,
                    help="results files (.json, .json.gz) or folders holding them")  # fmt: skip
     p.add_argument("--out", "--out_dir", dest="out", required=True, help="output folder")
@@ -54,4 +56,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

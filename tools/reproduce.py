@@ -74,6 +74,7 @@ from pcdet_atlas.train_utils.atlas_eval import (
 )
 from pcdet_atlas.train_utils.eval_folder import eval_dir, finished_variants, resolve_checkpoint
 from pcdet_atlas.train_utils.setup import load_cfg, lock_output_folder
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 from pcdet_atlas.utils.common import create_logger, resolve_device, write_atomic
 from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.processes import die_with_parent
@@ -95,6 +96,7 @@ def shipped_configs() -> list[Path]:
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_debug_flag(p)
     p.add_argument("--data_path", default=str(DEFAULT_DATA), help="synthetic dataset root")
     p.add_argument("--out", default=str(DEFAULT_OUT), help="report folder")
     p.add_argument("--cfgs", nargs="+", default=None, help="model configs (default: shipped)")
@@ -470,4 +472,4 @@ def rewrite_report(out_dir: Path) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

@@ -32,10 +32,12 @@ import argparse
 
 from pcdet_atlas.train_utils.atlas_run import EvalSettings, run_evaluation
 from pcdet_atlas.train_utils.setup import add_common_args, count_arg, folder_name_arg
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_debug_flag(parser)
     add_common_args(parser)
     parser.add_argument("--attacks", default="clean", help="'all' or a comma list of variants")
     parser.add_argument(
@@ -107,4 +109,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

@@ -69,11 +69,13 @@ from pcdet_atlas.train_utils.stages import (
     stage_from_config,
     stage_init_checkpoint,
 )
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 from pcdet_atlas.utils.common import create_logger
 
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_debug_flag(parser)
     add_common_args(parser)
     parser.add_argument("--epochs", type=count_arg(1), default=None)
     parser.add_argument("--pretrained_model", type=str, default=None, help="weights to start from")
@@ -261,4 +263,4 @@ def train(args, held: contextlib.ExitStack) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

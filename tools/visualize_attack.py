@@ -36,12 +36,14 @@ from pcdet_atlas.config import (  # noqa: E402
     resolve_cli_path,
 )
 from pcdet_atlas.ops.boxes import boxes_to_corners_3d  # noqa: E402
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 
 CLASS_NAMES = ["Vehicle", "Pedestrian", "Cyclist"]
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_debug_flag(parser)
     parser.add_argument("--data_cfg", default="cfgs/dataset_configs/synthetic_waymo.yaml")
     parser.add_argument("--attack", required=True, help="attack yaml")
     parser.add_argument("--data_path", default=None, help="dataset root (default: DATA_PATH)")
@@ -186,4 +188,4 @@ def main(argv=None) -> Path:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

@@ -24,10 +24,12 @@ from pcdet_atlas.datasets import build_dataloader
 from pcdet_atlas.datasets.dataset import collate_batch
 from pcdet_atlas.models.model_utils.hard_voxelize import hard_voxelize
 from pcdet_atlas.models.model_utils.voxelize import VoxelGrid, voxelize
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 
 
 def parse_args():
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_debug_flag(p)
     p.add_argument("--cfgs", nargs="+", required=True, help="voxel model configs (MeanVFE)")
     p.add_argument("--data_path", default=None, help="dataset root (default: each config's)")
     p.add_argument("--caps", type=int, nargs="+", default=[5, 10, 20, 32])
@@ -82,4 +84,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)

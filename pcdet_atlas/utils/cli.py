@@ -1,0 +1,50 @@
+"""What every tool does with a user's mistake: one line on stderr and exit status 2.
+
+A tool ends with ``run_tool(main)`` and documents the flag with :func:`add_debug_flag`. A *user
+error* is an exception the project raises on purpose about its input (any class defined in
+``pcdet_atlas``, such as ``ConfigError`` or ``WaymoFormatError``) or a ``ValueError`` /
+``OSError`` (a bad value, a missing or unreadable file): it prints ``<tool>: error: <message>``
+and exits with status 2, as argparse does for a bad flag. ``--debug`` anywhere on the command line
+shows the traceback instead. Any other exception is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+__all__ = ["DEBUG_FLAG", "add_debug_flag", "is_user_error", "run_tool"]
+
+DEBUG_FLAG = "--debug"
+USER_ERROR_EXIT = 2
+
+
+def add_debug_flag(parser: argparse.ArgumentParser) -> None:
+    """List ``--debug`` in the tool's ``--help`` (:func:`run_tool` reads and removes it)."""
+    parser.add_argument(DEBUG_FLAG, action="store_true", help="show the full traceback of an error")
+
+
+def is_user_error(err: BaseException) -> bool:
+    """Whether ``err`` is about the user's input (module docstring), not a bug."""
+    if isinstance(err, (ValueError, OSError)):
+        return True
+    return any(cls.__module__.startswith("pcdet_atlas") for cls in type(err).__mro__)
+
+
+def run_tool(main: Callable[[], object], argv: list[str] | None = None) -> None:
+    """Run a tool's ``main()`` with ``sys.argv`` (or ``argv``) minus ``--debug``; a user error
+    becomes one line on stderr and exit status 2 unless ``--debug`` was given."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    debug = DEBUG_FLAG in args
+    sys.argv = [sys.argv[0], *(a for a in args if a != DEBUG_FLAG)]
+    try:
+        main()
+    except Exception as err:  # noqa: BLE001 - sorted into user errors and bugs below
+        if debug or not is_user_error(err):
+            raise
+        tool = Path(sys.argv[0]).name
+        message = " ".join(str(err).split()) or type(err).__name__
+        print(f"{tool}: error: {message} ({DEBUG_FLAG} shows the traceback)", file=sys.stderr)
+        sys.exit(USER_ERROR_EXIT)
