@@ -112,3 +112,15 @@ def test_a_bug_keeps_its_traceback():
     from pcdet_atlas.registry import RegistryError
 
     assert is_user_error(ConfigError("x")) and is_user_error(RegistryError("x"))
+
+
+def test_a_tool_refuses_the_package_of_another_tree(tmp_path):
+    from pcdet_atlas.utils.cli import OtherTreeError, check_package_tree
+
+    check_package_tree(TOOLS / "test.py")  # this checkout's tool and package
+    other = tmp_path / "clone"
+    (other / "tools").mkdir(parents=True)
+    (other / "pcdet_atlas").mkdir()
+    with pytest.raises(OtherTreeError, match=r"test\.py of .*clone imports pcdet_atlas from"):
+        check_package_tree(other / "tools" / "test.py")
+    check_package_tree(tmp_path / "scripts" / "mine.py")  # a script outside any checkout

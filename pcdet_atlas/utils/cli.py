@@ -6,6 +6,10 @@ error* is an exception the project raises on purpose about its input (any class 
 ``OSError`` (a bad value, a missing or unreadable file): it prints ``<tool>: error: <message>``
 and exits with status 2, as argparse does for a bad flag. ``--debug`` anywhere on the command line
 shows the traceback instead. Any other exception is a bug and keeps its traceback.
+
+A tool refuses to run on the package of another tree (:func:`check_package_tree`): with two
+clones, an editable install of one would otherwise serve the other's tools its code, configs and
+checkpoints without a word.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["DEBUG_FLAG", "add_debug_flag", "is_user_error", "run_tool"]
+__all__ = ["DEBUG_FLAG", "add_debug_flag", "check_package_tree", "is_user_error", "run_tool"]
 
 DEBUG_FLAG = "--debug"
 USER_ERROR_EXIT = 2
@@ -33,6 +37,22 @@ def is_user_error(err: BaseException) -> bool:
     return any(cls.__module__.startswith("pcdet_atlas") for cls in type(err).__mro__)
 
 
+class OtherTreeError(RuntimeError):
+    """The imported ``pcdet_atlas`` is not the one beside the running tool."""
+
+
+def check_package_tree(tool_file: str | Path) -> None:
+    """Raise :class:`OtherTreeError` when ``tool_file`` (a ``tools/*.py`` of a checkout) runs
+    with the ``pcdet_atlas`` package of another checkout."""
+    tool_root = Path(tool_file).resolve().parent.parent
+    package_root = Path(__file__).resolve().parent.parent.parent  # .../pcdet_atlas/utils/cli.py
+    if (tool_root / "pcdet_atlas").is_dir() and tool_root != package_root:
+        raise OtherTreeError(
+            f"{Path(tool_file).name} of {tool_root} imports pcdet_atlas from {package_root}: "
+            f"run `pip install -e .` in {tool_root} (or put it first on PYTHONPATH)"
+        )
+
+
 def run_tool(main: Callable[[], object], argv: list[str] | None = None) -> None:
     """Run a tool's ``main()`` with ``sys.argv`` (or ``argv``) minus ``--debug``; a user error
     becomes one line on stderr and exit status 2 unless ``--debug`` was given."""
@@ -40,6 +60,7 @@ def run_tool(main: Callable[[], object], argv: list[str] | None = None) -> None:
     debug = DEBUG_FLAG in args
     sys.argv = [sys.argv[0], *(a for a in args if a != DEBUG_FLAG)]
     try:
+        check_package_tree(sys.argv[0])
         main()
     except Exception as err:  # noqa: BLE001 - sorted into user errors and bugs below
         if debug or not is_user_error(err):
