@@ -27,6 +27,7 @@ from pcdet_atlas.utils.common import load_tool, save_pickle
 from pcdet_atlas.utils.safe_pickle import RefusedGlobalError, load_pickle
 
 CFG = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "cp4f.yaml"
+DATA_CFG = REPO_ROOT / "cfgs" / "dataset_configs" / "synthetic_waymo_multiframe.yaml"
 ATTACKS = REPO_ROOT / "cfgs" / "attacks"
 CLASSES = ["Vehicle", "Pedestrian", "Cyclist"]
 INTERVAL = 2  # every 2nd frame of the 70-frame val sequence: 16 in the attack run 32..63
@@ -124,6 +125,8 @@ def test_result_pkl_and_json_score_as_the_evaluation(normal_run, tmp_path):
         assert_same_scores(written["variants"][variant], entry)
     assert written["model"] == "CP-4f" and written["checkpoint"] is None
     assert written["variants"]["rem_40"]["confidence"] is not None  # needs the clean run
+    load_tool("report").main(["--results", str(tmp_path / "pkl"), "--out", str(tmp_path / "rep")])
+    assert "CP-4f" in (tmp_path / "rep" / "report.md").read_text()
 
     # JSON, clean frames found by (context_name, timestamp_micros) instead of frame_id
     json_preds = [
@@ -133,6 +136,17 @@ def test_result_pkl_and_json_score_as_the_evaluation(normal_run, tmp_path):
     ]
     tool.main(tool_args(run, tmp_path / "json", json_preds))
     written = load_results(tmp_path / "json" / "results.json")
+    for variant, entry in want.items():
+        assert_same_scores(written["variants"][variant], entry)
+
+    # a DATA_CONFIG file (not a model config): classes and lifecycle window from flags
+    data_args = ["--data_cfg", str(DATA_CFG), "--data_path", str(run["root"]),
+                 "--temporal_window", "4", "--class_names", ",".join(CLASSES),
+                 "--predictions", *json_preds, "--out_dir", str(tmp_path / "data_cfg"),
+                 "--set", "SAMPLED_INTERVAL", f"train:1,test:{INTERVAL}",
+                 "POINT_CLOUD_RANGE", "-20.48,-20.48,-2,20.48,20.48,4"]  # fmt: skip
+    written = tool.main(data_args)
+    assert written["model"] == "predictions"
     for variant, entry in want.items():
         assert_same_scores(written["variants"][variant], entry)
 
