@@ -13,8 +13,9 @@ class names of the data's ``CLASS_NAMES``, ``score`` ``(K,)`` in [0, 1], ``boxes
 ``(K, 7)`` or ``(K, 9)`` (x, y, z, dx, dy, dz, heading[, vx, vy]) in the vehicle frame of the
 converter, and ``frame_id`` or ``metadata`` with ``context_name`` and ``timestamp_micros`` to
 find the frame. Scores and boxes are read as float32, as the project's models write them.
-:func:`read_predictions` reads them from OpenPCDet's ``result.pkl`` (restricted unpickler) or
-from a JSON list of such frames (docs/evaluation.md "Scoring predictions made anywhere").
+:func:`read_predictions` reads them from OpenPCDet's ``result.pkl`` (restricted unpickler), a
+JSON list of such frames or a folder of one ``.npz`` per frame (docs/evaluation.md "Scoring
+predictions made anywhere").
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import hashlib
 import json
 import logging
 import time
+import zipfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -54,7 +56,7 @@ __all__ = [
 ]
 
 #: the file formats :func:`read_predictions` reads
-FORMATS = ("pkl", "json")
+FORMATS = ("pkl", "json", "npz")
 BOX_WIDTHS = (7, 9)
 
 
@@ -73,17 +75,26 @@ def _frame_label(index: int, frame: object) -> str:
     return f"frame {index}"
 
 
-def read_predictions(path: str | Path, fmt: str | None = None) -> list:
-    """The per-frame prediction dicts of a file: OpenPCDet's ``result.pkl`` (``pkl``, a list of
-    dicts, read without running code) or a JSON list of frames (``json``).
+def read_predictions(path: str | Path, fmt: str | None = None) -> tuple[list, list[str]]:
+    """The per-frame prediction dicts of a file or folder and, per frame, where it was read
+    (the file; each frame's own file for ``npz``).
 
-    ``fmt`` None: by the file's extension (``.pkl``, ``.json``), else by its first byte (a
-    pickle's protocol opcode, a JSON ``[``).
+    Formats (:data:`FORMATS`): OpenPCDet's ``result.pkl`` (``pkl``, a list of dicts, read
+    without running code), a JSON list of frames (``json``), or a folder of ``.npz`` files, one
+    per frame (``npz``, read without pickles: arrays ``name``, ``score``, ``boxes_lidar`` and
+    ``frame_id``, or ``context_name`` and ``timestamp_micros``). ``fmt`` None: a folder is
+    ``npz``; a file by its extension (``.pkl``, ``.json``), else by its first byte (a pickle's
+    protocol opcode, a JSON ``[``).
 
     Raises:
-        PredictionError: naming the file, for an unknown format or a file that holds no list.
+        PredictionError: naming the file, for an unknown format, a file that holds no list, or
+            an unreadable ``.npz``.
     """
     path = Path(path)
+    if fmt is None and path.is_dir():
+        fmt = "npz"
+    if fmt == "npz":
+        return _read_npz_folder(path)
     if not path.is_file():
         raise PredictionError(f"{path}: no such predictions file")
     if fmt is None:
@@ -101,7 +112,30 @@ def read_predictions(path: str | Path, fmt: str | None = None) -> list:
         raise PredictionError(
             f"{path}: holds a {type(frames).__name__}, expected a list of per-frame dicts"
         )
-    return frames
+    return frames, [str(path)] * len(frames)
+
+
+def _read_npz_folder(path: Path) -> tuple[list, list[str]]:
+    """The frames of a folder of ``.npz`` files (:func:`read_predictions`), in file-name order."""
+    if not path.is_dir():
+        raise PredictionError(f"{path}: no such folder of per-frame .npz files")
+    files = sorted(path.glob("*.npz"))
+    if not files:
+        raise PredictionError(f"{path}: holds no .npz file (one per frame expected)")
+    frames = []
+    for file in files:
+        try:
+            with np.load(file, allow_pickle=False) as npz:
+                frame = {key: npz[key] for key in npz.files}
+        except (OSError, ValueError, zipfile.BadZipFile) as err:
+            raise PredictionError(f"{file}: not a readable .npz of arrays ({err})") from None
+        if "frame_id" in frame:
+            frame["frame_id"] = str(frame["frame_id"])
+        if "context_name" in frame and "timestamp_micros" in frame:
+            context, stamp = frame.pop("context_name"), frame.pop("timestamp_micros")
+            frame["metadata"] = {"context_name": str(context), "timestamp_micros": int(stamp)}
+        frames.append(frame)
+    return frames, [str(file) for file in files]
 
 
 def _detect_format(path: Path) -> str:
@@ -218,10 +252,15 @@ def _frame_index(frame: Mapping, where: str, by_id: Mapping, by_time: Mapping) -
 
 
 def match_predictions(
-    frames: Sequence, infos: Sequence[Mapping], class_names: Sequence[str], source: str
+    frames: Sequence,
+    infos: Sequence[Mapping],
+    class_names: Sequence[str],
+    source: str,
+    frame_sources: Sequence[str] | None = None,
 ) -> list[dict]:
     """``frames`` (per-frame prediction dicts read from ``source``) checked and put in the order
-    of ``infos`` (the split's frame infos), one anno dict per info with the info's ``frame_id``
+    of ``infos`` (the split's frame infos; ``frame_sources``: each frame's own file, where it
+    has one), one anno dict per info with the info's ``frame_id``
     and ``metadata``.
 
     Raises:
@@ -239,7 +278,7 @@ def match_predictions(
     out: list[dict | None] = [None] * len(infos)
     seen: dict[int, str] = {}
     for k, frame in enumerate(frames):
-        where = f"{source} [{_frame_label(k, frame)}]"
+        where = f"{frame_sources[k] if frame_sources else source} [{_frame_label(k, frame)}]"
         checked = _check_frame(frame, where, class_names)
         index = _frame_index(frame, where, by_id, by_time)
         if index in seen:
@@ -268,6 +307,7 @@ def score_variant(
     frames: Sequence,
     *,
     source: str,
+    frame_sources: Sequence[str] | None = None,
     clean_det_annos: Sequence[Mapping] | None = None,
     temporal_window: int | None = None,
     logger: logging.Logger | None = None,
@@ -299,7 +339,7 @@ def score_variant(
             f"variant {variant!r} ({dataset.attack.family}): its confidence is scored against "
             "the clean predictions; pass clean=FILE with --predictions"
         )
-    det_annos = match_predictions(frames, dataset.infos, class_names, source)
+    det_annos = match_predictions(frames, dataset.infos, class_names, source, frame_sources)
     for anno, info in zip(det_annos, dataset.infos):
         point_cloud = info["point_cloud"]
         anno["attack"] = dataset.frame_attack_meta(
@@ -337,7 +377,15 @@ def score_variant(
 
 
 def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+    """SHA-256 of a file, or of a folder's ``.npz`` files (names and bytes, in name order)."""
+    digest = hashlib.sha256()
+    if path.is_dir():
+        for file in sorted(path.glob("*.npz")):
+            digest.update(f"{file.name}\n".encode())
+            digest.update(hashlib.sha256(file.read_bytes()).digest())
+    else:
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
 
 
 def score_predictions(
@@ -396,7 +444,7 @@ def score_predictions(
             )
     frames = {name: read_predictions(path, fmt) for name, (_, path) in files.items()}
     for name, (_, path) in files.items():  # every file checked before anything is written
-        match_predictions(frames[name], split.infos, class_names, str(path))
+        match_predictions(frames[name][0], split.infos, class_names, str(path), frames[name][1])
     out_dir = Path(out_dir)
     entries: dict = {}
     clean = None
@@ -404,7 +452,8 @@ def score_predictions(
     for name, attack in attacks.items():
         path = files[name][1]
         entry, det_annos = score_variant(
-            data_cfg, class_names, name, attack, frames[name], source=str(path),
+            data_cfg, class_names, name, attack, frames[name][0], source=str(path),
+            frame_sources=frames[name][1],
             clean_det_annos=clean, temporal_window=temporal_window, logger=logger,
         )  # fmt: skip
         if name == "clean":

@@ -111,6 +111,15 @@ def to_json(path: Path, out: Path, *, drop_frame_id=False) -> Path:
 
 
 @pytest.mark.slow
+def to_npz(path: Path, out: Path) -> Path:
+    """A result.pkl as a folder of one .npz per frame (frame_id as a 0-d string array)."""
+    out.mkdir()
+    for k, anno in enumerate(load_pickle(path)):
+        np.savez(out / f"{k:04d}.npz", frame_id=np.array(anno["frame_id"]), name=anno["name"],
+                 score=anno["score"], boxes_lidar=anno["boxes_lidar"])  # fmt: skip
+    return out
+
+
 def test_result_pkl_and_json_score_as_the_evaluation(normal_run, tmp_path):
     run, files = normal_run, normal_run["files"]
     want = run["entries"]
@@ -138,6 +147,13 @@ def test_result_pkl_and_json_score_as_the_evaluation(normal_run, tmp_path):
     written = load_results(tmp_path / "json" / "results.json")
     for variant, entry in want.items():
         assert_same_scores(written["variants"][variant], entry)
+
+    # npz per frame
+    npz_preds = [f"clean={to_npz(files['clean'], tmp_path / 'clean_npz')}",
+                 f"rem_40={to_npz(files['rem_40'], tmp_path / 'rem_npz')}"]  # fmt: skip
+    written = tool.main(tool_args(run, tmp_path / "npz", npz_preds))
+    for variant in ("clean", "rem_40"):
+        assert_same_scores(written["variants"][variant], want[variant])
 
     # a DATA_CONFIG file (not a model config): classes and lifecycle window from flags
     data_args = ["--data_cfg", str(DATA_CFG), "--data_path", str(run["root"]),
@@ -268,6 +284,18 @@ def test_files_that_are_not_predictions_are_named(tmp_path, normal_run):
     bad.write_text('{"frames": []}')
     with pytest.raises(PredictionError, match=r"bad\.json: holds a dict, expected a list"):
         score_predictions(cfg, CLASSES, {"clean": bad}, tmp_path, **args)
+    folder = tmp_path / "npz"
+    folder.mkdir()
+    (folder / "0000.npz").write_bytes(b"not a zip")
+    with pytest.raises(PredictionError, match=r"0000\.npz: not a readable \.npz"):
+        score_predictions(cfg, CLASSES, {"clean": folder}, tmp_path, **args)
+    (folder / "0000.npz").unlink()
+    np.savez(folder / "0000.npz", frame_id=np.array("x"), name=np.array(["Vehicle"]),
+             score=np.array([0.5]), boxes_lidar=np.zeros((1, 7)))  # fmt: skip
+    with pytest.raises(
+        PredictionError, match=r"npz/0000\.npz \[frame 0 \('x'\)\]: field 'frame_id'"
+    ):
+        score_predictions(cfg, CLASSES, {"clean": folder}, tmp_path, **args)
     odd = tmp_path / "preds.dat"
     odd.write_text("frames")
     with pytest.raises(PredictionError, match=r"preds\.dat: cannot tell the predictions format"):
