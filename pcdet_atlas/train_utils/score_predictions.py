@@ -232,7 +232,7 @@ def _frame_index(frame: Mapping, where: str, by_id: Mapping, by_time: Mapping) -
     if isinstance(meta, Mapping) and {"context_name", "timestamp_micros"} <= set(meta):
         key = (str(meta["context_name"]), int(meta["timestamp_micros"]))
         by_key = by_time.get(key)
-        if by_key is None and found is None:
+        if by_key is None:
             raise PredictionError(
                 f"{where}: field 'metadata' (context_name {key[0]!r}, timestamp_micros {key[1]}) "
                 "is not a frame of the test split (its DATA_SPLIT and SAMPLED_INTERVAL)"
@@ -423,7 +423,12 @@ def score_predictions(
         raise PredictionError("no predictions to score: pass --predictions VARIANT=FILE ...")
     files = {}
     for spec, path in predictions.items():
-        (name, yaml_path), = resolve_variants(spec, atlas_cfg or {})  # fmt: skip
+        resolved = resolve_variants(spec, atlas_cfg or {})
+        if len(resolved) != 1:
+            raise PredictionError(
+                f"--predictions {spec}=...: names {len(resolved)} variants, not one"
+            )
+        ((name, yaml_path),) = resolved
         if name in files:
             raise PredictionError(f"variant {name!r} has predictions twice ({spec!r})")
         files[name] = (yaml_path, Path(path))

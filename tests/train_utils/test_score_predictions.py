@@ -251,6 +251,8 @@ def _frame(i, **over):
          r"field 'metadata' \(context_name 'ctx', timestamp_micros 5\) is not a frame"),
         ([_frame(0, metadata={"context_name": "ctx", "timestamp_micros": 1001})],
          r"field 'metadata' .* names another frame than its frame_id 'seq_000'"),
+        ([_frame(0, metadata={"context_name": "other", "timestamp_micros": 1000})],
+         r"field 'metadata' \(context_name 'other', timestamp_micros 1000\) is not a frame"),
         ([_frame(0, pred_labels=np.array([2]))], r"field 'pred_labels' disagrees with 'name'"),
         ([_frame(0), "frame"], r"\[frame 1\]: a str, expected a dict"),
     ],
@@ -296,6 +298,8 @@ def test_files_that_are_not_predictions_are_named(tmp_path, normal_run):
         PredictionError, match=r"npz/0000\.npz \[frame 0 \('x'\)\]: field 'frame_id'"
     ):
         score_predictions(cfg, CLASSES, {"clean": folder}, tmp_path, **args)
+    with pytest.raises(PredictionError, match=r"clean,rem_40=\.\.\.: names 2 variants"):
+        score_predictions(cfg, CLASSES, {"clean,rem_40": bad}, tmp_path, **args)
     odd = tmp_path / "preds.dat"
     odd.write_text("frames")
     with pytest.raises(PredictionError, match=r"preds\.dat: cannot tell the predictions format"):
