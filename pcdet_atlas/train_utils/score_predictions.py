@@ -1,0 +1,475 @@
+"""Scoring predictions a detector made anywhere: per-frame detections in, ``results.json`` out.
+
+A detector this package does not implement (another toolkit's model, an in-house one) predicts
+on the test split, clean or attacked (``tools/generate_atlas.py`` writes the attacked data);
+its per-frame detections then get the same ``results.json`` entry :func:`evaluate_variant`
+gives the project's own models: Waymo L1/L2 AP/APH and, for an attack variant, ASR with its
+interval and per-run counts, confidence and lifecycle. The attack's targets, runs and lifecycle
+come from the attack itself: the variant's ``AtlasWaymoDataset`` gives each frame's metadata
+record exactly as it serves it to a model (a spoofed frame is simulated for it).
+
+Predictions are OpenPCDet anno dicts, one per frame of the split (any order): ``name`` ``(K,)``
+class names of the data's ``CLASS_NAMES``, ``score`` ``(K,)`` in [0, 1], ``boxes_lidar``
+``(K, 7)`` or ``(K, 9)`` (x, y, z, dx, dy, dz, heading[, vx, vy]) in the vehicle frame of the
+converter, and ``frame_id`` or ``metadata`` with ``context_name`` and ``timestamp_micros`` to
+find the frame. Scores and boxes are read as float32, as the project's models write them.
+:func:`read_predictions` reads them from OpenPCDet's ``result.pkl`` (restricted unpickler), a
+JSON list of such frames or a folder of one ``.npz`` per frame (docs/evaluation.md "Scoring
+predictions made anywhere").
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import time
+import zipfile
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from pcdet_atlas.attacks.base import BaseAttack
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.evaluation import (
+    build_results,
+    build_variant_result,
+    evaluate_attack,
+    save_results,
+)
+from pcdet_atlas.registry import DATASETS
+from pcdet_atlas.train_utils.atlas_eval import (
+    build_variant_attacks,
+    resolve_variants,
+    variant_fingerprints,
+)
+from pcdet_atlas.utils.safe_pickle import load_pickle
+
+__all__ = [
+    "FORMATS",
+    "PredictionError",
+    "match_predictions",
+    "read_predictions",
+    "score_predictions",
+    "score_variant",
+]
+
+#: the file formats :func:`read_predictions` reads
+FORMATS = ("pkl", "json", "npz")
+BOX_WIDTHS = (7, 9)
+
+
+class PredictionError(ValueError):
+    """Predictions that cannot be scored; the message names the file, the frame and the field."""
+
+
+def _frame_label(index: int, frame: object) -> str:
+    """How an error names the ``index``-th frame of a file (with its id where it has one)."""
+    if isinstance(frame, Mapping):
+        if "frame_id" in frame:
+            return f"frame {index} ({frame['frame_id']!r})"
+        meta = frame.get("metadata")
+        if isinstance(meta, Mapping) and {"context_name", "timestamp_micros"} <= set(meta):
+            return f"frame {index} ({meta['context_name']!r}, {meta['timestamp_micros']!r})"
+    return f"frame {index}"
+
+
+def read_predictions(path: str | Path, fmt: str | None = None) -> tuple[list, list[str]]:
+    """The per-frame prediction dicts of a file or folder and, per frame, where it was read
+    (the file; each frame's own file for ``npz``).
+
+    Formats (:data:`FORMATS`): OpenPCDet's ``result.pkl`` (``pkl``, a list of dicts, read
+    without running code), a JSON list of frames (``json``), or a folder of ``.npz`` files, one
+    per frame (``npz``, read without pickles: arrays ``name``, ``score``, ``boxes_lidar`` and
+    ``frame_id``, or ``context_name`` and ``timestamp_micros``). ``fmt`` None: a folder is
+    ``npz``; a file by its extension (``.pkl``, ``.json``), else by its first byte (a pickle's
+    protocol opcode, a JSON ``[``).
+
+    Raises:
+        PredictionError: naming the file, for an unknown format, a file that holds no list, or
+            an unreadable ``.npz``.
+    """
+    path = Path(path)
+    if fmt is None and path.is_dir():
+        fmt = "npz"
+    if fmt == "npz":
+        return _read_npz_folder(path)
+    if not path.is_file():
+        raise PredictionError(f"{path}: no such predictions file")
+    if fmt is None:
+        fmt = _detect_format(path)
+    if fmt not in FORMATS:
+        raise PredictionError(f"{path}: unknown predictions format {fmt!r} (known: {FORMATS})")
+    if fmt == "pkl":
+        frames = load_pickle(path)
+    else:
+        try:
+            frames = json.loads(path.read_text())
+        except (UnicodeDecodeError, json.JSONDecodeError) as err:
+            raise PredictionError(f"{path}: not a JSON predictions file ({err})") from None
+    if not isinstance(frames, list):
+        raise PredictionError(
+            f"{path}: holds a {type(frames).__name__}, expected a list of per-frame dicts"
+        )
+    return frames, [str(path)] * len(frames)
+
+
+def _read_npz_folder(path: Path) -> tuple[list, list[str]]:
+    """The frames of a folder of ``.npz`` files (:func:`read_predictions`), in file-name order."""
+    if not path.is_dir():
+        raise PredictionError(f"{path}: no such folder of per-frame .npz files")
+    files = sorted(path.glob("*.npz"))
+    if not files:
+        raise PredictionError(f"{path}: holds no .npz file (one per frame expected)")
+    frames = []
+    for file in files:
+        try:
+            with np.load(file, allow_pickle=False) as npz:
+                frame = {key: npz[key] for key in npz.files}
+        except (OSError, ValueError, zipfile.BadZipFile) as err:
+            raise PredictionError(f"{file}: not a readable .npz of arrays ({err})") from None
+        if "frame_id" in frame:
+            frame["frame_id"] = str(frame["frame_id"])
+        if "context_name" in frame and "timestamp_micros" in frame:
+            context, stamp = frame.pop("context_name"), frame.pop("timestamp_micros")
+            frame["metadata"] = {"context_name": str(context), "timestamp_micros": int(stamp)}
+        frames.append(frame)
+    return frames, [str(file) for file in files]
+
+
+def _detect_format(path: Path) -> str:
+    suffix = path.suffix.lower()
+    if suffix in (".pkl", ".pickle"):
+        return "pkl"
+    if suffix == ".json":
+        return "json"
+    with path.open("rb") as f:
+        head = f.read(64).lstrip()
+    if head[:1] == b"\x80":
+        return "pkl"
+    if head[:1] == b"[":
+        return "json"
+    raise PredictionError(
+        f"{path}: cannot tell the predictions format from its name or content; pass --format "
+        f"({' or '.join(FORMATS)})"
+    )
+
+
+def _float_array(value, where: str, field: str) -> np.ndarray:
+    try:
+        out = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise PredictionError(f"{where}: field {field!r} is not numeric") from None
+    if not np.all(np.isfinite(out)):
+        bad = np.argwhere(~np.isfinite(out))[0].tolist()
+        raise PredictionError(
+            f"{where}: field {field!r} holds a NaN or infinite value (at index {bad})"
+        )
+    return out
+
+
+def _check_frame(frame: object, where: str, class_names: Sequence[str]) -> dict:
+    """One frame's ``name``, ``score``, ``boxes_lidar`` and ``pred_labels``, checked."""
+    if not isinstance(frame, Mapping):
+        raise PredictionError(f"{where}: a {type(frame).__name__}, expected a dict")
+    for field in ("name", "score", "boxes_lidar"):
+        if field not in frame:
+            raise PredictionError(f"{where}: no field {field!r}")
+    names = np.asarray(frame["name"]).reshape(-1)
+    unknown = sorted({str(n) for n in names} - set(class_names))
+    if unknown:
+        raise PredictionError(
+            f"{where}: field 'name' holds unknown class name(s) {unknown} (known: "
+            f"{list(class_names)})"
+        )
+    score = _float_array(frame["score"], where, "score")
+    if score.ndim != 1 or len(score) != len(names):
+        raise PredictionError(
+            f"{where}: field 'score' has shape {score.shape}, expected ({len(names)},): one "
+            "per name"
+        )
+    if len(score) and (score.min() < 0 or score.max() > 1):
+        raise PredictionError(
+            f"{where}: field 'score' holds {float(score.min() if score.min() < 0 else score.max())}"
+            ", outside [0, 1]"
+        )
+    boxes = _float_array(frame["boxes_lidar"], where, "boxes_lidar")
+    if boxes.size == 0 and len(names) == 0:
+        boxes = np.zeros((0, boxes.shape[-1] if boxes.ndim == 2 else 7))
+    if boxes.ndim != 2 or boxes.shape[1] not in BOX_WIDTHS or len(boxes) != len(names):
+        raise PredictionError(
+            f"{where}: field 'boxes_lidar' has shape {boxes.shape}, expected ({len(names)}, 7) "
+            f"or ({len(names)}, 9)"
+        )
+    labels = np.array([list(class_names).index(str(n)) + 1 for n in names], dtype=np.int64)
+    if "pred_labels" in frame:
+        given = np.asarray(frame["pred_labels"]).reshape(-1)
+        if given.shape != labels.shape or np.any(given != labels):
+            raise PredictionError(
+                f"{where}: field 'pred_labels' disagrees with 'name' (1-based indices into "
+                f"{list(class_names)})"
+            )
+    return {
+        "name": np.array([str(n) for n in names], dtype=f"<U{max(map(len, class_names))}"),
+        "score": score.astype(np.float32),
+        "boxes_lidar": boxes.astype(np.float32),
+        "pred_labels": labels,
+    }
+
+
+def _frame_index(frame: Mapping, where: str, by_id: Mapping, by_time: Mapping) -> int:
+    """The split index of a frame, by ``frame_id`` or by (context name, timestamp)."""
+    found = None
+    if "frame_id" in frame:
+        found = by_id.get(str(frame["frame_id"]))
+        if found is None:
+            raise PredictionError(
+                f"{where}: field 'frame_id' {frame['frame_id']!r} is not a frame of the test split "
+                "(its DATA_SPLIT and SAMPLED_INTERVAL)"
+            )
+    meta = frame.get("metadata")
+    if isinstance(meta, Mapping) and {"context_name", "timestamp_micros"} <= set(meta):
+        key = (str(meta["context_name"]), int(meta["timestamp_micros"]))
+        by_key = by_time.get(key)
+        if by_key is None:
+            raise PredictionError(
+                f"{where}: field 'metadata' (context_name {key[0]!r}, timestamp_micros {key[1]}) "
+                "is not a frame of the test split (its DATA_SPLIT and SAMPLED_INTERVAL)"
+            )
+        if found is not None and by_key is not None and by_key != found:
+            raise PredictionError(
+                f"{where}: field 'metadata' (context_name {key[0]!r}, timestamp_micros {key[1]}) "
+                f"names another frame than its frame_id {frame['frame_id']!r}"
+            )
+        found = by_key if found is None else found
+    if found is None:
+        raise PredictionError(
+            f"{where}: no field 'frame_id' and no 'metadata' with 'context_name' and "
+            "'timestamp_micros' to find the frame by"
+        )
+    return found
+
+
+def match_predictions(
+    frames: Sequence,
+    infos: Sequence[Mapping],
+    class_names: Sequence[str],
+    source: str,
+    frame_sources: Sequence[str] | None = None,
+) -> list[dict]:
+    """``frames`` (per-frame prediction dicts read from ``source``) checked and put in the order
+    of ``infos`` (the split's frame infos; ``frame_sources``: each frame's own file, where it
+    has one), one anno dict per info with the info's ``frame_id``
+    and ``metadata``.
+
+    Raises:
+        PredictionError: naming ``source``, the frame and the field, for a frame that is not a
+            dict, is not in the split, is there twice or is missing; a missing field, a class
+            name not in ``class_names``, a NaN or infinite value, a score outside [0, 1], or
+            boxes of a width other than 7 or 9.
+    """
+    by_id = {str(info["frame_id"]): i for i, info in enumerate(infos)}
+    by_time = {}
+    for i, info in enumerate(infos):
+        meta = info.get("metadata")
+        if isinstance(meta, Mapping) and {"context_name", "timestamp_micros"} <= set(meta):
+            by_time[(str(meta["context_name"]), int(meta["timestamp_micros"]))] = i
+    out: list[dict | None] = [None] * len(infos)
+    seen: dict[int, str] = {}
+    for k, frame in enumerate(frames):
+        where = f"{frame_sources[k] if frame_sources else source} [{_frame_label(k, frame)}]"
+        checked = _check_frame(frame, where, class_names)
+        index = _frame_index(frame, where, by_id, by_time)
+        if index in seen:
+            raise PredictionError(
+                f"{where}: frame {infos[index]['frame_id']!r} is there twice (also {seen[index]})"
+            )
+        seen[index] = _frame_label(k, frame)
+        info = infos[index]
+        out[index] = {**checked, "frame_id": info["frame_id"],
+                      "metadata": info.get("metadata", info["frame_id"])}  # fmt: skip
+    missing = [info["frame_id"] for info, anno in zip(infos, out) if anno is None]
+    if missing:
+        raise PredictionError(
+            f"{source}: {len(missing)} of the test split's {len(infos)} frames have no "
+            f"predictions, the first {missing[0]!r} (a frame without detections is a dict with "
+            "empty 'name', 'score' and 'boxes_lidar')"
+        )
+    return out
+
+
+def score_variant(
+    data_cfg: Mapping,
+    class_names: Sequence[str],
+    variant: str,
+    attack: Mapping | Path | BaseAttack,
+    frames: Sequence,
+    *,
+    source: str,
+    frame_sources: Sequence[str] | None = None,
+    clean_det_annos: Sequence[Mapping] | None = None,
+    temporal_window: int | None = None,
+    logger: logging.Logger | None = None,
+) -> tuple[dict, list[dict]]:
+    """One variant's ``results.json`` entry from its per-frame predictions ``frames`` (read
+    from ``source``), as :func:`~pcdet_atlas.train_utils.atlas_eval.evaluate_variant` scores a
+    model's: the variant's ``AtlasWaymoDataset`` gives each frame's attack record.
+
+    ``clean_det_annos``: the clean variant's predictions (as this returns them), which an
+    attack whose confidence analysis is the removal one (``CONFIDENCE == 'removal'``) needs.
+
+    Returns:
+        ``(entry, det_annos)``: the entry (``num_reused_frames`` not recorded; ``extra`` with
+        the source file and its SHA-256) and the checked predictions in the split's order, each
+        with its ``attack`` record.
+
+    Raises:
+        PredictionError: bad predictions (:func:`match_predictions`), or no clean predictions
+            for a variant that needs them.
+    """
+    t0 = time.perf_counter()
+    dataset = DATASETS.get("AtlasWaymoDataset")(
+        dataset_cfg=data_cfg, class_names=class_names, attack_cfg=attack, training=False,
+        logger=logger,
+    )  # fmt: skip
+    needs_clean = dataset.attack.CONFIDENCE == "removal"
+    if needs_clean and clean_det_annos is None:
+        raise PredictionError(
+            f"variant {variant!r} ({dataset.attack.family}): its confidence is scored against "
+            "the clean predictions; pass clean=FILE with --predictions"
+        )
+    det_annos = match_predictions(frames, dataset.infos, class_names, source, frame_sources)
+    for anno, info in zip(det_annos, dataset.infos):
+        point_cloud = info["point_cloud"]
+        anno["attack"] = dataset.frame_attack_meta(
+            point_cloud["lidar_sequence"], int(point_cloud["sample_idx"])
+        )
+    timings = {"attack_records": time.perf_counter() - t0}
+    attack_infos = [anno["attack"] for anno in det_annos]
+    family = attack_infos[0]["family"] if attack_infos else dataset.attack.family
+    t1 = time.perf_counter()
+    ap_dict = None  # a split without labels gets attack metrics only
+    if any("annos" in info for info in dataset.infos):
+        _, ap_dict = dataset.evaluation(det_annos, class_names, eval_metric="waymo")
+    attack_metrics = None
+    if dataset.attack.SUCCESS_IF_DETECTED is not None:
+        attack_metrics = evaluate_attack(
+            det_annos, attack_infos, clean_det_annos=clean_det_annos, window=temporal_window,
+            recorded_window=getattr(dataset.attack, "window", None),
+        )  # fmt: skip
+    timings["metric"] = time.perf_counter() - t1
+    entry = build_variant_result(
+        variant, family=family, num_frames=len(det_annos), metrics=ap_dict,
+        class_names=class_names, attack=attack_metrics, rank_group=dataset.attack.RANK_GROUP,
+        extra={"timing_s": {k: round(v, 3) for k, v in timings.items()},
+               "clean_predictions": clean_det_annos is not None,
+               "predictions": str(source)},
+    )  # fmt: skip
+    if logger is not None:
+        asr, l2 = entry["asr"], entry["L2/mAP"]
+        logger.info(
+            f"{variant}: "
+            + ("no labels" if l2 is None else f"L2 mAP {l2:.4f} mAPH {entry['L2/mAPH']:.4f}")
+            + ("" if asr is None else f" ASR {asr:.4f} ({entry['num_targets']} targets)")
+        )
+    return entry, det_annos
+
+
+def _sha256(path: Path) -> str:
+    """SHA-256 of a file, or of a folder's ``.npz`` files (names and bytes, in name order)."""
+    digest = hashlib.sha256()
+    if path.is_dir():
+        for file in sorted(path.glob("*.npz")):
+            digest.update(f"{file.name}\n".encode())
+            digest.update(hashlib.sha256(file.read_bytes()).digest())
+    else:
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def score_predictions(
+    data_cfg: Mapping,
+    class_names: Sequence[str],
+    predictions: Mapping[str, str | Path],
+    out_dir: str | Path,
+    *,
+    model: str,
+    config: str,
+    atlas_cfg: Mapping | None = None,
+    temporal_window: int | None = None,
+    fmt: str | None = None,
+    logger: logging.Logger | None = None,
+) -> dict:
+    """Score prediction files and write ``out_dir/results.json`` (schema of ``tools/test.py``).
+
+    Args:
+        data_cfg, class_names: the test split's data config and class names.
+        predictions: ``{variant: file}``; a variant is an attack name (``cfgs/attacks/<name>.yaml``)
+            or the path of an attack YAML, as ``tools/test.py --attacks`` takes it.
+        model, config: the ``results.json`` ``model`` and ``config`` fields.
+        atlas_cfg: the model config's ``ATLAS`` section, if any (checked as ``--attacks`` does).
+        temporal_window: the lifecycle window (a model config's ``ATLAS.TEMPORAL_WINDOW``).
+        fmt: the files' format (:data:`FORMATS`); None: each file's own (:func:`read_predictions`).
+
+    Returns:
+        The results dict written (``results.json``: rewritten after each variant, clean first).
+
+    Raises:
+        PredictionError: a bad file, frame or field, or an attack variant needing the clean
+            predictions without ``clean`` among ``predictions``; before anything is written.
+    """
+    if not predictions:
+        raise PredictionError("no predictions to score: pass --predictions VARIANT=FILE ...")
+    files = {}
+    for spec, path in predictions.items():
+        resolved = resolve_variants(spec, atlas_cfg or {})
+        if len(resolved) != 1:
+            raise PredictionError(
+                f"--predictions {spec}=...: names {len(resolved)} variants, not one"
+            )
+        ((name, yaml_path),) = resolved
+        if name in files:
+            raise PredictionError(f"variant {name!r} has predictions twice ({spec!r})")
+        files[name] = (yaml_path, Path(path))
+    variants = sorted(((n, p) for n, (p, _) in files.items()), key=lambda v: v[0] != "clean")
+    if "DATASET" not in data_cfg:
+        raise ConfigError("DATA_CONFIG has no DATASET name")
+    split = DATASETS.get(data_cfg["DATASET"])(
+        dataset_cfg=data_cfg, class_names=class_names, training=False, logger=logger
+    )
+    attacks = build_variant_attacks(variants, split.root_path)
+    fingerprints = variant_fingerprints(variants, attacks)
+    if "clean" not in files:
+        needing = [n for n, a in attacks.items() if a.CONFIDENCE == "removal"]
+        if needing:
+            raise PredictionError(
+                f"variant(s) {needing} score their confidence against the clean predictions; "
+                "pass clean=FILE with --predictions"
+            )
+    frames = {name: read_predictions(path, fmt) for name, (_, path) in files.items()}
+    for name, (_, path) in files.items():  # every file checked before anything is written
+        match_predictions(frames[name][0], split.infos, class_names, str(path), frames[name][1])
+    out_dir = Path(out_dir)
+    entries: dict = {}
+    clean = None
+    results = None
+    for name, attack in attacks.items():
+        path = files[name][1]
+        entry, det_annos = score_variant(
+            data_cfg, class_names, name, attack, frames[name][0], source=str(path),
+            frame_sources=frames[name][1],
+            clean_det_annos=clean, temporal_window=temporal_window, logger=logger,
+        )  # fmt: skip
+        if name == "clean":
+            clean = det_annos
+        extra = {**entry["extra"], "attack_sha256": fingerprints[name],
+                 "predictions_sha256": _sha256(path)}  # fmt: skip
+        entries[name] = {**entry, "extra": extra}
+        results = build_results(
+            model=model, config=config, checkpoint=None, class_names=class_names,
+            variants=entries, extra={"scored_from": "predictions",
+                                     "variants_requested": list(attacks)},
+        )  # fmt: skip
+        save_results(results, out_dir / "results.json")
+    return results
