@@ -24,6 +24,7 @@ import argparse
 
 from pcdet_atlas.config import cfg_from_list, cfg_from_yaml_file, resolve_cli_path
 from pcdet_atlas.train_utils.score_predictions import FORMATS, score_predictions
+from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 from pcdet_atlas.utils.common import create_logger
 
 DEFAULT_CLASSES = "Vehicle,Pedestrian,Cyclist"
@@ -38,6 +39,7 @@ def prediction_arg(text: str) -> tuple[str, str]:
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_debug_flag(parser)
     parser.add_argument(
         "--data_cfg", required=True, help="DATA_CONFIG YAML, or a model config holding one"
     )
@@ -99,4 +101,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_tool(main)
