@@ -48,6 +48,7 @@ __all__ = [
     "build_variant_attacks",
     "attack_sha256",
     "variant_fingerprints",
+    "variant_entry",
     "loader_batches",
     "check_test_split",
     "build_attack_loader",
@@ -276,6 +277,45 @@ class EvalContext:
     logger: logging.Logger | None = None
 
 
+def variant_entry(
+    variant: str,
+    dataset,
+    det_annos: Sequence[Mapping],
+    attack_infos: Sequence[Mapping],
+    *,
+    class_names: Sequence[str],
+    clean_det_annos: Sequence[Mapping] | None,
+    temporal_window: int | None,
+    timings: dict[str, float],
+    num_reused_frames: int | None = None,
+    extra: Mapping | None = None,
+) -> dict:
+    """The ``results.json`` entry of one variant from its per-frame predictions ``det_annos``
+    and their attack records, on the variant's ``AtlasWaymoDataset``: the Waymo metric (on a
+    labelled split), the attack metrics (for an attack with targets) and their timing, added to
+    ``timings``. Whoever made the predictions (a model of this package, or another toolkit's
+    files) is scored by this one function."""
+    family = attack_infos[0]["family"] if attack_infos else dataset.attack.family
+    t1 = time.perf_counter()
+    ap_dict = None  # a split without labels (Waymo test) gets attack metrics only
+    if any("annos" in info for info in dataset.infos):  # an unlabelled frame among them: error
+        _, ap_dict = dataset.evaluation(det_annos, class_names, eval_metric="waymo")
+    attack_metrics = None
+    if dataset.attack.SUCCESS_IF_DETECTED is not None:  # the attack class decides
+        attack_metrics = evaluate_attack(
+            det_annos, attack_infos, clean_det_annos=clean_det_annos, window=temporal_window,
+            recorded_window=getattr(dataset.attack, "window", None),
+        )  # fmt: skip
+    timings["metric"] = time.perf_counter() - t1
+    return build_variant_result(
+        variant, family=family, num_frames=len(det_annos), metrics=ap_dict,
+        class_names=class_names, attack=attack_metrics, rank_group=dataset.attack.RANK_GROUP,
+        num_reused_frames=num_reused_frames,
+        extra={"timing_s": {k: round(v, 3) for k, v in timings.items()},
+               "clean_predictions": clean_det_annos is not None, **(extra or {})},
+    )  # fmt: skip
+
+
 def evaluate_variant(
     model: torch.nn.Module,
     variant: str,
@@ -343,26 +383,11 @@ def evaluate_variant(
     attack_infos = [e["attack"] for e in extras]
     for anno, info in zip(det_annos, attack_infos):
         anno["attack"] = info
-    family = attack_infos[0]["family"] if attack_infos else dataset.attack.family
-    has_targets = dataset.attack.SUCCESS_IF_DETECTED is not None  # the attack class decides
-    t1 = time.perf_counter()
-    ap_dict = None  # a split without labels (Waymo test) gets attack metrics only
-    if any("annos" in info for info in dataset.infos):  # an unlabelled frame among them: error
-        _, ap_dict = dataset.evaluation(det_annos, class_names, eval_metric="waymo")
-    attack_metrics = None
-    if has_targets:
-        attack_metrics = evaluate_attack(
-            det_annos, attack_infos, clean_det_annos=clean_det_annos, window=ctx.temporal_window,
-            recorded_window=getattr(dataset.attack, "window", None),
-        )  # fmt: skip
-    timings["metric"] = time.perf_counter() - t1
-    entry = build_variant_result(
-        variant, family=family, num_frames=len(det_annos), metrics=ap_dict,
-        class_names=class_names, attack=attack_metrics, rank_group=dataset.attack.RANK_GROUP,
+    entry = variant_entry(
+        variant, dataset, det_annos, attack_infos, class_names=class_names,
+        clean_det_annos=clean_det_annos, temporal_window=ctx.temporal_window, timings=timings,
         num_reused_frames=int(reused.sum()),
-        extra={"timing_s": {k: round(v, 3) for k, v in timings.items()},
-               "clean_predictions": clean_det_annos is not None,
-               **({"proposal_bank": bank_stats} if bank_stats is not None else {}),
+        extra={**({"proposal_bank": bank_stats} if bank_stats is not None else {}),
                **({"prediction_store": store_stats} if store_stats is not None else {})},
     )  # fmt: skip
     if out_dir is not None:

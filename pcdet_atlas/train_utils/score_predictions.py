@@ -34,14 +34,13 @@ from pcdet_atlas.attacks.base import BaseAttack
 from pcdet_atlas.config import ConfigError
 from pcdet_atlas.evaluation import (
     build_results,
-    build_variant_result,
-    evaluate_attack,
     save_results,
 )
 from pcdet_atlas.registry import DATASETS
 from pcdet_atlas.train_utils.atlas_eval import (
     build_variant_attacks,
     resolve_variants,
+    variant_entry,
     variant_fingerprints,
 )
 from pcdet_atlas.utils.safe_pickle import load_pickle
@@ -347,24 +346,10 @@ def score_variant(
         )
     timings = {"attack_records": time.perf_counter() - t0}
     attack_infos = [anno["attack"] for anno in det_annos]
-    family = attack_infos[0]["family"] if attack_infos else dataset.attack.family
-    t1 = time.perf_counter()
-    ap_dict = None  # a split without labels gets attack metrics only
-    if any("annos" in info for info in dataset.infos):
-        _, ap_dict = dataset.evaluation(det_annos, class_names, eval_metric="waymo")
-    attack_metrics = None
-    if dataset.attack.SUCCESS_IF_DETECTED is not None:
-        attack_metrics = evaluate_attack(
-            det_annos, attack_infos, clean_det_annos=clean_det_annos, window=temporal_window,
-            recorded_window=getattr(dataset.attack, "window", None),
-        )  # fmt: skip
-    timings["metric"] = time.perf_counter() - t1
-    entry = build_variant_result(
-        variant, family=family, num_frames=len(det_annos), metrics=ap_dict,
-        class_names=class_names, attack=attack_metrics, rank_group=dataset.attack.RANK_GROUP,
-        extra={"timing_s": {k: round(v, 3) for k, v in timings.items()},
-               "clean_predictions": clean_det_annos is not None,
-               "predictions": str(source)},
+    entry = variant_entry(
+        variant, dataset, det_annos, attack_infos, class_names=class_names,
+        clean_det_annos=clean_det_annos, temporal_window=temporal_window, timings=timings,
+        extra={"predictions": str(source)},
     )  # fmt: skip
     if logger is not None:
         asr, l2 = entry["asr"], entry["L2/mAP"]
