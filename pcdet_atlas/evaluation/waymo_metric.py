@@ -182,14 +182,8 @@ def _collect_gt(gt_annos: Sequence[dict], class_names: Sequence[str]) -> _Object
     frame = np.repeat(np.arange(len(fields)), [len(f[0]) for f in fields])
     boxes, num_points, difficulty = (np.concatenate(f) for f in list(zip(*fields))[1:])
     difficulty = difficulty.astype(np.int64)
-    cls = _class_indices([f[0] for f in fields], class_names)
     bad = ~np.isfinite(boxes).all(axis=1) | ~np.isin(difficulty, (0, 1, 2))
-    if cls is None:  # names numpy cannot compare: the frames' own lookups
-        _first_error(gt_annos, len(gt_annos) - 1, _gt_fields, class_names, "gt_annos")
-        cls = np.concatenate([_gt_fields(a, class_names, "")[0] for a in gt_annos])
-    if bad.any() or (cls < -1).any():
-        _first_error(gt_annos, int(frame[bad | (cls < -1)].min()), _gt_fields, class_names,
-                     "gt_annos")  # fmt: skip
+    cls = _checked_classes(gt_annos, fields, frame, bad, _gt_fields, class_names, "gt_annos")
     boxes[:, 6] = limit_period(boxes[:, 6], offset=0.5, period=np.float32(2 * np.pi))
     level = difficulty.copy()
     level[(difficulty == 0) & (num_points > 5)] = 1
@@ -203,6 +197,21 @@ def _first_error(annos, last: int, fields_fn, class_names, name: str) -> None:
     raises its error (as checking frame by frame would)."""
     for i in range(last + 1):
         fields_fn(annos[i], class_names, f"{name}[{i}]")
+
+
+def _checked_classes(
+    annos, fields: list, frame: np.ndarray, bad: np.ndarray, fields_fn, class_names, name: str
+) -> np.ndarray:
+    """``(M,)`` class indices of the frames' objects (:func:`_class_indices`); a row that is
+    ``bad`` or has a name that is no Waymo class raises the error of the first such frame, as
+    checking frame by frame would (:func:`_first_error`)."""
+    cls = _class_indices([f[0] for f in fields], class_names)
+    if cls is None:  # names numpy cannot compare: the frames' own lookups
+        _first_error(annos, len(annos) - 1, fields_fn, class_names, name)
+        cls = np.concatenate([fields_fn(a, class_names, "")[0] for a in annos])
+    if bad.any() or (cls < -1).any():
+        _first_error(annos, int(frame[bad | (cls < -1)].min()), fields_fn, class_names, name)
+    return cls
 
 
 def _class_indices(names: list[np.ndarray], class_names: Sequence[str]) -> np.ndarray | None:
@@ -244,14 +253,8 @@ def _collect_det(det_annos: Sequence[dict], class_names: Sequence[str]) -> _Obje
         )
     frame = np.repeat(np.arange(len(fields)), [len(f[0]) for f in fields])
     boxes, score = (np.concatenate(f) for f in list(zip(*fields))[1:])
-    cls = _class_indices([f[0] for f in fields], class_names)
     bad = ~np.isfinite(boxes).all(axis=1) | ~np.isfinite(score)
-    if cls is None:  # names numpy cannot compare: the frames' own lookups
-        _first_error(det_annos, len(det_annos) - 1, _det_fields, class_names, "det_annos")
-        cls = np.concatenate([_det_fields(a, class_names, "")[0] for a in det_annos])
-    if bad.any() or (cls < -1).any():
-        _first_error(det_annos, int(frame[bad | (cls < -1)].min()), _det_fields, class_names,
-                     "det_annos")  # fmt: skip
+    cls = _checked_classes(det_annos, fields, frame, bad, _det_fields, class_names, "det_annos")
     boxes[:, 6] = limit_period(boxes[:, 6], offset=0.5, period=np.float32(2 * np.pi))
     in_range = _in_range(boxes)
     keep = (cls >= 0) & in_range

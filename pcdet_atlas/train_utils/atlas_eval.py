@@ -49,6 +49,7 @@ __all__ = [
     "attack_sha256",
     "variant_fingerprints",
     "variant_entry",
+    "entry_summary",
     "loader_batches",
     "check_test_split",
     "build_attack_loader",
@@ -316,6 +317,16 @@ def variant_entry(
     )  # fmt: skip
 
 
+def entry_summary(variant: str, entry: Mapping) -> str:
+    """One log line of a variant's entry: its L2 mAP/mAPH (or ``no labels``) and ASR."""
+    asr, l2 = entry["asr"], entry["L2/mAP"]
+    return (
+        f"{variant}: "
+        + ("no labels" if l2 is None else f"L2 mAP {l2:.4f} mAPH {entry['L2/mAPH']:.4f}")
+        + ("" if asr is None else f" ASR {asr:.4f} ({entry['num_targets']} targets)")
+    )
+
+
 def evaluate_variant(
     model: torch.nn.Module,
     variant: str,
@@ -395,11 +406,8 @@ def evaluate_variant(
         if ctx.save_to_file:
             write_prediction_files(det_annos, out_dir / "final_result" / "data")
     if logger is not None:
-        asr, l2 = entry["asr"], entry["L2/mAP"]
         logger.info(
-            f"{variant}: "
-            + ("no labels" if l2 is None else f"L2 mAP {l2:.4f} mAPH {entry['L2/mAPH']:.4f}")
-            + ("" if asr is None else f" ASR {asr:.4f} ({entry['num_targets']} targets)")
+            entry_summary(variant, entry)
             + f"  [data {timings.get('data', 0):.1f}s model {timings.get('model', 0):.1f}s "
             f"metric {timings['metric']:.1f}s]"
         )

@@ -39,6 +39,7 @@ from pcdet_atlas.evaluation import (
 from pcdet_atlas.registry import DATASETS
 from pcdet_atlas.train_utils.atlas_eval import (
     build_variant_attacks,
+    entry_summary,
     resolve_variants,
     variant_entry,
     variant_fingerprints,
@@ -352,12 +353,7 @@ def score_variant(
         extra={"predictions": str(source)},
     )  # fmt: skip
     if logger is not None:
-        asr, l2 = entry["asr"], entry["L2/mAP"]
-        logger.info(
-            f"{variant}: "
-            + ("no labels" if l2 is None else f"L2 mAP {l2:.4f} mAPH {entry['L2/mAPH']:.4f}")
-            + ("" if asr is None else f" ASR {asr:.4f} ({entry['num_targets']} targets)")
-        )
+        logger.info(entry_summary(variant, entry))
     return entry, det_annos
 
 
