@@ -65,6 +65,7 @@ from pcdet_atlas.train_utils.setup import (
 )
 from pcdet_atlas.utils.common import create_logger, save_pickle
 from pcdet_atlas.utils.hashing import file_sha256
+from pcdet_atlas.utils.provenance import source_revision
 from pcdet_atlas.utils.safe_pickle import load_pickle
 
 __all__ = [
@@ -297,6 +298,7 @@ def evaluate_checkpoint(
     caches.new_checkpoint()
     entries: dict = {}
     path = None
+    source = source_revision()
     for variant, attack in run.attacks.items():
         if variant in finished:
             entry = finished[variant]
@@ -325,7 +327,7 @@ def evaluate_checkpoint(
         results = build_results(
             model=atlas_cfg.get("MODEL_NAME", cfg.TAG), config=str(settings.cfg_file),
             checkpoint=str(ckpt), class_names=cfg.CLASS_NAMES, variants=entries,
-            training_seed=training_seed, model_sha256=model_config_sha256(cfg),
+            training_seed=training_seed, model_sha256=model_config_sha256(cfg), source=source,
             extra={"processes": run.world, "device": str(run.device),
                    "batch_size": run.batch_size, "checkpoint_sha256": ckpt_sha256,
                    "variants_requested": list(run.attacks),

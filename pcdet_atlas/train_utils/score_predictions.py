@@ -44,6 +44,7 @@ from pcdet_atlas.train_utils.atlas_eval import (
     variant_entry,
     variant_fingerprints,
 )
+from pcdet_atlas.utils.provenance import source_revision
 from pcdet_atlas.utils.safe_pickle import load_pickle
 
 __all__ = [
@@ -435,6 +436,7 @@ def score_predictions(
     entries: dict = {}
     clean = None
     results = None
+    source = source_revision()
     for name, attack in attacks.items():
         path = files[name][1]
         entry, det_annos = score_variant(
@@ -449,7 +451,7 @@ def score_predictions(
         entries[name] = {**entry, "extra": extra}
         results = build_results(
             model=model, config=config, checkpoint=None, class_names=class_names,
-            variants=entries, extra={"scored_from": "predictions",
+            variants=entries, source=source, extra={"scored_from": "predictions",
                                      "variants_requested": list(attacks)},
         )  # fmt: skip
         save_results(results, out_dir / "results.json")

@@ -31,6 +31,7 @@ from pcdet_atlas.evaluation.results import (
     validate_results,
 )
 from pcdet_atlas.evaluation.results.io import upgrade_v1
+from pcdet_atlas.utils.provenance import SourceRevision
 
 CLASSES = ["Vehicle", "Pedestrian", "Cyclist"]
 TARGET = np.array([20.0, 2.0, 1.0, 4.0, 2.0, 2.0, 0.3], dtype=np.float32)
@@ -306,7 +307,7 @@ def test_schema_5_files_load_with_lifecycle_intervals_unknown(tmp_path):
     path = tmp_path / "v5.json"
     path.write_text(json.dumps(old))
     loaded = load_results(path)
-    assert loaded["schema_version"] == SCHEMA_VERSION == 7
+    assert loaded["schema_version"] == SCHEMA_VERSION == 8
     assert loaded == _without_lifecycle_intervals(copy.deepcopy(results), "null")
     broken = copy.deepcopy(results)
     broken["variants"]["inj_rel_hard"]["lifecycle"]["runs"][2][0]["num_targets"] += 1
@@ -345,6 +346,27 @@ def test_schema_6_files_load_with_the_training_unknown(tmp_path):
     with pytest.raises(ResultsError, match=r"v6.json: has 'training_seed', a key of schema 7"):
         load_results(path)
     for key, bad in (("training_seed", "7"), ("model_sha256", "abc")):
+        with pytest.raises(ResultsError, match=key):
+            validate_results({**results, key: bad})
+
+
+def test_schema_7_files_load_with_the_source_unknown(tmp_path):
+    """The code's revision (schema 8) is recorded by build_results from a SourceRevision; a
+    schema-7 file loads with both keys null; a schema-7 file holding one is refused naming it."""
+    source = SourceRevision(commit="0123456789abcdef" * 2 + "01234567", dirty=True)
+    results = build_results(
+        model="CenterPoint", config="cfgs/cp.yaml", checkpoint=None, class_names=CLASSES,
+        variants=CP["variants"], created=CP["created"], source=source,
+    )  # fmt: skip
+    assert (results["source_commit"], results["source_dirty"]) == (source.commit, True)
+    path = tmp_path / "v7.json"
+    old = {k: v for k, v in results.items() if k not in ("source_commit", "source_dirty")}
+    path.write_text(json.dumps({**old, "schema_version": 7}))
+    assert load_results(path) == {**results, "source_commit": None, "source_dirty": None}
+    path.write_text(json.dumps({**results, "schema_version": 7}))
+    with pytest.raises(ResultsError, match=r"v7.json: has 'source_commit', a key of schema 8"):
+        load_results(path)
+    for key, bad in (("source_commit", "abc"), ("source_dirty", "no")):
         with pytest.raises(ResultsError, match=key):
             validate_results({**results, key: bad})
 

@@ -33,6 +33,7 @@ from pcdet_atlas.train_utils.eval_caches import EvalCaches
 from pcdet_atlas.train_utils.eval_folder import finished_variants, resolve_checkpoint
 from pcdet_atlas.train_utils.setup import load_cfg
 from pcdet_atlas.utils.hashing import file_sha256
+from pcdet_atlas.utils.provenance import source_revision
 from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
 CFG = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml"
@@ -89,6 +90,9 @@ def test_two_variants_end_to_end_and_torchrun_agrees(eval_setup):
     assert eval_dir == out / "atlas/synthetic/centerpoint/single/eval/random/val/default"
     results = load_results(eval_dir / "results.json")  # validates the schema
     assert list(results["variants"]) == ["clean", "inj_global_hard"]
+    source = source_revision()  # the code that wrote it (None outside a git checkout)
+    assert results["source_commit"] == (source and source.commit)
+    assert results["source_dirty"] == (source and source.dirty)
     clean, inj = results["variants"]["clean"], results["variants"]["inj_global_hard"]
     assert clean["family"] == "clean" and clean["asr"] is None and clean["num_frames"] == 5
     assert inj["family"] == "injection" and inj["num_frames"] == 5

@@ -4,10 +4,10 @@ plus the invariants between fields), ``build`` makes its entries, ``io`` reads a
 report (tables and PNG figures) from several of them (``tools/report.py``), and ``archive``
 keeps the files a report was made from beside it, gzip-compressed.
 
-Schema (version 7; every key required unless marked optional; unknown keys are errors)::
+Schema (version 8; every key required unless marked optional; unknown keys are errors)::
 
     {
-      "schema_version": 7,
+      "schema_version": 8,
       "model": str,                      # display name, e.g. "CenterPoint-4f"
       "checkpoint": str | null,          # path of the evaluated weights
       "config": str,                     # path of the model config
@@ -17,6 +17,8 @@ Schema (version 7; every key required unless marked optional; unknown keys are e
                                          # checkpoint's train_settings, else ATLAS.TRAINING_SEED)
       "model_sha256": str | null,        # digest of the config's CLASS_NAMES, MODEL, OPTIMIZATION
                                          # and DATA_CONFIG (no DATA_PATH): same model, seed aside
+      "source_commit": str | null,       # git commit of the code that wrote the file (null: not
+      "source_dirty": bool | null,       # a git checkout); whether tracked files differed from it
       "class_names": [str, ...],         # e.g. ["Vehicle", "Pedestrian", "Cyclist"]
       "variants": {                      # variant name -> entry, e.g. "clean", "rem_40"
         <variant>: {

@@ -22,6 +22,7 @@ from pcdet_atlas.evaluation.results.schema import (
     validate_results,
     validate_variant,
 )
+from pcdet_atlas.utils.provenance import SourceRevision
 from pcdet_atlas.version import __version__
 
 __all__ = [
@@ -135,12 +136,14 @@ def build_results(
     extra: Mapping | None = None,
     training_seed: int | None = None,
     model_sha256: str | None = None,
+    source: SourceRevision | None = None,
 ) -> dict:
     """A complete, validated results dict (``created`` defaults to now, UTC). ``training_seed``:
     the seed the checkpoint was trained with; ``model_sha256``: the digest of the model's config
     without the seed (``pcdet_atlas.train_utils.checkpoint.model_config_sha256``): two results
     with the same digest and different seeds measure the seed's share of a difference (the
-    report's "Seed-to-seed spread"); None: not recorded."""
+    report's "Seed-to-seed spread"); ``source``: the git revision of the code that computed the
+    results (:func:`pcdet_atlas.utils.provenance.source_revision`); None: not recorded."""
     results = {
         "schema_version": SCHEMA_VERSION,
         "model": model,
@@ -150,6 +153,8 @@ def build_results(
         "created": created or datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "training_seed": None if training_seed is None else int(training_seed),
         "model_sha256": model_sha256,
+        "source_commit": None if source is None else source.commit,
+        "source_dirty": None if source is None else source.dirty,
         "class_names": list(class_names),
         "variants": {name: dict(entry) for name, entry in variants.items()},
     }

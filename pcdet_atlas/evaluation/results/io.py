@@ -92,7 +92,12 @@ _ADDED_IN = {
     "runs": 5, "lifecycle.asr_ci": 6, "lifecycle.runs": 6,
 }  # fmt: skip
 #: The top-level keys each schema version added (as :data:`_ADDED_IN` for a variant's).
-_TOP_ADDED_IN = {"training_seed": 7, "model_sha256": 7}
+_TOP_ADDED_IN = {
+    "training_seed": 7,
+    "model_sha256": 7,
+    "source_commit": 8,
+    "source_dirty": 8,
+}
 
 
 def check_version_content(results: dict, where: str = "results") -> None:
@@ -202,8 +207,22 @@ def upgrade_v6(results: dict, *, where: str = "results") -> dict:
     return _with_nulls(results, 7, where, (), (), ("training_seed", "model_sha256"))
 
 
+def upgrade_v7(results: dict, *, where: str = "results") -> dict:
+    """A schema-7 results dict as schema 8: the file gains ``source_commit`` and
+    ``source_dirty`` as None (schema 7 did not record the code's revision)."""
+    return _with_nulls(results, 8, where, (), (), ("source_commit", "source_dirty"))
+
+
 #: ``UPGRADES[v - 1]`` turns a schema-``v`` dict into schema ``v + 1``
-UPGRADES = (upgrade_v1, upgrade_v2, upgrade_v3, upgrade_v4, upgrade_v5, upgrade_v6)
+UPGRADES = (
+    upgrade_v1,
+    upgrade_v2,
+    upgrade_v3,
+    upgrade_v4,
+    upgrade_v5,
+    upgrade_v6,
+    upgrade_v7,
+)
 
 
 def load_results_dir(root: str | Path, pattern: str = "**/results.json") -> list[dict]:

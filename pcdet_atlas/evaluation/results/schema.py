@@ -20,7 +20,7 @@ __all__ = [
     "validate_variant",
 ]
 
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 8
 METRIC_KEYS = ("L1/mAP", "L1/mAPH", "L2/mAP", "L2/mAPH")
 CLASS_METRIC_KEYS = ("L1/AP", "L1/APH", "L2/AP", "L2/APH")
 ATTACK_KEYS = (
@@ -208,6 +208,10 @@ RESULTS_SCHEMA = {
             "training_seed": {"type": ["integer", "null"]},
             # the model config's digest, seed aside (null: not recorded)
             "model_sha256": {"type": ["string", "null"], "pattern": "^[0-9a-f]{64}$"},
+            # the git commit of the code that computed the file, and whether tracked files
+            # differed from it (null: not a git checkout, or not recorded)
+            "source_commit": {"type": ["string", "null"], "pattern": "^[0-9a-f]{40}$"},
+            "source_dirty": {"type": ["boolean", "null"]},
             "class_names": {"type": "array", "items": _NAME, "minItems": 1},
             "variants": {
                 "type": "object",
