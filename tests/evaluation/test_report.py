@@ -31,6 +31,7 @@ from pcdet_atlas.evaluation.results.build import paired_from_results
 from pcdet_atlas.evaluation.results.report import (
     FIGURES,
     centre_gap_table,
+    code_cell,
     collect_results,
     confident_phantom_table,
     lifecycle_table,
@@ -159,7 +160,7 @@ def test_report_has_every_table_row_and_figure(models, tmp_path):
         assert f"| {name} |" in text
     first_table = "| Model | Config" + report_part(text, "| Model | Config").split("\n\n")[0]
     provenance = md_table(first_table)
-    assert provenance["CP-4f"]["pcdet_atlas"] == models[1]["pcdet_atlas_version"]
+    assert provenance["CP-4f"]["Code"] == models[1]["pcdet_atlas_version"]  # no commit recorded
     assert models[1]["created"] not in text  # provenance, not the time of the run
     # CP-4f lacks rem_40: shown as missing in the removal table, not as zero
     cp4f = md_table(report_part(text, "## Point removal"))["CP-4f"]
@@ -183,6 +184,16 @@ def test_model_table_names_each_models_rpn():
     assert "cfgs/atlas/cp4f_voxel.yaml" in rpn_cell({"config": "cfgs/atlas/ptt_32f.yaml"})
     assert rpn_cell({"config": "cfgs/atlas/synthetic/centerpoint.yaml"}) == "-"
     assert rpn_cell({"config": "cfgs/nowhere.yaml"}).startswith("? (config unreadable")
+
+
+def test_model_table_names_the_code_that_wrote_each_file():
+    commit = "0123456789abcdef" * 2 + "01234567"
+    base = {"pcdet_atlas_version": "0.1.0", "source_commit": None, "source_dirty": None}
+    assert code_cell(base) == "0.1.0"
+    assert code_cell({**base, "source_commit": commit, "source_dirty": False}) == (
+        "0.1.0 `0123456789ab`"
+    )
+    assert code_cell({**base, "source_commit": commit, "source_dirty": True}).endswith("(modified)")
 
 
 def test_summary_lot_and_centre_gap_tables(models):
