@@ -1,9 +1,9 @@
 """What the docs tell a user is true of the code:
 
-- every ``tools/*.py`` command in the Markdown docs (README, CHANGELOG, ``docs/`` with the
-  results report), the Makefile, the configs' comments and the tools' own docstrings names a
-  tool that exists and only options its argument parser defines, and every config under
-  ``cfgs/`` it passes exists;
+- every ``tools/*.py`` command (or its ``atlas-*`` console command) in the Markdown docs
+  (README, CHANGELOG, ``docs/`` with the results report), the Makefile, the configs' comments
+  and the tools' own docstrings names a tool that exists and only options its argument parser
+  defines, and every config under ``cfgs/`` it passes exists;
 - every ``pcdet_atlas/`` or ``tests/`` path the docs name exists, and every relative link of
   the Markdown docs reaches its file and heading;
 - the Python examples import what exists and call it with arguments its signature takes;
@@ -31,11 +31,13 @@ import pytest
 import yaml
 
 from pcdet_atlas.config import REPO_ROOT
+from pcdet_atlas.utils.entry_points import COMMANDS
 
 #: configs a doc tells the reader to write before the command that uses them -> that doc
 WRITTEN_BY_THE_READER = {"cfgs/atlas/msf_4f_released.yaml": "docs/getting_started.md"}
 OFFICIAL_VENV = "tools/official_waymo_metric/"
-CALL = re.compile(r"tools/[\w/]+\.py")
+#: a tool by its path, or by its console command (pyproject.toml's [project.scripts])
+CALL = re.compile(r"tools/[\w/]+\.py|(?<![\w/.-])atlas-[a-z]+(?:-[a-z]+)*\b")
 FLAG = re.compile(r"(?<![\w-])--[A-Za-z][\w-]*")
 REPO_PATH = re.compile(r"(?<![\w/.<-])cfgs/[\w./{},*-]*\.yaml")
 
@@ -88,7 +90,8 @@ def invocations(text: str) -> list[tuple[str, str, int]]:
         rest = text[match.end() :]
         joined = re.sub(r"\s*\\\n\s*(?:#\s*)?", " ", rest)
         args = re.split(r"`|\n|\s\|\s|&&|;", joined, maxsplit=1)[0]
-        found.append((match.group(0), args, text.count("\n", 0, match.start()) + 1))
+        tool = COMMANDS.get(match.group(0), match.group(0))
+        found.append((tool, args, text.count("\n", 0, match.start()) + 1))
     return found
 
 
@@ -242,6 +245,14 @@ def test_heading_anchors_follow_github():
 )
 def test_invocations_end_where_the_command_ends(text, expected):
     assert [args for _, args, _ in invocations(text)] == [expected]
+
+
+def test_a_console_command_is_read_as_its_tool():
+    assert invocations("`atlas-test --cfg a.yaml`") == [("tools/test.py", " --cfg a.yaml", 1)]
+    assert invocations("x\natlas-evaluate-predictions --out_dir d") == [
+        ("tools/evaluate_predictions.py", " --out_dir d", 2)
+    ]
+    assert invocations("pcdet_atlas-x and my-atlas-y") == []
 
 
 def test_options_configs_and_braces_are_read_from_a_command(tmp_path):
