@@ -9,8 +9,11 @@ detections, with any number of loader workers."""
 from __future__ import annotations
 
 import copy
+import os
 import pickle
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -381,3 +384,50 @@ def test_ptt_resume_seeds_from_the_saved_clean_bank(synthetic_root, injection, t
         pickle.loads((eval_dir / "inj_global_hard" / "result.pkl").read_bytes()),
         pickle.loads(want_pkl),
     )
+
+
+@pytest.mark.slow
+def test_ptt_two_processes_equal_one(synthetic_root, injection, tmp_path):
+    """PTT's proposal history crosses the boundary between two processes' shards of a sequence
+    (the second process's first frame reads 31 frames the first process evaluates): under
+    torchrun with 2 processes each process proposes the history before its first frame itself,
+    and the clean bank seeds the injection variant per process, giving the results and
+    predictions of one process exactly."""
+    variant = tmp_path / "inj_global_hard.yaml"
+    variant.write_text(
+        f"_BASE_CONFIG_: {ATTACKS / 'inj_global_hard.yaml'}\n"
+        f"TRACE_LIBRARY:\n  PATH: {injection.TRACE_LIBRARY.PATH}\n  MIN_POINTS: 100\n"
+    )
+
+    def args(out):
+        return [
+            "--cfg", str(CFGS / "ptt_32f.yaml"), "--attacks", f"clean,{variant}",
+            "--output_root", str(out), "--workers", "0", "--no_progress", "--device", "cpu",
+            "--set", "DATA_CONFIG.DATA_PATH", str(synthetic_root),
+            "DATA_CONFIG.SAMPLED_INTERVAL", f"train:1,test:{INTERVAL}",
+            "DATA_CONFIG.POINT_CLOUD_RANGE", "-20.48,-20.48,-2,20.48,20.48,4",
+        ]  # fmt: skip
+
+    one = load_tool("test").main(args(tmp_path / "one"))
+    cmd = [
+        sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
+        "--master_port", "29531", str(REPO_ROOT / "tools" / "test.py"), "--launcher", "pytorch",
+        *args(tmp_path / "two"),
+    ]  # fmt: skip
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    two_dir = tmp_path / "two" / one["output_dir"].relative_to(tmp_path / "one")
+    two = load_results(two_dir / "results.json")
+    assert two["extra"]["processes"] == 2
+    for name, want in one["results"]["variants"].items():
+        got = two["variants"][name]
+        assert {k: v for k, v in got.items() if k != "extra"} == {
+            k: v for k, v in want.items() if k != "extra"
+        }, name  # fmt: skip
+        assert_annos_equal(
+            pickle.loads((two_dir / name / "result.pkl").read_bytes()),
+            pickle.loads((one["output_dir"] / name / "result.pkl").read_bytes()),
+        )
+    banks = [two["variants"][n]["extra"]["proposal_bank"] for n in ("clean", "inj_global_hard")]
+    assert banks[1]["seeded"] > 0  # each process seeded its part of the injection variant
