@@ -18,7 +18,7 @@ demo: install
 # every shipped model on all 13 variants of the 6-sequence val split -> docs/results/
 VAL6 = data/synthetic_waymo_val6
 reproduce: install
-	$(PYTHON) tools/create_synthetic_waymo.py --root $(VAL6) --train-sequences 12 \
+	$(PYTHON) tools/data/create_synthetic_waymo.py --root $(VAL6) --train-sequences 12 \
 		--train-frames 60 --val-sequences 6 --val-frames 198 --seed 0 --workers 2
 	$(PYTHON) tools/reproduce.py --data_path $(VAL6) --out docs/results --jobs 2
 

@@ -11,8 +11,8 @@
   of the ``_base_`` configs.
 
 The parsers are read in one child process: each tool runs as ``__main__`` until it parses its
-arguments, which stops it. ``tools/official_waymo_metric/`` runs in its own venv (TensorFlow), so
-its options are read from its source (``add_argument`` literals).
+arguments, which stops it. ``tools/dev/official_waymo_metric/`` runs in its own venv
+(TensorFlow), so its options are read from its source (``add_argument`` literals).
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from pcdet_atlas.utils.entry_points import COMMANDS
 
 #: configs a doc tells the reader to write before the command that uses them -> that doc
 WRITTEN_BY_THE_READER = {"cfgs/atlas/msf_4f_released.yaml": "docs/getting_started.md"}
-OFFICIAL_VENV = "tools/official_waymo_metric/"
+OFFICIAL_VENV = "tools/dev/official_waymo_metric/"
 #: a tool by its path, or by its console command (pyproject.toml's [project.scripts])
 CALL = re.compile(r"tools/[\w/]+\.py|(?<![\w/.-])atlas-[a-z]+(?:-[a-z]+)*\b")
 FLAG = re.compile(r"(?<![\w-])--[A-Za-z][\w-]*")

@@ -1,8 +1,8 @@
 """No tool imports another tool: what two tools share lives in the package, where a test or a
 third tool can call it (checked on the source with ``ast``, no importing). Running another tool
 as a child process (``tools/reproduce.py`` starts ``tools/test.py`` per model) is not an import.
-``tools/official_waymo_metric/`` is left out: a project of its own, run in its own TensorFlow venv
-without this package (its fixture script reads its evaluation script's helpers).
+``tools/dev/official_waymo_metric/`` is left out: a project of its own, run in its own
+TensorFlow venv without this package (its fixture script reads its evaluation script's helpers).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ def tool_imports(tools: Path = TOOLS) -> list[str]:
     """``<tool>:<line> <what>`` for every import of a tool module and every call that loads a
     file or module by name in ``tools/**/*.py``."""
     paths = [p for p in sorted(tools.rglob("*.py"))
-             if p.relative_to(tools).parts[0] not in OWN_PROJECTS]  # fmt: skip
+             if not set(p.relative_to(tools).parts) & set(OWN_PROJECTS)]  # fmt: skip
     names = {path.stem for path in paths}
     found = []
     for path in paths:
@@ -72,10 +72,26 @@ def test_the_check_finds_a_tool_importing_a_tool(tmp_path):
     ]
 
 
+def test_tools_are_grouped_by_purpose():
+    """The tools a user runs to benchmark sit at the top of tools/; data creation, benchmarks and
+    developer tools in their subfolders, each listed in tools/README.md."""
+    top = {p.stem for p in TOOLS.glob("*.py")}
+    assert top == {"train", "test", "demo", "report", "reproduce", "evaluate_predictions"}
+    assert {p.name for p in TOOLS.iterdir() if p.is_dir() and p.name != "__pycache__"} == {
+        "data", "bench", "dev"
+    }  # fmt: skip
+    readme = (TOOLS / "README.md").read_text()
+    for path in TOOLS.rglob("*.py"):
+        if not set(path.relative_to(TOOLS).parts) & set(OWN_PROJECTS):
+            assert f"`{path.relative_to(TOOLS).as_posix()}`" in readme, path
+
+
 def test_every_tool_ends_user_errors_in_one_line():
     """Each tool runs its ``main`` through ``run_tool`` and lists ``--debug`` in its help."""
     missing = []
-    for path in sorted(TOOLS.glob("*.py")):
+    for path in sorted(TOOLS.rglob("*.py")):
+        if set(path.relative_to(TOOLS).parts) & set(OWN_PROJECTS):
+            continue
         text = path.read_text()
         if 'if __name__ == "__main__":' not in text:
             continue
@@ -123,4 +139,7 @@ def test_a_tool_refuses_the_package_of_another_tree(tmp_path):
     (other / "pcdet_atlas").mkdir()
     with pytest.raises(OtherTreeError, match=r"test\.py of .*clone imports pcdet_atlas from"):
         check_package_tree(other / "tools" / "test.py")
+    with pytest.raises(OtherTreeError, match=r"bench_models\.py of .*clone imports"):
+        check_package_tree(other / "tools" / "bench" / "bench_models.py")  # a tool in a subfolder
+    check_package_tree(TOOLS / "bench" / "bench_models.py")
     check_package_tree(tmp_path / "scripts" / "mine.py")  # a script outside any checkout

@@ -55,7 +55,7 @@ def ensure_trace_library(root: Path) -> None:
     if path.is_file():
         print(f"trace library: {path} (built earlier)")
         return
-    run_child("build_trace_library.py", "--cfg", "cfgs/attacks/inj_global_hard.yaml",
+    run_child("data/build_trace_library.py", "--cfg", "cfgs/attacks/inj_global_hard.yaml",
              "--data_path", str(root))  # fmt: skip
 
 
@@ -144,7 +144,7 @@ def main(argv=None) -> dict:
     for variant in VARIANTS[1:]:
         out = str(OUT_DIR / f"{variant}_0040.png")
         attack = f"cfgs/attacks/{variant}.yaml"
-        run_child("visualize_attack.py", "--data_cfg", str(DATA_CFG), "--data_path", str(root),
+        run_child("dev/visualize_attack.py", "--data_cfg", str(DATA_CFG), "--data_path", str(root),
                  "--attack", attack, "--frame", "40", "--out", out)  # fmt: skip
 
     # the demo's own evaluation directory: a rerun replaces it (tools/test.py refuses otherwise)

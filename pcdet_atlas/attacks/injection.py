@@ -267,7 +267,7 @@ class InjectionAttack(BaseAttack):
                 raise ConfigError(
                     f"{self.library_path}: trace library built with {stored}, but "
                     f"{self.variant} asks for {expected} (its TRACE_LIBRARY and LIDAR.ORIGIN); "
-                    "rebuild the library with tools/build_trace_library.py"
+                    "rebuild the library with tools/data/build_trace_library.py"
                 )
             self._library = lib
         return self._library

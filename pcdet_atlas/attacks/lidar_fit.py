@@ -30,7 +30,7 @@ __all__ = ["top_lidar_points", "sequence_top_points", "fit_lidar_from_sequence",
 def top_lidar_points(points: np.ndarray, info: dict, where: str) -> np.ndarray:
     """The TOP rows ``(n_TOP, C)`` of a frame's ``(N, C)`` points, checked against the info.
 
-    In a frame written by ``tools/generate_atlas.py`` the TOP count includes the
+    In a frame written by ``tools/data/generate_atlas.py`` the TOP count includes the
     ``info['atlas']['num_injected_rows']`` phantom rows, which are the last rows of the file.
     """
     counts = info.get("num_points_of_each_lidar")

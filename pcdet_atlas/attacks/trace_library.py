@@ -19,7 +19,7 @@ One file (``.npz``, no pickle) holds the whole library::
     num_frames  (K,)   int64     frames that contributed points
     build_info  ()     str       JSON: split, filters, data root, sensor origin, seed
 
-Built by ``tools/build_trace_library.py`` from the *train* split with filters taken from the
+Built by ``tools/data/build_trace_library.py`` from the *train* split with filters taken from the
 ``TRACE_LIBRARY`` section of an injection attack YAML.
 """
 
@@ -274,7 +274,8 @@ class TraceLibrary:
         if not path.is_file():
             raise FileNotFoundError(
                 f"trace library not found: {path}. Build it with "
-                "`python tools/build_trace_library.py --cfg <injection yaml> --data_path <root>`"
+                "`python tools/data/build_trace_library.py --cfg <injection yaml> "
+                "--data_path <root>`"
             )
         try:
             with np.load(path, allow_pickle=False) as data:
@@ -291,7 +292,7 @@ class TraceLibrary:
                 raise
             raise ValueError(
                 f"{path}: cannot read the trace library (truncated or not a .npz written by "
-                f"tools/build_trace_library.py; rebuild it): {type(err).__name__}: {err}"
+                f"tools/data/build_trace_library.py; rebuild it): {type(err).__name__}: {err}"
             ) from err
         info = json.loads(str(arrays.pop("build_info")))
         return cls(**arrays, build_info=info, path=path)

@@ -16,7 +16,7 @@ treat the **sequence** as the cluster (the runs of a sequence when there is only
 
 :func:`coverage_simulation` draws ATLAS-shaped data (nested Beta rates, binomial targets) and
 reports the empirical coverage and width of these intervals; the docs' tables are
-:func:`format_coverage_table` of it (``python tools/interval_coverage.py``).
+:func:`format_coverage_table` of it (``python tools/dev/interval_coverage.py``).
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ These functions measure, on the frames of a loader:
   over the frames of a fit split, the same for every azimuth): the best a forecast that knows
   only range can do.
 
-``tools/lot_filter.py`` prints them for a config and checkpoint.
+``tools/dev/lot_filter.py`` prints them for a config and checkpoint.
 """
 
 from __future__ import annotations

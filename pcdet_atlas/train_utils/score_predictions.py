@@ -1,7 +1,7 @@
 """Scoring predictions a detector made anywhere: per-frame detections in, ``results.json`` out.
 
 A detector this package does not implement (another toolkit's model, an in-house one) predicts
-on the test split, clean or attacked (``tools/generate_atlas.py`` writes the attacked data);
+on the test split, clean or attacked (``tools/data/generate_atlas.py`` writes the attacked data);
 its per-frame detections then get the same ``results.json`` entry :func:`evaluate_variant`
 gives the project's own models: Waymo L1/L2 AP/APH and, for an attack variant, ASR with its
 interval and per-run counts, confidence and lifecycle. The attack's targets, runs and lifecycle

@@ -42,9 +42,11 @@ class OtherTreeError(RuntimeError):
 
 
 def check_package_tree(tool_file: str | Path) -> None:
-    """Raise :class:`OtherTreeError` when ``tool_file`` (a ``tools/*.py`` of a checkout) runs
-    with the ``pcdet_atlas`` package of another checkout."""
-    tool_root = Path(tool_file).resolve().parent.parent
+    """Raise :class:`OtherTreeError` when ``tool_file`` (a ``tools/*.py`` or ``tools/*/*.py`` of
+    a checkout) runs with the ``pcdet_atlas`` package of another checkout."""
+    tool_path = Path(tool_file).resolve()
+    tools = next((p for p in tool_path.parents if p.name == "tools"), tool_path.parent)
+    tool_root = tools.parent
     package_root = Path(__file__).resolve().parent.parent.parent  # .../pcdet_atlas/utils/cli.py
     if (tool_root / "pcdet_atlas").is_dir() and tool_root != package_root:
         raise OtherTreeError(

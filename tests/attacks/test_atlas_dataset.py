@@ -228,7 +228,7 @@ def test_lifecycle_metadata_over_a_run(synthetic_root):
 @pytest.mark.parametrize("keep_nlz", [True, False])
 def test_generate_atlas_roundtrip_and_resume(tmp_path, keep_nlz):
     root = write_tiny_waymo(tmp_path / "tiny", frames={"train": 6, "val": 66}, nlz_every=7)
-    load_tool("build_trace_library").main(
+    load_tool("data/build_trace_library").main(
         ["--cfg", str(ATTACKS / "inj_rel_hard.yaml"), "--data_path", str(root),
          "--set", "TRACE_LIBRARY.MIN_POINTS", "100"]
     )  # fmt: skip
@@ -240,7 +240,7 @@ def test_generate_atlas_roundtrip_and_resume(tmp_path, keep_nlz):
     out = tmp_path / "out"
     args = ["--data_cfg", str(cfg_path), "--attack", str(ATTACKS / "inj_rel_hard.yaml"),
             "--out_dir", str(out), "--set", "TRACE_LIBRARY.MIN_POINTS", "100"]  # fmt: skip
-    gen = load_tool("generate_atlas")
+    gen = load_tool("data/generate_atlas")
     gen.main(args)
     cfg = cfg_from_yaml_file(ATTACKS / "inj_rel_hard.yaml")
     cfg.TRACE_LIBRARY.MIN_POINTS = 100
@@ -290,7 +290,7 @@ def test_generate_atlas_roundtrip_and_resume(tmp_path, keep_nlz):
 
 
 def test_visualize_attack_writes_png(synthetic_root, tmp_path):
-    viz = load_tool("visualize_attack")
+    viz = load_tool("dev/visualize_attack")
     ds = make(synthetic_root, "rem_30")
     out = viz.render(ds, 40, tmp_path / "rem.png", [-25.0, 55.0, -30.0, 30.0])
     assert out.stat().st_size > 50_000

@@ -1,4 +1,4 @@
-"""tools/generate_atlas.py refuses an --out_dir that would overwrite its own source dataset and
+"""tools/data/generate_atlas.py refuses an --out_dir that would overwrite its own source dataset and
 writes per-LiDAR row counts that match the written frames."""
 
 import hashlib
@@ -56,7 +56,7 @@ def test_out_dir_overlapping_the_source_is_refused(source, tmp_path, where):
     before = tree_digest(root)
     relation = {"contains": "contains", "inside": "lies inside", "symlink_inside": "lies inside"}
     with pytest.raises(ValueError, match=f"--out_dir .* {relation.get(where, 'is')} the source"):
-        load_tool("generate_atlas").main(gen_args(cfg_path, out_dir))
+        load_tool("data/generate_atlas").main(gen_args(cfg_path, out_dir))
     assert tree_digest(root) == before
     assert not (root / "atlas").exists() and not (root / "atlas_attack.yaml").exists()
 
@@ -64,7 +64,7 @@ def test_out_dir_overlapping_the_source_is_refused(source, tmp_path, where):
 def test_out_dir_beside_the_source_is_written(source, tmp_path):
     root, cfg_path = source
     out_dir = tmp_path / "data" / "tiny_clean"  # a sibling whose name starts like the source's
-    load_tool("generate_atlas").main(gen_args(cfg_path, out_dir))
+    load_tool("data/generate_atlas").main(gen_args(cfg_path, out_dir))
     assert (out_dir / "atlas_attack_metadata.pkl").is_file()
     assert sorted(p.name for p in (out_dir / "ImageSets").iterdir()) == ["val.txt"]
 
@@ -72,10 +72,10 @@ def test_out_dir_beside_the_source_is_written(source, tmp_path):
 def test_relative_out_dir_is_read_from_the_working_directory(source, tmp_path, monkeypatch):
     root, cfg_path = source
     monkeypatch.chdir(tmp_path / "data")
-    load_tool("generate_atlas").main(gen_args(cfg_path, "tiny_clean"))
+    load_tool("data/generate_atlas").main(gen_args(cfg_path, "tiny_clean"))
     assert (tmp_path / "data" / "tiny_clean" / "atlas_attack_metadata.pkl").is_file()
     with pytest.raises(ValueError, match="lies inside the source"):  # relative to the cwd too
-        load_tool("generate_atlas").main(gen_args(cfg_path, "tiny/atlas"))
+        load_tool("data/generate_atlas").main(gen_args(cfg_path, "tiny/atlas"))
 
 
 @pytest.mark.parametrize("variant", ["inj_rel_hard", "rem_60"])
@@ -98,11 +98,11 @@ def test_lidar_counts_sum_to_the_written_rows(tmp_path, variant):
     attack = ["--attack", str(ATTACKS / f"{variant}.yaml")]
     fewer = ["--set", "TRACE_LIBRARY.MIN_POINTS", "100"] if variant.startswith("inj") else []
     if fewer:
-        load_tool("build_trace_library").main(
+        load_tool("data/build_trace_library").main(
             ["--cfg", attack[1], "--data_path", str(root), *fewer]
         )
     out = tmp_path / "out"
-    load_tool("generate_atlas").main(
+    load_tool("data/generate_atlas").main(
         ["--data_cfg", str(cfg_path), *attack, "--out_dir", str(out), *fewer]
     )
     written = wf.load_sequence_infos(wf.sequence_pkl_path(out, seq))
@@ -127,10 +127,10 @@ def test_a_rerun_refuses_attack_metadata_that_would_run_code(source, tmp_path):
     restricted unpickler."""
     root, cfg_path = source
     out_dir = tmp_path / "out"
-    load_tool("generate_atlas").main(gen_args(cfg_path, out_dir))
+    load_tool("data/generate_atlas").main(gen_args(cfg_path, out_dir))
     (meta,) = wf.data_dir(out_dir).glob("*/*_atlas.pkl")
     marker = tmp_path / "marker"
     malicious_pickle(meta, marker)
     with pytest.raises(RefusedGlobalError, match=rf"{meta}: refused to unpickle the global "):
-        load_tool("generate_atlas").main(gen_args(cfg_path, out_dir))
+        load_tool("data/generate_atlas").main(gen_args(cfg_path, out_dir))
     assert not marker.exists()

@@ -68,7 +68,7 @@ def test_top_rows_checked_against_info(synthetic_root):
 
 
 def test_top_rows_of_a_written_atlas_frame():
-    """In a frame of tools/generate_atlas.py the TOP count includes the phantom rows, which
+    """In a frame of tools/data/generate_atlas.py the TOP count includes the phantom rows, which
     are the last rows of the file (after the other LiDARs' rows)."""
     rows = np.arange(6 * 6, dtype=np.float32).reshape(6, 6)  # TOP 0-1, FRONT 2-4, phantom 5
     info = {"num_points_of_each_lidar": [3, 3, 0, 0, 0], "atlas": {"num_injected_rows": 1}}
@@ -85,7 +85,7 @@ def _fit_cli(root, *args) -> str:
     from pcdet_atlas.config import REPO_ROOT
 
     run = subprocess.run(
-        [sys.executable, str(REPO_ROOT / "tools" / "fit_lidar_model.py"), "--data_path",
+        [sys.executable, str(REPO_ROOT / "tools" / "data" / "fit_lidar_model.py"), "--data_path",
          str(root), "--sequence", first_sequence(root), "--frames", "0", "3", *args],
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip

@@ -70,7 +70,7 @@ def test_filter_config_keys():
 
 
 def test_build_tool_writes_under_data_root(tiny_root, capfd):
-    out = load_tool("build_trace_library").main(
+    out = load_tool("data/build_trace_library").main(
         ["--cfg", str(REPO_ROOT / "cfgs/attacks/inj_rel_easy.yaml"), "--data_path", str(tiny_root)]
     )
     assert out == tiny_root / "atlas_trace_library.npz"
@@ -87,12 +87,12 @@ def test_build_tool_reads_its_paths_from_the_working_directory(tiny_root, tmp_pa
     monkeypatch.chdir(tiny_root.parent)
     args = ["--cfg", str(REPO_ROOT / "cfgs/attacks/inj_rel_easy.yaml"), "--data_path",
             tiny_root.name, "--out", os.path.relpath(tmp_path / "rel_lib.npz")]  # fmt: skip
-    out = load_tool("build_trace_library").main(args)
+    out = load_tool("data/build_trace_library").main(args)
     assert out == tmp_path / "rel_lib.npz" and out.is_file()
     assert TraceLibrary.load(out).build_info["split"] == "train"
     monkeypatch.chdir(tmp_path)  # the same relative --data_path names nothing here
     with pytest.raises(WaymoFormatError, match=str(tmp_path / tiny_root.name)):
-        load_tool("build_trace_library").main(args)
+        load_tool("data/build_trace_library").main(args)
 
 
 def test_library_of_the_synthetic_dataset(synthetic_root, tmp_path):
@@ -126,7 +126,7 @@ def test_build_from_an_empty_split_names_the_split(tiny_root, tmp_path):
 
 
 def test_rebuild_with_other_filters_does_not_replace_the_shared_file(tiny_root, tmp_path):
-    tool = load_tool("build_trace_library")
+    tool = load_tool("data/build_trace_library")
     yaml = str(REPO_ROOT / "cfgs/attacks/inj_rel_easy.yaml")
     out = tmp_path / "shared.npz"
     base = ["--cfg", yaml, "--data_path", str(tiny_root), "--out", str(out)]

@@ -1,4 +1,5 @@
-"""The GT database (tools/create_gt_database.py) and every shipped dataset YAML building on it."""
+"""The GT database (tools/data/create_gt_database.py) and every shipped dataset YAML building on
+it."""
 
 from __future__ import annotations
 
@@ -28,7 +29,9 @@ TAG = wf.PROCESSED_DATA_TAG
 @pytest.fixture(scope="module")
 def db_root(tmp_path_factory):
     root = write_tiny_waymo(tmp_path_factory.mktemp("tiny_db"))
-    tool = runpy.run_path(str(REPO_ROOT / "tools" / "create_gt_database.py"), run_name="tool")
+    tool = runpy.run_path(
+        str(REPO_ROOT / "tools" / "data" / "create_gt_database.py"), run_name="tool"
+    )
     tool["main"](
         [
             "--cfg_file",

@@ -536,7 +536,7 @@ def test_cli_writes_the_requested_sizes(tmp_path, capsys):
     from pcdet_atlas.config import REPO_ROOT
 
     spec = importlib.util.spec_from_file_location(
-        "create_synthetic_waymo_cli", REPO_ROOT / "tools" / "create_synthetic_waymo.py"
+        "create_synthetic_waymo_cli", REPO_ROOT / "tools" / "data" / "create_synthetic_waymo.py"
     )
     cli = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(cli)

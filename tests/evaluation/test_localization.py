@@ -151,9 +151,11 @@ def test_projected_ap_matches_only_the_ground_truth_the_metric_scores():
 
 
 def test_analyze_boxes_tool_on_a_test_result(synthetic_root, tmp_path, capsys):
-    """``tools/analyze_boxes.py`` on a result.pkl of the synthetic val split: predictions that
+    """``tools/dev/analyze_boxes.py`` on a result.pkl of the synthetic val split: predictions that
     are the ground-truth vehicles lengthened by 0.4 m."""
-    spec = importlib.util.spec_from_file_location("analyze", REPO_ROOT / "tools/analyze_boxes.py")
+    spec = importlib.util.spec_from_file_location(
+        "analyze", REPO_ROOT / "tools/dev/analyze_boxes.py"
+    )
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
     from pcdet_atlas.datasets.waymo_format import (

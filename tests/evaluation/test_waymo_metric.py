@@ -90,7 +90,7 @@ CAR2 = [20.0, 5.0, 1.0, 4.5, 2.0, 1.6, -1.0]
 
 # ------------------------------------------------------------------------------------------------
 # against the official waymo-open-dataset-tf-2-12-0==1.6.7 op (fixtures made by
-# tools/official_waymo_metric/make_fixtures.py)
+# tools/dev/official_waymo_metric/make_fixtures.py)
 # ------------------------------------------------------------------------------------------------
 def test_fixture_covers_the_required_cases(official):
     scenes = _scenes(official)

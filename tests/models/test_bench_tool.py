@@ -1,4 +1,4 @@
-"""tools/bench_models.py end to end on the tiny synthetic dataset, at the smallest sizes: the
+"""tools/bench/bench_models.py end to end on the tiny synthetic dataset, at the smallest sizes: the
 latency table (a shipped model and a real-Waymo two-stage config whose RPN is not trained here),
 the test-step shares of the three attack families, PTT with and without its proposal bank,
 selective_scan against its loop, and the sparse conv layers of a voxel backbone. The figures
@@ -34,7 +34,7 @@ def number(cell: str) -> float:
 
 def test_every_table_is_complete(synthetic_root):
     cmd = [
-        sys.executable, str(REPO_ROOT / "tools" / "bench_models.py"),
+        sys.executable, str(REPO_ROOT / "tools" / "bench" / "bench_models.py"),
         "--cfgs", "cfgs/atlas/synthetic/centerpoint.yaml", "cfgs/atlas/msf_4f.yaml",
         "--data_path", str(synthetic_root), "--frames", "1", "--threads", "1",
         "--share_cfg", "cfgs/atlas/synthetic/centerpoint.yaml", "--share_frames", "1",

@@ -1,5 +1,5 @@
 """OpenPCDet checkpoints of CenterPoint / CP4F load (models/openpcdet_checkpoint.py and
-tools/convert_openpcdet_ckpt.py).
+tools/data/convert_openpcdet_ckpt.py).
 
 OpenPCDet's side is written here from its architecture facts (module nesting, parameter names,
 shapes, spconv 1.x's ``(kD, kH, kW, in, out)`` weights), not from the converter: a state_dict
@@ -365,7 +365,7 @@ def test_convert_tool(tmp_path, capsys, monkeypatch):
         src,
     )  # fmt: skip
     out = tmp_path / "converted.pth"
-    tool = load_tool("convert_openpcdet_ckpt")
+    tool = load_tool("data/convert_openpcdet_ckpt")
     tool.main(["--cfg", str(cfg_path), "--ckpt", str(src), "--out", str(out)])
     assert "loads strictly" in capsys.readouterr().out
     model = build_network_from_config(cfg)
@@ -430,7 +430,7 @@ def test_convert_tool_reads_openpcdet_files_without_running_code(tmp_path, numpy
     src, out = tmp_path / "checkpoint_epoch_36.pth", tmp_path / "converted.pth"
     openpcdet_file(src, theirs, numpy_1=numpy_1)
     assert (b"numpy.core.multiarray" in src.read_bytes()) == numpy_1
-    tool = load_tool("convert_openpcdet_ckpt")
+    tool = load_tool("data/convert_openpcdet_ckpt")
     tool.main(["--cfg", str(cfg_path), "--ckpt", str(src), "--out", str(out)])
     assert torch.load(out, weights_only=True)["epoch"] == 36
 
@@ -446,7 +446,7 @@ def test_convert_tool_refuses_non_finite_weights_and_a_model_state_of_another_ki
     theirs = openpcdet_state(cfg_from_yaml_file(cfg_path))
     src, out = tmp_path / "checkpoint_epoch_36.pth", tmp_path / "converted.pth"
     args = ["--cfg", str(cfg_path), "--ckpt", str(src), "--out", str(out)]
-    tool = load_tool("convert_openpcdet_ckpt")
+    tool = load_tool("data/convert_openpcdet_ckpt")
     name = "dense_head.heads_list.0.hm.1.bias"
     for bad in (float("nan"), float("inf")):
         broken = {**theirs, name: theirs[name].clone()}
@@ -906,7 +906,7 @@ def test_convert_tool_msf_records_the_rpn_and_refuses_ptt(tmp_path, capsys):
     theirs = released_state(msf_released_shapes())
     torch.save({"epoch": 6, "it": 99, "model_state": theirs, "version": "pcdet+0.6.0"}, src)
     out = tmp_path / "msf_4f_converted.pth"
-    tool = load_tool("convert_openpcdet_ckpt")
+    tool = load_tool("data/convert_openpcdet_ckpt")
     cfg_path = REPO_ROOT / "cfgs" / "atlas" / "msf_4f.yaml"
     tool.main(["--cfg", str(cfg_path), "--ckpt", str(src), "--out", str(out), "--set", *rpn])
     printed = capsys.readouterr().out

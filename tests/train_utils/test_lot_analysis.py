@@ -90,7 +90,7 @@ def test_range_prior_is_the_best_constant_per_range_cell():
 def test_the_tool_prints_keep_rates_and_forecast_quality(synthetic_root, capsys):
     from pcdet_atlas.utils.common import load_tool
 
-    tool = load_tool("lot_filter")
+    tool = load_tool("dev/lot_filter")
     out = tool.main(
         ["--cfg", str(STAGE3), "--data_path", str(synthetic_root), "--fit_frames", "2",
          "--frames", "2"]

@@ -1,6 +1,6 @@
 """GT sampling ("copy-paste") from a GT database, with OpenPCDet's semantics.
 
-The database (``tools/create_gt_database.py``, :mod:`pcdet_atlas.datasets.gt_database`) is a
+The database (``tools/data/create_gt_database.py``, :mod:`pcdet_atlas.datasets.gt_database`) is a
 pickle ``{class_name: [db_info, ...]}`` plus the object points, either one ``.bin`` per object
 (``db_info['path']``, relative to the data root) or one stacked ``*_global.npy`` indexed by
 ``db_info['global_data_offset']`` (``USE_SHARED_MEMORY: True``; read through a memory map, so
@@ -242,7 +242,7 @@ class GTSampling:
             except FileNotFoundError as err:
                 raise WaymoFormatError(
                     f"{path}: GT database info file not found (build it with "
-                    f"tools/create_gt_database.py, or drop gt_sampling from AUG_CONFIG_LIST)"
+                    f"tools/data/create_gt_database.py, or drop gt_sampling from AUG_CONFIG_LIST)"
                 ) from err
             except (OSError, EOFError, ValueError, pickle.UnpicklingError) as err:
                 raise WaymoFormatError(f"{path}: cannot unpickle GT database infos: {err}") from err

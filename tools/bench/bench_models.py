@@ -1,7 +1,8 @@
 """Per-frame latency and peak memory of each detector, beside its synthetic L2 mAP.
 
-    python tools/bench_models.py                      # every config in cfgs/atlas/, CPU
-    python tools/bench_models.py --cfgs cfgs/atlas/synthetic/cp4f.yaml --frames 10 --device cuda
+    python tools/bench/bench_models.py                      # every config in cfgs/atlas/, CPU
+    python tools/bench/bench_models.py --cfgs cfgs/atlas/synthetic/cp4f.yaml --frames 10 \
+        --device cuda
 
 Frames come from the synthetic dataset (``--data_path``, default ``data/synthetic_waymo``; a tiny
 one is generated in a temporary folder if it is missing) through each config's own
@@ -29,28 +30,29 @@ column says so ("checkpoint missing", or "no checkpoint" for configs without
 a val sequence under ``--bank_variant`` with the proposal bank (one RPN pass per frame) against
 recomputing every window's 32 frames:
 
-    python tools/bench_models.py --cfgs --bank_cfg cfgs/atlas/synthetic/ptt_32f.yaml
+    python tools/bench/bench_models.py --cfgs --bank_cfg cfgs/atlas/synthetic/ptt_32f.yaml
 
 ``--vfe_forms`` times the VFE of each ``--cfgs`` config (random weights with BatchNorm
 statistics from a few training-mode passes, or its checkpoint) in its two eval forms on the same
 frames, alternating: the folded form ``DynamicPillarVFE`` uses in eval mode and the layer-by-layer
 one (``fold_eval = False``), with the largest difference of their outputs:
 
-    python tools/bench_models.py --vfe_forms --cfgs cfgs/atlas/synthetic/cp4f.yaml --frames 8
+    python tools/bench/bench_models.py --vfe_forms --cfgs cfgs/atlas/synthetic/cp4f.yaml --frames 8
 
 For a model with a LOT stage (PHiM+LOT), the time LOT takes inside its frames is printed below
 the table. ``--ssm`` times :func:`~pcdet_atlas.models.ssm.selective_scan` (chunked) against the
 plain sequential loop (``selective_scan_reference``) on the same inputs, forward and forward +
 backward, at ``--ssm_lengths`` steps (b 2, d 64, n 16, Mamba's sizes), alternating:
 
-    python tools/bench_models.py --cfgs --ssm --threads 1
+    python tools/bench/bench_models.py --cfgs --ssm --threads 1
 
 ``--spconv CFG`` times each sparse conv layer of a voxel config's 3D backbone (random weights) on
 val frame ``--spconv_frame``: building its index pairs, its gather-GEMM-scatter forward and
 forward + backward, beside ``conv3d`` with the same weights on the dense grid, then the whole
 backbone:
 
-    python tools/bench_models.py --cfgs --spconv cfgs/atlas/synthetic/cp4f_voxel.yaml --frames 3
+    python tools/bench/bench_models.py --cfgs --spconv cfgs/atlas/synthetic/cp4f_voxel.yaml \
+        --frames 3
 
 ``--deterministic_scatter CFG`` times the 3D backbone's forward + backward on one training batch
 (``--batch_size``, the config's train pipeline, seed 0) in torch's deterministic mode, as a
@@ -58,7 +60,7 @@ seeded training run has it: the sparse conv's collision-free scatter on its own 
 torch's rerouting of it through a sort-based ``index_put_``, alternating, ``--steps`` timed pairs
 after 2 warm-up pairs, and whether both give the same bits (they differ in time on CUDA only):
 
-    python tools/bench_models.py --cfgs --deterministic_scatter \
+    python tools/bench/bench_models.py --cfgs --deterministic_scatter \
         cfgs/atlas/synthetic/cp4f_voxel.yaml --device cuda --steps 10
 
 ``--train_step`` instead times training steps (batch ``--batch_size``, the configs' own train
@@ -71,14 +73,15 @@ processes and prints both side by side, with the losses of both trees on the sam
 ``--default_malloc`` adds a row of this tree without ``retain_freed_cpu_memory`` (which
 ``tools/train.py`` applies on CPU). Needs a dataset with its GT databases (``--data_path``):
 
-    python tools/bench_models.py --train_step --baseline_src /tmp/old --rounds 2 --steps 4
+    python tools/bench/bench_models.py --train_step --baseline_src /tmp/old --rounds 2 --steps 4
 
 ``--baseline_src DIR`` without ``--train_step`` times the latency and peak memory of each
 ``--cfgs`` config in the older tree and in this one, ``--rounds`` alternating processes each,
 and says whether both trees' predictions on the timed frames are bitwise equal; the older tree
 needs the same checkpoints (``git archive <commit> pcdet_atlas cfgs checkpoints | tar -x -C DIR``):
 
-    python tools/bench_models.py --cfgs cfgs/atlas/synthetic/msf_8f.yaml --baseline_src /tmp/old
+    python tools/bench/bench_models.py --cfgs cfgs/atlas/synthetic/msf_8f.yaml \
+        --baseline_src /tmp/old
 
 For a two-stage model that table also counts the aten operators its second stage calls per frame
 (``torch.profiler`` on the CPU, in an untimed pass over the same frames; each is one dispatch: a

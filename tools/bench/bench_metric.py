@@ -3,7 +3,7 @@
 Prints, for one seeded synthetic evaluation set (default 200 frames x ~100 GT x ~300 predictions
 per frame, all three classes):
 - the time of ``waymo_evaluate`` (exact Hungarian, the official semantics);
-- where the official venv exists (``tools/official_waymo_metric/setup_venv.sh``), the official
+- where the official venv exists (``tools/dev/official_waymo_metric/setup_venv.sh``), the official
   ``py_metrics_ops.detection_metrics`` time on the same input, the ratio, and the largest AP/APH
   difference between the two (a large-scale cross-check of the fixtures' result);
 - the price of exactness: greedy score-first matching (COCO style) vs Hungarian, time and AP.
@@ -20,9 +20,9 @@ time, the process's peak resident memory (``ru_maxrss``, inputs included) and wh
 alone held, and the growth from the smallest to the largest count; ``--profile`` adds the
 largest count's cProfile top 15.
 
-Usage: ``python tools/bench_metric.py [--frames 200] [--gt 100] [--det 300] [--repeats 3]
+Usage: ``python tools/bench/bench_metric.py [--frames 200] [--gt 100] [--det 300] [--repeats 3]
 [--threads 1] [--venv .cache/waymo_official_venv]``, or
-``python tools/bench_metric.py --scale [--scale_frames 4000 40000] [--profile]``
+``python tools/bench/bench_metric.py --scale [--scale_frames 4000 40000] [--profile]``
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ from pcdet_atlas.evaluation.waymo_metric import waymo_evaluate
 from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 from pcdet_atlas.utils.seeding import numpy_generator
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CLASSES = ["Vehicle", "Pedestrian", "Cyclist"]
 WAYMO_CODES = {"Vehicle": 1, "Pedestrian": 2, "Cyclist": 4}
 SIZES = {"Vehicle": (4.6, 2.0, 1.7), "Pedestrian": (0.85, 0.8, 1.75), "Cyclist": (1.8, 0.7, 1.7)}
@@ -109,7 +109,7 @@ def make_frame(rng: np.random.Generator, num_gt: int, num_det: int) -> tuple[dic
 
 
 def to_official_scene(gts: list[dict], dets: list[dict]) -> dict[str, np.ndarray]:
-    """Flat arrays in the input format of ``tools/official_waymo_metric/official_eval.py``."""
+    """Flat arrays in the input format of ``tools/dev/official_waymo_metric/official_eval.py``."""
 
     def codes(names):
         return np.array([WAYMO_CODES[n] for n in names], dtype=np.int64)
@@ -230,7 +230,7 @@ def run_official(venv: Path, scene: dict, repeats: int, threads: int) -> tuple[f
     with tempfile.TemporaryDirectory() as tmp:
         src, dst = Path(tmp) / "scene.npz", Path(tmp) / "official.npz"
         np.savez(src, **scene)
-        script = REPO / "tools" / "official_waymo_metric" / "official_eval.py"
+        script = REPO / "tools" / "dev" / "official_waymo_metric" / "official_eval.py"
         cmd = [str(python), str(script), str(src), str(dst), "--repeat", str(repeats),
                "--threads", str(threads)]  # fmt: skip
         subprocess.run(cmd, check=True, capture_output=True)
@@ -284,7 +284,7 @@ def main() -> None:
     if official is None:
         print(
             f"official op: SKIPPED, not measured: no venv at {args.venv} (build it with "
-            "tools/official_waymo_metric/setup_venv.sh); no ratio is printed"
+            "tools/dev/official_waymo_metric/setup_venv.sh); no ratio is printed"
         )
     else:
         t_off, res = official

@@ -2,7 +2,7 @@
 
 Run inside the official venv (see ``setup_venv.sh``), from the repository root:
 
-    .cache/waymo_official_venv/bin/python tools/official_waymo_metric/make_fixtures.py \
+    .cache/waymo_official_venv/bin/python tools/dev/official_waymo_metric/make_fixtures.py \
         --out tests/evaluation/fixtures/official_waymo_metric.npz
 
 For each scene the fixture holds the raw OpenPCDet-style inputs (``<scene>/gt_*``,

@@ -2,7 +2,7 @@
 ``create_waymo_gt_database``): single-frame or multi-frame according to each config's
 ``SEQUENCE_CONFIG``.
 
-    python tools/create_gt_database.py \
+    python tools/data/create_gt_database.py \
         --cfg_file cfgs/dataset_configs/synthetic_waymo.yaml \
                    cfgs/dataset_configs/synthetic_waymo_multiframe.yaml
 """

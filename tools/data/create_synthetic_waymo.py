@@ -2,7 +2,7 @@
 
 Example::
 
-    python tools/create_synthetic_waymo.py --root data/synthetic_waymo \
+    python tools/data/create_synthetic_waymo.py --root data/synthetic_waymo \
         --train-sequences 12 --train-frames 60 --val-sequences 1 --val-frames 198 --seed 0
 
 Re-running with the same arguments completes an interrupted run and rewrites nothing finished;

@@ -1,6 +1,6 @@
 """Where a detector's AP is lost: L2 AP at several IoU thresholds and per-parameter box errors.
 
-    python tools/analyze_boxes.py --cfg cfgs/atlas/synthetic/cp4f.yaml \\
+    python tools/dev/analyze_boxes.py --cfg cfgs/atlas/synthetic/cp4f.yaml \\
         --result output/.../eval/<ckpt>/val/default/clean/result.pkl
 
 ``--result`` is a ``result.pkl`` written by ``tools/test.py`` (one variant's predictions); the

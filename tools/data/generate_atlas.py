@@ -1,6 +1,6 @@
 """Write one ATLAS variant of a Waymo-format split to disk, in OpenPCDet's layout (docs/attacks.md).
 
-    python tools/generate_atlas.py --data_cfg cfgs/dataset_configs/synthetic_waymo.yaml \
+    python tools/data/generate_atlas.py --data_cfg cfgs/dataset_configs/synthetic_waymo.yaml \
         --attack cfgs/attacks/inj_global_hard.yaml --out_dir data/atlas/inj_global_hard
 
 Output under ``--out_dir`` (a dataset root that ``WaymoDataset`` reads unchanged)::

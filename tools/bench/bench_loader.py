@@ -5,7 +5,7 @@ Reads the synthetic dataset (generated here, small, if ``--data_path`` holds non
 4-frame / 1-frame ratio. Settings are interleaved over ``--repeats`` rounds (median reported) so
 that machine load affects them alike.
 
-    python tools/bench_loader.py --frames 40 --workers 0
+    python tools/bench/bench_loader.py --frames 40 --workers 0
 
 ``--baseline_src DIR`` measures another source tree side by side (e.g. an older commit unpacked
 with ``git archive <commit> pcdet_atlas cfgs | tar -x -C DIR``): each round runs this script once

@@ -1,6 +1,6 @@
 """Fit a sequence's LiDAR model (beams, laser offsets, azimuth bins), print it as a LIDAR section.
 
-    python tools/fit_lidar_model.py --data_path data/waymo --sequence segment-..._with_camera_labels
+    python tools/data/fit_lidar_model.py --data_path data/waymo --sequence segment-..._with_camera_labels
 
 Options: ``--origin X Y Z`` (where the sensor sits in the vehicle frame; default Waymo's TOP
 mount), ``--num_beams N``, ``--azimuth_bins M`` or ``--estimate_azimuth_bins``, ``--offsets

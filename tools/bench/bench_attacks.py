@@ -1,7 +1,7 @@
 """Benchmarks of the attack engine, measured side by side in one run.
 
-    python tools/bench_attacks.py                       # every part, CPU, 1 torch thread
-    python tools/bench_attacks.py --part raycast --device cuda --repeats 50
+    python tools/bench/bench_attacks.py                       # every part, CPU, 1 torch thread
+    python tools/bench/bench_attacks.py --part raycast --device cuda --repeats 50
 
 Parts:
     raycast: ``raycast_merge`` on a seeded 180k-point Waymo-like scan with a 1,000-point phantom

@@ -1,6 +1,6 @@
 """What a PHiM+LOT checkpoint's filter keeps, and how its forecast compares with a range prior.
 
-    python tools/lot_filter.py --cfg cfgs/atlas/synthetic/phim_lot/stage3_finetune.yaml \\
+    python tools/dev/lot_filter.py --cfg cfgs/atlas/synthetic/phim_lot/stage3_finetune.yaml \\
         --fit_frames 60 --frames 60 --attack inj_global_hard
 
 Fits on every k-th frame of the train split (``--fit_frames`` of them; no augmentation): the

@@ -1,6 +1,6 @@
 """Convert an OpenPCDet checkpoint (CenterPoint / CP4F, or MSF's second stage) to this project's.
 
-    python tools/convert_openpcdet_ckpt.py --cfg cfgs/atlas/cp4f_voxel.yaml \
+    python tools/data/convert_openpcdet_ckpt.py --cfg cfgs/atlas/cp4f_voxel.yaml \
         --ckpt /path/to/openpcdet/checkpoint_epoch_36.pth --out checkpoints/cp4f_voxel_waymo.pth
 
 ``--cfg`` is the config whose model the checkpoint was trained as (``centerpoint_voxel.yaml`` for

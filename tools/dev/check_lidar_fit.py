@@ -1,6 +1,6 @@
 """Fit the sensor model to scans of known sensors and print how close each fit method gets.
 
-    python tools/check_lidar_fit.py --sensors hdl64e hdl32e waymo_top --seed 0
+    python tools/dev/check_lidar_fit.py --sensors hdl64e hdl32e waymo_top --seed 0
 
 For each preset sensor (per-laser offsets jittered, one street scene, 2 cm range noise,
 ``--angle_noise_deg`` jitter) it prints, for the older fit (Lloyd from Waymo's table, single

@@ -1,6 +1,6 @@
 """Build the ATLAS trace library (docs/attacks.md) of a Waymo-format dataset from one split.
 
-    python tools/build_trace_library.py --cfg cfgs/attacks/inj_rel_easy.yaml \
+    python tools/data/build_trace_library.py --cfg cfgs/attacks/inj_rel_easy.yaml \
         --data_path data/synthetic_waymo [--out <file>] [--set TRACE_LIBRARY.MIN_POINTS 100]
 
 Filters and split (``SPLIT``, train by default) come from the ``TRACE_LIBRARY`` section of the

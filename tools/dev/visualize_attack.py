@@ -1,6 +1,6 @@
 """Picture one attacked frame: bird's-eye view and range image, before and after the attack.
 
-    python tools/visualize_attack.py --data_cfg cfgs/dataset_configs/synthetic_waymo.yaml \
+    python tools/dev/visualize_attack.py --data_cfg cfgs/dataset_configs/synthetic_waymo.yaml \
         --attack cfgs/attacks/rem_30.yaml --frame 40 --out output/viz/rem_30_040.png
 
 ``--frame`` indexes the split's frames (``dataset.infos``). The PNG has four panels:

@@ -1,6 +1,6 @@
 """How many points the hard voxelization's caps drop, per voxel config (``MeanVFE``).
 
-    python tools/voxel_caps.py --data_path data/synthetic_waymo --caps 5 20 24 32 \\
+    python tools/dev/voxel_caps.py --data_path data/synthetic_waymo --caps 5 20 24 32 \\
         --cfgs cfgs/atlas/cp4f_voxel.yaml cfgs/atlas/synthetic/cp4f_voxel.yaml
 
 For each config, ``--frames`` val frames spread evenly over the split of ``--data_path`` (default

@@ -6,7 +6,7 @@ every primitive (chunked per primitive, same kernels). Checks that both give the
 hits, then prints median times, the speed-up, pairs tested, and the full ``generate_frame`` time
 (ray casting + return model + labels).
 
-    python tools/bench_synthetic.py --frames 5 --threads 1
+    python tools/bench/bench_synthetic.py --frames 5 --threads 1
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Coverage and width of the ASR interval and of the paired model comparison on simulated
 ATLAS-shaped data (docs/evaluation.md, "ASR interval"): the docs' tables.
 
-Usage: ``python tools/interval_coverage.py [--replicates 2000] [--seed 0]
+Usage: ``python tools/dev/interval_coverage.py [--replicates 2000] [--seed 0]
 [--runs_per_sequence 3]``
 """
 
