@@ -86,6 +86,19 @@ class Registry:
         self._ensure_loaded()
         return sorted(self._items)
 
+    def items(self) -> list[tuple[str, Any]]:
+        """``(name, object)`` of everything registered, in the order it registered (where the
+        order means something, e.g. the keys an analysis adds to a ``results.json`` entry)."""
+        self._ensure_loaded()
+        return list(self._items.items())
+
+    def unregister(self, name: str) -> Any:
+        """Remove ``name`` and return what it held (a test undoing its registration); an unknown
+        name raises as :meth:`get` does."""
+        obj = self.get(name)
+        del self._items[name]
+        return obj
+
     def __contains__(self, name: object) -> bool:
         self._ensure_loaded()
         return name in self._items

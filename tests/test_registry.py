@@ -81,3 +81,14 @@ def test_global_registries_exist_and_autoload():
     # the same built-ins in this process (where other tests may have registered more)
     for name, reg in zip(listed, (DATASETS, TRANSFORMS, ATTACKS, DETECTORS, MODEL_STAGES)):
         assert set(listed[name]) <= set(reg.list()), name
+
+
+def test_items_keep_the_registration_order_and_unregister_undoes_one():
+    reg = Registry("widget")
+    for name in ("b", "a", "c"):
+        reg.register(name)(type(name, (), {}))
+    assert [name for name, _ in reg.items()] == ["b", "a", "c"] and reg.list() == ["a", "b", "c"]
+    removed = reg.unregister("a")
+    assert removed.__name__ == "a" and [name for name, _ in reg.items()] == ["b", "c"]
+    with pytest.raises(RegistryError, match="unknown widget 'a'"):
+        reg.unregister("a")

@@ -199,8 +199,9 @@ class BaseAttack(ABC):
     #: is a success when detected (True) or when missed (False); None for a family without
     #: targets.
     SUCCESS_IF_DETECTED: ClassVar[bool | None] = None
-    #: The confidence analysis of its targets: 'injection' (scores of the detected targets),
-    #: 'removal' (scores of surviving targets against the clean run) or None.
+    #: The confidence kind of its targets: 'injection' (scores of the detected targets),
+    #: 'removal' (scores of surviving targets against the clean run), a kind registered with
+    #: ``pcdet_atlas.evaluation.analyses.register_confidence_kind``, or None.
     CONFIDENCE: ClassVar[str | None] = None
     #: Robustness ranks average a model's per-variant ranks within this group (None: not ranked).
     RANK_GROUP: ClassVar[str | None] = None

@@ -23,8 +23,12 @@ One plain dict per frame, consumed by the evaluation (ASR, confidence, lifecycle
      # how the evaluation scores this family, from the attack class (docs/attacks.md):
      'success_if_detected': bool or None,  # a target counts as a success when detected (True,
                                  #   e.g. a phantom) or when missed (False); None: no targets
-     'confidence': 'injection' | 'removal' | None,  # the confidence analysis of its targets
-     'rank_group': str or None}  # robustness-rank group of the variant (None: not ranked)
+     'confidence': str or None,  # the confidence kind of its targets: 'injection', 'removal'
+                                 #   or one registered with the evaluation's
+                                 #   analyses.register_confidence_kind (None: none)
+     'rank_group': str or None,  # robustness-rank group of the variant (None: not ranked)
+     <registered key>: ...}      # a key a family adds with register_meta_key (its default on
+                                 #   every frame of the other families)
 
 ``run_id`` / ``lifecycle_k`` come from :mod:`pcdet_atlas.attacks.schedule`; where a frame is in
 two lifecycles (``k = 2W`` of one run and ``k = 0`` of the next) the upcoming run's onset is kept.
@@ -36,7 +40,14 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["CONFIDENCE_ANALYSES", "META_KEYS", "make_meta", "validate_meta"]
+__all__ = [
+    "CONFIDENCE_ANALYSES",
+    "META_KEYS",
+    "make_meta",
+    "meta_keys",
+    "register_meta_key",
+    "validate_meta",
+]
 
 META_KEYS = (
     "variant",
@@ -59,9 +70,28 @@ META_KEYS = (
     "rank_group",
 )
 
-#: Confidence analyses a family can ask for (``attack_metrics.injection_confidence``: scores of
-#: the detected targets; ``attack_metrics.removal_confidence``: surviving targets vs the clean run).
+#: The built-in confidence kinds (``evaluation.analyses.confidence``: ``injection``, the scores of
+#: the detected targets; ``removal``, surviving targets vs the clean run). A family may name
+#: another kind registered with the evaluation; scoring an unregistered one is an error there.
 CONFIDENCE_ANALYSES = ("injection", "removal")
+#: Keys families added to the record (:func:`register_meta_key`): name -> default.
+_EXTRA_KEYS: dict[str, Any] = {}
+
+
+def register_meta_key(name: str, default: Any = None) -> None:
+    """Add ``name`` to every frame's metadata record (``default`` where the family does not set
+    it): a new family records what its analysis reads, as ``self.meta(state, name=value)``.
+    A name of the schema, or one registered with another default, raises naming it."""
+    if not name or not isinstance(name, str):
+        raise ValueError(f"a metadata key must be a non-empty string, got {name!r}")
+    if name in META_KEYS or (name in _EXTRA_KEYS and _EXTRA_KEYS[name] != default):
+        raise ValueError(f"metadata key {name!r} is registered already")
+    _EXTRA_KEYS[name] = default
+
+
+def meta_keys() -> tuple[str, ...]:
+    """Every key of a record: :data:`META_KEYS` and the registered ones, in that order."""
+    return META_KEYS + tuple(_EXTRA_KEYS)
 
 
 def make_meta(
@@ -83,8 +113,16 @@ def make_meta(
     success_if_detected: bool | None = None,
     confidence: str | None = None,
     rank_group: str | None = None,
+    **extra: Any,
 ) -> dict[str, Any]:
-    """A metadata dict with every key of the schema, values cast to plain Python / float32."""
+    """A metadata dict with every key of the schema, values cast to plain Python / float32;
+    ``extra``: values of registered keys (:func:`register_meta_key`), the others default."""
+    unknown = sorted(set(extra) - set(_EXTRA_KEYS))
+    if unknown:
+        raise ValueError(
+            f"metadata keys {unknown} are not registered (register_meta_key); registered: "
+            f"{sorted(_EXTRA_KEYS)}"
+        )
     box = None
     if target_box is not None:
         box = np.asarray(target_box, dtype=np.float32).reshape(-1)[:7].copy()
@@ -109,13 +147,15 @@ def make_meta(
         "success_if_detected": None if success_if_detected is None else bool(success_if_detected),
         "confidence": None if confidence is None else str(confidence),
         "rank_group": None if rank_group is None else str(rank_group),
+        **{key: extra.get(key, default) for key, default in _EXTRA_KEYS.items()},
     }
 
 
 def validate_meta(meta: dict, where: str = "attack metadata") -> None:
     """Raise ``ValueError`` naming the key if ``meta`` does not follow the schema."""
-    missing = [k for k in META_KEYS if k not in meta]
-    extra = [k for k in meta if k not in META_KEYS]
+    keys = meta_keys()
+    missing = [k for k in keys if k not in meta]
+    extra = [k for k in meta if k not in keys]
     if missing or extra:
         raise ValueError(f"{where}: missing keys {missing}, unexpected keys {extra}")
     box = meta["target_box"]
@@ -138,10 +178,12 @@ def validate_meta(meta: dict, where: str = "attack metadata") -> None:
             f"{where}: a target_box of family {meta['family']!r} needs success_if_detected "
             "(the attack class's SUCCESS_IF_DETECTED)"
         )
-    if meta["confidence"] not in (None, *CONFIDENCE_ANALYSES):
+    if meta["confidence"] is not None and not (
+        isinstance(meta["confidence"], str) and meta["confidence"]
+    ):
         raise ValueError(
-            f"{where}: confidence {meta['confidence']!r} is not None or one of "
-            f"{CONFIDENCE_ANALYSES}"
+            f"{where}: confidence {meta['confidence']!r} is not None or the name of a confidence "
+            f"kind (built in: {CONFIDENCE_ANALYSES})"
         )
     if meta["run_position"] >= 0 and meta["run_id"] < 0:
         raise ValueError(f"{where}: run_position={meta['run_position']} without a run_id")

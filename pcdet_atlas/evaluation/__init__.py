@@ -1,7 +1,9 @@
-"""Evaluation: the Waymo L1/L2 AP/APH metric, attack success rate and analyses (the box IoU
-and NMS they use are in :mod:`pcdet_atlas.ops`)."""
+"""Evaluation: the Waymo L1/L2 AP/APH metric, attack success rate and the other analyses
+(:mod:`~pcdet_atlas.evaluation.analyses`, a registry), and ``results.json`` with its report (the
+box IoU and NMS they use are in :mod:`pcdet_atlas.ops`)."""
 
-from pcdet_atlas.evaluation.attack_metrics import (
+# the analyses first: their built-ins register before results reads the registry
+from pcdet_atlas.evaluation.analyses import (
     AttackMetricError,
     TargetMatches,
     asr_from_matches,
@@ -12,6 +14,7 @@ from pcdet_atlas.evaluation.attack_metrics import (
     linear_fit,
     match_targets,
     paired_asr_differences,
+    register_analysis,
     removal_confidence,
     robustness_ranks,
     run_counts,
@@ -68,6 +71,7 @@ __all__ = [
     "match_targets",
     "paired_asr_differences",
     "ranks_from_results",
+    "register_analysis",
     "removal_confidence",
     "robustness_ranks",
     "run_counts",

@@ -26,7 +26,8 @@ Semantics are those of ``waymo-open-dataset`` 1.6.7 (C++ ``detection_metrics``, 
 Exact and fast: the matching is solved with ``scipy.optimize.linear_sum_assignment`` on the integer
 weights, once per *distinct* prediction subset (cutoffs that keep the same predictions share one
 result) and per connected component of the frame's "can match" graph (components are independent
-problems); a component with one prediction and one GT needs no solver at all.
+problems); a component with one prediction and one GT needs no solver at all. The inputs are
+checked and flattened by :mod:`~pcdet_atlas.evaluation.waymo_inputs`.
 """
 
 from __future__ import annotations
@@ -39,8 +40,16 @@ from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from pcdet_atlas.evaluation.waymo_inputs import (
+    WAYMO_IOU_THRESHOLDS,
+    Objects,
+    cat,
+    check_frames,
+    collect_det,
+    collect_gt,
+    evaluated_gt_mask,
+)
 from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d
-from pcdet_atlas.utils.common import limit_period
 
 __all__ = [
     "WAYMO_IOU_THRESHOLDS",
@@ -53,255 +62,21 @@ __all__ = [
     "waymo_heading_accuracy",
 ]
 
-#: IoU threshold per Waymo class (official config ``iou_thresholds: 0.0 0.7 0.5 0.5 0.5``).
-WAYMO_IOU_THRESHOLDS = {"Vehicle": 0.7, "Pedestrian": 0.5, "Sign": 0.5, "Cyclist": 0.5}
-#: Names an anno may hold: the evaluable classes and Waymo's type 0. A box of one of these that
-#: is not in ``class_names`` is left out; any other name is an error (a typo such as 'Car' would
-#: otherwise drop every box of the class silently).
-WAYMO_OBJECT_NAMES = frozenset(WAYMO_IOU_THRESHOLDS) | {"unknown"}
 #: The 101 official score cutoffs, float32.
 WAYMO_SCORE_CUTOFFS = np.array([i * 0.01 for i in range(100)] + [1.0], dtype=np.float32)
 LEVELS = (1, 2)
 DESIRED_RECALL_DELTA = np.float32(0.05)
 KMAX_IOU = np.float32(1e6)
 MIN_BOX_DIM, MAX_BOX_DIM = 0.01, 1e6
-DISTANCE_LIMIT_M = 1000.5
 MATCHERS = ("hungarian", "score_first")
 #: candidate (prediction, GT) pairs bounded at once (~100 MB of float64 temporaries)
 EDGE_CHUNK = 1 << 20
 
 
 # --------------------------------------------------------------------------------------------
-# Inputs
-# --------------------------------------------------------------------------------------------
-class _Objects:
-    """Flattened objects of one side (GT or predictions): arrays over all frames, ``(K, ...)``."""
-
-    def __init__(self, frame, cls, boxes, score, level):
-        self.frame = frame  # (K,) int64 frame index
-        self.cls = cls  # (K,) int64 index into class_names
-        self.boxes = boxes  # (K, 7) float32, heading limit_period'ed
-        self.score = score  # (K,) float32 (predictions) or None
-        self.level = level  # (K,) int64 1 | 2 (GT) or None
-
-
-def _field(anno: dict, key: str, where: str) -> np.ndarray:
-    if key not in anno:
-        raise KeyError(f"{where}: missing key '{key}' (have {sorted(anno)})")
-    return np.asarray(anno[key])
-
-
-def _boxes(anno: dict, key: str, where: str, n: int) -> np.ndarray:
-    boxes = _field(anno, key, where)
-    if boxes.size == 0:
-        boxes = boxes.reshape(0, 7)
-    if boxes.ndim != 2 or boxes.shape[1] < 7 or boxes.shape[0] != n:
-        raise ValueError(
-            f"{where}: '{key}' must be ({n}, 7+) [x,y,z,dx,dy,dz,heading], got {boxes.shape}"
-        )
-    boxes = boxes[:, :7].astype(np.float32)
-    if not np.isfinite(boxes).all():
-        raise ValueError(f"{where}: '{key}' contains non-finite values")
-    boxes[:, 6] = limit_period(boxes[:, 6], offset=0.5, period=np.float32(2 * np.pi))
-    return boxes
-
-
-def _class_index(names: np.ndarray, class_names: Sequence[str], where: str) -> np.ndarray:
-    """``(M,)`` int64 index into ``class_names``, -1 for a Waymo class not evaluated."""
-    lookup = {name: i for i, name in enumerate(class_names)}
-    out = np.empty(len(names), dtype=np.int64)
-    for i, name in enumerate(names):
-        name = str(name)
-        if name not in lookup and name not in WAYMO_OBJECT_NAMES:
-            raise ValueError(
-                f"{where}: 'name' {name!r} (box {i}) is not a Waymo class; expected one of "
-                f"{sorted(WAYMO_OBJECT_NAMES)} (evaluated: {list(class_names)})"
-            )
-        out[i] = lookup.get(name, -1)
-    return out
-
-
-def _in_range(boxes: np.ndarray) -> np.ndarray:
-    return np.linalg.norm(boxes[:, 0:2].astype(np.float64), axis=1) < DISTANCE_LIMIT_M
-
-
-def evaluated_gt_mask(anno: Mapping, class_names: Sequence[str], where: str = "gt") -> np.ndarray:
-    """``(M,)`` bool: the GT boxes of one frame's ``anno`` the metric scores (a class of
-    ``class_names``, ``num_points_in_gt > 0``, within the distance limit); the others are
-    dropped before matching. Bad annos raise errors naming ``where``."""
-    return _gt_fields(anno, class_names, where)[3]
-
-
-def _gt_fields(anno: Mapping, class_names: Sequence[str], where: str):
-    """``(cls, boxes, level, keep)`` of one GT anno, all ``(M, ...)``."""
-    names = _field(anno, "name", where).reshape(-1)
-    n = len(names)
-    box = _boxes(anno, "gt_boxes_lidar", where, n)
-    num_points = _field(anno, "num_points_in_gt", where).reshape(-1)
-    difficulty = _field(anno, "difficulty", where).reshape(-1).astype(np.int64)
-    if len(num_points) != n or len(difficulty) != n:
-        raise ValueError(
-            f"{where}: 'num_points_in_gt' ({len(num_points)}) and 'difficulty' "
-            f"({len(difficulty)}) must have one entry per box ({n})"
-        )
-    bad = ~np.isin(difficulty, (0, 1, 2))
-    if bad.any():
-        raise ValueError(
-            f"{where}: 'difficulty' must be 0 (unknown), 1 or 2, got {difficulty[bad][:5]}"
-        )
-    level = difficulty.copy()
-    level[(difficulty == 0) & (num_points > 5)] = 1
-    level[(difficulty == 0) & (num_points <= 5)] = 2
-    cls = _class_index(names, class_names, where)
-    keep = (cls >= 0) & (num_points > 0) & _in_range(box)
-    return cls, box, level, keep
-
-
-def _collect_gt(gt_annos: Sequence[dict], class_names: Sequence[str]) -> _Objects:
-    """The evaluated GT of all frames, checked and converted in one pass over the concatenated
-    fields; a frame that fails a check is handed to :func:`_gt_fields` for its error."""
-    fields = []
-    for i, anno in enumerate(gt_annos):
-        try:
-            names = np.asarray(anno["name"]).reshape(-1)
-            boxes = np.asarray(anno["gt_boxes_lidar"])
-            boxes = boxes.reshape(0, 7) if boxes.size == 0 else boxes
-            num_points = np.asarray(anno["num_points_in_gt"]).reshape(-1)
-            difficulty = np.asarray(anno["difficulty"]).reshape(-1)
-            n = len(names)
-            if boxes.ndim != 2 or boxes.shape[1] < 7 or boxes.shape[0] != n:
-                raise ValueError
-            if len(num_points) != n or len(difficulty) != n:
-                raise ValueError
-        except (KeyError, ValueError):
-            _first_error(gt_annos, i, _gt_fields, class_names, "gt_annos")
-            raise
-        fields.append((names, boxes[:, :7].astype(np.float32), num_points, difficulty))
-    if not fields:
-        return _Objects(*(np.zeros(0, np.int64),) * 2, _cat_boxes([]), None, np.zeros(0, np.int64))
-    frame = np.repeat(np.arange(len(fields)), [len(f[0]) for f in fields])
-    boxes, num_points, difficulty = (np.concatenate(f) for f in list(zip(*fields))[1:])
-    difficulty = difficulty.astype(np.int64)
-    bad = ~np.isfinite(boxes).all(axis=1) | ~np.isin(difficulty, (0, 1, 2))
-    cls = _checked_classes(gt_annos, fields, frame, bad, _gt_fields, class_names, "gt_annos")
-    boxes[:, 6] = limit_period(boxes[:, 6], offset=0.5, period=np.float32(2 * np.pi))
-    level = difficulty.copy()
-    level[(difficulty == 0) & (num_points > 5)] = 1
-    level[(difficulty == 0) & (num_points <= 5)] = 2
-    keep = (cls >= 0) & (num_points > 0) & _in_range(boxes)
-    return _Objects(frame[keep], cls[keep], boxes[keep], None, level[keep])
-
-
-def _first_error(annos, last: int, fields_fn, class_names, name: str) -> None:
-    """Run the one-frame checks ``fields_fn`` on frames ``0 .. last``: the first bad frame
-    raises its error (as checking frame by frame would)."""
-    for i in range(last + 1):
-        fields_fn(annos[i], class_names, f"{name}[{i}]")
-
-
-def _checked_classes(
-    annos, fields: list, frame: np.ndarray, bad: np.ndarray, fields_fn, class_names, name: str
-) -> np.ndarray:
-    """``(M,)`` class indices of the frames' objects (:func:`_class_indices`); a row that is
-    ``bad`` or has a name that is no Waymo class raises the error of the first such frame, as
-    checking frame by frame would (:func:`_first_error`)."""
-    cls = _class_indices([f[0] for f in fields], class_names)
-    if cls is None:  # names numpy cannot compare: the frames' own lookups
-        _first_error(annos, len(annos) - 1, fields_fn, class_names, name)
-        cls = np.concatenate([fields_fn(a, class_names, "")[0] for a in annos])
-    if bad.any() or (cls < -1).any():
-        _first_error(annos, int(frame[bad | (cls < -1)].min()), fields_fn, class_names, name)
-    return cls
-
-
-def _class_indices(names: list[np.ndarray], class_names: Sequence[str]) -> np.ndarray | None:
-    """``(M,)`` int64 index into ``class_names`` of the frames' names, concatenated (as
-    :func:`_class_index`), -1 for a Waymo class not evaluated, -2 for a name that is not a Waymo
-    class; ``None`` for names numpy cannot concatenate or sort (mixed types)."""
-    try:
-        unique, inverse = np.unique(np.concatenate(names), return_inverse=True)
-    except TypeError:
-        return None
-    lookup = {name: i for i, name in enumerate(class_names)}
-    index = np.array(
-        [lookup.get(str(u), -1 if str(u) in WAYMO_OBJECT_NAMES else -2) for u in unique],
-        dtype=np.int64,
-    )
-    return index[inverse.reshape(-1)]
-
-
-def _collect_det(det_annos: Sequence[dict], class_names: Sequence[str]) -> _Objects:
-    """The evaluated predictions of all frames, in one pass as :func:`_collect_gt` (checks by
-    :func:`_det_fields`)."""
-    fields = []
-    for i, anno in enumerate(det_annos):
-        try:
-            names = np.asarray(anno["name"]).reshape(-1)
-            boxes = np.asarray(anno["boxes_lidar"])
-            boxes = boxes.reshape(0, 7) if boxes.size == 0 else boxes
-            score = np.asarray(anno["score"]).reshape(-1)
-            n = len(names)
-            if boxes.ndim != 2 or boxes.shape[1] < 7 or boxes.shape[0] != n or len(score) != n:
-                raise ValueError
-        except (KeyError, ValueError):
-            _first_error(det_annos, i, _det_fields, class_names, "det_annos")
-            raise
-        fields.append((names, boxes[:, :7].astype(np.float32), score.astype(np.float32)))
-    if not fields:
-        return _Objects(
-            *(np.zeros(0, np.int64),) * 2, _cat_boxes([]), np.zeros(0, np.float32), None
-        )
-    frame = np.repeat(np.arange(len(fields)), [len(f[0]) for f in fields])
-    boxes, score = (np.concatenate(f) for f in list(zip(*fields))[1:])
-    bad = ~np.isfinite(boxes).all(axis=1) | ~np.isfinite(score)
-    cls = _checked_classes(det_annos, fields, frame, bad, _det_fields, class_names, "det_annos")
-    boxes[:, 6] = limit_period(boxes[:, 6], offset=0.5, period=np.float32(2 * np.pi))
-    in_range = _in_range(boxes)
-    keep = (cls >= 0) & in_range
-    score_kept = score[keep]
-    if in_range.any() and float(score[in_range].max()) > 1:  # OpenPCDet: logits are squashed
-        score_kept = (1.0 / (1.0 + np.exp(-score_kept.astype(np.float64)))).astype(np.float32)
-    return _Objects(frame[keep], cls[keep], boxes[keep], score_kept, None)
-
-
-def _det_fields(anno: Mapping, class_names: Sequence[str], where: str):
-    """``(cls, boxes, score)`` of one prediction anno (its checks, raising naming ``where``)."""
-    names = _field(anno, "name", where).reshape(-1)
-    n = len(names)
-    box = _boxes(anno, "boxes_lidar", where, n)
-    score = _field(anno, "score", where).reshape(-1).astype(np.float32)
-    if len(score) != n:
-        raise ValueError(f"{where}: 'score' has {len(score)} entries for {n} boxes")
-    if not np.isfinite(score).all():
-        raise ValueError(f"{where}: 'score' contains non-finite values")
-    return _class_index(names, class_names, where), box, score
-
-
-def _cat(parts, dtype) -> np.ndarray:
-    return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype=dtype)
-
-
-def _cat_boxes(parts) -> np.ndarray:
-    return np.concatenate(parts).astype(np.float32) if parts else np.zeros((0, 7), np.float32)
-
-
-def _check_frames(gt_annos: Sequence[dict], det_annos: Sequence[dict]) -> None:
-    if len(gt_annos) != len(det_annos):
-        raise ValueError(
-            f"gt_annos ({len(gt_annos)} frames) and det_annos ({len(det_annos)} frames) must be "
-            "aligned per frame"
-        )
-    for i, (gt, det) in enumerate(zip(gt_annos, det_annos)):
-        if "frame_id" in gt and "frame_id" in det and str(gt["frame_id"]) != str(det["frame_id"]):
-            raise ValueError(
-                f"frame {i}: gt frame_id {gt['frame_id']!r} != det frame_id {det['frame_id']!r}"
-            )
-
-
-# --------------------------------------------------------------------------------------------
 # Geometry of candidate pairs
 # --------------------------------------------------------------------------------------------
-def _candidate_edges(gt: _Objects, det: _Objects, thr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _candidate_edges(gt: Objects, det: Objects, thr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """All (pred, gt) index pairs of the same frame and class that may reach the IoU threshold.
 
     A pair is dropped only if a cheap upper bound of its 3D IoU (BEV overlap bounded by the
@@ -359,7 +134,7 @@ def _candidate_edges(gt: _Objects, det: _Objects, thr: np.ndarray) -> tuple[np.n
         pred_idx.append(di[keep])
         gt_idx.append(gi[keep])
         start = stop
-    return _cat(pred_idx, np.int64), _cat(gt_idx, np.int64)
+    return cat(pred_idx, np.int64), cat(gt_idx, np.int64)
 
 
 def _hull(boxes: np.ndarray) -> np.ndarray:
@@ -463,7 +238,7 @@ def _match_score_first(weights: np.ndarray, order: np.ndarray, ious: np.ndarray)
     return np.array(rows, dtype=np.int64), np.array(cols, dtype=np.int64)
 
 
-def _accumulate(gt: _Objects, det: _Objects, thr: np.ndarray, cutoffs: np.ndarray, matcher: str):
+def _accumulate(gt: Objects, det: Objects, thr: np.ndarray, cutoffs: np.ndarray, matcher: str):
     """Per class and cutoff: TP, TP matched to level-1 GT, sum of heading accuracy.
 
     ``thr``: ``(C,)`` float32 IoU threshold per class index; ``cutoffs``: ``(K,)`` float32.
@@ -502,7 +277,7 @@ def _accumulate(gt: _Objects, det: _Objects, thr: np.ndarray, cutoffs: np.ndarra
     return acc
 
 
-def _solve_component(acc: _Accumulator, det: _Objects, edge_data, n_pred, matcher: str) -> None:
+def _solve_component(acc: _Accumulator, det: Objects, edge_data, n_pred, matcher: str) -> None:
     """Match one connected component at every distinct prediction subset and accumulate.
 
     ``edge_data``: per edge (prediction index, GT index, integer weight, float32 IoU, heading
@@ -643,9 +418,9 @@ def compute_waymo_curves(
         raise ValueError(f"class_names: duplicates in {class_names}")
     if matcher not in MATCHERS:
         raise ValueError(f"matcher: expected one of {MATCHERS}, got {matcher!r}")
-    _check_frames(gt_annos, det_annos)
-    gt = _collect_gt(gt_annos, class_names)
-    det = _collect_det(det_annos, class_names)
+    check_frames(gt_annos, det_annos)
+    gt = collect_gt(gt_annos, class_names)
+    det = collect_det(det_annos, class_names)
     cutoffs = WAYMO_SCORE_CUTOFFS
     thresholds = dict(WAYMO_IOU_THRESHOLDS)
     for name, value in (iou_thresholds or {}).items():

@@ -304,7 +304,7 @@ def test_visualize_attack_writes_png(synthetic_root, tmp_path):
 def test_metadata_feeds_the_attack_metrics(synthetic_root, library_path, variant):
     """The evaluation consumes the metadata as produced: an oracle detector that outputs every
     recorded target box gets ASR 1 for injection and 0 for removal."""
-    from pcdet_atlas.evaluation.attack_metrics import evaluate_attack
+    from pcdet_atlas.evaluation.analyses import evaluate_attack
 
     ds = make(synthetic_root, variant, library_path)
     seq = ds.infos[0]["point_cloud"]["lidar_sequence"]

@@ -10,7 +10,7 @@ import scipy.stats
 import torch
 
 from pcdet_atlas.attacks import CleanAttack, InjectionAttack, RemovalAttack
-from pcdet_atlas.evaluation.attack_metrics import (
+from pcdet_atlas.evaluation.analyses import (
     AttackMetricError,
     attack_success_rate,
     evaluate_attack,

@@ -17,26 +17,29 @@ import pytest
 
 from pcdet_atlas.attacks.metadata import make_meta
 from pcdet_atlas.config import REPO_ROOT
-from pcdet_atlas.evaluation.attack_metrics import evaluate_attack
+from pcdet_atlas.evaluation.analyses import evaluate_attack
+from pcdet_atlas.evaluation.analyses.asr_analysis import paired_table
+from pcdet_atlas.evaluation.analyses.confidence_analysis import (
+    centre_gap_table,
+    confident_phantom_table,
+)
+from pcdet_atlas.evaluation.analyses.lifecycle_analysis import lifecycle_heatmaps, lifecycle_table
 from pcdet_atlas.evaluation.intervals import asr_interval
 from pcdet_atlas.evaluation.results import (
     ResultsError,
     build_results,
     build_variant_result,
     figures,
+    queries,
     save_results,
 )
 from pcdet_atlas.evaluation.results.archive import archive_name, archive_results
 from pcdet_atlas.evaluation.results.build import paired_from_results
 from pcdet_atlas.evaluation.results.report import (
-    FIGURES,
-    centre_gap_table,
     code_cell,
     collect_results,
-    confident_phantom_table,
-    lifecycle_table,
     lot_ablation_table,
-    paired_table,
+    report_figures,
     rpn_cell,
     summary_table,
     write_report,
@@ -170,7 +173,7 @@ def test_report_has_every_table_row_and_figure(models, tmp_path):
         assert isinstance(result, Path), (name, result)
         assert result.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and result.stat().st_size > 5000
         assert f"]({name})" in text
-    assert set(out["figures"]) == set(FIGURES)
+    assert set(out["figures"]) == {f.file for f in report_figures()}
     tex = out["latex"].read_text()
     assert tex.count("\\begin{tabular}") == 7 and "\\textbf{" in tex and "PHiM+LOT" in tex
     removal_tex = tex.split("% Point removal")[1].split("\\end{tabular}")[0].splitlines()
@@ -283,7 +286,7 @@ def test_paired_comparison_per_rank_group(models, tmp_path):
     rows = md_table(removal)
     for a in out["models"]:
         assert rows[a]["mean ASR"] == f"{out['mean_asr'][a]:.2f}"
-        assert out["mean_asr"][a] == pytest.approx(figures.mean_asr(
+        assert out["mean_asr"][a] == pytest.approx(queries.mean_asr(
             next(r for r in models if r["model"] == a), ["rem_10"]))  # fmt: skip
         for b in out["models"]:
             if a == b:
@@ -331,14 +334,14 @@ def test_time_of_proposals_read_from_the_store_is_added_back(models, tmp_path):
                  "checkpoints/cp4f_synthetic.pth", 80.0, 0)  # fmt: skip
     msf = stored(models[2], "MSF-4f", "cfgs/atlas/synthetic/msf_4f.yaml",
                  "checkpoints/msf_4f_synthetic.pth", 50.0, 150)  # fmt: skip
-    assert figures.rpn_results(msf, [rpn, msf]) == (rpn, "")
-    ms, lower_bound, note = figures.frame_cost(msf, [rpn, msf])
+    assert queries.rpn_results(msf, [rpn, msf]) == (rpn, "")
+    ms, lower_bound, note = queries.frame_cost(msf, [rpn, msf])
     assert ms == pytest.approx(50.0 + 80.0 * 150 / 200) and not lower_bound
     assert note == (
         "MSF-4f: 50 ms of its own + 60 ms for the proposals of 150 of 200 clean batches read "
         "from the prediction store, at CP-4f's clean 80 ms/frame"
     )
-    assert figures.frame_cost(rpn, [rpn, msf]) == (pytest.approx(80.0), False, None)
+    assert queries.frame_cost(rpn, [rpn, msf]) == (pytest.approx(80.0), False, None)
     text = summary_table([rpn, msf])
     assert md_table(text)["MSF-4f"]["ms/frame"] == "110" and f"ms/frame of {note}." in text
     # another RPN checkpoint, the RPN not given, or the RPN served by the store itself
@@ -351,19 +354,19 @@ def test_time_of_proposals_read_from_the_store_is_added_back(models, tmp_path):
         (served, "its RPN CP-4f read clean batches from the store as well"),
     ]  # fmt: skip
     for given, why in cases:
-        ms, lower_bound, note = figures.frame_cost(msf, [given, msf])
+        ms, lower_bound, note = queries.frame_cost(msf, [given, msf])
         assert ms == pytest.approx(50.0) and lower_bound
         assert note == ("MSF-4f: at least 50 ms; 150 of 200 clean batches were read from the "
                         f"prediction store, untimed: {why}")  # fmt: skip
         assert md_table(summary_table([given, msf]))["MSF-4f"]["ms/frame"] == "≥50"
     # a config that names no RPN: the model's own predictions came from the store
-    ms, lower_bound, note = figures.frame_cost(served, [served])
+    ms, lower_bound, note = queries.frame_cost(served, [served])
     assert lower_bound and note.endswith("names no RPN (MODEL.RPN.CFG, CHECKPOINT)")
     assert "$\\geq$50" in summary_table([other, msf], fmt="latex")
     notes = []
     assert isinstance(figures.accuracy_vs_time([served, msf], tmp_path / "t.png", notes), Path)
     assert [n for n in notes if n.startswith("Model time per frame of")] == [
-        f"Model time per frame of {figures.frame_cost(m, [served, msf])[2]}." for m in (served, msf)
+        f"Model time per frame of {queries.frame_cost(m, [served, msf])[2]}." for m in (served, msf)
     ]
 
 
@@ -384,7 +387,7 @@ def test_ranks_and_figures_name_what_they_leave_out(models, tmp_path):
     # the reasons, one by one
     no_asr = copy.deepcopy(models[2])
     no_asr["variants"]["inj_rel_easy"]["asr"] = None
-    assert figures.ranked_variants([models[0], models[1], no_asr]) == (
+    assert queries.ranked_variants([models[0], models[1], no_asr]) == (
         ["inj_global_hard", "rem_10"],
         {"inj_rel_easy": "no ASR from PHiM", "rem_40": "not evaluated by CP-4f"},
     )
@@ -394,13 +397,13 @@ def test_ranks_and_figures_name_what_they_leave_out(models, tmp_path):
     for entry in bare["variants"].values():
         entry["lifecycle"] = None
     notes = []
-    drawn = figures.lifecycle_heatmaps([mixed, bare], "removal", tmp_path / "rem.png", notes)
+    drawn = lifecycle_heatmaps([mixed, bare], "removal", tmp_path / "rem.png", notes)
     assert isinstance(drawn, Path) and notes == [
         "No panel (no removal variant with lifecycle data): PHiM.",
         "CenterPoint: pooled without rem_40 (window 1, not 2).",
     ]
     notes = []
-    figures.lifecycle_heatmaps([mixed], "injection", tmp_path / "inj.png", notes)
+    lifecycle_heatmaps([mixed], "injection", tmp_path / "inj.png", notes)
     assert notes == ["CenterPoint: pooled without inj_global_hard (score bins differ from "
                      "inj_rel_easy's)."]  # fmt: skip
 
@@ -623,7 +626,7 @@ def _same_report(a: Path, b: Path, sources: tuple[str, str]) -> None:
     assert text_a.count("<results>/") == 4
     assert text_a.replace(".json.gz`", ".json`") == text_b.replace(".json.gz`", ".json`")
     assert (a / "report.tex").read_bytes() == (b / "report.tex").read_bytes()
-    assert sorted(p.name for p in a.glob("*.png")) == sorted(FIGURES)
+    assert sorted(p.name for p in a.glob("*.png")) == sorted(f.file for f in report_figures())
     for png in a.glob("*.png"):
         assert png.read_bytes() == (b / png.name).read_bytes(), png.name
 
@@ -762,11 +765,11 @@ def test_seed_to_seed_spread(models, tmp_path):
     # the statement: every pair of different models in exactly the class its numbers put it in
     statement = part.split("pairs of one model's seeds are left out:")[1]
     classes = set()
-    variants, _ = figures.ranked_variants(results_list)  # CP-4f lacks rem_40: over 3 variants
+    variants, _ = queries.ranked_variants(results_list)  # CP-4f lacks rem_40: over 3 variants
     assert variants == ["inj_rel_easy", "inj_global_hard", "rem_10"]
     for group, names in (("injection", variants[:2]), ("removal", variants[2:])):
         line = next(x for x in statement.splitlines() if x.startswith(f"- **{group}**"))
-        s = abs(figures.mean_asr(seed_b, names) - figures.mean_asr(seed_a, names))
+        s = abs(queries.mean_asr(seed_b, names) - queries.mean_asr(seed_a, names))
         assert f"(seed spread {s:.2f}:" in line
         beyond = line.split("Interval beyond the spread: ")[1].split(". Above")[0]
         above = line.split("its interval not: ")[1].split(". Within")[0]

@@ -10,11 +10,10 @@ import jsonschema
 import numpy as np
 import pytest
 
-from pcdet_atlas.evaluation.attack_metrics import evaluate_attack
+from pcdet_atlas.evaluation.analyses import evaluate_attack
 from pcdet_atlas.evaluation.intervals import asr_interval
 from pcdet_atlas.evaluation.results import (
     PAPER_VARIANTS,
-    RESULTS_SCHEMA,
     SCHEMA_VERSION,
     ResultsError,
     build_results,
@@ -27,6 +26,7 @@ from pcdet_atlas.evaluation.results import (
     load_results_dir,
     ordered_variants,
     ranks_from_results,
+    results_schema,
     save_results,
     validate_results,
 )
@@ -199,12 +199,12 @@ def test_save_and_load_round_trip(tmp_path):
 
 
 def test_the_schema_is_a_standard_json_schema():
-    """Any JSON Schema tool can check a results.json against RESULTS_SCHEMA (the counts that
+    """Any JSON Schema tool can check a results.json against results_schema() (the counts that
     must add up are the extra checks of validate_results)."""
-    jsonschema.Draft202012Validator.check_schema(RESULTS_SCHEMA)
-    jsonschema.validate(json.loads(json.dumps(CP)), RESULTS_SCHEMA)
+    jsonschema.Draft202012Validator.check_schema(results_schema())
+    jsonschema.validate(json.loads(json.dumps(CP)), results_schema())
     with pytest.raises(jsonschema.ValidationError):
-        jsonschema.validate({**CP, "schema_version": 1}, RESULTS_SCHEMA)
+        jsonschema.validate({**CP, "schema_version": 1}, results_schema())
 
 
 def test_older_schema_files_load_as_the_current_one(tmp_path):

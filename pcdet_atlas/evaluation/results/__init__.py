@@ -1,8 +1,11 @@
 """``results.json``: one file per evaluated model. ``schema`` states and checks it (a JSON Schema
-plus the invariants between fields), ``build`` makes its entries, ``io`` reads and writes it and
-``tables`` prints the paper's tables from it; ``report`` and ``figures`` write the paper's
-report (tables and PNG figures) from several of them (``tools/report.py``), and ``archive``
-keeps the files a report was made from beside it, gzip-compressed.
+plus the invariants between fields; each registered analysis of
+:mod:`pcdet_atlas.evaluation.analyses` states and checks its own keys), ``build`` makes its
+entries, ``io`` reads and writes it and ``tables`` prints the paper's tables from it; ``report``
+writes the paper's report (tables and PNG figures) from several of them (``tools/report.py``):
+its own sections and figures (``queries`` reads the data, ``figures`` draws) and those of every
+registered analysis; ``archive`` keeps the files a report was made from beside it,
+gzip-compressed.
 
 Schema (version 8; every key required unless marked optional; unknown keys are errors)::
 
@@ -38,10 +41,11 @@ Schema (version 8; every key required unless marked optional; unknown keys are e
           "num_spoofed_frames", "num_untargeted": int | null,  # spoofed frames; those without
                                                                # a target (phantom not in scan)
           "iou_threshold": float, "score_threshold": float | null, "target_class": str | null,
-          "confidence": {...} | null,    # attack_metrics.injection_confidence / removal_confidence
-          "lifecycle": {...} | null,     # attack_metrics.lifecycle_asr (clean_score_counts:
+          "confidence": {...} | null,    # analyses.confidence: injection / removal / <new kind>
+          "lifecycle": {...} | null,     # analyses.lifecycle.lifecycle_asr (clean_score_counts:
                                          # the clean run's scores of the same targets per k;
                                          # asr_ci and runs per k, null before schema 6)
+          <key of a registered analysis>: ...  # optional unless built in
           "extra": {...}                 # optional, free-form
         }
       },
@@ -62,9 +66,9 @@ from pcdet_atlas.evaluation.results.build import (
 from pcdet_atlas.evaluation.results.io import load_results, load_results_dir, save_results
 from pcdet_atlas.evaluation.results.report import collect_results, write_report
 from pcdet_atlas.evaluation.results.schema import (
-    RESULTS_SCHEMA,
     SCHEMA_VERSION,
     ResultsError,
+    results_schema,
     validate_results,
 )
 from pcdet_atlas.evaluation.results.tables import (
@@ -80,7 +84,6 @@ from pcdet_atlas.evaluation.results.tables import (
 __all__ = [
     "PAPER_VARIANTS",
     "PAPER_VARIANT_LABELS",
-    "RESULTS_SCHEMA",
     "ResultsError",
     "SCHEMA_VERSION",
     "archive_results",
@@ -96,6 +99,7 @@ __all__ = [
     "ordered_variants",
     "plain",
     "ranks_from_results",
+    "results_schema",
     "save_results",
     "validate_results",
     "variant_label",

@@ -8,13 +8,11 @@ from datetime import datetime, timezone
 
 import numpy as np
 
-from pcdet_atlas.evaluation.attack_metrics import (
-    AttackMetricError,
-    paired_asr_differences,
-    robustness_ranks,
-)
+from pcdet_atlas.evaluation.analyses.asr import paired_asr_differences
+from pcdet_atlas.evaluation.analyses.matching import AttackMetricError
+from pcdet_atlas.evaluation.analyses.ranks import robustness_ranks
+from pcdet_atlas.evaluation.analyses.registry import registered_analyses
 from pcdet_atlas.evaluation.results.schema import (
-    ATTACK_KEYS,
     CLASS_METRIC_KEYS,
     METRIC_KEYS,
     SCHEMA_VERSION,
@@ -73,8 +71,9 @@ def build_variant_result(
         metrics: :func:`waymo_evaluate` output (``'L2/mAP'`` ..., ``'<Class>/L2/AP'`` ...; other
             keys such as PR curves are not stored); None when the split has no ground truth.
         class_names: the evaluated classes (keys of ``per_class``).
-        attack: :func:`attack_metrics.evaluate_attack` output; None for a variant without targets
-            (clean), which stores ASR None and zero counts.
+        attack: :func:`~pcdet_atlas.evaluation.analyses.evaluate_attack` output; None for a
+            variant without targets (clean), which stores each analysis's empty values (ASR
+            None and zero counts).
         num_reused_frames: frames that took the clean run's prediction instead of running the
             model (the rest count as recomputed); None: not recorded.
     """
@@ -90,23 +89,8 @@ def build_variant_result(
         for cls in class_names
     }
     if attack is None:
-        entry.update(
-            asr=None,
-            asr_ci=None,
-            num_runs=0,
-            runs=[],
-            asr_lenient=None,
-            num_targets=0,
-            num_success=0,
-            num_success_lenient=0,
-            num_spoofed_frames=0,
-            num_untargeted=0,
-            iou_threshold=0.7,
-            score_threshold=None,
-            target_class=None,
-            confidence=None,
-            lifecycle=None,
-        )
+        for analysis in registered_analyses():
+            entry.update(analysis.empty())
     else:
         for key, want in (("variant", variant), ("family", family), ("num_frames", num_frames)):
             if key in attack and attack[key] != want:
@@ -114,10 +98,14 @@ def build_variant_result(
                     f"variant {variant!r}: attack metrics have {key}={attack[key]!r}, expected "
                     f"{want!r}"
                 )
-        for key in ATTACK_KEYS:
-            if key not in attack:
-                raise ResultsError(f"variant {variant!r}: attack metrics lack key '{key}'")
-            entry[key] = attack[key]
+        for analysis in registered_analyses():
+            for key in analysis.schema():
+                if key not in attack:
+                    raise ResultsError(
+                        f"variant {variant!r}: attack metrics lack key '{key}' (analysis "
+                        f"{analysis.name!r})"
+                    )
+                entry[key] = attack[key]
     if extra is not None:
         entry["extra"] = dict(extra)
     entry = plain(entry)
@@ -171,7 +159,8 @@ def ranks_from_results(
     variants: Sequence[str] | None = None,
     tie_method: str = "average",
 ) -> dict:
-    """:func:`attack_metrics.robustness_ranks` over several models' results (one per model).
+    """:func:`~pcdet_atlas.evaluation.analyses.ranks.robustness_ranks` over several models'
+    results (one per model).
 
     ``variants`` restricts the settings ranked (default: every variant of the first model with a
     ``rank_group``; every model must have them all, in the same group).
@@ -200,8 +189,8 @@ def ranks_from_results(
 
 
 def paired_from_results(results_list: Sequence[Mapping], variants: Sequence[str]) -> dict:
-    """:func:`attack_metrics.paired_asr_differences` of several models' results over
-    ``variants`` (one rank group's, say), from their per-run counts.
+    """:func:`~pcdet_atlas.evaluation.analyses.asr.paired_asr_differences` of several
+    models' results over ``variants`` (one rank group's, say), from their per-run counts.
 
     Raises:
         ResultsError: a model without one of the variants, or whose file has no per-run counts

@@ -1,18 +1,19 @@
 """The paper's report from ``results.json`` files: ``report.md`` with its tables (and, on request,
 ``report.tex`` with the same tables), and its figures as PNGs (docs/evaluation.md "Report").
 
-Tables: a model summary (clean L2 mAP/mAPH, input frames, clean rank, model time per frame,
-mean ASR per family), the injection table (paper Table 3) and the removal table (Table 4) with
-per-variant L2 mAP and ASR with its run-level interval (best and second best marked), the LOT
-ablation (Tables 5 and 6) when both models of the pair are given, the lifecycle's onset and
-decay (Finding 3: ASR at k = 0, 1, W, W + 1), the share of phantoms detected with confidence above
-0.7 (Fig. 5), the centre-gap table, the robustness ranks, the paired model comparison, the
-seed-to-seed spread (when two results are one model config trained with different seeds:
-:mod:`~pcdet_atlas.evaluation.results.seeds`), and each model's full table with its runs and
-targets. A model that was not evaluated on a variant shows ``missing`` there, never a
-zero; a mean or pooled value over a family needs every variant of the family that any model has,
-each with an ASR, and otherwise reads ``missing (n of m variants)``. The ranks name the variants
-they are over and those left out; under each figure the report names what it leaves out.
+The report's own sections: a model summary (clean L2 mAP/mAPH, input frames, clean rank, model
+time per frame, mean ASR per family), the LOT ablation (Tables 5 and 6) when both models of the
+pair are given, the seed-to-seed spread (when two results are one model config trained with
+different seeds: :mod:`~pcdet_atlas.evaluation.results.seeds`), the accuracy-against-time figure
+and each model's full table with its runs and targets. Between them, in their ``order``, the
+sections and figures of every registered analysis (:mod:`pcdet_atlas.evaluation.analyses`): the
+injection and removal tables (paper Tables 3 and 4) and the paired model comparison (ASR), the
+lifecycle's onset and decay (Finding 3), the share of confident phantoms (Fig. 5) and the centre
+gap (confidence), the robustness ranks, and their figures. A model that was not evaluated on a
+variant shows ``missing`` there, never a zero; a mean or pooled value over a family needs every
+variant of the family that any model has, each with an ASR, and otherwise reads ``missing (n of
+m variants)``. The ranks name the variants they are over and those left out; under each figure
+the report names what it leaves out.
 """
 
 from __future__ import annotations
@@ -21,17 +22,18 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from pcdet_atlas.config import cfg_from_yaml_file, resolve_repo_path
-from pcdet_atlas.evaluation.intervals import asr_interval
-from pcdet_atlas.evaluation.results import figures
-from pcdet_atlas.evaluation.results.build import paired_from_results, ranks_from_results
+from pcdet_atlas.evaluation.analyses.registry import (
+    ReportFigure,
+    ReportSection,
+    registered_analyses,
+)
+from pcdet_atlas.evaluation.results import figures, queries
 from pcdet_atlas.evaluation.results.io import find_results_files, load_results
 from pcdet_atlas.evaluation.results.schema import ResultsError
 from pcdet_atlas.evaluation.results.seeds import seed_spread_text
 from pcdet_atlas.evaluation.results.tables import (
     MISSING,
     _render,
-    format_comparison_table,
-    format_ranks,
     format_table,
     latex_escape,
     missing_of,
@@ -41,39 +43,16 @@ from pcdet_atlas.evaluation.results.tables import (
 
 __all__ = [
     "DEFAULT_LOT_PAIR",
-    "FIGURES",
-    "centre_gap_table",
     "collect_results",
-    "confident_phantom_table",
-    "lifecycle_table",
     "lot_ablation_table",
-    "paired_table",
+    "report_figures",
+    "report_sections",
     "summary_table",
     "write_report",
 ]
 
 #: The model names (``ATLAS.MODEL_NAME``) of the LOT ablation: the detector and its defence.
 DEFAULT_LOT_PAIR = ("PHiM", "PHiM+LOT")
-#: Figure file -> (caption, how it is drawn: ``draw(results_list, path, notes)``, appending to
-#: ``notes`` what the figure leaves out).
-FIGURES = {
-    "rank_correlation.png": ("Robustness rank correlation (paper Fig. 3)",
-                             figures.rank_correlation),
-    "lifecycle_injection.png": ("Injection ASR over the attack lifecycle (paper Fig. 6)",
-                                lambda r, p, n: figures.lifecycle_curves(r, "injection", p, n)),
-    "lifecycle_removal.png": ("Removal ASR over the attack lifecycle (paper Fig. 4)",
-                              lambda r, p, n: figures.lifecycle_curves(r, "removal", p, n)),
-    "confidence_injection.png": ("Phantom confidence under injection (paper Fig. 5)",
-                                 lambda r, p, n: figures.confidence_histograms(r, "injection", p)),
-    "confidence_removal.png": ("Target confidence under removal (paper Fig. 9)",
-                               lambda r, p, n: figures.confidence_histograms(r, "removal", p)),
-    "heatmap_injection.png": ("Phantom confidence over the lifecycle (paper Fig. 7)",
-                              lambda r, p, n: figures.lifecycle_heatmaps(r, "injection", p, n)),
-    "heatmap_removal.png": ("Target confidence over the lifecycle (paper Fig. 8)",
-                            lambda r, p, n: figures.lifecycle_heatmaps(r, "removal", p, n)),
-    "accuracy_vs_time.png": ("Clean L2 mAP against model time per frame, coloured by mean ASR",
-                             figures.accuracy_vs_time),
-}  # fmt: skip
 
 
 def collect_results(paths: Sequence[str | Path]) -> list[tuple[Path, dict]]:
@@ -138,20 +117,20 @@ def _mean_asr_cell(results: Mapping, variants: Sequence[str]) -> str:
     m variants)`` where it lacks one of them or its ASR."""
     if not variants:
         return "-"
-    mean = figures.mean_asr(results, variants)
+    mean = queries.mean_asr(results, variants)
     if mean is None:
-        return missing_of(len(figures.covered_variants(results, variants)), len(variants))
+        return missing_of(len(queries.covered_variants(results, variants)), len(variants))
     return _fmt(mean)
 
 
 def summary_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str:
     """A row per model: clean L2 mAP / mAPH (x100), input frames, clean rank (1 = highest clean
-    L2 mAP), model ms/frame on the clean run (:func:`figures.frame_cost`: with the RPN's time
+    L2 mAP), model ms/frame on the clean run (:func:`queries.frame_cost`: with the RPN's time
     for proposals read from the prediction store, ``≥`` where it cannot be added; in Markdown
     each such model is explained under the table) and its device, mean ASR per family (over
     every variant of the family that any of the models has: ``missing (n of m variants)`` for a
     model without all of them)."""
-    families = {f: figures.attack_variants(results_list, f) for f in ("injection", "removal")}
+    families = {f: queries.attack_variants(results_list, f) for f in ("injection", "removal")}
     maps = [(r["variants"].get("clean") or {}).get("L2/mAP") for r in results_list]
     order = sorted({m for m in maps if m is not None}, reverse=True)
     header = ["Model", "L2 mAP", "L2 mAPH", "Frames", "Clean rank", "ms/frame", "Device",
@@ -160,7 +139,7 @@ def summary_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str
     for r, l2 in zip(results_list, maps):
         clean = r["variants"].get("clean")
         frames = input_frames(r)
-        ms, lower_bound, note = figures.frame_cost(r, results_list)
+        ms, lower_bound, note = queries.frame_cost(r, results_list)
         notes += [] if note is None else [note]
         rows.append([
             r["model"],
@@ -204,222 +183,6 @@ def lot_ablation_table(base: Mapping, defended: Mapping, fmt: str = "markdown") 
     return _render(fmt, None, header, rows)
 
 
-def _confidence_table(results_list, kind: str, cell, fmt: str) -> str | None:
-    """A row per model, a column per variant with ``kind`` confidence data (``injection`` /
-    ``removal``); ``cell(confidence)`` writes an entry's cell. None without such a variant."""
-    names = ordered_variants(
-        {
-            n
-            for r in results_list
-            for n, v in r["variants"].items()
-            if (v["confidence"] or {}).get("kind") == kind
-        }  # fmt: skip
-    )
-    if not names:
-        return None
-    header = ["Model", *(variant_label(n) for n in names)]
-    rows = []
-    for r in results_list:
-        row = [r["model"]]
-        for n in names:
-            entry = r["variants"].get(n)
-            row.append(MISSING if entry is None else cell(entry["confidence"]))
-        rows.append(row)
-    if fmt == "latex":
-        rows = [[latex_escape(c) for c in row] for row in rows]
-    return _render(fmt, None, header, rows)
-
-
-def centre_gap_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str | None:
-    """Per model and removal variant, the centre gap: the peak of the clean run's scores of the
-    surviving targets minus the peak of their attacked scores (docs/evaluation.md
-    "Confidence"); None when no model has a removal variant with confidence data."""
-
-    def cell(conf):
-        if conf is None or conf["peak_gap"] is None:
-            return "-"
-        return f"{conf['peak_gap']:.3f}"
-
-    return _confidence_table(results_list, "removal", cell, fmt)
-
-
-def confident_phantom_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str | None:
-    """Per model and injection variant, the share of detected phantoms scoring above the
-    confidence threshold (0.7, the paper's Fig. 5 statement), with the counts, and the median
-    phantom score; None when no model has an injection variant with confidence data."""
-
-    def cell(conf):
-        if conf is None or not conf["num_detected"]:
-            return "-"
-        share = f"{conf['fraction_above']:.2f} ({conf['num_above']}/{conf['num_detected']})"
-        return f"{share}, median {conf['median_score']:.2f}"
-
-    return _confidence_table(results_list, "injection", cell, fmt)
-
-
-def _pooled_lifecycle_interval(lcs: Sequence[Mapping], k: int) -> tuple[float, float] | None:
-    """The run-level interval of position ``k`` pooled over lifecycles ``lcs``: each spoof run's
-    counts summed over the variants (the variants of a family share their runs), None when a
-    lifecycle lacks per-run counts (schema 5 and older) or there are fewer than two runs."""
-    pooled: dict[tuple[str, int], dict] = {}
-    for lc in lcs:
-        if lc.get("runs") is None or k not in lc["k"]:
-            return None
-        for run in lc["runs"][lc["k"].index(k)]:
-            key = (run["sequence"], run["run_id"])
-            into = pooled.setdefault(key, {"sequence": run["sequence"], "run_id": run["run_id"],
-                                           "num_targets": 0, "num_success": 0})  # fmt: skip
-            into["num_targets"] += run["num_targets"]
-            into["num_success"] += run["num_success"]
-    return asr_interval(list(pooled.values())) if pooled else None
-
-
-def lifecycle_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str | None:
-    """The attack lifecycle at the positions the paper's Finding 3 compares, per model and family
-    (the family's variants pooled): k = 0 (the last clean frame: the clean model's own rate, a
-    missed removal target or a detection where the phantom will be), k = 1 (only the current
-    frame spoofed), k = W (the whole W-frame input spoofed) and k = W + 1 (the current frame
-    clean again, the rest of the input still spoofed), as ASR with the successes and targets
-    behind it and its run-level 95% interval (each run's counts summed over the variants;
-    pooling repeats the clean k = 0 frames, which every variant shares). A model is
-    pooled over every variant of the family that any of the models has, each with an ASR and
-    lifecycle data, or its cells read ``missing (n of m variants)``; None without lifecycle
-    data."""
-    families = [f for f in _families_present(results_list)
-                if any(v["family"] == f and v["lifecycle"] is not None
-                       for r in results_list for v in r["variants"].values())]  # fmt: skip
-    if not families:
-        return None
-    names = {f: figures.attack_variants(results_list, f) for f in families}
-    header, rows = ["Model", "W"], []
-    positions = (("k=0", lambda w: 0), ("k=1", lambda w: 1), ("k=W", lambda w: w),
-                 ("k=W+1", lambda w: w + 1))  # fmt: skip
-    for family in families:
-        header += [f"{family} {label}" for label, _ in positions]
-    for r in results_list:
-        window, row = None, [r["model"]]
-        for family in families:
-            pooled = figures.covered_variants(r, names[family], lifecycle=True)
-            if len(pooled) < len(names[family]):
-                row += [missing_of(len(pooled), len(names[family]))] * len(positions)
-                continue
-            lcs = [r["variants"][n]["lifecycle"] for n in pooled]
-            window = int(lcs[0]["window"])
-            for _, position in positions:
-                k = position(window)
-                hits = sum(lc["num_success"][lc["k"].index(k)] for lc in lcs if k in lc["k"])
-                total = sum(lc["num_targets"][lc["k"].index(k)] for lc in lcs if k in lc["k"])
-                ci = _pooled_lifecycle_interval(lcs, k)
-                interval = "" if ci is None else f" [{ci[0]:.2f}, {ci[1]:.2f}]"
-                row.append("-" if not total else f"{hits / total:.2f}{interval} ({hits}/{total})")
-        rows.append(row[:1] + ["-" if window is None else str(window)] + row[1:])
-    if fmt == "latex":
-        rows = [[latex_escape(c) for c in row] for row in rows]
-    return _render(fmt, None, header, rows)
-
-
-def _families_present(results_list: Sequence[Mapping]) -> list[str]:
-    fams = {v["family"] for r in results_list for v in r["variants"].values()}
-    return [f for f in ("injection", "removal") if f in fams] + sorted(
-        fams - {"clean", "injection", "removal"}
-    )
-
-
-def _table_sections(results_list, fmt, lot_pair) -> list[tuple[str, str]]:
-    """(title, table) of every table of the report, in its order."""
-    sections = [("Models", summary_table(results_list, fmt))]
-    titles = {"injection": "Point injection (paper Table 3)",
-              "removal": "Point removal (paper Table 4)"}  # fmt: skip
-    for family in _families_present(results_list):
-        sections.append((
-            titles.get(family, f"Family {family}"),
-            format_comparison_table(results_list, fmt, family=family, missing="show"),
-        ))  # fmt: skip
-    by_name = {r["model"]: r for r in results_list}
-    if lot_pair[0] in by_name and lot_pair[1] in by_name:
-        sections.append((
-            f"LOT ablation: {lot_pair[0]} vs {lot_pair[1]} (paper Tables 5 and 6)",
-            lot_ablation_table(by_name[lot_pair[0]], by_name[lot_pair[1]], fmt),
-        ))  # fmt: skip
-    lifecycle = lifecycle_table(results_list, fmt)
-    if lifecycle is not None:
-        sections.append(("Attack onset and decay (paper Finding 3)", lifecycle))
-    confident = confident_phantom_table(results_list, fmt)
-    if confident is not None:
-        sections.append(("Phantoms detected with confidence above 0.7 (paper Fig. 5)", confident))
-    gap = centre_gap_table(results_list, fmt)
-    if gap is not None:
-        sections.append(("Centre gap under removal (clean peak - attacked peak)", gap))
-    return sections
-
-
-def _ranks_text(results_list) -> str:
-    """The ranks over the ranked variants every model has with an ASR, naming them and the
-    variants left out."""
-    variants, dropped = figures.ranked_variants(results_list)
-    note = figures.ranked_variants_note(variants, dropped)
-    if len(results_list) < 2 or not variants:
-        return f"needs at least 2 models with a common ranked variant\n\n{note}"
-    ranks = format_ranks(ranks_from_results(results_list, variants=variants), "markdown")
-    return f"{ranks}\n\n{note}"
-
-
-def paired_table(results_list: Sequence[Mapping], group: str, variants: Sequence[str]) -> str:
-    """Markdown: each model's mean ASR over ``variants`` (a rank group's) and, per pair, the
-    difference row - column with its paired 95% interval over the sequences
-    (:func:`paired_from_results`), **bold** where the interval excludes 0; or why it cannot be
-    computed."""
-    if len(results_list) < 2 or not variants:
-        return f"needs at least 2 models with a common {group} variant"
-    try:
-        out = paired_from_results(results_list, variants)
-    except ResultsError as err:
-        return f"not computed: {err}"
-    models = out["models"]
-    header = ["Model", "mean ASR", *models]
-    rows = []
-    for a in models:
-        row = [a, f"{out['mean_asr'][a]:.2f}"]
-        for b in models:
-            if a == b:
-                row.append("-")
-                continue
-            text = f"{out['difference'][a][b]:+.2f}"
-            if out["ci"] is not None:
-                lo, hi = out["ci"][a][b]
-                text += f" [{lo:+.2f}, {hi:+.2f}]"
-                if lo > 0 or hi < 0:
-                    text = f"**{text}**"
-            row.append(text)
-        rows.append(row)
-    runs = ", ".join(f"{variant_label(v)}: {n}" for v, n in out["num_runs"].items())
-    table = _render("markdown", None, header, rows)
-    unit = "sequences" if out["cluster"] == "sequence" else "runs of one sequence"
-    return (f"{table}\n\nOver {len(variants)} variant(s), clustered by {out['num_clusters']} "
-            f"{unit}; runs per variant: {runs}.")  # fmt: skip
-
-
-def _paired_text(results_list) -> str:
-    """The paired comparison per rank group, over the ranked variants every model has with an
-    ASR."""
-    variants, _ = figures.ranked_variants(results_list)
-    groups: dict[str, list[str]] = {}
-    for name in variants:
-        groups.setdefault(results_list[0]["variants"][name]["rank_group"], []).append(name)
-    if not groups:
-        return "needs at least 2 models with a common ranked variant"
-    parts = [
-        "Row minus column: the difference of the two models' mean ASR over the group's "
-        "variants, with its 95% paired interval over the sequences the spoof runs lie in "
-        "(a cluster-robust t interval on the per-sequence differences, the same runs for every "
-        "model and variant; docs/evaluation.md); **bold**: the interval excludes 0. Each pair "
-        "is judged on its own (no correction for the number of pairs)."
-    ]
-    for group, names in groups.items():
-        parts += [f"### {group}", paired_table(results_list, group, names)]
-    return "\n\n".join(parts)
-
-
 def rpn_cell(results: Mapping) -> str:
     """The proposal network a model's config names (``MODEL.RPN.CFG`` with its checkpoint), ``-``
     for a model without one, or why it cannot be told."""
@@ -440,6 +203,52 @@ def code_cell(results: Mapping) -> str:
         return str(results["pcdet_atlas_version"])
     dirty = " (modified)" if results.get("source_dirty") else ""
     return f"{results['pcdet_atlas_version']} `{commit[:12]}`{dirty}"
+
+
+def _summary_section(results_list: Sequence[Mapping], fmt: str) -> list[tuple[str, str]]:
+    return [("Models", summary_table(results_list, fmt))]
+
+
+def _lot_section(lot_pair: tuple[str, str]):
+    def make(results_list: Sequence[Mapping], fmt: str) -> list[tuple[str, str]]:
+        by_name = {r["model"]: r for r in results_list}
+        if lot_pair[0] not in by_name or lot_pair[1] not in by_name:
+            return []
+        return [(f"LOT ablation: {lot_pair[0]} vs {lot_pair[1]} (paper Tables 5 and 6)",
+                 lot_ablation_table(by_name[lot_pair[0]], by_name[lot_pair[1]], fmt))]  # fmt: skip
+
+    return make
+
+
+def _seeds_section(results_list: Sequence[Mapping], fmt: str) -> list[tuple[str, str]]:
+    seeds = seed_spread_text(results_list)
+    return [] if seeds is None else [("Seed-to-seed spread", seeds)]
+
+
+def report_sections(lot_pair: tuple[str, str] = DEFAULT_LOT_PAIR) -> list[ReportSection]:
+    """The report's sections in their order: its own (the model summary, the LOT ablation of
+    ``lot_pair``, the seed-to-seed spread) and those of every registered analysis."""
+    own = [
+        ReportSection(_summary_section, order=10),
+        ReportSection(_lot_section(lot_pair), order=30),
+        ReportSection(_seeds_section, order=90, latex=False),
+    ]
+    found = own + [s for analysis in registered_analyses() for s in analysis.sections()]
+    return sorted(found, key=lambda section: section.order)  # stable: ties keep their order
+
+
+def report_figures() -> list[ReportFigure]:
+    """The report's figures in their order: those of every registered analysis and its own
+    accuracy-against-time figure. Two figures of one file name are an error naming both."""
+    found = [f for analysis in registered_analyses() for f in analysis.figures()]
+    found.append(ReportFigure("accuracy_vs_time.png",
+                              "Clean L2 mAP against model time per frame, coloured by mean ASR",
+                              figures.accuracy_vs_time, order=80))  # fmt: skip
+    files = [f.file for f in found]
+    if len(set(files)) != len(files):
+        twice = sorted({name for name in files if files.count(name) > 1})
+        raise ResultsError(f"report figures {twice} are drawn by two analyses")
+    return sorted(found, key=lambda figure: figure.order)
 
 
 def write_report(
@@ -478,21 +287,19 @@ def write_report(
         "ASR.",
         "",
     ]
-    for title, table in _table_sections(results_list, "markdown", lot_pair):
-        lines += [f"## {title}", "", table, ""]
-    lines += ["## Robustness ranks", "", _ranks_text(results_list), ""]
-    lines += ["## Paired model comparison", "", _paired_text(results_list), ""]
-    seeds = seed_spread_text(results_list)
-    if seeds is not None:
-        lines += ["## Seed-to-seed spread", "", seeds, ""]
+    sections = report_sections(lot_pair)
+    for section in sections:
+        for title, text in section.make(results_list, "markdown"):
+            lines += [f"## {title}", "", text, ""]
     drawn: dict = {}
     lines += ["## Figures", ""]
-    for name, (caption, draw) in FIGURES.items():
+    for figure in report_figures():
         notes: list[str] = []
-        result = draw(results_list, out_dir / name, notes)
-        drawn[name] = result
-        shown = f"![{caption}]({name})" if isinstance(result, Path) else f"Not drawn: {result}."
-        lines += [f"### {caption}", "", shown, ""]
+        result = figure.draw(results_list, out_dir / figure.file, notes)
+        drawn[figure.file] = result
+        shown = (f"![{figure.caption}]({figure.file})" if isinstance(result, Path)
+                 else f"Not drawn: {result}.")  # fmt: skip
+        lines += [f"### {figure.caption}", "", shown, ""]
         for note in notes:
             lines += [note, ""]
     lines += ["## Per-model results", ""]
@@ -505,7 +312,9 @@ def write_report(
     tex = None
     if latex:
         parts = ["% ATLAS report tables (booktabs)", ""]
-        for title, table in _table_sections(results_list, "latex", lot_pair):
+        tables = [t for section in sections if section.latex
+                  for t in section.make(results_list, "latex")]  # fmt: skip
+        for title, table in tables:
             parts += [f"% {title}", "\\begin{table}[t]", "\\centering", "\\small", table,
                       f"\\caption{{{latex_escape(title)}}}", "\\end{table}", ""]  # fmt: skip
         tex = out_dir / "report.tex"

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
-from pcdet_atlas.evaluation.results import figures
+from pcdet_atlas.evaluation.results import queries
 from pcdet_atlas.evaluation.results.build import paired_from_results
 from pcdet_atlas.evaluation.results.schema import ResultsError
 from pcdet_atlas.evaluation.results.tables import _render, ordered_variants, variant_label
@@ -81,7 +81,7 @@ def seed_spread(group: Sequence[Mapping]) -> dict:
     ``group`` and each other (the seed-to-seed spread), over the ranked variants all of them
     have with an ASR: ``{rank_group: {'spread': float, 'variants': [...], 'pairs': [(a, b,
     paired output | None, mean difference b - a)]}}``."""
-    variants, _ = figures.ranked_variants(group)
+    variants, _ = queries.ranked_variants(group)
     out: dict = {}
     for name in variants:
         rank_group = group[0]["variants"][name]["rank_group"]
@@ -92,7 +92,7 @@ def seed_spread(group: Sequence[Mapping]) -> dict:
         for other in group[1:]:
             pair = [group[0], other]
             paired = _paired(pair, names)
-            diff = figures.mean_asr(other, names) - figures.mean_asr(group[0], names)
+            diff = queries.mean_asr(other, names) - queries.mean_asr(group[0], names)
             item["pairs"].append((group[0]["model"], other["model"], paired, diff))
             item["spread"] = max(item["spread"], abs(diff))
     return out
@@ -127,7 +127,7 @@ def _group_text(group: Sequence[Mapping]) -> list[str]:
     rows = []
     for rank_group, item in spread.items():
         row = [rank_group, str(len(item["variants"]))]
-        row += [f"{figures.mean_asr(r, item['variants']):.2f}" for r in group]
+        row += [f"{queries.mean_asr(r, item['variants']):.2f}" for r in group]
         for a, b, paired, diff in item["pairs"]:
             row.append(f"{diff:+.2f}" if paired is None else _diff_cell(paired, a, b))
         rows.append(row)
@@ -137,7 +137,7 @@ def _group_text(group: Sequence[Mapping]) -> list[str]:
 
 def _exceeding_text(results_list: Sequence[Mapping], groups: Sequence[Sequence[Mapping]]) -> str:
     """Which of the report's paired model differences exceed the seed spread, per rank group."""
-    variants, _ = figures.ranked_variants(results_list)
+    variants, _ = queries.ranked_variants(results_list)
     by_group: dict[str, list[str]] = {}
     for name in variants:
         by_group.setdefault(results_list[0]["variants"][name]["rank_group"], []).append(name)
@@ -145,7 +145,7 @@ def _exceeding_text(results_list: Sequence[Mapping], groups: Sequence[Sequence[M
     lines = []
     for rank_group, names in by_group.items():
         spread = max(
-            abs(figures.mean_asr(other, names) - figures.mean_asr(group[0], names))
+            abs(queries.mean_asr(other, names) - queries.mean_asr(group[0], names))
             for group in groups
             for other in group[1:]
         )

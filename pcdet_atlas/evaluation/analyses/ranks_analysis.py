@@ -1,0 +1,98 @@
+"""The ranks analysis: robustness ranks of several models (:mod:`.ranks`; a variant's group is
+its attack class's ``RANK_GROUP``, a core key of the entry), the report's ranks section and the
+rank correlation figure (paper Fig. 3). It adds no key of its own to a variant entry."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from pcdet_atlas.evaluation.analyses.registry import (
+    Analysis,
+    ReportFigure,
+    ReportSection,
+    VariantData,
+    register_analysis,
+)
+from pcdet_atlas.evaluation.results.build import ranks_from_results
+from pcdet_atlas.evaluation.results.figures import figure_grid, save_png
+from pcdet_atlas.evaluation.results.queries import ranked_variants, ranked_variants_note
+from pcdet_atlas.evaluation.results.tables import format_ranks
+
+__all__ = ["RanksAnalysis", "rank_correlation"]
+
+
+def rank_correlation(
+    results_list: Sequence[Mapping], path: Path, notes: list[str] | None = None
+) -> Path | str:
+    """Removal rank against injection rank per model, with the least-squares line and R²
+    (paper Fig. "Robustness Correlation"); over the ranked variants every model has with an
+    ASR (``notes``: which variants, and those left out)."""
+    variants, dropped = ranked_variants(results_list)
+    if notes is not None:
+        notes.append(ranked_variants_note(variants, dropped))
+    groups = {results_list[0]["variants"][n]["rank_group"] for n in variants} if variants else set()
+    if len(results_list) < 3 or not {"injection", "removal"} <= groups:
+        return (
+            "needs at least 3 models sharing injection and removal variants "
+            f"({len(results_list)} models, rank groups {sorted(groups)})"
+        )
+    ranks = ranks_from_results(results_list, variants=variants)
+    x_group, y_group = ranks["fit_axes"]
+    models = ranks["models"]
+    x = np.array([ranks["group_ranks"][x_group][m] for m in models])
+    y = np.array([ranks["group_ranks"][y_group][m] for m in models])
+    fig, (ax,) = figure_grid(1, (5.0, 4.2))
+    ax.scatter(x, y, color="tab:blue", zorder=3)
+    for m, xi, yi in zip(models, x, y):
+        ax.annotate(m, (xi, yi), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    fit = ranks["fit"]
+    if fit is not None:
+        xs = np.linspace(x.min() - 0.3, x.max() + 0.3, 2)
+        ax.plot(xs, fit["slope"] * xs + fit["intercept"], "--", color="tab:red",
+                label=f"y = {fit['slope']:.3f}x + {fit['intercept']:.3f}, "
+                      f"R² = {fit['r2']:.2f}")  # fmt: skip
+        ax.legend(fontsize=8)
+    ax.set_xlabel(f"{x_group} rank (1 = most robust)")
+    ax.set_ylabel(f"{y_group} rank (1 = most robust)")
+    ax.set_title(f"Robustness rank correlation ({len(variants)} variants)", fontsize=10)
+    ax.grid(alpha=0.3)
+    return save_png(fig, path)
+
+
+def _ranks_text(results_list) -> str:
+    """The ranks over the ranked variants every model has with an ASR, naming them and the
+    variants left out."""
+    variants, dropped = ranked_variants(results_list)
+    note = ranked_variants_note(variants, dropped)
+    if len(results_list) < 2 or not variants:
+        return f"needs at least 2 models with a common ranked variant\n\n{note}"
+    ranks = format_ranks(ranks_from_results(results_list, variants=variants), "markdown")
+    return f"{ranks}\n\n{note}"
+
+
+def _section(results_list: Sequence[Mapping], fmt: str) -> list[tuple[str, str]]:
+    return [("Robustness ranks", _ranks_text(results_list))]
+
+
+@register_analysis
+class RanksAnalysis(Analysis):
+    """Ranks across models; nothing per variant."""
+
+    name = "ranks"
+    required = True
+
+    def schema(self) -> dict[str, dict]:
+        return {}
+
+    def compute(self, data: VariantData) -> dict:
+        return {}
+
+    def sections(self) -> list[ReportSection]:
+        return [ReportSection(_section, order=70, latex=False)]
+
+    def figures(self) -> list[ReportFigure]:
+        return [ReportFigure("rank_correlation.png", "Robustness rank correlation (paper Fig. 3)",
+                             rank_correlation, order=10)]  # fmt: skip
