@@ -384,18 +384,22 @@ def openpcdet_dsvt_names(cfg) -> dict[str, tuple]:
     return names
 
 
+def openpcdet_dsvt_state(cfg) -> dict[str, torch.Tensor]:
+    """Random values under OpenPCDet's DSVT names and shapes (BN variances positive)."""
+    g = torch.Generator().manual_seed(0)
+    return {
+        k: (torch.rand(s, generator=g) + 0.5 if k.endswith("running_var") else
+            torch.randn(s, generator=g) if k != "global_step" and not k.endswith("tracked")
+            else torch.tensor(7 if k == "global_step" else 3))
+        for k, s in openpcdet_dsvt_names(cfg).items()
+    }  # fmt: skip
+
+
 @pytest.mark.parametrize("path", [REAL, SYN], ids=["dsvt", "synthetic/dsvt"])
 def test_openpcdet_named_state_round_trip(path):
     cfg = cfg_from_yaml_file(path)
     model = build_network_from_config(cfg)
-    shapes = openpcdet_dsvt_names(cfg)
-    g = torch.Generator().manual_seed(0)
-    theirs = {
-        k: (torch.rand(s, generator=g) + 0.5 if k.endswith("running_var") else
-            torch.randn(s, generator=g) if k != "global_step" and not k.endswith("tracked")
-            else torch.tensor(7 if k == "global_step" else 3))
-        for k, s in shapes.items()
-    }  # fmt: skip
+    theirs = openpcdet_dsvt_state(cfg)
     ours, layout = openpcdet_to_atlas_state(theirs, model)
     assert layout is None  # no sparse conv weights
     model.load_state_dict(ours, strict=True)
@@ -408,6 +412,23 @@ def test_openpcdet_named_state_round_trip(path):
     back = atlas_to_openpcdet_state(ours, model)
     assert back.keys() == theirs.keys()
     assert all(torch.equal(back[k], theirs[k]) for k in theirs if k != "global_step")
+
+
+def test_convert_tool_takes_an_openpcdet_dsvt_checkpoint(tmp_path, capsys):
+    src = tmp_path / "checkpoint_epoch_24.pth"
+    theirs = openpcdet_dsvt_state(cfg_from_yaml_file(SYN))
+    torch.save({"epoch": 24, "model_state": theirs, "version": "pcdet+0.6.0"}, src)
+    out = tmp_path / "converted.pth"
+    load_tool("convert_openpcdet_ckpt").main(
+        ["--cfg", str(SYN), "--ckpt", str(src), "--out", str(out)]
+    )
+    assert "loads strictly" in capsys.readouterr().out
+    model = build_network_from_config(cfg_from_yaml_file(SYN))
+    assert model.load_params_from_file(out, strict=True)["epoch"] == 24
+    key = "backbone_3d.stage_1_reduction.pos_embedding"
+    assert torch.equal(model.state_dict()[key], theirs[key])
+    iou = "dense_head.head.branches.iou.3.weight"
+    assert torch.equal(model.state_dict()[iou], theirs["dense_head.heads_list.0.iou.1.weight"])
 
 
 @pytest.mark.slow
