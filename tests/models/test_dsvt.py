@@ -274,6 +274,46 @@ def test_every_parameter_gets_a_gradient():
     assert any(n.startswith("backbone_3d.stage_1_reduction") for n, _ in model.named_parameters())
 
 
+def pillar_form(cells: int = 32, use_checkpoint: bool = False):
+    """DSVT-P's form of the synthetic model: 6 m pillars, one stage of 4 blocks, no pooling."""
+    cfg = cfg_from_yaml_file(SYN)
+    m = copy.deepcopy(cfg.MODEL)
+    m.VFE.VOXEL_SIZE = [0.64, 0.64, 6.0]
+    layer, b3 = m.BACKBONE_3D.INPUT_LAYER, m.BACKBONE_3D
+    layer.sparse_shape, layer.downsample_stride = [cells, cells, 1], []
+    layer.d_model, layer.set_info, layer.window_shape = [64], [[36, 4]], [[12, 12, 1]]
+    layer.shifts_list = [[[0, 0, 0], [6, 6, 0]]]
+    b3.block_name, b3.set_info, b3.d_model = ["DSVTBlock"], [[36, 4]], [64]
+    b3.nhead, b3.dim_feedforward, b3.output_shape = [4], [128], [cells, cells]
+    b3.USE_CHECKPOINT = use_checkpoint
+    m.MAP_TO_BEV.INPUT_SHAPE = [cells, cells, 1]
+    half = cells * 0.64 / 2
+    torch.manual_seed(0)
+    model = build_network(
+        m, class_names=cfg.CLASS_NAMES, point_cloud_range=[-half, -half, -2.0, half, half, 4.0],
+        num_point_features=5,
+    )  # fmt: skip
+    return model, half
+
+
+def test_pillar_form_trains_and_checkpointing_keeps_the_gradients():
+    """One stage of 4 blocks without pooling (DSVT-P's form) trains; USE_CHECKPOINT recomputes
+    the blocks in backward and gives the same gradients."""
+    grads = []
+    for use_checkpoint in (False, True):
+        model, half = pillar_form(use_checkpoint=use_checkpoint)
+        assert not any("reduction" in n for n, _ in model.named_parameters())
+        batch = make_batch(num_point_features=5, extent=half, scale=half / 20)
+        model.train()
+        model.loss(batch)["loss"].backward()
+        grads.append({n: p.grad for n, p in model.named_parameters()})
+    assert grads[0].keys() == grads[1].keys()
+    for name, grad in grads[0].items():
+        torch.testing.assert_close(grads[1][name], grad, msg=name)
+    model.eval()
+    assert model.predict(batch)[0]["pred_boxes"].shape[1] == 7
+
+
 def test_iou_branch_and_rectification_change_the_scores():
     """With IOU_RECTIFIER the scores are ``hm ** (1 - r) * iou ** r`` of the same boxes."""
     torch.manual_seed(0)
