@@ -1,5 +1,6 @@
 """OpenPCDet checkpoints -> this project's ``model_state``: CenterPoint / CP4F (voxel or pillar),
-and the second stages of the MSF and PTT repositories (OpenPCDet forks).
+CenterPoint with DSVT (``dsvt_voxel.yaml``), and the second stages of the MSF and PTT
+repositories (OpenPCDet forks).
 
 The mapping is built from the model the matching config builds, so it knows every tensor's name,
 shape and kind:

@@ -1,12 +1,13 @@
-"""Convert an OpenPCDet checkpoint (CenterPoint / CP4F, or MSF's second stage) to this project's.
+"""Convert an OpenPCDet checkpoint (CenterPoint / CP4F, DSVT, or MSF's second stage) to ours.
 
     python tools/data/convert_openpcdet_ckpt.py --cfg cfgs/atlas/cp4f_voxel.yaml \
         --ckpt /path/to/openpcdet/checkpoint_epoch_36.pth --out checkpoints/cp4f_voxel_waymo.pth
 
 ``--cfg`` is the config whose model the checkpoint was trained as (``centerpoint_voxel.yaml`` for
 OpenPCDet's ``centerpoint.yaml``, ``cp4f_voxel.yaml`` for ``centerpoint_4frames.yaml``; the
-pillar configs for ``centerpoint_dyn_pillar_1x.yaml``; ``msf_4f.yaml``, its ``MODEL.RPN`` naming
-the converted CP4F that proposed for it, for ``msf_4frames.yaml``). The written file loads
+pillar configs for ``centerpoint_dyn_pillar_1x.yaml``, ``dsvt.yaml`` for ``dsvt_voxel.yaml``;
+``msf_4f.yaml``, its ``MODEL.RPN`` naming the converted CP4F that proposed for it, for
+``msf_4frames.yaml``). The written file loads
 strictly into that model (checked before the tool ends); pass it to ``tools/test.py --ckpt``.
 A two-stage checkpoint records the config's RPN checkpoint as the one it was trained with. Sparse
 conv weights of spconv 1.x or 2.x are recognised by their shapes; ``--spconv_layout`` names the

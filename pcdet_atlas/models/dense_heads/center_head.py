@@ -4,7 +4,12 @@ One head for all classes (OpenPCDet's Waymo setting): a shared 3x3 conv, then on
 branch per output (``center`` 2, ``center_z`` 1, ``dim`` 3, ``rot`` 2, optionally ``vel`` 2, and
 ``hm`` one channel per class). Training targets, losses and decoding are in
 :mod:`pcdet_atlas.models.model_utils.centernet_utils`; boxes are de-duplicated by rotated BEV NMS
-from :mod:`pcdet_atlas.ops.iou3d_nms`.
+from :mod:`pcdet_atlas.ops.iou3d_nms`, over all classes or per class (``class_specific_nms``).
+
+DSVT's Waymo head adds an ``iou`` branch (HEAD_DICT ``iou``) trained to the 3D IoU of the
+predicted box with its GT box (mapped to [-1, 1]), a DIoU regression loss on the decoded boxes
+(``IOU_REG_LOSS``), and at test time rectifies each score with the predicted IoU,
+``score ** (1 - r) * iou ** r`` with ``r`` per class (``IOU_RECTIFIER``).
 """
 
 from __future__ import annotations
@@ -16,10 +21,11 @@ from torch import nn
 
 from pcdet_atlas.config import check_known_keys
 from pcdet_atlas.models.model_utils import centernet_utils as cu
-from pcdet_atlas.ops.iou3d_nms import nms_bev
+from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d, nms_bev
 from pcdet_atlas.registry import MODEL_STAGES
 
-REG_HEADS = {"center": 2, "center_z": 1, "dim": 3, "rot": 2, "vel": 2}
+REG_HEADS = {"center": 2, "center_z": 1, "dim": 3, "rot": 2, "vel": 2, "iou": 1}
+NMS_TYPES = ("nms_gpu", "nms_bev", "class_specific_nms")
 
 
 class SeparateHead(nn.Module):
@@ -31,6 +37,8 @@ class SeparateHead(nn.Module):
         heads: Mapping[str, tuple[int, int]],
         init_bias: float,
         use_bias: bool,
+        bn_eps: float = 1e-5,
+        bn_momentum: float = 0.1,
     ):
         """heads: ``name -> (out_channels, num_conv)``; the ``hm`` bias starts at ``init_bias``."""
         super().__init__()
@@ -40,7 +48,7 @@ class SeparateHead(nn.Module):
             for _ in range(num_conv - 1):
                 layers += [
                     nn.Conv2d(in_channels, in_channels, 3, padding=1, bias=use_bias),
-                    nn.BatchNorm2d(in_channels),
+                    nn.BatchNorm2d(in_channels, eps=bn_eps, momentum=bn_momentum),
                     nn.ReLU(),
                 ]
             layers.append(nn.Conv2d(in_channels, out_ch, 3, padding=1, bias=True))
@@ -64,7 +72,7 @@ class CenterHead(nn.Module):
     """Reads ``spatial_features_2d`` (B, C, H, W); writes ``head_outputs``: a dict of maps
     ``hm`` (B, num_class, H, W) logits, ``center`` (B, 2, H, W), ``center_z`` (B, 1, H, W),
     ``dim`` (B, 3, H, W) log-sizes, ``rot`` (B, 2, H, W) ``[cos, sin]``, optionally ``vel``
-    (B, 2, H, W) m/s."""
+    (B, 2, H, W) m/s and ``iou`` (B, 1, H, W) in [-1, 1]."""
 
     def __init__(
         self,
@@ -90,9 +98,15 @@ class CenterHead(nn.Module):
         score_thresh: float = 0.1,
         post_center_limit_range: Sequence[float] | None = None,
         max_obj_per_sample: int = 500,
-        nms_thresh: float = 0.7,
-        nms_pre_maxsize: int = 4096,
-        nms_post_maxsize: int = 500,
+        nms_thresh: float | Sequence[float] = 0.7,
+        nms_pre_maxsize: int | Sequence[int] = 4096,
+        nms_post_maxsize: int | Sequence[int] = 500,
+        nms_type: str = "nms_gpu",
+        with_iou: bool = False,
+        iou_reg_loss: bool = False,
+        iou_rectifier: Sequence[float] | None = None,
+        bn_eps: float = 1e-5,
+        bn_momentum: float = 0.1,
     ):
         """
         Args:
@@ -103,7 +117,13 @@ class CenterHead(nn.Module):
             with_velocity: regress ``[vx, vy]`` (multi-frame input; GT must have 10 columns).
             reg_num_conv: convs per regression branch (an int, or per head name).
             code_weights: L1 weight per regression channel (8, or 10 with velocity).
-            nms_thresh / nms_pre_maxsize / nms_post_maxsize: class-agnostic rotated BEV NMS.
+            nms_thresh / nms_pre_maxsize / nms_post_maxsize: rotated BEV NMS over all classes
+                (``nms_type`` ``'nms_gpu'``), or one value per class (``'class_specific_nms'``).
+            with_iou: add the ``iou`` branch (its L1 loss to the boxes' 3D IoU in training).
+            iou_reg_loss: add the DIoU loss of the decoded boxes (weighted by ``loc_weight``).
+            iou_rectifier: per class ``r``: scores become ``score ** (1 - r) * iou ** r`` (needs
+                ``with_iou``); None keeps the heatmap scores.
+            bn_eps / bn_momentum: the head's BatchNorm settings (OpenPCDet's BN_EPS / BN_MOM).
         """
         super().__init__()
         self.num_class = num_class
@@ -140,16 +160,36 @@ class CenterHead(nn.Module):
             None if post_center_limit_range is None else tuple(map(float, post_center_limit_range))
         )
         self.max_obj_per_sample = max_obj_per_sample
+        if nms_type not in NMS_TYPES:
+            raise ValueError(f"CenterHead: nms_type must be one of {NMS_TYPES}, got {nms_type!r}")
+        per_class = nms_type == "class_specific_nms"
+        for name, value in (("nms_thresh", nms_thresh), ("nms_pre_maxsize", nms_pre_maxsize),
+                            ("nms_post_maxsize", nms_post_maxsize)):  # fmt: skip
+            if per_class != isinstance(value, Sequence) or (per_class and len(value) != num_class):
+                raise ValueError(
+                    f"CenterHead: {name} {value!r}: class_specific_nms takes one value per class "
+                    f"({num_class}), the other NMS types a single value"
+                )
+        self.nms_type = nms_type
         self.nms_thresh = nms_thresh
         self.nms_pre_maxsize = nms_pre_maxsize
         self.nms_post_maxsize = nms_post_maxsize
+        self.with_iou = bool(with_iou)
+        self.iou_reg_loss = bool(iou_reg_loss)
+        if iou_rectifier is not None and (not with_iou or len(iou_rectifier) != num_class):
+            raise ValueError(
+                f"CenterHead: iou_rectifier {iou_rectifier!r} needs the iou branch and one value "
+                f"per class ({num_class})"
+            )
+        self.iou_rectifier = None if iou_rectifier is None else tuple(map(float, iou_rectifier))
 
         self.shared_conv = nn.Sequential(
             nn.Conv2d(input_channels, shared_conv_channel, 3, padding=1, bias=use_bias_before_norm),
-            nn.BatchNorm2d(shared_conv_channel),
+            nn.BatchNorm2d(shared_conv_channel, eps=bn_eps, momentum=bn_momentum),
             nn.ReLU(),
         )
         names = ["center", "center_z", "dim", "rot"] + (["vel"] if with_velocity else [])
+        names += ["iou"] if with_iou else []
         if isinstance(reg_num_conv, Mapping):
             unknown = set(reg_num_conv) - set(names)
             if unknown:
@@ -162,7 +202,9 @@ class CenterHead(nn.Module):
             for n in names
         }
         heads["hm"] = (num_class, num_hm_conv)
-        self.head = SeparateHead(shared_conv_channel, heads, init_bias, use_bias_before_norm)
+        self.head = SeparateHead(
+            shared_conv_channel, heads, init_bias, use_bias_before_norm, bn_eps, bn_momentum
+        )
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> CenterHead:
@@ -179,6 +221,9 @@ class CenterHead(nn.Module):
                 "TARGET_ASSIGNER_CONFIG",
                 "LOSS_CONFIG",
                 "POST_PROCESSING",
+                "IOU_REG_LOSS",
+                "BN_EPS",
+                "BN_MOM",
             ],
             "MODEL.DENSE_HEAD",
         )
@@ -204,13 +249,15 @@ class CenterHead(nn.Module):
                 "MODEL.DENSE_HEAD.SEPARATE_HEAD_CFG.HEAD_ORDER must be "
                 f"[center, center_z, dim, rot] with optional vel, got {order}"
             )
-        if set(head_dict) - set(order):
+        # OpenPCDet builds a branch per HEAD_DICT entry; HEAD_ORDER lists the box code only, so
+        # DSVT's ``iou`` branch is in HEAD_DICT alone
+        if set(head_dict) - set(order) - {"iou"}:
             raise ValueError(
                 f"MODEL.DENSE_HEAD.SEPARATE_HEAD_CFG.HEAD_DICT has heads not in HEAD_ORDER: "
-                f"{sorted(set(head_dict) - set(order))}"
+                f"{sorted(set(head_dict) - set(order) - {'iou'})} (only 'iou' may be extra)"
             )
         reg_num_conv = {}
-        for name in order:
+        for name in order + (["iou"] if "iou" in head_dict else []):
             entry = head_dict.get(name, {})
             check_known_keys(entry, ["out_channels", "num_conv"], f"HEAD_DICT.{name}")
             if entry.get("out_channels", REG_HEADS[name]) != REG_HEADS[name]:
@@ -242,18 +289,25 @@ class CenterHead(nn.Module):
         post = cfg.get("POST_PROCESSING", {})
         check_known_keys(
             post,
-            ["SCORE_THRESH", "POST_CENTER_LIMIT_RANGE", "MAX_OBJ_PER_SAMPLE", "NMS_CONFIG"],
+            ["SCORE_THRESH", "POST_CENTER_LIMIT_RANGE", "MAX_OBJ_PER_SAMPLE", "NMS_CONFIG",
+             "USE_IOU_TO_RECTIFY_SCORE", "IOU_RECTIFIER"],
             "MODEL.DENSE_HEAD.POST_PROCESSING",
-        )
+        )  # fmt: skip
+        rectify = bool(post.get("USE_IOU_TO_RECTIFY_SCORE", False))
+        if rectify and ("iou" not in head_dict or "IOU_RECTIFIER" not in post):
+            raise ValueError(
+                "MODEL.DENSE_HEAD.POST_PROCESSING.USE_IOU_TO_RECTIFY_SCORE needs an 'iou' "
+                "branch in SEPARATE_HEAD_CFG.HEAD_DICT and IOU_RECTIFIER (one value per class)"
+            )
         nms = post.get("NMS_CONFIG", {})
         check_known_keys(
             nms,
             ["NMS_TYPE", "NMS_THRESH", "NMS_PRE_MAXSIZE", "NMS_POST_MAXSIZE"],
             "MODEL.DENSE_HEAD.POST_PROCESSING.NMS_CONFIG",
         )
-        if nms.get("NMS_TYPE", "nms_gpu") not in ("nms_gpu", "nms_bev"):
+        if nms.get("NMS_TYPE", "nms_gpu") not in NMS_TYPES:
             raise ValueError(
-                f"NMS_CONFIG.NMS_TYPE: only rotated BEV NMS ('nms_gpu' / 'nms_bev') is "
+                f"NMS_CONFIG.NMS_TYPE: only rotated BEV NMS ({', '.join(NMS_TYPES)}) is "
                 f"implemented, got {nms['NMS_TYPE']!r}"
             )
         return cls(
@@ -280,6 +334,12 @@ class CenterHead(nn.Module):
             nms_thresh=nms.get("NMS_THRESH", 0.7),
             nms_pre_maxsize=nms.get("NMS_PRE_MAXSIZE", 4096),
             nms_post_maxsize=nms.get("NMS_POST_MAXSIZE", 500),
+            nms_type=nms.get("NMS_TYPE", "nms_gpu"),
+            with_iou="iou" in head_dict,
+            iou_reg_loss=cfg.get("IOU_REG_LOSS", False),
+            iou_rectifier=post["IOU_RECTIFIER"] if rectify else None,
+            bn_eps=cfg.get("BN_EPS", 1e-5),
+            bn_momentum=cfg.get("BN_MOM", 0.1),
         )
 
     def openpcdet_names(self) -> dict[str, str | None]:
@@ -347,7 +407,40 @@ class CenterHead(nn.Module):
         reg_loss = cu.reg_l1_loss_centernet(pred, targets.box_targets, targets.mask)  # (code,)
         loc_loss = (reg_loss * self.code_weights).sum() * self.loc_weight
         hm_loss = hm_loss * self.cls_weight
-        return {"loss": hm_loss + loc_loss, "hm_loss": hm_loss, "loc_loss": loc_loss}
+        losses = {"loss": hm_loss + loc_loss, "hm_loss": hm_loss, "loc_loss": loc_loss}
+        if self.with_iou or self.iou_reg_loss:
+            losses.update(self._iou_losses(head_outputs, targets))
+            losses["loss"] = sum(v for k, v in losses.items() if k != "loss")
+        return losses
+
+    def _iou_losses(
+        self, head_outputs: Mapping[str, torch.Tensor], targets: cu.CenterTargets
+    ) -> dict[str, torch.Tensor]:
+        """``iou_loss``: L1 of the ``iou`` map at the GT cells to ``2 * IoU3D - 1`` of the
+        (detached) decoded box with its GT box; ``iou_reg_loss``: ``loc_weight`` x mean
+        ``1 - DIoU`` of the decoded boxes. Both are means over the objects (0 without any)."""
+        boxes = cu.boxes_at_cells(
+            head_outputs["center"],
+            head_outputs["center_z"],
+            head_outputs["dim"],
+            head_outputs["rot"],
+            targets.inds,
+            point_cloud_range=self.point_cloud_range,
+            voxel_size=self.voxel_size,
+            feature_map_stride=self.feature_map_stride,
+        )[targets.mask]  # (n, 7)
+        gt = targets.src_boxes[targets.mask]  # (n, 7)
+        num = targets.mask.sum().clamp(min=1).float()
+        out = {}
+        if self.with_iou:
+            pred_iou = cu.gather_feature_at(head_outputs["iou"].float(), targets.inds)
+            iou_target = boxes_aligned_iou3d(boxes.detach(), gt) * 2 - 1
+            diff = (pred_iou[targets.mask][:, 0] - iou_target).abs()
+            out["iou_loss"] = diff.sum() / num
+        if self.iou_reg_loss:
+            diou = cu.diou3d_axis_aligned(boxes, gt)
+            out["iou_reg_loss"] = (1.0 - diou).sum() / num * self.loc_weight
+        return out
 
     @torch.no_grad()
     def predict(self, head_outputs: Mapping[str, torch.Tensor]) -> list[dict]:
@@ -370,16 +463,14 @@ class CenterHead(nn.Module):
             max_obj_per_sample=self.max_obj_per_sample,
             score_thresh=self.score_thresh,
             post_center_limit_range=self.post_center_limit_range,
+            iou=head_outputs["iou"] if self.iou_rectifier is not None else None,
         )
         out = []
         for d in decoded:
-            keep = nms_bev(
-                d["boxes"][:, :7],
-                d["scores"],
-                self.nms_thresh,
-                self.nms_pre_maxsize,
-                self.nms_post_maxsize,
-            )
+            if self.iou_rectifier is not None:
+                r = d["scores"].new_tensor(self.iou_rectifier)[d["labels"]]
+                d["scores"] = d["scores"].pow(1 - r) * d["iou"].pow(r)
+            keep = self._nms(d["boxes"][:, :7], d["scores"], d["labels"])
             out.append(
                 {
                     "pred_boxes": d["boxes"][keep],
@@ -388,3 +479,21 @@ class CenterHead(nn.Module):
                 }
             )
         return out
+
+    def _nms(self, boxes: torch.Tensor, scores: torch.Tensor, labels: torch.Tensor):
+        """Indices kept by NMS over all boxes, or class by class with that class's threshold
+        and sizes (``class_specific_nms``), by decreasing score."""
+        if self.nms_type != "class_specific_nms":
+            return nms_bev(
+                boxes, scores, self.nms_thresh, self.nms_pre_maxsize, self.nms_post_maxsize
+            )
+        kept = []
+        for k in range(self.num_class):
+            idx = torch.nonzero(labels == k).squeeze(1)
+            keep = nms_bev(
+                boxes[idx], scores[idx], float(self.nms_thresh[k]),
+                int(self.nms_pre_maxsize[k]), int(self.nms_post_maxsize[k]),
+            )  # fmt: skip
+            kept.append(idx[keep])
+        kept = torch.cat(kept)
+        return kept[torch.sort(scores[kept], descending=True, stable=True).indices]

@@ -2,6 +2,7 @@
 
 from pcdet_atlas.models.map_to_bev.height_compression import HeightCompression
 from pcdet_atlas.models.map_to_bev.pointpillar_scatter import PointPillarScatter
+from pcdet_atlas.models.map_to_bev.pointpillar_scatter3d import PointPillarScatter3d
 from pcdet_atlas.models.map_to_bev.sector_feature_buffer import SectorFeatureBuffer
 
-__all__ = ["HeightCompression", "PointPillarScatter", "SectorFeatureBuffer"]
+__all__ = ["HeightCompression", "PointPillarScatter", "PointPillarScatter3d", "SectorFeatureBuffer"]

@@ -21,6 +21,8 @@ __all__ = [
     "reg_l1_loss_centernet",
     "gather_feature_at",
     "decode_center_maps",
+    "boxes_at_cells",
+    "diou3d_axis_aligned",
 ]
 
 
@@ -52,12 +54,15 @@ class CenterTargets:
         box_targets: (B, K, code_size) regression targets at the centre cells.
         inds: (B, K) int64 flat cell index ``y * W + x`` of each object.
         mask: (B, K) bool, which of the K slots hold an object.
+        src_boxes: (B, K, 7) the GT box ``[x, y, z, dx, dy, dz, heading]`` of each slot (the
+            IoU branch's target; zeros in empty slots).
     """
 
     heatmap: torch.Tensor
     box_targets: torch.Tensor
     inds: torch.Tensor
     mask: torch.Tensor
+    src_boxes: torch.Tensor
 
 
 def encode_center_targets(
@@ -102,8 +107,9 @@ def encode_center_targets(
     box_targets = torch.zeros(B, num_max_objs, code_size, device=device)
     inds = torch.zeros(B, num_max_objs, dtype=torch.long, device=device)
     mask = torch.zeros(B, num_max_objs, dtype=torch.bool, device=device)
+    src_boxes = torch.zeros(B, num_max_objs, 7, device=device)
     if M == 0:
-        return CenterTargets(heatmap, box_targets, inds, mask)
+        return CenterTargets(heatmap, box_targets, inds, mask, src_boxes)
 
     boxes = gt_boxes.float()
     cls = boxes[..., -1].long()  # (B, M) 1-based
@@ -168,7 +174,50 @@ def encode_center_targets(
     box_targets[b_u, s_u] = torch.cat(target, dim=1)
     inds[b_u, s_u] = iy[b_u, m_u] * W + ix[b_u, m_u]
     mask[b_u, s_u] = True
-    return CenterTargets(heatmap, box_targets, inds, mask)
+    src_boxes[b_u, s_u] = sel[:, :7]
+    return CenterTargets(heatmap, box_targets, inds, mask, src_boxes)
+
+
+def boxes_at_cells(
+    center: torch.Tensor,
+    center_z: torch.Tensor,
+    dim: torch.Tensor,
+    rot: torch.Tensor,
+    inds: torch.Tensor,
+    *,
+    point_cloud_range: tuple[float, ...],
+    voxel_size: tuple[float, ...],
+    feature_map_stride: int,
+) -> torch.Tensor:
+    """The boxes the regression maps predict at cells ``inds`` (B, K): (B, K, 7)
+    ``[x, y, z, dx, dy, dz, heading]``, differentiable in the maps (OpenPCDet's
+    ``decode_bbox_from_pred_dicts`` read at those cells)."""
+    W = center.shape[-1]
+    xs = (inds % W).float()
+    ys = torch.div(inds, W, rounding_mode="floor").float()
+    off = gather_feature_at(center.float(), inds)  # (B, K, 2)
+    x = (xs + off[..., 0]) * feature_map_stride * voxel_size[0] + point_cloud_range[0]
+    y = (ys + off[..., 1]) * feature_map_stride * voxel_size[1] + point_cloud_range[1]
+    z = gather_feature_at(center_z.float(), inds)[..., 0]
+    # log-size clamped as in decoding, so an untrained head cannot make inf volumes
+    size = torch.exp(gather_feature_at(dim.float(), inds).clamp(max=6.0))  # (B, K, 3)
+    cs = gather_feature_at(rot.float(), inds)
+    heading = torch.atan2(cs[..., 1], cs[..., 0])
+    return torch.cat([torch.stack([x, y, z], -1), size, heading[..., None]], dim=-1)
+
+
+def diou3d_axis_aligned(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """Distance-IoU of row-aligned boxes (N, 7+) x (N, 7+) -> (N,) in [-1, 1], with the boxes
+    taken axis-aligned (heading ignored), as OpenPCDet's ``bbox3d_overlaps_diou`` that DSVT's
+    IoU regression loss uses: 3D IoU minus the squared centre distance over the squared
+    diagonal of the enclosing box. Differentiable."""
+    p_lo, p_hi = pred[:, :3] - pred[:, 3:6] / 2, pred[:, :3] + pred[:, 3:6] / 2
+    g_lo, g_hi = gt[:, :3] - gt[:, 3:6] / 2, gt[:, :3] + gt[:, 3:6] / 2
+    inter = (torch.minimum(p_hi, g_hi) - torch.maximum(p_lo, g_lo)).clamp(min=0).prod(-1)
+    union = pred[:, 3:6].prod(-1) + gt[:, 3:6].prod(-1) - inter
+    centre = (gt[:, :3] - pred[:, :3]).pow(2).sum(-1)
+    diag = (torch.maximum(p_hi, g_hi) - torch.minimum(p_lo, g_lo)).clamp(min=0).pow(2).sum(-1)
+    return (inter / union - centre / diag).clamp(min=-1.0, max=1.0)
 
 
 def focal_loss_centernet(pred_logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -233,6 +282,7 @@ def decode_center_maps(
     max_obj_per_sample: int = 500,
     score_thresh: float = 0.1,
     post_center_limit_range: tuple[float, ...] | None = None,
+    iou: torch.Tensor | None = None,
 ) -> list[dict[str, torch.Tensor]]:
     """Top-K decoding of the head maps into boxes (before NMS).
 
@@ -243,9 +293,11 @@ def decode_center_maps(
         max_obj_per_sample: K of the top-K over all classes and cells.
         post_center_limit_range: ``(x_min, y_min, z_min, x_max, y_max, z_max)`` box centres must
             lie in (inclusive), or None.
+        iou: (B, 1, H, W) the IoU branch's map in [-1, 1], or None.
     Returns:
-        per sample ``{'boxes': (k, 7|9), 'scores': (k,), 'labels': (k,) 0-based}`` with
-        score > ``score_thresh``, sorted by decreasing score.
+        per sample ``{'boxes': (k, 7|9), 'scores': (k,), 'labels': (k,) 0-based}`` (and
+        ``'iou'`` (k,) in [0, 1] with ``iou``) with score > ``score_thresh``, sorted by
+        decreasing score.
     """
     B, C, H, W = heatmap_logits.shape
     scores_map = torch.sigmoid(heatmap_logits.float()).reshape(B, -1)
@@ -273,7 +325,12 @@ def decode_center_maps(
     if post_center_limit_range is not None:
         lim = boxes.new_tensor(post_center_limit_range)
         keep &= (boxes[..., :3] >= lim[:3]).all(-1) & (boxes[..., :3] <= lim[3:]).all(-1)
-    return [
+    out = [
         {"boxes": boxes[i][keep[i]], "scores": scores[i][keep[i]], "labels": labels[i][keep[i]]}
         for i in range(B)
     ]
+    if iou is not None:  # [-1, 1] -> [0, 1]
+        cell_iou = ((gather_feature_at(iou.float(), cell)[..., 0] + 1) * 0.5).clamp(0.0, 1.0)
+        for i, d in enumerate(out):
+            d["iou"] = cell_iou[i][keep[i]]
+    return out

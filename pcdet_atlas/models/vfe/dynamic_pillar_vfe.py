@@ -71,6 +71,9 @@ class DynamicPillarVFE(nn.Module):
     ``voxel_coords`` (P, 4) ``[batch, 0, y, x]``.
     """
 
+    #: the grid has one z cell (a subclass on 3D voxels sets False)
+    pillar_grid = True
+
     def __init__(
         self,
         *,
@@ -95,7 +98,7 @@ class DynamicPillarVFE(nn.Module):
         """
         super().__init__()
         self.grid = VoxelGrid(tuple(map(float, point_cloud_range)), tuple(map(float, voxel_size)))
-        if self.grid.grid_size[2] != 1:
+        if self.pillar_grid and self.grid.grid_size[2] != 1:
             raise ValueError(
                 f"DynamicPillarVFE: VOXEL_SIZE z ({voxel_size[2]}) must equal the z extent of "
                 f"POINT_CLOUD_RANGE ({point_cloud_range[5] - point_cloud_range[2]}) for pillars"
@@ -156,7 +159,7 @@ class DynamicPillarVFE(nn.Module):
 
     def forward(self, batch_dict: dict) -> dict:
         points = batch_dict["points"]  # (N, 1 + C)
-        check_point_columns(points, self.num_point_features, "DynamicPillarVFE")
+        check_point_columns(points, self.num_point_features, type(self).__name__)
         vox = voxelize(points, self.grid, bound_z=self.drop_outside_z)
         pts = points[vox.point_mask, 1:].float()  # (N_in, C)
         idx = vox.point_voxel_idx
