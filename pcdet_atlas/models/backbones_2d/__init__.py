@@ -1,5 +1,6 @@
 """2D BEV backbones (stage ``backbone_2d``)."""
 
 from pcdet_atlas.models.backbones_2d.base_bev_backbone import BaseBEVBackbone
+from pcdet_atlas.models.backbones_2d.centerformer_bev_backbone import CenterFormerBEVBackbone
 
-__all__ = ["BaseBEVBackbone"]
+__all__ = ["BaseBEVBackbone", "CenterFormerBEVBackbone"]
