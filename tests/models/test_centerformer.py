@@ -146,6 +146,8 @@ def test_top_k_queries_match_a_sorting_loop():
     gt_inds = torch.randint(0, 60, (3, 5), generator=g)
     gt_inds[1, 3] = gt_inds[1, 2]  # two objects in one cell: one query
     gt_mask = torch.rand(3, 5, generator=g) > 0.3
+    gt_mask[2, 0] = True
+    gt_inds[2, 3:], gt_mask[2, 3:] = gt_inds[2, 0], False  # padding slots at a real object's cell
     got = select_center_queries(scores, 12, gt_inds, gt_mask)
     assert torch.equal(got, brute_force_queries(scores, 12, gt_inds, gt_mask))
     for b in range(3):  # every real ground-truth cell is a query, each once

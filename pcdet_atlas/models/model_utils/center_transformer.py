@@ -46,7 +46,8 @@ def select_center_queries(
     ranked = scores.detach().float()
     if gt_inds is not None:
         boost = torch.zeros_like(ranked)
-        boost.scatter_(1, gt_inds, gt_mask.to(ranked.dtype))  # 1 at each real GT cell, once
+        # 1 at each real GT cell, once; amax: a padding slot naming the same cell cannot undo it
+        boost.scatter_reduce_(1, gt_inds, gt_mask.to(ranked.dtype), reduce="amax")
         ranked = ranked + boost
     order = torch.sort(ranked, dim=1, descending=True, stable=True).indices
     return order[:, :num_queries]
