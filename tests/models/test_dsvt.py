@@ -459,7 +459,7 @@ def test_convert_tool_takes_an_openpcdet_dsvt_checkpoint(tmp_path, capsys):
     theirs = openpcdet_dsvt_state(cfg_from_yaml_file(SYN))
     torch.save({"epoch": 24, "model_state": theirs, "version": "pcdet+0.6.0"}, src)
     out = tmp_path / "converted.pth"
-    load_tool("convert_openpcdet_ckpt").main(
+    load_tool("data/convert_openpcdet_ckpt").main(
         ["--cfg", str(SYN), "--ckpt", str(src), "--out", str(out)]
     )
     assert "loads strictly" in capsys.readouterr().out

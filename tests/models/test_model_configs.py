@@ -23,6 +23,7 @@ CELLS = 64  # smoke runs use a cropped grid of CELLS x CELLS pillars / voxels, s
 #: configs whose ATLAS.CHECKPOINT names the file a user trains (docs/model_zoo.md), not one that
 #: ships
 NOT_SHIPPED = {
+    "synthetic/centerformer.yaml",
     "synthetic/centerpoint_voxel.yaml",
     "synthetic/cp4f_voxel.yaml",
     "synthetic/dsvt.yaml",
