@@ -18,9 +18,9 @@ demo: install
 # every shipped model on all 13 variants of the 6-sequence val split -> docs/results/
 VAL6 = data/synthetic_waymo_val6
 reproduce: install
-	$(PYTHON) tools/data/create_synthetic_waymo.py --root $(VAL6) --train-sequences 12 \
-		--train-frames 60 --val-sequences 6 --val-frames 198 --seed 0 --workers 2
-	$(PYTHON) tools/reproduce.py --data_path $(VAL6) --out docs/results --jobs 2
+	$(PYTHON) tools/data/create_synthetic_waymo.py --out_dir $(VAL6) --train_sequences 12 \
+		--train_frames 60 --val_sequences 6 --val_frames 198 --seed 0 --workers 2
+	$(PYTHON) tools/reproduce.py --data_path $(VAL6) --out_dir docs/results --jobs 2
 
 lint:
 	$(PYTHON) -m ruff check . && $(PYTHON) -m ruff format --check .

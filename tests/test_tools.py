@@ -7,7 +7,9 @@ TensorFlow venv without this package (its fixture script reads its evaluation sc
 
 from __future__ import annotations
 
+import argparse
 import ast
+import json
 import os
 import subprocess
 import sys
@@ -86,6 +88,75 @@ def test_tools_are_grouped_by_purpose():
             assert f"`{path.relative_to(TOOLS).as_posix()}`" in readme, path
 
 
+FLAGS = r"""
+import argparse, json, runpy, sys
+
+class Parsed(Exception):
+    pass
+
+def capture(self, *args, **kwargs):
+    raise Parsed(self)
+
+argparse.ArgumentParser.parse_args = capture
+argparse.ArgumentParser.parse_known_args = capture
+found = {}
+for path in sys.argv[1:]:
+    sys.argv = [path]
+    try:
+        runpy.run_path(path, run_name="__main__")
+    except Parsed as parsed:
+        found[path] = [
+            [action.option_strings, action.help, group.title]
+            for group in parsed.args[0]._action_groups for action in group._group_actions
+            if action.option_strings and action.help != argparse.SUPPRESS
+        ]
+print(json.dumps(found))
+"""
+
+
+def test_every_flag_is_snake_case_with_help_and_long_parsers_have_groups():
+    """One flag style: ``--snake_case`` (an old spelling kept one release by ``RenamedFlag`` is
+    listed after the new one), help on every flag, and argparse groups in a tool with more than
+    12 flags."""
+    tools = [str(p) for p in sorted(TOOLS.rglob("*.py"))
+             if not set(p.relative_to(TOOLS).parts) & set(OWN_PROJECTS)
+             and 'if __name__ == "__main__":' in p.read_text()]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    run = subprocess.run([sys.executable, "-c", FLAGS, *tools], capture_output=True, text=True,
+                         cwd=REPO_ROOT, env=env, timeout=600)  # fmt: skip
+    assert run.returncode == 0, run.stderr[-3000:]
+    parsers = json.loads(run.stdout.strip().splitlines()[-1])
+    assert sorted(parsers) == tools, "a tool ran to the end without parsing its arguments"
+    bad = []
+    for tool, flags in parsers.items():
+        name = Path(tool).relative_to(TOOLS)
+        for options, help_text, _ in flags:
+            if not help_text:
+                bad.append(f"{name}: {options[0]} has no help")
+            first = options[0] if options[0].startswith("--") else options[-1]
+            if "-" in first[2:] or first.lower() != first and first not in ("-h",):
+                bad.append(f"{name}: {first} is not --snake_case")
+        groups = {group for _, _, group in flags} - {"options"}
+        if len(flags) > 12 and not groups:
+            bad.append(f"{name}: {len(flags)} flags and no argparse group")
+    assert bad == [], "\n".join(bad)
+
+
+def test_an_old_flag_spelling_still_works_and_warns(capsys):
+    from pcdet_atlas.utils.cli import RenamedFlag
+
+    parser = argparse.ArgumentParser(prog="tool")
+    parser.add_argument("--out_dir", "--out", action=RenamedFlag, old=("--out",), required=True)
+    assert parser.parse_args(["--out_dir", "a"]).out_dir == "a"
+    assert capsys.readouterr().err == ""
+    assert parser.parse_args(["--out", "b"]).out_dir == "b"
+    assert capsys.readouterr().err.strip() == (
+        "tool: warning: --out is deprecated and goes in the next release; use --out_dir"
+    )
+    with pytest.raises(ValueError, match="--old"):
+        parser.add_argument("--new", action=RenamedFlag, old=("--old",))
+
+
 def test_every_tool_ends_user_errors_in_one_line():
     """Each tool runs its ``main`` through ``run_tool`` and lists ``--debug`` in its help."""
     missing = []
@@ -102,7 +173,8 @@ def test_every_tool_ends_user_errors_in_one_line():
 
 def test_a_user_error_is_one_line_and_exit_2_and_debug_shows_the_traceback():
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, str(TOOLS / "report.py"), "--results", "/nonexistent/results", "--out"]
+    cmd = [sys.executable, str(TOOLS / "report.py"), "--results", "/nonexistent/results"]
+    cmd.append("--out_dir")
     cmd.append(str(Path("/nonexistent/report")))
     run = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert run.returncode == 2, run.stderr[-2000:]

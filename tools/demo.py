@@ -30,7 +30,7 @@ from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
 from pcdet_atlas.attacks.counters import COUNTERS
 from pcdet_atlas.config import REPO_ROOT, cfg_from_list, cfg_from_yaml_file
 from pcdet_atlas.datasets.synthetic import create_synthetic_waymo, format_summary
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import RenamedFlag, add_debug_flag, run_tool
 from pcdet_atlas.utils.common import create_logger
 
 SYNTHETIC_ROOT = REPO_ROOT / "data" / "synthetic_waymo"
@@ -112,11 +112,25 @@ def print_showcase(rows: list[dict], first: int, last: int) -> None:
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_debug_flag(parser)
-    parser.add_argument("--root", default=str(SYNTHETIC_ROOT), help="synthetic dataset root")
-    parser.add_argument("--frames", type=int, nargs=2, default=[30, 66], metavar=("FIRST", "LAST"))
+    parser.add_argument(
+        "--data_path",
+        "--root",
+        action=RenamedFlag,
+        old=("--root",),
+        default=str(SYNTHETIC_ROOT),
+        help="synthetic dataset root, generated when absent (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--frames",
+        type=int,
+        nargs=2,
+        default=[30, 66],
+        metavar=("FIRST", "LAST"),
+        help="val frames of the attack showcase (default: 30 66)",
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    root = Path(args.root)
+    root = Path(args.data_path)
     # the detector of step 4: checked first, before minutes of data generation
     ckpt = cfg_from_yaml_file(MODEL_CFG).ATLAS.CHECKPOINT
     if not ckpt or not (REPO_ROOT / ckpt).is_file():

@@ -1,8 +1,8 @@
 """Write the paper's report (tables and figures) from results.json files of tools/test.py.
 
-    python tools/report.py --results output/atlas/synthetic --out report/
-    python tools/report.py --results a/results.json b/results.json --out report/ --latex
-    python tools/report.py --results docs/results/results --out /tmp/report  # the committed one
+    python tools/report.py --results output/atlas/synthetic --out_dir report/
+    python tools/report.py --results a/results.json b/results.json --out_dir report/ --latex
+    python tools/report.py --results docs/results/results --out_dir /tmp/report  # the committed one
 
 ``--results`` (alias ``--results_dir``) takes results files and/or folders (below a folder every
 ``results.json`` and ``<model>.results.json`` is read, and each of them gzip-compressed as
@@ -21,7 +21,7 @@ from pathlib import Path
 
 from pcdet_atlas.config import repo_relative
 from pcdet_atlas.evaluation.results.report import DEFAULT_LOT_PAIR, collect_results, write_report
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import RenamedFlag, add_debug_flag, run_tool
 
 
 def parse_args(argv=None):
@@ -29,15 +29,19 @@ def parse_args(argv=None):
     add_debug_flag(p)
     p.add_argument("--results", "--results_dir", dest="results", nargs="+", required=True,
                    help="results files (.json, .json.gz) or folders holding them")  # fmt: skip
-    p.add_argument("--out", "--out_dir", dest="out", required=True, help="output folder")
+    p.add_argument("--out_dir", "--out", action=RenamedFlag, old=("--out",), required=True,
+                   help="output folder")  # fmt: skip
     p.add_argument("--latex", action="store_true", help="also write report.tex")
     p.add_argument(
         "--lot_pair", nargs=2, default=list(DEFAULT_LOT_PAIR), metavar=("BASE", "DEFENDED"),
         help="model names of the LOT ablation (default: %(default)s)",
     )  # fmt: skip
     args = p.parse_args(argv)
-    if Path(args.out).exists() and not Path(args.out).is_dir():
-        p.error(f"--out {args.out}: an existing file, expected a folder (or a path to create one)")
+    if Path(args.out_dir).exists() and not Path(args.out_dir).is_dir():
+        p.error(
+            f"--out_dir {args.out_dir}: an existing file, expected a folder (or a path to create "
+            "one)"
+        )
     return args
 
 
@@ -46,7 +50,7 @@ def main(argv=None) -> dict:
     found = collect_results(args.results)
     command = "python tools/report.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     out = write_report(
-        [r for _, r in found], args.out, sources=[str(repo_relative(p)) for p, _ in found],
+        [r for _, r in found], args.out_dir, sources=[str(repo_relative(p)) for p, _ in found],
         latex=args.latex, lot_pair=tuple(args.lot_pair), command=command,
     )  # fmt: skip
     print(f"report: {out['report']}" + (f"  latex: {out['latex']}" if out["latex"] else ""))

@@ -1,8 +1,9 @@
 """Evaluate every shipped synthetic model on all 13 ATLAS variants and write the paper's report.
 
     python tools/reproduce.py --jobs 2                          # make reproduce's second step
-    python tools/reproduce.py --data_path data/synthetic_waymo_val6 --out docs/results
-    python tools/reproduce.py --cfgs cfgs/atlas/synthetic/cp4f.yaml --out /tmp/cp4f --device cuda
+    python tools/reproduce.py --data_path data/synthetic_waymo_val6 --out_dir docs/results
+    python tools/reproduce.py --cfgs cfgs/atlas/synthetic/cp4f.yaml --out_dir /tmp/cp4f \
+        --device cuda
 
 For each model config (default: every config under ``cfgs/atlas/synthetic/`` whose
 ``ATLAS.CHECKPOINT`` file exists) this runs ``tools/test.py --attacks all`` on the dataset at
@@ -25,7 +26,7 @@ fingerprint in ``results.json``) and lets a model left unfinished go on from its
 variant; any other model, or a call with another setting, is evaluated again. A ``run.json`` that
 is truncated or holds a key of the wrong type is an error naming the file and the key.
 ``--overwrite`` evaluates everything again. The models share a prediction store
-(``tools/test.py --prediction_store``, under ``--output_root``; ``--no_store``: none) that the
+(``tools/test.py --prediction_store``, under ``--eval_dir``; ``--no_store``: none) that the
 two-stage models and the configs that are their RPN use, so a two-stage model reads the
 proposals its RPN computed as a model of its own. A config that is
 another model's RPN therefore starts first; the others start longest first by the times of
@@ -74,7 +75,7 @@ from pcdet_atlas.train_utils.atlas_eval import (
 )
 from pcdet_atlas.train_utils.eval_folder import eval_dir, finished_variants, resolve_checkpoint
 from pcdet_atlas.train_utils.setup import load_cfg, lock_output_folder
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import RenamedFlag, add_debug_flag, run_tool
 from pcdet_atlas.utils.common import create_logger, resolve_device, write_atomic
 from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.processes import die_with_parent
@@ -97,28 +98,63 @@ def shipped_configs() -> list[Path]:
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_debug_flag(p)
-    p.add_argument("--data_path", default=str(DEFAULT_DATA), help="synthetic dataset root")
-    p.add_argument("--out", default=str(DEFAULT_OUT), help="report folder")
-    p.add_argument("--cfgs", nargs="+", default=None, help="model configs (default: shipped)")
-    p.add_argument("--device", default=None, help="cpu / cuda (default: auto)")
-    p.add_argument("--workers", default="2", help="loader workers of tools/test.py")
-    p.add_argument("--jobs", type=int, default=1, help="models evaluated at once")
-    p.add_argument("--threads", type=int, default=None,
-                   help="torch threads per job (default: CPU cores // jobs)")  # fmt: skip
-    p.add_argument("--output_root", default=None, help="tools/test.py's output root")
-    p.add_argument("--no_reuse", action="store_true", help="run the model on every frame")
-    p.add_argument("--no_store", action="store_true",
-                   help="no prediction store shared by the RPNs and the two-stage models "
-                        "(default: <output_root>/prediction_store; tools/test.py "
-                        "--prediction_store)")  # fmt: skip
-    p.add_argument("--overwrite", action="store_true",
-                   help="evaluate every model again (default: resume)")  # fmt: skip
-    p.add_argument("--attacks", default="all", help="variants of tools/test.py (default: all)")
-    p.add_argument("--report_only", action="store_true",
-                   help="write the report of the run in --out's run.json again, evaluating "
-                        "nothing")  # fmt: skip
-    p.add_argument("--set", nargs=argparse.REMAINDER, default=[], dest="set_cfgs",
-                   help="KEY VALUE pairs passed on to tools/test.py's --set")  # fmt: skip
+    io = p.add_argument_group("inputs and outputs")
+    io.add_argument(
+        "--data_path",
+        default=str(DEFAULT_DATA),
+        help="synthetic dataset root (default: %(default)s)",
+    )
+    io.add_argument(
+        "--out_dir",
+        "--out",
+        action=RenamedFlag,
+        old=("--out",),
+        default=str(DEFAULT_OUT),
+        help="report folder (default: %(default)s)",
+    )
+    io.add_argument(
+        "--eval_dir",
+        "--output_root",
+        action=RenamedFlag,
+        old=("--output_root",),
+        default=None,
+        help="root of the evaluations, tools/test.py's output root (default: <repo>/output)",
+    )
+    io.add_argument("--cfgs", nargs="+", default=None, help="model configs (default: shipped)")
+    io.add_argument("--attacks", default="all", help="variants of tools/test.py (default: all)")
+    io.add_argument(
+        "--set",
+        nargs=argparse.REMAINDER,
+        default=[],
+        dest="set_cfgs",
+        help="KEY VALUE pairs passed on to tools/test.py's --set",
+    )
+    run = p.add_argument_group("how it runs")
+    run.add_argument("--device", default=None, help="cpu / cuda (default: auto)")
+    run.add_argument("--workers", default="2", help="loader workers of tools/test.py")
+    run.add_argument("--jobs", type=int, default=1, help="models evaluated at once")
+    run.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch threads per job (default: CPU cores // jobs)",
+    )
+    run.add_argument("--no_reuse", action="store_true", help="run the model on every frame")
+    run.add_argument(
+        "--no_store",
+        action="store_true",
+        help="no prediction store shared by the RPNs and the two-stage models "
+        "(default: <eval_dir>/prediction_store; tools/test.py "
+        "--prediction_store)",
+    )
+    run.add_argument(
+        "--overwrite", action="store_true", help="evaluate every model again (default: resume)"
+    )
+    run.add_argument(
+        "--report_only",
+        action="store_true",
+        help="write the report of the run in --out_dir's run.json again, evaluating nothing",
+    )
     args = p.parse_args(argv)
     if args.jobs < 1 or (args.threads is not None and args.threads < 1):
         p.error(f"--jobs {args.jobs} / --threads {args.threads}: expected positive counts")
@@ -152,8 +188,8 @@ def test_argv(
     argv = ["--cfg", str(cfg), "--attacks", args.attacks, "--extra_tag", TAG, "--eval_tag", TAG,
             "--resume" if resume else "--overwrite", "--no_progress",
             "--workers", args.workers, "--threads", str(threads)]  # fmt: skip
-    if args.output_root:
-        argv += ["--output_root", args.output_root]
+    if args.eval_dir:
+        argv += ["--out_dir", args.eval_dir]
     if args.device:
         argv += ["--device", args.device]
     if args.no_reuse:
@@ -172,7 +208,7 @@ def store_of(cfg: Path, rpns, args) -> Path | None:
 
 
 def store_path(args) -> Path:
-    return Path(args.output_root or REPO_ROOT / "output") / "prediction_store"
+    return Path(args.eval_dir or REPO_ROOT / "output") / "prediction_store"
 
 
 def evaluation_of(
@@ -185,7 +221,7 @@ def evaluation_of(
     (another model or setting wrote it). ``data_fingerprints``: the run's fingerprints by
     (split, processed-data tag), filled as they are computed (once per run)."""
     model_cfg = load_cfg(str(REPO_ROOT / cfg), ["DATA_CONFIG.DATA_PATH", str(root), *args.set_cfgs])
-    output_root = args.output_root or str(REPO_ROOT / "output")
+    output_root = args.eval_dir or str(REPO_ROOT / "output")
     ckpt = resolve_checkpoint(None, model_cfg.get("ATLAS", {}))
     variants = resolve_variants(args.attacks, model_cfg.get("ATLAS", {}))
     wanted = {name for name, _ in variants}
@@ -295,7 +331,7 @@ def evaluation_time(results: dict) -> float:
 def main(argv=None) -> dict:
     args = parse_args(argv)
     with contextlib.ExitStack() as held:  # one reproduce run per --out at a time
-        lock_output_folder(Path(args.out), held, "tools/reproduce.py")
+        lock_output_folder(Path(args.out_dir), held, "tools/reproduce.py")
         return reproduce(args, argv)
 
 
@@ -303,7 +339,7 @@ def reproduce(args, argv=None) -> dict:
     """The work of :func:`main` (``argv``: its command line, recorded in ``run.json``), under
     the lock of ``--out``."""
     if args.report_only:
-        return rewrite_report(Path(args.out))
+        return rewrite_report(Path(args.out_dir))
     root = resolve_cli_path(args.data_path)  # the tools/test.py processes run in the repo root
     if not (root / "ImageSets").is_dir():
         raise FileNotFoundError(
@@ -313,7 +349,7 @@ def reproduce(args, argv=None) -> dict:
     cfgs = [repo_relative(Path(c)) for c in args.cfgs] if args.cfgs else shipped_configs()
     ensure_trace_libraries(root, cfgs, args.attacks)
     threads = args.threads or max(1, (os.cpu_count() or 1) // args.jobs)
-    out_dir = Path(args.out)
+    out_dir = Path(args.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     run_file = out_dir / "run.json"
     setting = {"data_path": str(root), "attacks": args.attacks, "cfgs": list(map(str, cfgs)),

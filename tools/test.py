@@ -38,50 +38,53 @@ from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_debug_flag(parser)
-    add_common_args(parser)
-    parser.add_argument("--attacks", default="clean", help="'all' or a comma list of variants")
-    parser.add_argument(
+    groups = add_common_args(parser)
+    evaluation = parser.add_argument_group("evaluation")
+    evaluation.add_argument("--attacks", default="clean", help="'all' or a comma list of variants")
+    evaluation.add_argument(
         "--eval_tag", type=folder_name_arg, default="default",
         help="the evaluation's folder under eval/<checkpoint>/<split>/",
     )  # fmt: skip
-    parser.add_argument(
+    evaluation.add_argument(
         "--eval_all", action="store_true", default=False,
         help="evaluate every checkpoint_epoch_N.pth of --ckpt_dir (N >= --start_epoch), in order",
     )  # fmt: skip
-    parser.add_argument(
+    evaluation.add_argument(
         "--ckpt_dir", type=str, default=None,
         help="checkpoints of --eval_all (default: the run's ckpt/)",
     )  # fmt: skip
-    parser.add_argument(
+    evaluation.add_argument(
         "--start_epoch", type=count_arg(0), default=0,
         help="--eval_all: the first epoch evaluated",
     )  # fmt: skip
-    parser.add_argument(
+    evaluation.add_argument(
         "--save_to_file", action="store_true", default=False,
         help="also write <variant>/final_result/data/<frame_id>.txt per frame",
     )  # fmt: skip
-    parser.add_argument(
+    evaluation.add_argument(
         "--overwrite", action="store_true", default=False,
         help="delete an existing evaluation directory first (default: refuse to run)",
     )  # fmt: skip
-    parser.add_argument(
+    evaluation.add_argument(
         "--resume", action="store_true", default=False,
         help="keep the requested variants an earlier call with the same config, checkpoint, "
         "batch size and processes finished in the evaluation directory (with the same attack "
         "config); evaluate the rest",
     )  # fmt: skip
-    parser.add_argument(
+    evaluation.add_argument(
         "--no_reuse", action="store_true", default=False,
         help="run the model on every frame of every variant (default: a frame whose input the "
         "attack leaves untouched takes the clean run's prediction, bitwise the same)",
     )  # fmt: skip
-    parser.add_argument(
+    evaluation.add_argument(
         "--prediction_store", default=None, metavar="DIR",
         help="keep the predictions of a model that serves as an RPN (CenterPoint, CP-4f), or of "
         "a two-stage model's RPN, in DIR, found by their inputs; a later model that feeds the "
         "same RPN the same inputs reads them (docs/evaluation.md 'Sharing the RPN')",
     )  # fmt: skip
-    parser.add_argument("--no_progress", action="store_true", default=False, help="no tqdm bars")
+    groups["outputs"].add_argument(
+        "--no_progress", action="store_true", default=False, help="no tqdm bars"
+    )
     args = parser.parse_args(argv)
     try:
         args.settings = settings_of(args)

@@ -76,33 +76,73 @@ from pcdet_atlas.utils.common import create_logger
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_debug_flag(parser)
-    add_common_args(parser)
-    parser.add_argument("--epochs", type=count_arg(1), default=None)
-    parser.add_argument("--pretrained_model", type=str, default=None, help="weights to start from")
-    parser.add_argument(
-        "--allow_partial_stage_init", action="store_true", default=False,
+    groups = add_common_args(parser)
+    train = parser.add_argument_group("training")
+    train.add_argument(
+        "--epochs",
+        type=count_arg(1),
+        default=None,
+        help="epochs (default: the config's OPTIMIZATION.NUM_EPOCHS)",
+    )
+    train.add_argument("--pretrained_model", type=str, default=None, help="weights to start from")
+    train.add_argument(
+        "--allow_partial_stage_init",
+        action="store_true",
+        default=False,
         help="a STAGE config: start from the predecessor's newest checkpoint even when it is "
         "short of the predecessor's configured epochs (default: refuse, naming it)",
-    )  # fmt: skip
-    parser.add_argument("--sync_bn", action="store_true", default=False)
-    parser.add_argument("--ckpt_save_interval", type=count_arg(1), default=1)
-    parser.add_argument("--max_ckpt_save_num", type=count_arg(1), default=30)
-    parser.add_argument(
-        "--ckpt_save_time_interval", type=count_arg(0), default=300,
-        help="seconds between rewrites of ckpt/latest_model.pth inside an epoch (0: every step)",
-    )  # fmt: skip
-    parser.add_argument("--merge_all_iters_to_one_epoch", action="store_true", default=False)
-    parser.add_argument(
+    )
+    train.add_argument(
+        "--sync_bn",
+        action="store_true",
+        default=False,
+        help="synchronised BatchNorm across processes",
+    )
+    train.add_argument(
+        "--merge_all_iters_to_one_epoch",
+        action="store_true",
+        default=False,
+        help="run all epochs' iterations as one epoch (OpenPCDet's flag)",
+    )
+    train.add_argument(
+        "--use_amp", action="store_true", default=False, help="mixed precision (CUDA)"
+    )
+    train.add_argument(
         "--num_epochs_to_eval", type=count_arg(0), default=0, help=">0: evaluate at the end"
     )
-    parser.add_argument("--logger_iter_interval", type=count_arg(1), default=50)
-    parser.add_argument("--use_amp", action="store_true", default=False)
-    parser.add_argument("--no_progress", action="store_true", default=False, help="no tqdm bars")
-    parser.add_argument(
-        "--default_malloc", action="store_true", default=False,
+    ckpts = groups["outputs"]
+    ckpts.add_argument(
+        "--ckpt_save_interval",
+        type=count_arg(1),
+        default=1,
+        help="epochs between checkpoints (default: 1)",
+    )
+    ckpts.add_argument(
+        "--max_ckpt_save_num",
+        type=count_arg(1),
+        default=30,
+        help="epoch checkpoints kept, oldest deleted first (default: 30)",
+    )
+    ckpts.add_argument(
+        "--ckpt_save_time_interval",
+        type=count_arg(0),
+        default=300,
+        help="seconds between rewrites of ckpt/latest_model.pth inside an epoch (0: every step)",
+    )
+    ckpts.add_argument(
+        "--logger_iter_interval",
+        type=count_arg(1),
+        default=50,
+        help="iterations between log lines (default: 50)",
+    )
+    ckpts.add_argument("--no_progress", action="store_true", default=False, help="no tqdm bars")
+    groups["runtime"].add_argument(
+        "--default_malloc",
+        action="store_true",
+        default=False,
         help="on CPU, leave glibc malloc as it is (default: keep freed memory for reuse, "
         "pcdet_atlas.train_utils.cpu_memory; faster CPU steps, same results: docs/benchmarks.md)",
-    )  # fmt: skip
+    )
     return parser.parse_args(argv)
 
 

@@ -18,6 +18,7 @@ from pcdet_atlas.config import (
     resolve_repo_path,
 )
 from pcdet_atlas.train_utils.dist import init_dist_pytorch, init_dist_slurm
+from pcdet_atlas.utils.cli import RenamedFlag
 from pcdet_atlas.utils.common import resolve_device
 from pcdet_atlas.utils.locks import FolderLock, FolderLockedError
 from pcdet_atlas.utils.paths import (
@@ -63,49 +64,61 @@ def count_arg(minimum: int):
     return parse
 
 
-def add_common_args(parser: argparse.ArgumentParser) -> None:
-    """The arguments ``train.py`` and ``test.py`` share (OpenPCDet's names)."""
-    parser.add_argument("--cfg_file", "--cfg", dest="cfg_file", required=True, help="model YAML")
-    parser.add_argument(
-        "--batch_size", type=count_arg(1), default=None, help="total over processes"
-    )
-    parser.add_argument(
+def add_common_args(parser: argparse.ArgumentParser) -> dict[str, argparse._ArgumentGroup]:
+    """The arguments ``train.py`` and ``test.py`` share (OpenPCDet's names), in three groups of
+    the tool's ``--help``; returns them (``'model'``, ``'outputs'``, ``'runtime'``) so that a
+    tool adds its own flags where they belong."""
+    model = parser.add_argument_group("model and data")
+    model.add_argument("--cfg_file", "--cfg", dest="cfg_file", required=True, help="model YAML")
+    model.add_argument(
+        "--ckpt", type=str, default=None,
+        help="train: resume from it (default: the run's newest); test: evaluate it (default: "
+        "the config's ATLAS.CHECKPOINT)",
+    )  # fmt: skip
+    model.add_argument("--batch_size", type=count_arg(1), default=None, help="total over processes")
+    model.add_argument(
         "--workers", type=count_arg(0), default=DEFAULT_WORKERS,
         help=f"dataloader workers per process (default: {DEFAULT_WORKERS}, OpenPCDet's 4 capped "
         "at the CPU count)",
     )  # fmt: skip
-    parser.add_argument(
+    model.add_argument(
+        "--set", dest="set_cfgs", default=None, nargs=argparse.REMAINDER,
+        help="KEY VALUE pairs overriding the config (last on the command line)",
+    )  # fmt: skip
+    outputs = parser.add_argument_group("outputs")
+    outputs.add_argument(
+        "--out_dir", "--output_root", action=RenamedFlag, old=("--output_root",),
+        dest="output_root", type=str, default=str(REPO_ROOT / "output"), metavar="DIR",
+        help="root of the output/<group>/<tag>/<extra_tag>/ tree (default: <repo>/output)",
+    )  # fmt: skip
+    outputs.add_argument(
         "--extra_tag", type=folder_name_arg, default="default",
         help="the run's folder under output/<group>/<tag>/",
     )  # fmt: skip
-    parser.add_argument("--ckpt", type=str, default=None)
-    parser.add_argument(
-        "--launcher", choices=["none", "pytorch", "slurm"], default="none",
-        help="pytorch: under torchrun; slurm: under srun (one process per task)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--tcp_port", type=count_arg(1), default=DEFAULT_TCP_PORT,
-        help="master port of --launcher slurm (torchrun sets its own)",
-    )  # fmt: skip
-    parser.add_argument("--local_rank", type=int, default=None, help="unused: from LOCAL_RANK")
-    parser.add_argument(
+    runtime = parser.add_argument_group("runtime")
+    runtime.add_argument(
+        "--device", type=device_arg, default=None, help="cpu / cuda / cuda:N (default: auto)"
+    )
+    runtime.add_argument(
         "--threads", type=count_arg(1), default=None,
         help="torch CPU threads of the process (default: torch's, one per core); 1 is faster "
         "on a 2-core CPU shared with other jobs or with --workers",
     )  # fmt: skip
-    parser.add_argument("--fix_random_seed", action="store_true", default=False)
-    parser.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of every draw")
-    parser.add_argument(
-        "--device", type=device_arg, default=None, help="cpu / cuda / cuda:N (default: auto)"
-    )
-    parser.add_argument(
-        "--output_root", type=str, default=str(REPO_ROOT / "output"),
-        help="root of the output/<group>/<tag>/<extra_tag>/ tree",
+    runtime.add_argument(
+        "--fix_random_seed", action="store_true", default=False,
+        help="seed every draw with --seed and run deterministic algorithms (reproducible runs)",
     )  # fmt: skip
-    parser.add_argument(
-        "--set", dest="set_cfgs", default=None, nargs=argparse.REMAINDER,
-        help="KEY VALUE pairs overriding the config",
+    runtime.add_argument("--seed", type=int, default=DEFAULT_SEED, help="seed of every draw")
+    runtime.add_argument(
+        "--launcher", choices=["none", "pytorch", "slurm"], default="none",
+        help="pytorch: under torchrun; slurm: under srun (one process per task)",
     )  # fmt: skip
+    runtime.add_argument(
+        "--tcp_port", type=count_arg(1), default=DEFAULT_TCP_PORT,
+        help="master port of --launcher slurm (torchrun sets its own)",
+    )  # fmt: skip
+    runtime.add_argument("--local_rank", type=int, default=None, help="unused: from LOCAL_RANK")
+    return {"model": model, "outputs": outputs, "runtime": runtime}
 
 
 def load_cfg(cfg_file: str, set_cfgs: list[str] | None):

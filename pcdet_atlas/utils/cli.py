@@ -71,3 +71,29 @@ def run_tool(main: Callable[[], object], argv: list[str] | None = None) -> None:
         message = " ".join(str(err).split()) or type(err).__name__
         print(f"{tool}: error: {message} ({DEBUG_FLAG} shows the traceback)", file=sys.stderr)
         sys.exit(USER_ERROR_EXIT)
+
+
+class RenamedFlag(argparse.Action):
+    """A flag that also answers to its old spelling for one release, with a warning on stderr.
+
+    ``parser.add_argument("--out_dir", "--out", action=RenamedFlag, old=("--out",), ...)``:
+    ``--out DIR`` still sets ``out_dir`` and prints ``<tool>: warning: --out is deprecated ...;
+    use --out_dir``. Any other keyword is argparse's, as for a plain stored flag.
+    """
+
+    def __init__(self, option_strings, dest, old=(), **kwargs):
+        unknown = [flag for flag in old if flag not in option_strings]
+        if unknown:
+            raise ValueError(f"RenamedFlag: old spellings {unknown} are not among {option_strings}")
+        self.old = tuple(old)
+        self.new = next(s for s in option_strings if s not in self.old)
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if option_string in self.old:
+            print(
+                f"{parser.prog}: warning: {option_string} is deprecated and goes in the next "
+                f"release; use {self.new}",
+                file=sys.stderr,
+            )
+        setattr(namespace, self.dest, values)

@@ -540,8 +540,8 @@ def test_cli_writes_the_requested_sizes(tmp_path, capsys):
     )
     cli = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(cli)
-    argv = ["--root", str(tmp_path), "--train-sequences", "0", "--val-sequences", "1"]
-    summary = cli.main(argv + ["--val-frames", "1", "--seed", "3", "--workers", "1"])
+    argv = ["--out_dir", str(tmp_path), "--train_sequences", "0", "--val_sequences", "1"]
+    summary = cli.main(argv + ["--val_frames", "1", "--seed", "3", "--workers", "1"])
     assert summary["frames"] == {"train": 0, "val": 1}
     assert _sequences(tmp_path, "val") == [sequence_name(3, "val", 0)]
     assert (tmp_path / "ImageSets" / "train.txt").read_text() == ""

@@ -421,7 +421,7 @@ def test_the_tool_reads_files_and_folders_and_refuses_duplicates(models, tmp_pat
     paths = [save_results(r, tmp_path / "runs" / f"m{i}" / "results.json")
              for i, r in enumerate(models)]  # fmt: skip
     report = load_tool("report")
-    out = report.main(["--results", str(tmp_path / "runs"), "--out", str(tmp_path / "rep")])
+    out = report.main(["--results", str(tmp_path / "runs"), "--out_dir", str(tmp_path / "rep")])
     assert out["report"].is_file() and out["latex"] is None
     assert [p for p, _ in collect_results([tmp_path / "runs"])] == paths
     save_results(models[0], tmp_path / "dup.json")
@@ -438,11 +438,11 @@ def test_the_tool_refuses_an_out_that_is_a_file(models, tmp_path, capsys):
     out = tmp_path / "report.md"
     out.write_text("an earlier report")
     with pytest.raises(SystemExit) as exited:
-        load_tool("report").main(["--results", str(tmp_path / "runs"), "--out", str(out)])
+        load_tool("report").main(["--results", str(tmp_path / "runs"), "--out_dir", str(out)])
     assert exited.value.code == 2
     error = capsys.readouterr().err.strip().splitlines()[-1]
-    assert error.endswith(f"--out {out}: an existing file, expected a folder (or a path to create "
-                          "one)")  # fmt: skip
+    assert error.endswith(f"--out_dir {out}: an existing file, expected a folder (or a path to "
+                          "create one)")  # fmt: skip
     assert out.read_text() == "an earlier report"
 
 
@@ -451,10 +451,10 @@ def test_reproduce_names_a_truncated_or_mistyped_run_json(tmp_path):
     run_file = tmp_path / "run.json"
     run_file.write_text('{"runs": [{"config": "a.yaml", "resu')  # a write cut short
     with pytest.raises(ValueError, match=rf"^{re.escape(str(run_file))}: not valid JSON"):
-        reproduce.main(["--out", str(tmp_path), "--report_only"])
+        reproduce.main(["--out_dir", str(tmp_path), "--report_only"])
     data = tmp_path / "data"
     (data / "ImageSets").mkdir(parents=True)
-    argv = ["--out", str(tmp_path), "--data_path", str(data), "--attacks", "clean",
+    argv = ["--out_dir", str(tmp_path), "--data_path", str(data), "--attacks", "clean",
             "--cfgs", "cfgs/atlas/synthetic/centerpoint.yaml"]  # fmt: skip
     with pytest.raises(ValueError, match="not valid JSON"):  # read before anything is evaluated
         reproduce.main(argv)
@@ -481,7 +481,7 @@ def test_reproduce_names_a_truncated_or_mistyped_run_json(tmp_path):
         assert f"expected {expected}" in str(err.value), key
     run_file.write_text("[]")
     with pytest.raises(ValueError, match="holds a JSON list, expected an object"):
-        reproduce.main(["--out", str(tmp_path), "--report_only"])
+        reproduce.main(["--out_dir", str(tmp_path), "--report_only"])
 
 
 @pytest.mark.slow
@@ -496,10 +496,10 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
 
     def argv(interval: int) -> list[str]:
         return [
-            "--data_path", str(synthetic_root), "--out", str(tmp_path / "report"),
+            "--data_path", str(synthetic_root), "--out_dir", str(tmp_path / "report"),
             "--cfgs", *map(str, cfgs), "--attacks", "clean,rem_30", "--workers", "0",
             "--device", "cpu", "--jobs", "2", "--threads", "1",
-            "--output_root", str(tmp_path / "output"),
+            "--eval_dir", str(tmp_path / "output"),
             "--set", "DATA_CONFIG.SAMPLED_INTERVAL", f"train:1,test:{interval}",
             "DATA_CONFIG.POINT_CLOUD_RANGE", "-20.48,-20.48,-2,20.48,20.48,4",
         ]  # fmt: skip
@@ -535,11 +535,11 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     stamps = [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]]
     # --report_only writes the same report again from run.json and the results, evaluating nothing
     out["report"].unlink()
-    rewritten = reproduce.main(["--out", str(tmp_path / "report"), "--report_only"])
+    rewritten = reproduce.main(["--out_dir", str(tmp_path / "report"), "--report_only"])
     assert rewritten["report"].read_text() == text
     assert [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]] == stamps
     with pytest.raises(FileNotFoundError, match="--report_only: no .*run.json"):
-        reproduce.main(["--out", str(tmp_path / "elsewhere"), "--report_only"])
+        reproduce.main(["--out_dir", str(tmp_path / "elsewhere"), "--report_only"])
     again = reproduce.main(argv(14))  # resumes: both models are done
     assert again["run"]["runs"] == run["runs"]
     assert again["run"]["total_wall_s"] >= run["total_wall_s"]
@@ -604,12 +604,12 @@ def test_reproduce_shares_a_store_between_rpns_and_two_stage_models(tmp_path):
     cfgs = [synthetic / f"{name}.yaml" for name in ("centerpoint", "cp4f", "msf_8f", "ptt_32f")]
     rpns = {reproduce.rpn_config(cfg) for cfg in cfgs} - {None}
     assert rpns == {synthetic / "cp4f.yaml"}
-    args = reproduce.parse_args(["--output_root", str(tmp_path)])
+    args = reproduce.parse_args(["--eval_dir", str(tmp_path)])
     stores = [reproduce.store_of(cfg, rpns, args) for cfg in cfgs]
     assert stores == [None, *[tmp_path / "prediction_store"] * 3]
     argv = reproduce.test_argv(cfgs[2], args, tmp_path, 1, False, stores[2])
     assert argv[argv.index("--prediction_store") + 1] == str(tmp_path / "prediction_store")
-    args = reproduce.parse_args(["--output_root", str(tmp_path), "--no_store"])
+    args = reproduce.parse_args(["--eval_dir", str(tmp_path), "--no_store"])
     assert all(reproduce.store_of(cfg, rpns, args) is None for cfg in cfgs)
     assert "--prediction_store" not in reproduce.test_argv(cfgs[2], args, tmp_path, 1, False)
 
@@ -655,7 +655,7 @@ def test_report_rebuilds_from_archived_results_compressed_or_not(models, tmp_pat
     report = load_tool("report")
     report.main(["--results_dir", str(tmp_path / "gz"), "--out_dir", str(tmp_path / "a"),
                  "--latex"])  # fmt: skip
-    report.main(["--results", str(tmp_path / "plain"), "--out", str(tmp_path / "b"), "--latex"])
+    report.main(["--results", str(tmp_path / "plain"), "--out_dir", str(tmp_path / "b"), "--latex"])
     text = (tmp_path / "a" / "report.md").read_text()
     assert "| CP-4f |" in text and "cp-4f.results.json.gz`" in text
     _same_report(tmp_path / "a", tmp_path / "b", (str(tmp_path / "gz"), str(tmp_path / "plain")))
@@ -698,7 +698,7 @@ def test_reproduce_report_only_rebuilds_from_the_report_folder_alone(models, tmp
              "total_wall_s": 240.0, "calls": 1, "runs": runs, "model_wall_s": {}}  # fmt: skip
     (out).mkdir()
     (out / "run.json").write_text(json.dumps(state))
-    first = reproduce.main(["--out", str(out), "--report_only"])  # archives, then reports
+    first = reproduce.main(["--out_dir", str(out), "--report_only"])  # archives, then reports
     record = json.loads((out / "run.json").read_text())
     assert [r["archived"] for r in record["runs"]] == [
         f"results/{archive_name(r['model'])}" for r in models
@@ -710,10 +710,10 @@ def test_reproduce_report_only_rebuilds_from_the_report_folder_alone(models, tmp
     for path in evaluated:
         path.unlink()
     (out / "report.md").unlink()
-    again = reproduce.main(["--out", str(out), "--report_only"])
+    again = reproduce.main(["--out_dir", str(out), "--report_only"])
     assert again["report"].read_text() == text
     # the tables and figures also come back from the archive alone, through tools/report.py
-    load_tool("report").main(["--results", str(out / "results"), "--out", str(tmp_path / "t")])
+    load_tool("report").main(["--results", str(out / "results"), "--out_dir", str(tmp_path / "t")])
     rebuilt = (tmp_path / "t" / "report.md").read_text().splitlines()
     # the tables with a row per model (their order: the run's, not the file names')
     tables = text.split("\n## Models")[1].split("\n## Paired model")[0]
@@ -722,7 +722,7 @@ def test_reproduce_report_only_rebuilds_from_the_report_folder_alone(models, tmp
     assert len(rows) > 50 and set(rows) <= set(rebuilt)
     (out / "results" / "cp-4f.results.json.gz").unlink()
     with pytest.raises(ResultsError, match=r"runs\[1\] \(cfgs/CP-4f.yaml\): neither its results"):
-        reproduce.main(["--out", str(out), "--report_only"])
+        reproduce.main(["--out_dir", str(out), "--report_only"])
 
 
 def _seeded(results: dict, seed: int | None, digest: str | None = "c" * 64) -> dict:

@@ -489,7 +489,7 @@ def test_synthetic_config_trains_two_steps_on_the_fixture_data_and_predicts(
     trained checkpoint predicts on them."""
     train = load_tool("train")
     out = train.main([
-        "--cfg", str(SYN), "--output_root", str(tmp_path), "--extra_tag", "smoke",
+        "--cfg", str(SYN), "--out_dir", str(tmp_path), "--extra_tag", "smoke",
         "--epochs", "1", "--batch_size", "1", "--workers", "0", "--no_progress",
         "--fix_random_seed", "--device", "cpu",
         "--set", "DATA_CONFIG.DATA_PATH", str(synthetic_root),

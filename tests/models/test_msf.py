@@ -297,7 +297,7 @@ def test_test_tool_runs_msf_with_its_window_and_refuses_missing_data(
     )
     ret = test.main([
         "--cfg", str(CFGS / "synthetic" / "msf_8f.yaml"), "--ckpt", str(ckpt), "--attacks",
-        f"clean,{variant}", "--output_root", str(tmp_path / "out"), "--workers", "0",
+        f"clean,{variant}", "--out_dir", str(tmp_path / "out"), "--workers", "0",
         "--no_progress", "--device", "cpu", "--set", "DATA_CONFIG.DATA_PATH", str(synthetic_root),
         "DATA_CONFIG.SAMPLED_INTERVAL", "train:1,test:14",
     ])  # fmt: skip

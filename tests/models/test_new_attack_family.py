@@ -68,7 +68,7 @@ def test_third_family_reaches_results_table_and_ranks(registered, synthetic_root
     )
     out = load_tool("test").main([
         "--cfg", str(CFG), "--ckpt", str(ckpt), "--attacks", f"clean,{variant}",
-        "--output_root", str(tmp_path / "output"), "--workers", "0", "--no_progress",
+        "--out_dir", str(tmp_path / "output"), "--workers", "0", "--no_progress",
         "--device", "cpu", "--set", "DATA_CONFIG.DATA_PATH", str(synthetic_root),
         "DATA_CONFIG.SAMPLED_INTERVAL", "train:1,test:14",  # frames 42 and 56 are spoofed
     ])  # fmt: skip

@@ -1,5 +1,5 @@
 """The tools' output folders: a flag or a variant file cannot name a folder outside
---output_root, and a second run into a folder another run writes stops at once, naming it."""
+--out_dir, and a second run into a folder another run writes stops at once, naming it."""
 
 import os
 import socket
@@ -20,7 +20,7 @@ RUN = ("atlas", "synthetic", "centerpoint")
 def args_of(tool, out, data, *flags):
     extra = ["--epochs", "1", "--default_malloc"] if tool == "train" else []
     return [
-        "--cfg", str(CFG), "--output_root", str(out), "--workers", "0", "--no_progress",
+        "--cfg", str(CFG), "--out_dir", str(out), "--workers", "0", "--no_progress",
         "--device", "cpu", *extra, *flags, "--set", "DATA_CONFIG.DATA_PATH", str(data),
     ]  # fmt: skip
 

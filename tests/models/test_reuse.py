@@ -353,7 +353,7 @@ def test_ptt_resume_seeds_from_the_saved_clean_bank(synthetic_root, injection, t
     )
     args = [
         "--cfg", str(CFGS / "ptt_32f.yaml"), "--attacks", f"clean,{variant}",
-        "--output_root", str(tmp_path), "--workers", "0", "--no_progress", "--device", "cpu",
+        "--out_dir", str(tmp_path), "--workers", "0", "--no_progress", "--device", "cpu",
         "--set", "DATA_CONFIG.DATA_PATH", str(synthetic_root),
         "DATA_CONFIG.SAMPLED_INTERVAL", f"train:1,test:{INTERVAL}",
         "DATA_CONFIG.POINT_CLOUD_RANGE", "-20.48,-20.48,-2,20.48,20.48,4",
@@ -402,7 +402,7 @@ def test_ptt_two_processes_equal_one(synthetic_root, injection, tmp_path):
     def args(out):
         return [
             "--cfg", str(CFGS / "ptt_32f.yaml"), "--attacks", f"clean,{variant}",
-            "--output_root", str(out), "--workers", "0", "--no_progress", "--device", "cpu",
+            "--out_dir", str(out), "--workers", "0", "--no_progress", "--device", "cpu",
             "--set", "DATA_CONFIG.DATA_PATH", str(synthetic_root),
             "DATA_CONFIG.SAMPLED_INTERVAL", f"train:1,test:{INTERVAL}",
             "DATA_CONFIG.POINT_CLOUD_RANGE", "-20.48,-20.48,-2,20.48,20.48,4",

@@ -63,7 +63,7 @@ def eval_setup(synthetic_root, tmp_path_factory):
 def tool_args(setup, out, extra_tag):
     return [
         "--cfg", str(CFG), "--ckpt", str(setup["ckpt"]), "--attacks",
-        f"clean,{setup['variant']}", "--output_root", str(out), "--extra_tag", extra_tag,
+        f"clean,{setup['variant']}", "--out_dir", str(out), "--extra_tag", extra_tag,
         "--workers", "0", "--no_progress", "--device", "cpu",
         "--set", "DATA_CONFIG.DATA_PATH", str(setup["root"]),
         # frames 0, 14, 28, 42, 56 of the 70-frame val sequence: 42 and 56 lie in the run 32..63

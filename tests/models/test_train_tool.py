@@ -16,7 +16,7 @@ CFG = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml"
 
 def train_args(root, out, epochs, extra_tag):
     return [
-        "--cfg", str(CFG), "--output_root", str(out), "--extra_tag", extra_tag,
+        "--cfg", str(CFG), "--out_dir", str(out), "--extra_tag", extra_tag,
         "--epochs", str(epochs), "--batch_size", "2", "--workers", "0", "--no_progress",
         "--fix_random_seed", "--device", "cpu",
         "--set", "DATA_CONFIG.DATA_PATH", str(root),
@@ -77,7 +77,11 @@ def test_counts_below_their_minimum_are_usage_errors(flag, value, capsys):
 @pytest.mark.skipif(torch.cuda.is_available(), reason="the case of a machine without a GPU")
 @pytest.mark.parametrize(
     "tool, args",
-    [("train", ["--cfg", str(CFG)]), ("test", ["--cfg", str(CFG)]), ("create_synthetic_waymo", [])],
+    [
+        ("train", ["--cfg", str(CFG)]),
+        ("test", ["--cfg", str(CFG)]),
+        ("data/create_synthetic_waymo", []),
+    ],
 )
 def test_device_cuda_without_gpu_is_one_clear_error(tool, args, capsys):
     with pytest.raises(SystemExit):
@@ -149,7 +153,7 @@ def test_staged_training_chains_through_train_py(synthetic_root, tmp_path):
 
     def args(name, tag, *extra):
         return [
-            "--cfg", str(stages / name), "--output_root", str(out), "--extra_tag", tag,
+            "--cfg", str(stages / name), "--out_dir", str(out), "--extra_tag", tag,
             "--epochs", "1", "--batch_size", "2", "--workers", "0", "--no_progress",
             "--fix_random_seed", "--device", "cpu", *extra,
             "--set", "DATA_CONFIG.DATA_PATH", str(synthetic_root),

@@ -413,12 +413,23 @@ PARTS = {"raycast": bench_raycast, "getitem": bench_getitem, "visible": visible_
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_debug_flag(parser)
-    parser.add_argument("--part", choices=["all", *PARTS], default="all")  # all: the timings
-    parser.add_argument("--device", default="cpu")
+    parser.add_argument(
+        "--part", choices=["all", *PARTS], default="all", help="which benchmark (default: all)"
+    )  # all: the timings
+    parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
-    parser.add_argument("--repeats", type=int, default=30)
-    parser.add_argument("--num_points", type=int, default=180_000)
-    parser.add_argument("--spoof_points", type=int, default=1000)
+    parser.add_argument(
+        "--repeats", type=int, default=30, help="timed repeats per case (default: 30)"
+    )
+    parser.add_argument(
+        "--num_points",
+        type=int,
+        default=180_000,
+        help="points of the synthetic scan (default: 180,000)",
+    )
+    parser.add_argument(
+        "--spoof_points", type=int, default=1000, help="phantom points injected (default: 1,000)"
+    )
     parser.add_argument(
         "--data_path", default=str(REPO_ROOT / "data" / "synthetic_waymo"), help="getitem part"
     )

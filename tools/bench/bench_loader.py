@@ -147,10 +147,12 @@ def _compare(args, root: Path) -> None:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_debug_flag(parser)
-    parser.add_argument("--data_path", default=str(DEFAULT_ROOT))
+    parser.add_argument(
+        "--data_path", default=str(DEFAULT_ROOT), help="dataset root (default: the demo dataset)"
+    )
     parser.add_argument("--frames", type=int, default=40, help="frames timed per setting")
-    parser.add_argument("--workers", type=int, default=0)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--workers", type=int, default=0, help="DataLoader workers (default: 0)")
+    parser.add_argument("--repeats", type=int, default=3, help="timed passes (default: 3)")
     parser.add_argument("--baseline_src", default=None, help="source tree to compare against")
     parser.add_argument("--json", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)

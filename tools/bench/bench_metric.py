@@ -242,13 +242,24 @@ def run_official(venv: Path, scene: dict, repeats: int, threads: int) -> tuple[f
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_debug_flag(parser)
-    parser.add_argument("--frames", type=int, default=200)
-    parser.add_argument("--gt", type=int, default=100)
-    parser.add_argument("--det", type=int, default=300)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--frames", type=int, default=200, help="frames of the synthetic input (default: 200)"
+    )
+    parser.add_argument(
+        "--gt", type=int, default=100, help="ground-truth boxes per frame (default: 100)"
+    )
+    parser.add_argument(
+        "--det", type=int, default=300, help="predicted boxes per frame (default: 300)"
+    )
+    parser.add_argument("--repeats", type=int, default=3, help="timed repeats (default: 3)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--venv", type=Path, default=REPO / ".cache" / "waymo_official_venv")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the synthetic input")
+    parser.add_argument(
+        "--venv",
+        type=Path,
+        default=REPO / ".cache" / "waymo_official_venv",
+        help="venv holding the official metric op (tools/dev/official_waymo_metric/setup_venv.sh)",
+    )
     parser.add_argument("--scale", action="store_true", help="time the metric at Waymo's size")
     parser.add_argument(
         "--scale_frames", type=int, nargs="+", default=[4000, 40000], help="--scale sizes"

@@ -184,9 +184,15 @@ def parse_args():
     p.add_argument(
         "--cfgs", nargs="*", default=None, help="model configs (default: all; none: skip)"
     )
-    p.add_argument("--data_path", default=str(REPO_ROOT / "data" / "synthetic_waymo"))
+    p.add_argument(
+        "--data_path",
+        default=str(REPO_ROOT / "data" / "synthetic_waymo"),
+        help="dataset root (default: the demo dataset)",
+    )
     p.add_argument("--frames", type=int, default=5, help="timed frames per model")
-    p.add_argument("--device", type=device_arg, default="cpu")
+    p.add_argument(
+        "--device", type=device_arg, default="cpu", help="cpu / cuda / cuda:N (default: cpu)"
+    )
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.add_argument("--eval", action="store_true", help="L2 mAP of trained models on the val split")
     p.add_argument(
@@ -225,13 +231,21 @@ def parse_args():
         help="time this voxel config's 3D backbone (forward + backward, one training batch) in "
         "deterministic mode, the sparse conv's scatter kept vs rerouted by torch",
     )  # fmt: skip
-    p.add_argument("--ssm_lengths", type=int, nargs="+", default=[1024, 16384])
+    p.add_argument(
+        "--ssm_lengths",
+        type=int,
+        nargs="+",
+        default=[1024, 16384],
+        help="sequence lengths of --ssm",
+    )
     t = p.add_argument_group("training step (--train_step)")
     t.add_argument("--train_step", action="store_true", help="time training steps instead")
-    t.add_argument("--train_cfgs", nargs="+", default=list(TRAIN_STEP_CFGS))
+    t.add_argument(
+        "--train_cfgs", nargs="+", default=list(TRAIN_STEP_CFGS), help="configs of --train_step"
+    )
     t.add_argument("--steps", type=int, default=4, help="timed steps per process (after 1)")
     t.add_argument("--rounds", type=int, default=2, help="processes per tree and config")
-    t.add_argument("--batch_size", type=int, default=4)
+    t.add_argument("--batch_size", type=int, default=4, help="batch of --train_step (default: 4)")
     t.add_argument("--workers", type=int, default=0, help="loader workers")
     t.add_argument(
         "--baseline_src", default=None,

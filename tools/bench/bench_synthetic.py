@@ -52,9 +52,11 @@ def brute_force(origin, dirs, prims, max_range):
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_debug_flag(parser)
-    parser.add_argument("--frames", type=int, default=5)
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--frames", type=int, default=5, help="frames cast (default: 5)")
+    parser.add_argument(
+        "--threads", type=int, default=1, help="torch intra-op threads (default: 1)"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="scene seed")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     lidar, sensor = LidarModel.waymo_top(), SensorModel()

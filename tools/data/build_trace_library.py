@@ -35,7 +35,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument(
         "--overwrite", action="store_true", help="replace a library built with other filters"
     )
-    parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None)
+    parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None, help='KEY VALUE pairs overriding config keys (last on the command line)')
     return parser.parse_args(argv)
 
 

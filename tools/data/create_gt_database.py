@@ -23,15 +23,15 @@ def main(argv: list[str] | None = None) -> None:
     add_debug_flag(parser)
     parser.add_argument("--cfg_file", "--cfg", nargs="+", required=True, help="dataset configs")
     parser.add_argument("--data_path", default=None, help="data root (default: DATA_PATH)")
-    parser.add_argument("--split", default="train")
-    parser.add_argument("--sampled_interval", type=int, default=1)
-    parser.add_argument("--class_names", nargs="+", default=["Vehicle", "Pedestrian", "Cyclist"])
+    parser.add_argument("--split", default="train", help='split whose objects are cut out (default: train)')
+    parser.add_argument("--sampled_interval", type=int, default=1, help='every n-th frame (default: 1)')
+    parser.add_argument("--class_names", nargs="+", default=["Vehicle", "Pedestrian", "Cyclist"], help='classes kept (default: Vehicle Pedestrian Cyclist)')
     parser.add_argument(
         "--workers", type=int, default=0,
         help="processes cutting out the frames' objects (0: this one); the output does not "
         "depend on it",
     )  # fmt: skip
-    parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None)
+    parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None, help='KEY VALUE pairs overriding config keys (last on the command line)')
     args = parser.parse_args(argv)
     logger = create_logger()
     for cfg_file in args.cfg_file:

@@ -2,8 +2,8 @@
 
 Example::
 
-    python tools/data/create_synthetic_waymo.py --root data/synthetic_waymo \
-        --train-sequences 12 --train-frames 60 --val-sequences 1 --val-frames 198 --seed 0
+    python tools/data/create_synthetic_waymo.py --out_dir data/synthetic_waymo \
+        --train_sequences 12 --train_frames 60 --val_sequences 1 --val_frames 198 --seed 0
 
 Re-running with the same arguments completes an interrupted run and rewrites nothing finished;
 other arguments into an existing root are an error (see docs/synthetic.md).
@@ -23,7 +23,7 @@ from pcdet_atlas.datasets.synthetic import (
     format_summary,
 )
 from pcdet_atlas.train_utils.setup import device_arg
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import RenamedFlag, add_debug_flag, run_tool
 from pcdet_atlas.utils.common import create_logger
 
 DEFAULT_ROOT = REPO_ROOT / "data" / "synthetic_waymo"
@@ -32,12 +32,20 @@ DEFAULT_ROOT = REPO_ROOT / "data" / "synthetic_waymo"
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_debug_flag(parser)
-    parser.add_argument("--root", type=Path, default=DEFAULT_ROOT, help="output dataset root")
-    parser.add_argument("--train-sequences", type=int, default=DEFAULT_NUM_SEQUENCES["train"])
-    parser.add_argument("--val-sequences", type=int, default=DEFAULT_NUM_SEQUENCES["val"])
-    parser.add_argument("--train-frames", type=int, default=DEFAULT_FRAMES_PER_SEQUENCE["train"])
-    parser.add_argument("--val-frames", type=int, default=DEFAULT_FRAMES_PER_SEQUENCE["val"])
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out_dir", "--root", action=RenamedFlag, old=("--root",), type=Path,
+                        default=DEFAULT_ROOT, help="output dataset root (default: %(default)s)")
+    for split in ("train", "val"):
+        parser.add_argument(
+            f"--{split}_sequences", f"--{split}-sequences", action=RenamedFlag,
+            old=(f"--{split}-sequences",), type=int, default=DEFAULT_NUM_SEQUENCES[split],
+            help=f"{split} sequences (default: %(default)s)",
+        )
+        parser.add_argument(
+            f"--{split}_frames", f"--{split}-frames", action=RenamedFlag,
+            old=(f"--{split}-frames",), type=int, default=DEFAULT_FRAMES_PER_SEQUENCE[split],
+            help=f"frames per {split} sequence (default: %(default)s)",
+        )
+    parser.add_argument("--seed", type=int, default=0, help="the dataset's seed (default: 0)")
     parser.add_argument(
         "--device", type=device_arg, default="cpu", help="torch device for ray casting"
     )
@@ -54,7 +62,7 @@ def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
     logger = create_logger()
     summary = create_synthetic_waymo(
-        args.root,
+        args.out_dir,
         num_sequences={"train": args.train_sequences, "val": args.val_sequences},
         frames_per_sequence={"train": args.train_frames, "val": args.val_frames},
         seed=args.seed,

@@ -38,14 +38,20 @@ def parse_args(argv=None) -> argparse.Namespace:
     add_debug_flag(parser)
     parser.add_argument("--cfg", "--cfg_file", dest="cfg", required=True, help="model config")
     parser.add_argument("--result", required=True, help="result.pkl of tools/test.py")
-    parser.add_argument("--class_name", default="Vehicle")
+    parser.add_argument("--class_name", default="Vehicle", help="class analysed (default: Vehicle)")
     parser.add_argument("--iou", default="0.3,0.5,0.6,0.7,0.8", help="IoU thresholds for AP")
     parser.add_argument("--min_points", type=int, default=1, help="GT boxes with fewer: left out")
     parser.add_argument("--score", type=float, default=0.3, help="predictions below: left out")
     parser.add_argument(
         "--project", action="store_true", help="AP with the matched boxes' errors scaled"
     )
-    parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None)
+    parser.add_argument(
+        "--set",
+        dest="set_cfgs",
+        nargs=argparse.REMAINDER,
+        default=None,
+        help="KEY VALUE pairs overriding config keys (last on the command line)",
+    )
     return parser.parse_args(argv)
 
 

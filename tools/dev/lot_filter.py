@@ -45,7 +45,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--frames", type=count_arg(1), default=60, help="test frames")
     parser.add_argument("--recall", type=float, default=0.95, help="in-box keep rate of the rule")
     parser.add_argument("--attack", default=None, help="an injection variant for phantom voxels")
-    parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None)
+    parser.add_argument(
+        "--set",
+        dest="set_cfgs",
+        nargs=argparse.REMAINDER,
+        default=None,
+        help="KEY VALUE pairs overriding config keys (last on the command line)",
+    )
     return parser.parse_args(argv)
 
 

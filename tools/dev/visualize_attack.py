@@ -44,14 +44,25 @@ CLASS_NAMES = ["Vehicle", "Pedestrian", "Cyclist"]
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_debug_flag(parser)
-    parser.add_argument("--data_cfg", default="cfgs/dataset_configs/synthetic_waymo.yaml")
+    parser.add_argument(
+        "--data_cfg",
+        default="cfgs/dataset_configs/synthetic_waymo.yaml",
+        help="dataset config (default: the synthetic one)",
+    )
     parser.add_argument("--attack", required=True, help="attack yaml")
     parser.add_argument("--data_path", default=None, help="dataset root (default: DATA_PATH)")
     parser.add_argument("--frame", type=int, default=40, help="index into the split's frames")
     parser.add_argument("--out", default=None, help="PNG path (default output/viz/...)")
     parser.add_argument("--bev_range", type=float, nargs=4, default=[-25.0, 55.0, -30.0, 30.0],
-                        metavar=("XMIN", "XMAX", "YMIN", "YMAX"))  # fmt: skip
-    parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None)
+                        metavar=("XMIN", "XMAX", "YMIN", "YMAX"),
+                        help="bird's-eye extent in metres")  # fmt: skip
+    parser.add_argument(
+        "--set",
+        dest="set_cfgs",
+        nargs=argparse.REMAINDER,
+        default=None,
+        help="KEY VALUE pairs overriding config keys (last on the command line)",
+    )
     return parser.parse_args(argv)
 
 

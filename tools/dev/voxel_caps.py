@@ -32,7 +32,13 @@ def parse_args():
     add_debug_flag(p)
     p.add_argument("--cfgs", nargs="+", required=True, help="voxel model configs (MeanVFE)")
     p.add_argument("--data_path", default=None, help="dataset root (default: each config's)")
-    p.add_argument("--caps", type=int, nargs="+", default=[5, 10, 20, 32])
+    p.add_argument(
+        "--caps",
+        type=int,
+        nargs="+",
+        default=[5, 10, 20, 32],
+        help="points-per-voxel caps compared (default: 5 10 20 32)",
+    )
     p.add_argument("--frames", type=int, default=24, help="val frames, spread over the split")
     return p.parse_args()
 

@@ -2,7 +2,7 @@
 gzip-compressed into ``<report folder>/results/<model>.results.json.gz`` with bytes that depend
 on the file's content only (gzip time stamp 0, no file name in the header), so that a committed
 report can be rebuilt, and each of its numbers recomputed, from its folder alone
-(``python tools/report.py --results <report folder>/results --out <folder>``).
+(``python tools/report.py --results <report folder>/results --out_dir <folder>``).
 """
 
 from __future__ import annotations
