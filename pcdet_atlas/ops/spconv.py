@@ -11,12 +11,11 @@ docs/model_zoo.md):
   ``(out,)`` are their only state.
 - ``SparseModule`` and ``SparseSequential``.
 
-Rules (which input site feeds which output site through which kernel offset) are built by sorting
-linear site keys and ``torch.searchsorted`` / ``torch.unique``; the convolution is a
-gather-GEMM-scatter per kernel offset. Within one offset every output site receives at most one
-input site, so the scatter has no collisions and the result is deterministic on CPU and GPU, in
-torch's deterministic mode or not; in that mode the scatter keeps its atomic CUDA kernel
-(:func:`_collision_free_index_add`).
+Rules (which input site feeds which output site through which kernel offset) come from an
+occupancy bitmap of the grid (submanifold) or from ``torch.unique`` over the reached output keys
+(regular); the convolution is one batched gather-GEMM-reduce over all kernel offsets
+(:class:`_GatherGemmReduce`): no op writes two values into one place, so the result is
+deterministic on CPU and GPU, in torch's deterministic mode or not.
 
 Output order: a submanifold conv keeps the input's rows. A regular sparse conv lists its output
 sites sorted by their linear index ``((b * D + z) * H + y) * W + x``. spconv 2.x's maintainer
