@@ -11,12 +11,11 @@ docs/model_zoo.md):
   ``(out,)`` are their only state.
 - ``SparseModule`` and ``SparseSequential``.
 
-Rules (which input site feeds which output site through which kernel offset) are built by sorting
-linear site keys and ``torch.searchsorted`` / ``torch.unique``; the convolution is a
-gather-GEMM-scatter per kernel offset. Within one offset every output site receives at most one
-input site, so the scatter has no collisions and the result is deterministic on CPU and GPU, in
-torch's deterministic mode or not; in that mode the scatter keeps its atomic CUDA kernel
-(:func:`_collision_free_index_add`).
+Rules (which input site feeds which output site through which kernel offset) come from an
+occupancy bitmap of the grid (submanifold) or from ``torch.unique`` over the reached output keys
+(regular); the convolution is one batched gather-GEMM-reduce over all kernel offsets
+(:class:`_GatherGemmReduce`): no op writes two values into one place, so the result is
+deterministic on CPU and GPU, in torch's deterministic mode or not.
 
 Output order: a submanifold conv keeps the input's rows. A regular sparse conv lists its output
 sites sorted by their linear index ``((b * D + z) * H + y) * W + x``. spconv 2.x's maintainer
@@ -26,15 +25,13 @@ unspecified when it is on (traveller59/spconv#592); the sites and their features
 
 from __future__ import annotations
 
-import contextlib
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import nn
-
-from pcdet_atlas.utils.common import deterministic_algorithms
 
 __all__ = [
     "IndicePairs",
@@ -141,8 +138,40 @@ class SparseConvTensor:
 
 
 @dataclass(frozen=True)
+class RuleSlice:
+    """The pairs of consecutive kernel offsets ``offsets[0] <= k < offsets[1]`` (see
+    :class:`IndicePairs`): their block rows ``rows``, blocks ``blocks`` and groups ``groups``
+    (slices of the layer's), and the bags that sum each output (input) row's products."""
+
+    offsets: tuple[int, int]
+    groups: slice
+    rows: slice
+    blocks: slice
+    out_bags: tuple[torch.Tensor, torch.Tensor]  # block rows (P_s,), each row's start (N_out,)
+    in_bags: tuple[torch.Tensor, torch.Tensor]  # block rows (P_s,), each row's start (N_in,)
+
+
+@dataclass(frozen=True)
 class IndicePairs:
-    """Rules of one conv layer: ``pairs[k] = (in_rows, out_rows)`` for kernel offset ``k``.
+    """Rules of one conv layer, laid out for a batched gather-GEMM-reduce over all kernel offsets
+    (:class:`_GatherGemmReduce`).
+
+    A pair ``(i, o, k)`` says input row ``i`` feeds output row ``o`` through kernel offset ``k``
+    (the weight's flat ``(kD, kH, kW)`` index). The pairs are listed in groups of one offset each,
+    in the weight's order (``group_offsets``, ``group_counts``; a submanifold layer's centre, which
+    maps every site to itself, is not listed: it is one plain GEMM). Each group is padded to a
+    whole number of ``block``-row blocks, so that one ``bmm`` multiplies every block by its
+    offset's weight:
+
+    - ``gather_in`` / ``gather_out`` ``(n_blocks * block,)``: the input / output row of each
+      block row; padding rows read row ``N_in`` / ``N_out``, a zero row appended for them.
+    - ``block_offsets`` ``(n_blocks,)``: each block's kernel offset; ``group_blocks`` ``(G,)``:
+      the number of (consecutive) blocks of each group.
+    - ``slices``: the offsets cut into consecutive runs (one on a GPU; on the CPU runs of a few MB
+      of gathered rows, which stay in cache and which the allocator reuses instead of mapping
+      fresh pages), each with the ``embedding_bag`` tables that sum every output (input) row's
+      products in kernel-offset order: the forward's and the feature gradient's reductions, with
+      no scatter, so no write collisions on any device.
 
     ``out_indices`` / ``out_spatial_shape`` describe the output sites; a submanifold layer with the
     same ``indice_key`` reuses the whole object.
@@ -155,7 +184,39 @@ class IndicePairs:
     kernel_size: tuple[int, int, int]
     dilation: tuple[int, int, int]
     subm: bool
-    pairs: tuple[tuple[torch.Tensor, torch.Tensor], ...]  # per offset: (n_k,), (n_k,) int64
+    group_offsets: tuple[int, ...]
+    group_counts: tuple[int, ...]
+    in_rows: torch.Tensor  # (P,) int64, group by group
+    out_rows: torch.Tensor  # (P,) int64
+    block: int
+    gather_in: torch.Tensor  # (n_blocks * block,) int64
+    gather_out: torch.Tensor  # (n_blocks * block,) int64
+    block_offsets: torch.Tensor  # (n_blocks,) int64
+    group_blocks: torch.Tensor  # (G,) int64
+    slices: tuple[RuleSlice, ...]
+
+    @property
+    def num_pairs(self) -> int:
+        """All ``(i, o, k)`` pairs, a submanifold layer's centre included."""
+        return int(self.in_rows.numel()) + (int(self.in_indices.shape[0]) if self.subm else 0)
+
+    @property
+    def pairs(self) -> tuple[tuple[torch.Tensor, torch.Tensor], ...]:
+        """``pairs[k] = (in_rows, out_rows)`` for each kernel offset ``k`` in the weight's order
+        (a view for tests and tools; the convolution reads the batched layout)."""
+        num_offsets = math.prod(self.kernel_size)
+        empty = self.in_rows.new_zeros(0)
+        pairs = [(empty, empty)] * num_offsets
+        for k, in_rows, out_rows in zip(
+            self.group_offsets,
+            self.in_rows.split(list(self.group_counts)),
+            self.out_rows.split(list(self.group_counts)),
+        ):
+            pairs[k] = (in_rows, out_rows)
+        if self.subm:
+            rows = torch.arange(self.in_indices.shape[0], device=self.in_rows.device)
+            pairs[num_offsets // 2] = (rows, rows)
+        return tuple(pairs)
 
 
 def _kernel_offsets(kernel_size: tuple[int, int, int], device: torch.device) -> torch.Tensor:
@@ -164,48 +225,181 @@ def _kernel_offsets(kernel_size: tuple[int, int, int], device: torch.device) -> 
     return torch.stack([g.reshape(-1) for g in grids], dim=1)
 
 
+#: gathered rows (elements) per slice of kernel offsets on the CPU: a few MB, see IndicePairs
+_CPU_SLICE_ELEMENTS = 1 << 21
+
+
+def _block_size(num_pairs: int, num_groups: int, channels: int) -> int:
+    """Rows per GEMM block: large enough that the per-block weight copies stay small beside the
+    gathered rows (``block >= 2 * channels``), small enough that the padding of each group to a
+    whole block (half a block per group on average) stays a small share of the pairs."""
+    want = max(num_pairs // (8 * max(num_groups, 1)), 2 * channels, 16)
+    return min(1 << (want.bit_length() - 1), 1024)
+
+
+def _group_ids(counts: torch.Tensor, total: int) -> torch.Tensor:
+    """``(total,)`` the group of each item of consecutive groups of ``counts`` items."""
+    ends = torch.zeros(total + 1, dtype=torch.long, device=counts.device)
+    ends.index_add_(0, torch.cumsum(counts, 0), torch.ones_like(counts))
+    return torch.cumsum(ends[:total], 0)
+
+
+def _batched_rules(
+    in_rows: torch.Tensor,
+    out_rows: torch.Tensor,
+    group_offsets: list[int],
+    group_counts: list[int],
+    num_in: int,
+    num_out: int,
+    num_offsets: int,
+    channels: int,
+) -> dict:
+    """The batched layout of :class:`IndicePairs` from the pairs ``in_rows`` / ``out_rows``
+    ``(P,)``, listed in groups of one kernel offset each (``group_offsets[g]``, ascending,
+    ``group_counts[g]`` pairs each, ``P = sum(group_counts)``)."""
+    device = in_rows.device
+    num_pairs = int(in_rows.numel())
+    num_groups = len(group_offsets)
+    block = _block_size(num_pairs, num_groups, channels)
+    blocks = [(c + block - 1) // block for c in group_counts]
+    counts = torch.tensor(group_counts, dtype=torch.long, device=device)
+    group_blocks = torch.tensor(blocks, dtype=torch.long, device=device)
+    starts = torch.cumsum(counts, 0) - counts
+    padded_starts = (torch.cumsum(group_blocks, 0) - group_blocks) * block
+    group_of_pair = _group_ids(counts, num_pairs)
+    slot = torch.arange(num_pairs, device=device)
+    slot += (padded_starts - starts).index_select(0, group_of_pair)
+    num_rows = sum(blocks) * block
+    gather_in = torch.full((num_rows,), num_in, dtype=torch.long, device=device)
+    gather_in.index_copy_(0, slot, in_rows)
+    gather_out = torch.full((num_rows,), num_out, dtype=torch.long, device=device)
+    gather_out.index_copy_(0, slot, out_rows)
+    offsets = torch.tensor(group_offsets, dtype=torch.long, device=device)
+    block_offsets = offsets.index_select(0, _group_ids(group_blocks, sum(blocks)))
+    column = offsets.index_select(0, group_of_pair)
+
+    def bags(p0: int, p1: int, k0: int, k1: int, row0: int, rows: torch.Tensor, num: int):
+        """Each of the ``num`` rows' block rows among pairs ``p0:p1`` (offsets ``k0:k1``), in
+        kernel-offset order: a ``(num, k1 - k0)`` table of block rows, read row-major."""
+        width = k1 - k0
+        table = torch.full((num * width,), -1, dtype=torch.long, device=device)
+        at = rows[p0:p1] * width + (column[p0:p1] - k0)
+        table.index_copy_(0, at, slot[p0:p1] - row0)
+        present = table >= 0
+        sizes = torch.count_nonzero(present.view(num, width), dim=1)
+        return table.masked_select(present), torch.cumsum(sizes, 0) - sizes
+
+    # cut the groups into runs of about _CPU_SLICE_ELEMENTS gathered elements (one on a GPU)
+    budget = _CPU_SLICE_ELEMENTS // max(channels, 1) if device.type == "cpu" else num_rows
+    cuts, rows = [0], 0
+    for g, n in enumerate(blocks):
+        if rows and rows + n * block > budget:
+            cuts.append(g)
+            rows = 0
+        rows += n * block
+    cuts.append(num_groups)
+    slices, block_start = [], 0
+    for g0, g1 in zip(cuts[:-1], cuts[1:]):
+        if g0 == g1:
+            continue
+        n = sum(blocks[g0:g1])
+        k0, k1 = group_offsets[g0], group_offsets[g1 - 1] + 1
+        p0, p1, row0 = sum(group_counts[:g0]), sum(group_counts[:g1]), block_start * block
+        slices.append(RuleSlice(
+            (k0, k1), slice(g0, g1), slice(row0, row0 + n * block),
+            slice(block_start, block_start + n),
+            bags(p0, p1, k0, k1, row0, out_rows, num_out),
+            bags(p0, p1, k0, k1, row0, in_rows, num_in),
+        ))  # fmt: skip
+        block_start += n
+    return {
+        "group_offsets": tuple(group_offsets),
+        "group_counts": tuple(group_counts),
+        "in_rows": in_rows,
+        "out_rows": out_rows,
+        "block": block,
+        "gather_in": gather_in,
+        "gather_out": gather_out,
+        "block_offsets": block_offsets,
+        "group_blocks": group_blocks,
+        "slices": tuple(slices),
+    }
+
+
+@functools.lru_cache(maxsize=8)
+def _occupancy_code(device: torch.device) -> torch.Tensor:
+    """``code[byte * 8 + bit]``: whether bit ``bit`` of ``byte`` is set (bit 0 of the code) and
+    how many lower bits are (the rest): a cell's presence and rank within its 8-cell word."""
+    byte = torch.arange(256, device=device)[:, None]
+    bit = torch.arange(8, device=device)[None, :]
+    below = torch.zeros_like(byte * bit)
+    for b in range(8):
+        below += ((byte >> b) & 1) * (b < bit)
+    return ((below << 1) | ((byte >> bit) & 1)).reshape(-1)
+
+
 def _subm_pairs(
     indices: torch.Tensor,
     spatial_shape: tuple[int, int, int],
     kernel_size: tuple[int, int, int],
     dilation: tuple[int, int, int],
+    channels: int,
 ) -> IndicePairs:
     """Submanifold rules: output sites are the input sites; kernel centred on each site.
 
-    The kernel sizes are odd (``SubMConv3d`` checks), so the offsets pair up around the centre:
-    when site ``i`` feeds site ``o`` through offset ``d``, ``o`` feeds ``i`` through ``-d``; only
-    half the offsets are searched (the mirror of flat offset ``k`` is ``K - 1 - k``) and the centre
-    maps every site to itself.
+    Sites are looked up in an occupancy bitmap of the grid padded by the kernel's reach (so a
+    neighbour key never wraps into another row and needs no bounds test): one bit per cell in
+    8-cell words, and the sorted position of each word's first site; a neighbour is present when
+    its bit is set, at that position plus the set bits below it in its word. The kernel sizes are
+    odd (``SubMConv3d`` checks), so the offsets pair up around the centre: when site ``i`` feeds
+    ``o`` through offset ``d``, ``o`` feeds ``i`` through ``-d``; only half the offsets are looked
+    up (the mirror of flat offset ``k`` is ``K - 1 - k``) and the centre is not listed.
     """
     device = indices.device
-    shape = torch.tensor(spatial_shape, device=device)
-    sorted_keys, order = torch.sort(_linear_keys(indices, spatial_shape))
-    sorted_zyx = indices.long()[order, 1:]
-    centre = torch.tensor([k // 2 for k in kernel_size], device=device)
-    deltas = (_kernel_offsets(kernel_size, device) - centre) * torch.tensor(dilation, device=device)
-    _, h, w = spatial_shape
-    shifts = ((deltas[:, 0] * h + deltas[:, 1]) * w + deltas[:, 2]).tolist()  # linear key shifts
-    pairs: list = [None] * deltas.shape[0]
-    for k, delta in enumerate(deltas):
-        if pairs[k] is not None:
-            continue
-        if k == len(pairs) // 2:  # the centre
-            rows = torch.arange(len(order), device=device)
-            pairs[k] = (rows, rows)
-            continue
-        # the key each site reads through this offset, in key order (a sorted query is a
-        # cache-friendly search); a shift that leaves the grid is masked, not wrapped
-        nb_zyx = sorted_zyx + delta
-        inside = ((nb_zyx >= 0) & (nb_zyx < shape)).all(dim=1)
-        nb_keys = sorted_keys + shifts[k]
-        pos = torch.searchsorted(sorted_keys, nb_keys).clamp_max(max(len(order) - 1, 0))
-        found = inside & (sorted_keys[pos] == nb_keys) if len(order) else inside
-        at = torch.nonzero(found, as_tuple=True)[0]
-        in_rows, out_rows = order[pos[at]], order[at]
-        pairs[k] = (in_rows, out_rows)
-        pairs[len(pairs) - 1 - k] = (out_rows, in_rows)
+    num_offsets = math.prod(kernel_size)
+    centre = num_offsets // 2
+    reach = [(k // 2) * d for k, d in zip(kernel_size, dilation)]
+    padded = [n + 2 * r for n, r in zip(spatial_shape, reach)]
+    shifted = indices.long() + torch.tensor([0, *reach], device=device)
+    sorted_keys, order = torch.sort(_linear_keys(shifted, padded))
+    num = int(sorted_keys.numel())
+    deltas = _kernel_offsets(kernel_size, device) - torch.tensor(kernel_size, device=device) // 2
+    deltas = deltas * torch.tensor(dilation, device=device)
+    shifts = (deltas[:centre, 0] * padded[1] + deltas[:centre, 1]) * padded[2] + deltas[:centre, 2]
+    if num:
+        num_words = int(sorted_keys[-1]) // 8 + 1
+        word = sorted_keys >> 3
+        bits = torch.zeros(num_words, dtype=torch.long, device=device)
+        bits.index_add_(0, word, 1 << (sorted_keys & 7))  # distinct bits: the sum is their OR
+        starts = torch.ones(num, dtype=torch.bool, device=device)
+        starts[1:] = word[1:] != word[:-1]
+        first = torch.zeros(num_words, dtype=torch.long, device=device)
+        at = torch.nonzero(starts, as_tuple=True)[0]
+        first.index_copy_(0, word.index_select(0, at), at)
+        # the first half's shifts are negative and the padding keeps every neighbour in the grid
+        neighbour = (sorted_keys[None, :] + shifts[:, None]).view(-1)  # (K // 2 * N,)
+        neighbour_word = neighbour >> 3
+        code = bits.index_select(0, neighbour_word).mul_(8).add_(neighbour & 7)
+        code = _occupancy_code(device).index_select(0, code)
+        hit = torch.nonzero(code & 1, as_tuple=True)[0]  # offset-major, site order within
+        half, site = hit // num, hit % num
+        found = first.index_select(0, neighbour_word.index_select(0, hit))
+        found += code.index_select(0, hit) >> 1
+        counts = torch.bincount(half, minlength=centre).tolist()
+        near, here = order.index_select(0, found), order.index_select(0, site)
+    else:
+        counts = [0] * centre
+        near = here = order
+    # offset k < centre reads the neighbour into the site; its mirror K - 1 - k the site into
+    # the neighbour (listed in ascending k, so the groups of the first half in reverse)
+    mirrored = [torch.cat(list(reversed(rows.split(counts)))) for rows in (here, near)]
+    rules = _batched_rules(
+        torch.cat([near, mirrored[0]]), torch.cat([here, mirrored[1]]),
+        list(range(centre)) + list(range(centre + 1, num_offsets)), counts + counts[::-1],
+        num, num, num_offsets, channels,
+    )  # fmt: skip
     return IndicePairs(
-        indices, indices, spatial_shape, spatial_shape, kernel_size, dilation, True, tuple(pairs)
+        indices, indices, spatial_shape, spatial_shape, kernel_size, dilation, True, **rules
     )
 
 
@@ -237,6 +431,7 @@ def _regular_pairs(
     stride: tuple[int, int, int],
     padding: tuple[int, int, int],
     dilation: tuple[int, int, int],
+    channels: int,
 ) -> IndicePairs:
     """Regular sparse conv rules: every output site some input reaches, sorted by linear index."""
     device = indices.device
@@ -244,29 +439,30 @@ def _regular_pairs(
     idx = indices.long()
     # per axis (each on its own): input coordinate i reaches output o through kernel position
     # k when o * s - p + k * d == i
-    out_axis, valid_axis = [], []
+    od, oh, ow = out_shape
+    scale = (oh * ow, ow, 1)  # each axis' share of the output's linear key
+    key_axis, valid_axis = [], []
     for axis, (k, s, p, d, n_out) in enumerate(
         zip(kernel_size, stride, padding, dilation, out_shape)
     ):
         num = idx[None, :, 1 + axis] + p - torch.arange(k, device=device)[:, None] * d  # (k, N)
         o = torch.div(num, s, rounding_mode="floor")
-        out_axis.append(o)
+        key_axis.append(o * scale[axis])
         valid_axis.append((num % s == 0) & (o >= 0) & (o < n_out))
     kd, kh, kw = kernel_size
+    num_offsets = kd * kh * kw
     valid = (
         valid_axis[0][:, None, None] & valid_axis[1][None, :, None] & valid_axis[2][None, None, :]
-    ).reshape(kd * kh * kw, -1)  # (K, N), K in the weight's (kD, kH, kW) order
-    k_ids, in_rows = torch.nonzero(valid, as_tuple=True)
-    kz, ky, kx = k_ids // (kh * kw), k_ids // kw % kh, k_ids % kw
-    out_sites = torch.stack(  # (P, 4)
-        [idx[in_rows, 0], out_axis[0][kz, in_rows], out_axis[1][ky, in_rows],
-         out_axis[2][kx, in_rows]], dim=1,
-    )  # fmt: skip
-    out_keys, out_rows = torch.unique(
-        _linear_keys(out_sites, out_shape), sorted=True, return_inverse=True
-    )
+    ).view(-1)  # (K * N,), K in the weight's (kD, kH, kW) order
+    keys = (
+        (key_axis[0] + idx[None, :, 0] * (od * oh * ow))[:, None, None]
+        + key_axis[1][None, :, None]
+        + key_axis[2][None, None, :]
+    ).view(-1)  # (K * N,) output keys
+    hit = torch.nonzero(valid, as_tuple=True)[0]  # offset-major, input order within
+    k_ids, in_rows = hit // idx.shape[0], hit % idx.shape[0]
+    out_keys, out_rows = torch.unique(keys.index_select(0, hit), sorted=True, return_inverse=True)
     # decode the sorted keys back into [b, z, y, x]
-    od, oh, ow = out_shape
     out_indices = torch.stack(
         [
             out_keys // (od * oh * ow),
@@ -276,11 +472,14 @@ def _regular_pairs(
         ],
         dim=1,
     ).to(torch.int32)
-    # nonzero lists (k, n) row-major: each offset's pairs are one slice
-    counts = torch.bincount(k_ids, minlength=kd * kh * kw).tolist()
-    pairs = tuple(zip(in_rows.split(counts), out_rows.split(counts)))
+    # nonzero lists (k, n) row-major: each offset's pairs are one group
+    counts = torch.bincount(k_ids, minlength=num_offsets).tolist()
+    rules = _batched_rules(
+        in_rows, out_rows, list(range(num_offsets)), counts, idx.shape[0], out_keys.shape[0],
+        num_offsets, channels,
+    )  # fmt: skip
     return IndicePairs(
-        indices, out_indices, spatial_shape, out_shape, kernel_size, dilation, False, pairs
+        indices, out_indices, spatial_shape, out_shape, kernel_size, dilation, False, **rules
     )
 
 
@@ -368,11 +567,18 @@ class _SparseConvNd(SparseModule):
                     f"{self.kernel_size}, dilation {self.dilation}"
                 )
             return cached
+        channels = max(self.in_channels, self.out_channels)
         if self.subm:
-            rules = _subm_pairs(x.indices, shape, self.kernel_size, self.dilation)
+            rules = _subm_pairs(x.indices, shape, self.kernel_size, self.dilation, channels)
         else:
             rules = _regular_pairs(
-                x.indices, shape, self.kernel_size, self.stride, self.padding, self.dilation
+                x.indices,
+                shape,
+                self.kernel_size,
+                self.stride,
+                self.padding,
+                self.dilation,
+                channels,
             )
         if self.indice_key is not None and cached is None:
             x.indice_dict[self.indice_key] = rules
@@ -395,68 +601,96 @@ class _SparseConvNd(SparseModule):
         )  # fmt: skip
 
     def apply_rules(self, features: torch.Tensor, rules: IndicePairs) -> torch.Tensor:
-        """The output features ``(N_out, out)`` of ``features`` ``(N_in, in)`` under ``rules``:
-        per kernel offset, gather its input rows, one GEMM, scatter-add into its output rows."""
+        """The output features ``(N_out, out)`` of ``features`` ``(N_in, in)`` under ``rules``
+        (:class:`_GatherGemmReduce`)."""
         weight = self.weight.reshape(self.out_channels, -1, self.in_channels)  # (out, K, in)
-        out = _GatherGemmScatter.apply(features, weight, rules.pairs, rules.out_indices.shape[0])
+        out = _GatherGemmReduce.apply(features, weight, rules)
         if self.bias is not None:
             out = out + self.bias
         return out
 
 
-def _collision_free_index_add(tensor: torch.Tensor) -> contextlib.AbstractContextManager:
-    """A context in which ``index_add_`` on ``tensor`` runs torch's own CUDA kernel also when
-    ``torch.use_deterministic_algorithms(True)`` is in effect.
+class _GatherGemmReduce(torch.autograd.Function):
+    """``out[o] = sum_k W_k x[i]`` over the pairs ``(i, o, k)`` of ``rules`` in a number of ops
+    that does not grow with the number of kernel offsets: per slice of offsets
+    (:class:`IndicePairs`; one on a GPU) one gather of the pairs' input rows into blocks of one
+    offset each, one ``bmm`` of every block with its offset's weight, one ``embedding_bag``
+    summing each output row's products in kernel-offset order; plus one GEMM for a submanifold
+    layer's centre. The backward has the same form: the feature gradient gathers the output
+    gradient's rows and sums them per input row; the weight gradient is one ``bmm`` of the
+    gathered blocks and a sum over each offset's blocks (``segment_reduce``).
 
-    That mode sends every CUDA ``index_add_`` through a sort-based ``index_put_`` (a sort, host
-    synchronisations, ~2x the time of a voxel CP-4f training step on a GPU,
-    docs/benchmarks.md). The sparse conv's index rows never repeat within one call, so each
-    output element gets exactly one atomic add: the result is the same bits either way. The mode
-    and its ``warn_only`` setting are restored on exit, also on an error."""
-    if tensor.is_cuda and torch.are_deterministic_algorithms_enabled():
-        return deterministic_algorithms(False)
-    return contextlib.nullcontext()
-
-
-class _GatherGemmScatter(torch.autograd.Function):
-    """``out[o] = sum_k W_k x[i]`` over the pairs ``(i, o)`` of each kernel offset ``k``, with
-    its own backward: the gradients go to one ``(N_in, in)`` buffer and one weight buffer, offset
-    by offset (autograd through the gathers would allocate a full-size gradient per offset and
-    sum them, plus an accumulating ``index_put_`` each).
-
-    Within one offset an output row receives at most one input row and an input row feeds at
-    most one output row, so every ``index_add_`` is collision-free and deterministic."""
+    No op writes two values into one place, so the result is deterministic on CPU and GPU, in
+    torch's deterministic mode or not."""
 
     @staticmethod
-    def forward(ctx, features, weight, pairs, num_out):  # weight (out, K, in)
-        out = features.new_zeros((num_out, weight.shape[0]))
-        for k, (in_rows, out_rows) in enumerate(pairs):
-            if in_rows.numel():
-                rows = features.index_select(0, in_rows) @ weight[:, k].t()
-                with _collision_free_index_add(out):
-                    out.index_add_(0, out_rows, rows)
+    def forward(ctx, features, weight, rules):  # features (N_in, in), weight (out, K, in)
+        rows = _with_zero_row(features)
+        weight_t = weight.permute(1, 2, 0)  # (K, in, out)
+        out = features.new_zeros((rules.out_indices.shape[0], weight.shape[0]))
+        for part in rules.slices:
+            out += _sum_blocks(
+                rows, weight_t, rules.gather_in[part.rows], rules.block,
+                rules.block_offsets[part.blocks], part.out_bags,
+            )  # fmt: skip
+        if rules.subm:
+            out.addmm_(features, weight[:, weight.shape[1] // 2].t())
         ctx.save_for_backward(features, weight)
-        ctx.pairs = pairs
+        ctx.rules = rules
         return out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out):
         features, weight = ctx.saved_tensors
+        rules = ctx.rules
         need_features, need_weight = ctx.needs_input_grad[:2]
+        grad_out = grad_out.contiguous()
+        grad_rows, rows = _with_zero_row(grad_out), _with_zero_row(features)
+        weight_oi = weight.permute(1, 0, 2)  # (K, out, in)
+        centre = weight.shape[1] // 2
         grad_features = torch.zeros_like(features) if need_features else None
         grad_weight = torch.zeros_like(weight) if need_weight else None
-        for k, (in_rows, out_rows) in enumerate(ctx.pairs):
-            if not in_rows.numel():
-                continue
-            grad = grad_out.index_select(0, out_rows)  # (n, out)
+        for part in rules.slices:
+            gather_out = rules.gather_out[part.rows]
             if need_features:
-                rows = grad @ weight[:, k]
-                with _collision_free_index_add(grad_features):
-                    grad_features.index_add_(0, in_rows, rows)
+                grad_features += _sum_blocks(
+                    grad_rows, weight_oi, gather_out, rules.block,
+                    rules.block_offsets[part.blocks], part.in_bags,
+                )  # fmt: skip
             if need_weight:
-                grad_weight[:, k] = grad.t() @ features.index_select(0, in_rows)
-        return grad_features, grad_weight, None, None
+                shape = (-1, rules.block)
+                blocks_in = rows.index_select(0, rules.gather_in[part.rows]).view(
+                    *shape, rows.shape[1]
+                )
+                blocks_out = grad_rows.index_select(0, gather_out).view(*shape, grad_rows.shape[1])
+                partial = torch.bmm(blocks_out.transpose(1, 2), blocks_in)  # (blocks, out, in)
+                per_group = torch.segment_reduce(
+                    partial.flatten(1), "sum", lengths=rules.group_blocks[part.groups], unsafe=True
+                )  # (groups, out * in)
+                offsets = torch.tensor(rules.group_offsets[part.groups], device=weight.device)
+                grad_weight[:, offsets] = per_group.view(-1, *partial.shape[1:]).transpose(0, 1)
+        if rules.subm and need_features:
+            grad_features.addmm_(grad_out, weight[:, centre])
+        if rules.subm and need_weight:
+            grad_weight[:, centre] = grad_out.t() @ features
+        return grad_features, grad_weight, None
+
+
+def _with_zero_row(rows: torch.Tensor) -> torch.Tensor:
+    """``(N, C)`` -> ``(N + 1, C)``: row ``N``, zeros, is what the blocks' padding rows read."""
+    return torch.cat([rows, rows.new_zeros((1, rows.shape[1]))])
+
+
+def _sum_blocks(rows, weight, gather, block, block_offsets, bags):
+    """``rows`` ``(N + 1, C)`` gathered by ``gather`` into blocks, each block times its offset's
+    ``weight`` ``(K, C, C')``, the products summed into one row per bag: ``(num_bags, C')``."""
+    blocks = rows.index_select(0, gather).view(-1, block, rows.shape[1])  # (blocks, block, C)
+    products = torch.bmm(blocks, weight.index_select(0, block_offsets))
+    bag_rows, bag_starts = bags
+    return torch.nn.functional.embedding_bag(
+        bag_rows, products.view(-1, weight.shape[2]), bag_starts, mode="sum"
+    )
 
 
 class SubMConv3d(_SparseConvNd):

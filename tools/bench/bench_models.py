@@ -47,21 +47,15 @@ backward, at ``--ssm_lengths`` steps (b 2, d 64, n 16, Mamba's sizes), alternati
     python tools/bench/bench_models.py --cfgs --ssm --threads 1
 
 ``--spconv CFG`` times each sparse conv layer of a voxel config's 3D backbone (random weights) on
-val frame ``--spconv_frame``: building its index pairs, its gather-GEMM-scatter forward and
-forward + backward, beside ``conv3d`` with the same weights on the dense grid, then the whole
-backbone:
+val frame ``--spconv_frame``: building its index pairs, its gather-GEMM-reduce forward and
+forward + backward, beside ``conv3d`` with the same weights on the dense grid and, when spconv
+2.x is importable (``pip install -e .[bench]``), beside spconv's layer with the same weights
+(forward with its rules, forward + backward; both sides alternating), then the whole backbone.
+``--spconv_layers`` keeps the named layers only; the aten ops of one forward and of one forward +
+backward (counted by ``torch.profiler``) are printed per layer:
 
     python tools/bench/bench_models.py --cfgs --spconv cfgs/atlas/synthetic/cp4f_voxel.yaml \
         --frames 3
-
-``--deterministic_scatter CFG`` times the 3D backbone's forward + backward on one training batch
-(``--batch_size``, the config's train pipeline, seed 0) in torch's deterministic mode, as a
-seeded training run has it: the sparse conv's collision-free scatter on its own kernel against
-torch's rerouting of it through a sort-based ``index_put_``, alternating, ``--steps`` timed pairs
-after 2 warm-up pairs, and whether both give the same bits (they differ in time on CUDA only):
-
-    python tools/bench/bench_models.py --cfgs --deterministic_scatter \
-        cfgs/atlas/synthetic/cp4f_voxel.yaml --device cuda --steps 10
 
 ``--train_step`` instead times training steps (batch ``--batch_size``, the configs' own train
 pipeline with GT sampling and augmentation, AdamW + one-cycle, gradient clipping: what
@@ -115,7 +109,6 @@ from pcdet_atlas.train_utils.atlas_eval import point_history
 from pcdet_atlas.train_utils.proposal_bank import ProposalBank
 from pcdet_atlas.train_utils.setup import device_arg
 from pcdet_atlas.utils.cli import add_debug_flag, run_tool
-from pcdet_atlas.utils.common import deterministic_algorithms
 
 
 def _read_hwm_kib() -> int | None:
@@ -223,13 +216,12 @@ def parse_args():
     )  # fmt: skip
     p.add_argument("--spconv_frame", type=int, default=40, help="the val frame of --spconv")
     p.add_argument(
-        "--spconv_crop", type=float, default=0.0,
-        help="--spconv on the voxels within this many metres of the sensor (0: the whole frame)",
+        "--spconv_layers", nargs="+", default=None, metavar="NAME",
+        help="--spconv on these layers only (module names, e.g. conv1.0.conv1)",
     )  # fmt: skip
     p.add_argument(
-        "--deterministic_scatter", default=None, metavar="CFG",
-        help="time this voxel config's 3D backbone (forward + backward, one training batch) in "
-        "deterministic mode, the sparse conv's scatter kept vs rerouted by torch",
+        "--spconv_crop", type=float, default=0.0,
+        help="--spconv on the voxels within this many metres of the sensor (0: the whole frame)",
     )  # fmt: skip
     p.add_argument(
         "--ssm_lengths",
@@ -1104,24 +1096,36 @@ def spconv_table(cfg_file: str, data_path: Path, args, device: torch.device) -> 
         backbone(dict(batch))
     for hook in hooks:
         hook.remove()
+    if args.spconv_layers:
+        unknown = sorted(set(args.spconv_layers) - set(inputs))
+        if unknown:
+            raise SystemExit(f"--spconv_layers: no sparse conv layer {unknown}; has {list(inputs)}")
+        inputs = {layer: inputs[layer] for layer in args.spconv_layers}
+    reference = _spconv_reference()
     repeats = args.frames
     name = str(Path(cfg_file).resolve().relative_to(REPO_ROOT / "cfgs"))
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(
         f"\nsparse conv layers of {name} ({type(backbone).__name__}, random weights) on val frame "
         f"{args.spconv_frame}{f' (within {args.spconv_crop:g} m)' if args.spconv_crop else ''}, "
         f"grid {backbone.sparse_shape}, device {device}, {torch.get_num_threads()} threads, "
-        f"fastest of {repeats} (after 1 warm-up); dense: conv3d on the (B, C, D, H, W) grid"
+        f"fastest of {repeats} (after 1 warm-up); dense: conv3d on the (B, C, D, H, W) grid; "
+        f"load average {load:.2f}"
+    )
+    spconv_cols = (
+        " | spconv fwd ms | ratio | spconv fwd + bwd ms | ratio | rel. diff" if reference else ""
     )
     print(
-        "| layer | kind | sites in -> out | channels | pairs | rules ms | forward ms "
-        "| fwd + bwd ms | dense forward ms | dense fwd + bwd ms | forward ratio |"
+        "| layer | kind | sites in -> out | channels | pairs | aten ops fwd / fwd + bwd "
+        "| rules ms | forward ms | fwd + bwd ms | dense forward ms | dense fwd + bwd ms "
+        f"| forward ratio{spconv_cols} |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---" * (12 + 5 * bool(reference)) + "|")
 
     totals = {"sparse": 0.0, "dense": 0.0}
     keys = set()  # a submanifold layer reuses the rules of the first layer with its indice_key
     for layer, (conv, x) in inputs.items():
-        t = _spconv_layer_times(conv, x, device, repeats)
+        t = _spconv_layer_times(conv, x, device, repeats, reference)
         built = not conv.subm or conv.indice_key is None or conv.indice_key not in keys
         keys.add(conv.indice_key)
         totals["sparse"] += t["rules"] * built + t["forward"]
@@ -1129,13 +1133,21 @@ def spconv_table(cfg_file: str, data_path: Path, args, device: torch.device) -> 
         kind = "subm" if conv.subm else "spconv"
         kernel = "x".join(map(str, conv.kernel_size))
         stride = "" if conv.subm else " /" + "x".join(map(str, conv.stride))
-        print(
+        row = (
             f"| {layer} | {kind} {kernel}{stride} | {x.indices.shape[0]:,} -> {t['out_sites']:,} "
             f"| {conv.in_channels} -> {conv.out_channels} | {t['pairs']:,} "
+            f"| {t['ops_forward']} / {t['ops_backward']} "
             f"| {t['rules'] * 1e3:,.1f} | {t['forward'] * 1e3:,.1f} | {t['backward'] * 1e3:,.1f} "
             f"| {t['dense'] * 1e3:,.1f} | {t['dense_backward'] * 1e3:,.1f} "
             f"| {t['dense'] / (t['rules'] + t['forward']):.1f}x |"
         )
+        if reference:
+            row += (
+                f" {t['spconv'] * 1e3:,.1f} | **{t['ours'] / t['spconv']:.2f}x** "
+                f"| {t['spconv_backward'] * 1e3:,.1f} "
+                f"| **{t['ours_backward'] / t['spconv_backward']:.2f}x** | {t['diff']:.1e} |"
+            )
+        print(row)
     with torch.no_grad():
         whole_s = _timed(lambda: backbone(dict(batch)), device, repeats)
     print(
@@ -1144,78 +1156,43 @@ def spconv_table(cfg_file: str, data_path: Path, args, device: torch.device) -> 
         f"indice_key's) {totals['sparse'] * 1e3:,.1f} ms against "
         f"{totals['dense'] * 1e3:,.1f} ms dense ({totals['dense'] / totals['sparse']:.1f}x)"
     )
-
-
-def deterministic_scatter_table(cfg_file: str, data_path: Path, args, device: torch.device) -> None:
-    """The 3D backbone's forward + backward on one training batch in torch's deterministic mode:
-    the sparse conv's scatter as the library runs it ("kept") against the same with
-    :func:`~pcdet_atlas.ops.spconv._collision_free_index_add` replaced by a null context, i.e.
-    torch's sort-based rerouting of every CUDA ``index_add_`` ("rerouted")."""
-    import contextlib
-
-    import pcdet_atlas.ops.spconv as spconv
-
-    cfg = cfg_from_yaml_file(cfg_file)
-    cfg.DATA_CONFIG.DATA_PATH = str(data_path)
-    _, loader, _ = build_dataloader(
-        cfg.DATA_CONFIG, cfg.CLASS_NAMES, args.batch_size, False, workers=0, seed=0,
-        training=True,
-    )  # fmt: skip
-    torch.manual_seed(0)
-    model = build_network_from_config(cfg).to(device).train()
-    backbone = getattr(model, "backbone_3d", None)
-    if backbone is None or not any(isinstance(m, spconv._SparseConvNd) for m in backbone.modules()):
-        raise SystemExit(f"--deterministic_scatter: {cfg_file} has no sparse conv 3D backbone")
-    with torch.no_grad():
-        batch = model.vfe(load_data_to_device(next(iter(loader)), device))
-    features = batch["voxel_features"].detach()
-
-    def step():
-        leaf = features.clone().requires_grad_(True)
-        backbone.zero_grad(set_to_none=True)
-        out = backbone({**batch, "voxel_features": leaf})["encoded_spconv_tensor"].features
-        out.square().mean().backward()
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        return [out.detach(), leaf.grad] + [p.grad for p in backbone.parameters()]
-
-    kept = spconv._collision_free_index_add
-    variants = {"kept": kept, "rerouted": lambda tensor: contextlib.nullcontext()}
-    times: dict = {name: [] for name in variants}
-    results: dict = {}
-    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # as tools/train.py sets it
-    with deterministic_algorithms(True):
-        try:
-            for i in range(args.steps + 2):
-                for name, context in variants.items():
-                    spconv._collision_free_index_add = context
-                    t0 = time.perf_counter()
-                    results[name] = step()
-                    if i >= 2:
-                        times[name].append(time.perf_counter() - t0)
-        finally:
-            spconv._collision_free_index_add = kept
-    same = all(torch.equal(a, b) for a, b in zip(results["kept"], results["rerouted"]))
-    name = str(Path(cfg_file).resolve().relative_to(REPO_ROOT / "cfgs"))
-    print(
-        f"\n3D backbone of {name} (random weights), forward + backward on one training batch of "
-        f"{args.batch_size} ({features.shape[0]:,} voxels), deterministic mode, device {device}, "
-        f"medians of {args.steps} alternating steps after 2 warm-ups"
-    )
-    print("| scatter | ms (median) | min-max ms | speed-up |\n|---|---|---|---|")
-    base = statistics.median(times["rerouted"])
-    for variant in ("rerouted", "kept"):
-        t = times[variant]
+    if reference:
         print(
-            f"| {variant} | {statistics.median(t) * 1e3:,.1f} | {min(t) * 1e3:,.1f}-"
-            f"{max(t) * 1e3:,.1f} | {base / statistics.median(t):.2f}x |"
+            "spconv ratio: ours / spconv, rules included, fastest of alternating calls (below 1: "
+            "ours faster); rel. diff: max |ours - spconv| / max |spconv| of the outputs"
         )
-    print(f"outputs and gradients bitwise the same: {'yes' if same else 'NO'}")
 
 
-def _spconv_layer_times(conv, x, device: torch.device, repeats: int) -> dict:
+def _spconv_reference():
+    """spconv 2.x's ``spconv.pytorch`` when importable, else None. Its CPU backward asks
+    ``torch.cuda`` for a stream it does not use on the CPU, which raises on a CPU-only torch:
+    that lookup answers 0 there (the benchmark's process only)."""
+    try:
+        import spconv.pytorch as reference
+        import spconv.pytorch.ops as reference_ops
+    except ImportError:
+        return None
+    if not torch.cuda.is_available():
+        reference_ops.get_current_stream = lambda: 0
+    return reference
+
+
+def _count_ops(fn) -> int:
+    """aten ops one call of ``fn`` runs (``torch.profiler`` on the CPU): what a GPU launches."""
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+        fn()
+    return sum(
+        1
+        for e in prof.events()
+        if e.name.startswith("aten::")
+        and (e.cpu_parent is None or not e.cpu_parent.name.startswith("aten::"))
+    )
+
+
+def _spconv_layer_times(conv, x, device: torch.device, repeats: int, reference=None) -> dict:
     """Seconds of one sparse conv layer on its input ``x`` (rules from scratch, forward, forward
-    + backward to the features and weights) and of ``conv3d`` on ``x.dense()``."""
+    + backward to the features and weights), of ``conv3d`` on ``x.dense()`` and, with
+    ``reference`` (spconv), of spconv's layer with the same weights, alternating with ours."""
     from pcdet_atlas.ops.spconv import SparseConvTensor
 
     def fresh():  # no cached rules
@@ -1238,9 +1215,83 @@ def _spconv_layer_times(conv, x, device: torch.device, repeats: int) -> dict:
     with torch.no_grad():
         out["dense"] = _timed(lambda: _dense_conv(conv, dense), device, repeats)
     out["dense_backward"] = _timed(backward(lambda d: _dense_conv(conv, d), dense), device, repeats)
-    out["pairs"] = sum(int(i.numel()) for i, _ in rules.pairs)
+    out["pairs"] = rules.num_pairs
     out["out_sites"] = int(rules.out_indices.shape[0])
+    with torch.no_grad():
+        out["ops_forward"] = _count_ops(lambda: conv(fresh()))
+    out["ops_backward"] = _count_ops(
+        backward(lambda f: conv(SparseConvTensor(f, x.indices, x.spatial_shape, x.batch_size))
+                 .features, feats)
+    )  # fmt: skip
+    if reference is not None:
+        out.update(_versus_spconv(conv, x, device, repeats, reference))
     return out
+
+
+def _versus_spconv(conv, x, device: torch.device, repeats: int, reference) -> dict:
+    """Our layer and spconv's with the same weights, each call from a fresh tensor (rules
+    included), forward and forward + backward, alternating call by call; fastest of each."""
+    from pcdet_atlas.ops.spconv import SparseConvTensor
+
+    theirs_cls = reference.SubMConv3d if conv.subm else reference.SparseConv3d
+    theirs = theirs_cls(
+        conv.in_channels, conv.out_channels, conv.kernel_size, conv.stride, conv.padding,
+        conv.dilation, bias=conv.bias is not None, indice_key=conv.indice_key,
+    ).to(device)  # fmt: skip
+    theirs.load_state_dict(conv.state_dict())
+    features = x.features.detach().contiguous()
+    tensors = {"ours": SparseConvTensor, "spconv": reference.SparseConvTensor}
+    layers = {"ours": conv, "spconv": theirs}
+
+    def forward(side, leaf=None):
+        sparse = tensors[side](
+            features if leaf is None else leaf, x.indices, x.spatial_shape, x.batch_size
+        )
+        return layers[side](sparse)
+
+    def backward(side):
+        leaf = features.clone().requires_grad_(True)
+        layers[side].weight.grad = None
+        forward(side, leaf).features.square().mean().backward()
+
+    def sort_rows(t):  # spconv's regular-conv output order may differ: compare by site
+        return t.features[torch.argsort(_site_keys(t.indices, t.spatial_shape))]
+
+    with torch.no_grad():
+        ours, theirs_out = forward("ours"), forward("spconv")
+        if not torch.equal(
+            torch.sort(_site_keys(ours.indices, ours.spatial_shape)).values,
+            torch.sort(_site_keys(theirs_out.indices, theirs_out.spatial_shape)).values,
+        ):
+            raise SystemExit("--spconv: our output sites differ from spconv's")
+        want = sort_rows(theirs_out)
+        diff = float((sort_rows(ours) - want).abs().max() / want.abs().max().clamp_min(1e-30))
+    times: dict = {k: [] for k in ("ours", "spconv", "ours_backward", "spconv_backward")}
+    for i in range(repeats + 1):
+        for side in ("ours", "spconv"):
+            with torch.no_grad():
+                t = _timed_once(lambda side=side: forward(side), device)
+            t_bwd = _timed_once(lambda side=side: backward(side), device)
+            if i:  # the first round warms up
+                times[side].append(t)
+                times[f"{side}_backward"].append(t_bwd)
+    return {"diff": diff, **{k: min(v) for k, v in times.items()}}
+
+
+def _site_keys(indices: torch.Tensor, shape) -> torch.Tensor:
+    d, h, w = shape
+    idx = indices.long()
+    return ((idx[:, 0] * d + idx[:, 1]) * h + idx[:, 2]) * w + idx[:, 3]
+
+
+def _timed_once(fn, device: torch.device) -> float:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    t0 = time.perf_counter()
+    fn()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter() - t0
 
 
 def main() -> None:
@@ -1287,8 +1338,6 @@ def main() -> None:
         ssm_table(args.ssm_lengths, args.frames, device)
     if args.spconv is not None:
         spconv_table(args.spconv, data_path, args, device)
-    if args.deterministic_scatter is not None:
-        deterministic_scatter_table(args.deterministic_scatter, data_path, args, device)
     if args.reuse_cfgs:
         reuse_table([str(Path(c).resolve()) for c in args.reuse_cfgs], data_path, args, device)
     if tmp is not None:
