@@ -8,8 +8,9 @@
 ``results.json`` and ``<model>.results.json`` is read, and each of them gzip-compressed as
 ``.gz``, as ``tools/reproduce.py`` archives the results its report was made from in the report's
 ``results/``); each model must appear once. ``--out`` (alias ``--out_dir``) receives
-``report.md``, the PNG figures and, with ``--latex``, ``report.tex`` (booktabs tables). What each
-table and figure shows: docs/evaluation.md "Report".
+``report.md``, the figures (each a PNG and a PDF beside it) and, with ``--latex``,
+``report.tex`` (booktabs tables). What each table and figure shows: docs/evaluation.md
+"Report".
 """
 
 from __future__ import annotations

@@ -43,7 +43,7 @@ from pcdet_atlas.evaluation.analyses import (
     register_confidence_kind,
 )
 from pcdet_atlas.evaluation.analyses.schema_parts import COUNT, FRAC, fail, nullable
-from pcdet_atlas.evaluation.results.figures import figure_grid, save_png
+from pcdet_atlas.evaluation.results.style import figure_grid, render
 
 register_meta_key("plugin_weather", default="clear")
 
@@ -58,7 +58,7 @@ def mean_iou_table(results_list, fmt):
     return [("Mean target IoU (plugin)", text)]
 
 
-def mean_iou_figure(results_list, path, notes):
+def mean_iou_bars(results_list, notes):
     values = [v["mean_target_iou"] for r in results_list for v in r["variants"].values()
               if v.get("mean_target_iou") is not None]
     if not values:
@@ -66,7 +66,11 @@ def mean_iou_figure(results_list, path, notes):
     fig, (ax,) = figure_grid(1)
     ax.bar(range(len(values)), values)
     notes.append(f"{len(values)} variant(s).")
-    return save_png(fig, path)
+    return fig
+
+
+def mean_iou_figure(results_list, path, notes):
+    return render(lambda: mean_iou_bars(results_list, notes), path)
 
 
 @register_analysis

@@ -172,6 +172,7 @@ def test_report_has_every_table_row_and_figure(models, tmp_path):
     for name, result in out["figures"].items():
         assert isinstance(result, Path), (name, result)
         assert result.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and result.stat().st_size > 5000
+        assert result.with_suffix(".pdf").read_bytes()[:5] == b"%PDF-"  # the PDF beside it
         assert f"]({name})" in text
     assert set(out["figures"]) == {f.file for f in report_figures()}
     tex = out["latex"].read_text()
@@ -616,7 +617,7 @@ def test_reproduce_shares_a_store_between_rpns_and_two_stage_models(tmp_path):
 
 def _same_report(a: Path, b: Path, sources: tuple[str, str]) -> None:
     """Two report folders hold the same report: report.md equal but for the command line and
-    the Source column's folder, report.tex and every figure byte for byte."""
+    the Source column's folder, report.tex and every figure (PNG and PDF) byte for byte."""
 
     def text(folder: Path, source: str) -> str:
         lines = (folder / "report.md").read_text().replace(source, "<results>").splitlines()
@@ -627,8 +628,9 @@ def _same_report(a: Path, b: Path, sources: tuple[str, str]) -> None:
     assert text_a.replace(".json.gz`", ".json`") == text_b.replace(".json.gz`", ".json`")
     assert (a / "report.tex").read_bytes() == (b / "report.tex").read_bytes()
     assert sorted(p.name for p in a.glob("*.png")) == sorted(f.file for f in report_figures())
-    for png in a.glob("*.png"):
-        assert png.read_bytes() == (b / png.name).read_bytes(), png.name
+    assert sorted(p.stem for p in a.glob("*.pdf")) == sorted(p.stem for p in a.glob("*.png"))
+    for figure in [*a.glob("*.png"), *a.glob("*.pdf")]:
+        assert figure.read_bytes() == (b / figure.name).read_bytes(), figure.name
 
 
 def test_report_rebuilds_from_archived_results_compressed_or_not(models, tmp_path):

@@ -29,8 +29,15 @@ from pcdet_atlas.evaluation.analyses.schema_parts import (
     fail,
     nullable,
 )
-from pcdet_atlas.evaluation.results.figures import HIGH_SCORE, figure_grid, save_png
-from pcdet_atlas.evaluation.results.queries import family_variants
+from pcdet_atlas.evaluation.results.figures import HIGH_SCORE
+from pcdet_atlas.evaluation.results.queries import attack_variants, family_variants
+from pcdet_atlas.evaluation.results.style import (
+    figure_grid,
+    label_panels,
+    legend_below,
+    render,
+    variant_styles,
+)
 from pcdet_atlas.evaluation.results.tables import (
     MISSING,
     _render,
@@ -43,6 +50,7 @@ __all__ = [
     "ConfidenceAnalysis",
     "centre_gap_table",
     "confidence_histograms",
+    "confidence_histograms_figure",
     "confidence_schema",
     "confident_phantom_table",
 ]
@@ -73,11 +81,23 @@ def confidence_schema() -> dict:
     }
 
 
-def confidence_histograms(results_list: Sequence[Mapping], family: str, path: Path) -> Path | str:
-    """Per model, the score distribution of the detected targets per variant (injection: the
-    phantoms' scores, paper Fig. 5; removal: the surviving targets' scores with the clean run's
-    scores of the same targets dashed, paper Fig. 9), as fractions of the detected targets;
-    the dotted line is the 0.7 high-confidence threshold."""
+def confidence_histograms(
+    results_list: Sequence[Mapping], family: str, path: Path, notes: list[str] | None = None
+) -> Path | str:
+    """:func:`confidence_histograms_figure` written to ``path`` (PNG, PDF beside)."""
+    return render(lambda: confidence_histograms_figure(results_list, family, notes), path)
+
+
+def confidence_histograms_figure(
+    results_list: Sequence[Mapping], family: str, notes: list[str] | None = None
+):
+    """Per model (a panel each, one y-axis for all), the score distribution of the detected
+    targets per variant (injection: the phantoms' scores, paper Fig. 5; removal: the surviving
+    targets' scores with the clean run's scores of the same targets dashed, paper Fig. 9), as
+    fractions of the detected targets; the dotted line is the 0.7 high-confidence threshold
+    (the share above it: the report's confident-phantom table). One legend under the panels."""
+    from matplotlib.lines import Line2D
+
     kind = {"injection": "injection", "removal": "removal"}.get(family)
     if kind is None:
         return f"no confidence figure for family {family!r}"
@@ -89,7 +109,12 @@ def confidence_histograms(results_list: Sequence[Mapping], family: str, path: Pa
             panels.append((r, names))
     if not panels:
         return f"no {family} variant with confidence data"
-    fig, axes = figure_grid(len(panels))
+    styles = variant_styles(attack_variants(results_list))
+    drawn: set[str] = set()
+    clean_drawn = False
+    shown = [n for n in attack_variants(results_list, family) if any(n in ns for _, ns in panels)]
+    fig, axes = figure_grid(len(panels), sharey=True,
+                            legend_entries=len(shown) + 1 + (kind == "removal"))  # fmt: skip
     for ax, (r, names) in zip(axes, panels):
         clean_total = None
         for name in names:
@@ -97,26 +122,31 @@ def confidence_histograms(results_list: Sequence[Mapping], family: str, path: Pa
             h = c["histogram"]
             counts = np.asarray(h["counts"], dtype=float)
             if counts.sum() > 0:
-                above = c["fraction_above"]
-                label = f"{variant_label(name)} ({100 * above:.0f}% > {c['high_score_threshold']})"
-                ax.stairs(counts / counts.sum(), h["bin_edges"], label=label)
+                ax.stairs(counts / counts.sum(), h["bin_edges"], **styles[name].line())
+                drawn.add(name)
             if kind == "removal":
                 pc = np.asarray(c["paired_clean_histogram"]["counts"], dtype=float)
                 clean_total = pc if clean_total is None else clean_total + pc
                 clean_edges = c["paired_clean_histogram"]["bin_edges"]
         if clean_total is not None and clean_total.sum() > 0:
-            ax.stairs(clean_total / clean_total.sum(), clean_edges, color="black", ls="--",
-                      label="clean run (same targets)")  # fmt: skip
-        ax.axvline(HIGH_SCORE, color="grey", ls=":", lw=1)
-        ax.set_xlabel("score" if kind == "injection" else "surviving target score")
-        ax.set_ylabel("fraction of detected")
-        ax.set_title(f"{r['model']} ({family})", fontsize=10)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=6)
-        else:
+            clean_drawn = True
+            ax.stairs(clean_total / clean_total.sum(), clean_edges, color="black", ls=":",
+                      lw=1.2)  # fmt: skip
+        ax.axvline(HIGH_SCORE, color="0.5", ls=":", lw=0.8)
+        ax.set_title(f"{r['model']}")
+        if not any(n in drawn for n in names):
             ax.text(0.5, 0.5, "no target detected", ha="center", transform=ax.transAxes)
-        ax.grid(alpha=0.3)
-    return save_png(fig, path)
+        ax.grid(lw=0.3)
+    xlabel = "phantom score" if kind == "injection" else "surviving target score"
+    label_panels(axes, xlabel, "fraction of detected")
+    handles = [Line2D([], [], **styles[n].line(), label=variant_label(n))
+               for n in shown if n in drawn]  # fmt: skip
+    if clean_drawn:
+        handles.append(Line2D([], [], color="black", ls=":", lw=1.2,
+                              label="clean run (same targets)"))  # fmt: skip
+    handles.append(Line2D([], [], color="0.5", ls=":", lw=0.8, label=f"score {HIGH_SCORE}"))
+    legend_below(fig, handles)
+    return fig
 
 
 def _confidence_table(results_list, kind: str, cell, fmt: str) -> str | None:
@@ -224,7 +254,7 @@ class ConfidenceAnalysis(Analysis):
         return [
             ReportFigure("confidence_injection.png",
                          "Phantom confidence under injection (paper Fig. 5)",
-                         lambda r, p, n: confidence_histograms(r, "injection", p), order=40),
+                         lambda r, p, n: confidence_histograms(r, "injection", p, n), order=40),
             ReportFigure("confidence_removal.png", "Target confidence under removal (paper Fig. 9)",
-                         lambda r, p, n: confidence_histograms(r, "removal", p), order=50),
+                         lambda r, p, n: confidence_histograms(r, "removal", p, n), order=50),
         ]  # fmt: skip

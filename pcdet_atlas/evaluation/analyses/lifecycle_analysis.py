@@ -29,16 +29,37 @@ from pcdet_atlas.evaluation.analyses.schema_parts import (
     nullable,
 )
 from pcdet_atlas.evaluation.intervals import asr_interval
-from pcdet_atlas.evaluation.results.figures import HIGH_SCORE, figure_grid, save_png
+from pcdet_atlas.evaluation.results.figures import HIGH_SCORE
 from pcdet_atlas.evaluation.results.queries import (
     attack_variants,
     covered_variants,
     families_present,
     family_variants,
 )
+from pcdet_atlas.evaluation.results.style import (
+    MASKED_COLOUR,
+    MASKED_HATCH,
+    OKABE_ITO,
+    data_norm,
+    figure_grid,
+    label_panels,
+    legend_below,
+    render,
+    variant_styles,
+)
 from pcdet_atlas.evaluation.results.tables import _render, latex_escape, missing_of, variant_label
 
-__all__ = ["LifecycleAnalysis", "lifecycle_curves", "lifecycle_heatmaps", "lifecycle_table"]
+__all__ = [
+    "LifecycleAnalysis",
+    "lifecycle_curves",
+    "lifecycle_curves_figure",
+    "lifecycle_heatmaps",
+    "lifecycle_heatmaps_figure",
+    "lifecycle_table",
+]
+
+#: The shading of the spoofed positions k = 1..W (Okabe and Ito's yellow, lightened).
+SPOOFED_COLOUR = "#FAF4B7"
 
 LIFECYCLE_SCHEMA = closed(
     {
@@ -124,42 +145,71 @@ def _lifecycle_models(results_list, family, notes):
     return out
 
 
-def _shade_attack(ax, window: int) -> None:
-    ax.axvspan(0.5, window + 0.5, color="tab:red", alpha=0.08, lw=0)
-    ax.axvline(window + 0.5, color="tab:red", ls="--", lw=1)
+def _spoofed_patch():
+    from matplotlib.patches import Patch
+
+    return Patch(facecolor=SPOOFED_COLOUR, edgecolor="none", label="spoofed frames (k = 1..W)")
+
+
+def _k_axis(ax) -> None:
+    """Integer ticks on the lifecycle position axis."""
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True, nbins=5))
 
 
 def lifecycle_curves(
     results_list: Sequence[Mapping], family: str, path: Path, notes: list[str] | None = None
 ) -> Path | str:
-    """ASR by lifecycle position k per model (a panel each) and variant (a line each, its band
-    the run-level 95% interval where the results have one): k = 1..W spoofed (shaded), the
-    dashed line the onset/decay boundary, k > W the clean frames after the run (paper Figs. 4
-    and 6)."""
+    """:func:`lifecycle_curves_figure` written to ``path`` (PNG, PDF beside)."""
+    return render(lambda: lifecycle_curves_figure(results_list, family, notes), path)
+
+
+def lifecycle_curves_figure(
+    results_list: Sequence[Mapping], family: str, notes: list[str] | None = None
+):
+    """ASR by lifecycle position k per model (a panel each, one ASR axis for all) and variant (a
+    line each, its band the run-level 95% interval ``asr_ci`` where the results have one): k =
+    1..W spoofed (shaded), k > W the clean frames after the run (paper Figs. 4 and 6); one
+    legend under the panels."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
     models = _lifecycle_models(results_list, family, notes)
     if not models:
         return f"no {family} variant with lifecycle data"
-    fig, axes = figure_grid(len(models))
+    styles = variant_styles(attack_variants(results_list))
+    shown = [n for n in attack_variants(results_list, family) if any(n in ns for _, ns in models)]
+    banded = any(r["variants"][n]["lifecycle"].get("asr_ci") is not None
+                 for r, names in models for n in names)  # fmt: skip
+    fig, axes = figure_grid(len(models), sharey=True,
+                            legend_entries=len(shown) + 1 + banded)  # fmt: skip
     for ax, (r, names) in zip(axes, models):
         window = r["variants"][names[0]]["lifecycle"]["window"]
-        _shade_attack(ax, window)
+        ax.axvspan(0.5, window + 0.5, color=SPOOFED_COLOUR, lw=0, zorder=0)
         for name in names:
-            lc = r["variants"][name]["lifecycle"]
+            lc, style = r["variants"][name]["lifecycle"], styles[name]
             asr = np.array([np.nan if a is None else a for a in lc["asr"]], dtype=float)
-            (line,) = ax.plot(lc["k"], asr, marker=".", ms=3, lw=1, label=variant_label(name))
+            ax.plot(lc["k"], asr, marker=style.marker, ms=2, **style.line(), zorder=3)
             if lc.get("asr_ci") is not None:  # the run-level 95% interval as a band
                 lo, hi = (
                     np.array([np.nan if c is None else c[i] for c in lc["asr_ci"]], dtype=float)
                     for i in (0, 1)
                 )
-                ax.fill_between(lc["k"], lo, hi, color=line.get_color(), alpha=0.12, lw=0)
+                ax.fill_between(lc["k"], lo, hi, color=style.colour, alpha=0.15, lw=0, zorder=2)
         ax.set_ylim(-0.02, 1.02)
-        ax.set_xlabel("lifecycle position k")
-        ax.set_ylabel("ASR")
-        ax.set_title(f"{r['model']} (W = {window})", fontsize=10)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=6)
-    return save_png(fig, path)
+        ax.set_xlim(-0.5, 2 * window + 0.5)
+        _k_axis(ax)
+        ax.set_title(f"{r['model']} (W = {window})")
+        ax.grid(lw=0.3)
+    label_panels(axes, "lifecycle position k", "ASR")
+    handles = [Line2D([], [], marker=styles[n].marker, ms=3, **styles[n].line(),
+                      label=variant_label(n)) for n in shown]  # fmt: skip
+    handles.append(_spoofed_patch())
+    if banded:
+        handles.append(Patch(facecolor="0.5", alpha=0.3, lw=0, label="95% interval (runs)"))
+    legend_below(fig, handles)
+    return fig
 
 
 def _bin_centres(edges) -> np.ndarray:
@@ -195,13 +245,28 @@ def _pooled_lifecycles(r, names, family_names):
 def lifecycle_heatmaps(
     results_list: Sequence[Mapping], family: str, path: Path, notes: list[str] | None = None
 ) -> Path | str:
+    """:func:`lifecycle_heatmaps_figure` written to ``path`` (PNG, PDF beside)."""
+    return render(lambda: lifecycle_heatmaps_figure(results_list, family, notes), path)
+
+
+def lifecycle_heatmaps_figure(
+    results_list: Sequence[Mapping], family: str, notes: list[str] | None = None
+):
     """Per model, the targets' matched scores by lifecycle position (the family's variants
     pooled): each column k is the fraction of that k's targets detected with a score in each
-    bin (a column sums to the detected fraction); one colour scale for all panels, up to the
-    largest cell. The white line is the mean attacked score of the detected targets; the dashed
-    blue line the clean baseline, the mean clean-run score of the same targets at the same
-    frames (paper Figs. 7 and 8). A panel pools what it can (``notes``: the variants of the
-    family that a model's panel leaves out, and why)."""
+    bin (a column sums to the detected fraction); a column without targets has no value and is
+    masked (grey, hatched), never drawn as a zero. One colour scale for all panels, spanning the
+    drawn cells' values; one score axis. The white line is the mean attacked score of the
+    detected targets; the dashed blue line the clean baseline, the mean clean-run score of the
+    same targets at the same frames (paper Figs. 7 and 8). A panel pools what it can
+    (``notes``: the variants of the family that a model's panel leaves out, and why)."""
+    from matplotlib import colormaps
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+    from matplotlib.patheffects import withStroke
+
     models = _lifecycle_models(results_list, family, notes)
     if not models:
         return f"no {family} variant with lifecycle data"
@@ -217,29 +282,53 @@ def lifecycle_heatmaps(
         targets = np.sum([np.asarray(lc["num_targets"], dtype=float) for lc in lcs], axis=0)
         frac = np.divide(counts, targets[:, None], out=np.zeros_like(counts),
                          where=targets[:, None] > 0)  # fmt: skip
+        frac = np.ma.masked_array(frac, mask=np.broadcast_to(targets[:, None] == 0, frac.shape))
         panels.append((r, lcs, window, edges, counts, frac))
-    vmax = max(float(frac.max()) for *_, frac in panels) or 1.0
-    fig, axes = figure_grid(len(models), (4.2, 3.2))
-    image = None
+    cells = np.ma.concatenate([frac.ravel() for *_, frac in panels])
+    # no cell with targets: every cell masked, and no colour bar to span nothing
+    norm = data_norm(cells) if cells.count() else Normalize(0.0, 1.0)
+    cmap = colormaps["magma"].with_extremes(bad=(0.0, 0.0, 0.0, 0.0))  # masked: see-through
+    clean_drawn = masked = False
+    fig, axes = figure_grid(len(models), sharey=True, legend_entries=5)
+    outline = [withStroke(linewidth=2.2, foreground="black")]
     for ax, (r, lcs, window, edges, counts, frac) in zip(axes, panels):
         ks = np.asarray(lcs[0]["k"])
-        image = ax.imshow(frac.T, origin="lower", aspect="auto", cmap="magma", vmin=0, vmax=vmax,
-                          extent=(ks[0] - 0.5, ks[-1] + 0.5, edges[0], edges[-1]))  # fmt: skip
-        ax.plot(ks, [_mean_from_counts(edges, c) for c in counts], color="white", lw=1.2,
-                marker="o", ms=3, label="attacked (mean)")  # fmt: skip
+        ax.patch.set_facecolor(MASKED_COLOUR)  # what a masked cell shows
+        ax.patch.set_hatch(MASKED_HATCH)
+        ax.patch.set_edgecolor("0.55")
+        masked |= bool(frac.mask.any())
+        ax.imshow(frac.T, origin="lower", aspect="auto", cmap=cmap, norm=norm,
+                  interpolation="nearest",
+                  extent=(ks[0] - 0.5, ks[-1] + 0.5, edges[0], edges[-1]))  # fmt: skip
+        ax.plot(ks, [_mean_from_counts(edges, c) for c in counts], color="white", lw=1,
+                marker="o", ms=2, path_effects=outline)  # fmt: skip
         clean = [lc["clean_score_counts"] for lc in lcs]
         if all(c is not None for c in clean):
+            clean_drawn = True
             clean_counts = np.sum([np.asarray(c, dtype=float) for c in clean], axis=0)
-            ax.plot(ks, [_mean_from_counts(edges, c) for c in clean_counts], color="deepskyblue",
-                    ls="--", lw=1.5, marker="s", ms=3, label="clean baseline (mean)")  # fmt: skip
-        ax.axvline(window + 0.5, color="cyan", ls=":", lw=1)
-        ax.axhline(HIGH_SCORE, color="grey", ls=":", lw=0.8)
-        ax.set_xlabel("lifecycle position k")
-        ax.set_ylabel("score")
-        ax.set_title(f"{r['model']} ({family}, W = {window})", fontsize=10)
-        ax.legend(fontsize=6, loc="lower right")
-    fig.colorbar(image, ax=list(axes), shrink=0.8, label="fraction of targets")
-    return save_png(fig, path)
+            ax.plot(ks, [_mean_from_counts(edges, c) for c in clean_counts], color=OKABE_ITO[5],
+                    ls="--", lw=1, marker="s", ms=2)  # fmt: skip
+        ax.axvline(window + 0.5, color=OKABE_ITO[2], ls=":", lw=1)
+        ax.axhline(HIGH_SCORE, color="0.6", ls=":", lw=0.8)
+        _k_axis(ax)
+        ax.set_title(f"{r['model']} (W = {window})")
+    label_panels(axes, "lifecycle position k", "score")
+    if cells.count():
+        fig.colorbar(ScalarMappable(norm, cmap), ax=list(axes), label="fraction of targets")
+    handles = [Line2D([], [], color="white", marker="o", ms=2, path_effects=outline,
+                      label="attacked score (mean)")]  # fmt: skip
+    if clean_drawn:
+        handles.append(Line2D([], [], color=OKABE_ITO[5], ls="--", marker="s", ms=2,
+                              label="clean baseline (mean)"))  # fmt: skip
+    handles += [
+        Line2D([], [], color=OKABE_ITO[2], ls=":", label="end of spoofing (k = W)"),
+        Line2D([], [], color="0.6", ls=":", label=f"score {HIGH_SCORE}"),
+    ]
+    if masked:
+        handles.append(Patch(facecolor=MASKED_COLOUR, edgecolor="0.55", hatch=MASKED_HATCH,
+                             label="no targets at this k"))  # fmt: skip
+    legend_below(fig, handles)
+    return fig
 
 
 def _pooled_lifecycle_interval(lcs: Sequence[Mapping], k: int) -> tuple[float, float] | None:

@@ -17,19 +17,26 @@ from pcdet_atlas.evaluation.analyses.registry import (
     register_analysis,
 )
 from pcdet_atlas.evaluation.results.build import ranks_from_results
-from pcdet_atlas.evaluation.results.figures import figure_grid, save_png
 from pcdet_atlas.evaluation.results.queries import ranked_variants, ranked_variants_note
+from pcdet_atlas.evaluation.results.style import OKABE_ITO, figure_grid, legend_below, render
 from pcdet_atlas.evaluation.results.tables import format_ranks
 
-__all__ = ["RanksAnalysis", "rank_correlation"]
+__all__ = ["RanksAnalysis", "rank_correlation", "rank_correlation_figure"]
 
 
 def rank_correlation(
     results_list: Sequence[Mapping], path: Path, notes: list[str] | None = None
 ) -> Path | str:
-    """Removal rank against injection rank per model, with the least-squares line and R²
-    (paper Fig. "Robustness Correlation"); over the ranked variants every model has with an
-    ASR (``notes``: which variants, and those left out)."""
+    """:func:`rank_correlation_figure` written to ``path`` (PNG, PDF beside)."""
+    return render(lambda: rank_correlation_figure(results_list, notes), path)
+
+
+def rank_correlation_figure(results_list: Sequence[Mapping], notes: list[str] | None = None):
+    """Removal rank against injection rank per model, with the least-squares line and R² in the
+    legend under the panel (paper Fig. "Robustness Correlation"); over the ranked variants every
+    model has with an ASR (``notes``: which variants, and those left out). One column wide."""
+    from matplotlib.ticker import MaxNLocator
+
     variants, dropped = ranked_variants(results_list)
     if notes is not None:
         notes.append(ranked_variants_note(variants, dropped))
@@ -44,22 +51,24 @@ def rank_correlation(
     models = ranks["models"]
     x = np.array([ranks["group_ranks"][x_group][m] for m in models])
     y = np.array([ranks["group_ranks"][y_group][m] for m in models])
-    fig, (ax,) = figure_grid(1, (5.0, 4.2))
-    ax.scatter(x, y, color="tab:blue", zorder=3)
-    for m, xi, yi in zip(models, x, y):
-        ax.annotate(m, (xi, yi), textcoords="offset points", xytext=(4, 4), fontsize=8)
     fit = ranks["fit"]
+    fig, (ax,) = figure_grid(1, panel_height_in=2.5, legend_entries=int(fit is not None))
+    ax.scatter(x, y, s=16, color=OKABE_ITO[0], zorder=3)
+    for m, xi, yi in zip(models, x, y):
+        ax.annotate(m, (xi, yi), textcoords="offset points", xytext=(4, 3))
     if fit is not None:
         xs = np.linspace(x.min() - 0.3, x.max() + 0.3, 2)
-        ax.plot(xs, fit["slope"] * xs + fit["intercept"], "--", color="tab:red",
-                label=f"y = {fit['slope']:.3f}x + {fit['intercept']:.3f}, "
-                      f"R² = {fit['r2']:.2f}")  # fmt: skip
-        ax.legend(fontsize=8)
+        (line,) = ax.plot(xs, fit["slope"] * xs + fit["intercept"], "--", color=OKABE_ITO[1],
+                          label=f"y = {fit['slope']:.3f}x + {fit['intercept']:.3f}, "
+                                f"R² = {fit['r2']:.2f}")  # fmt: skip
+        legend_below(fig, [line], ncols=1)
+    for axis in (ax.xaxis, ax.yaxis):  # ranks are whole numbers (ties average to halves)
+        axis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel(f"{x_group} rank (1 = most robust)")
     ax.set_ylabel(f"{y_group} rank (1 = most robust)")
-    ax.set_title(f"Robustness rank correlation ({len(variants)} variants)", fontsize=10)
-    ax.grid(alpha=0.3)
-    return save_png(fig, path)
+    ax.set_title(f"Robustness ranks over {len(variants)} variants")
+    ax.grid(lw=0.3)
+    return fig
 
 
 def _ranks_text(results_list) -> str:

@@ -69,8 +69,10 @@ class ReportSection:
 
 @dataclass(frozen=True)
 class ReportFigure:
-    """A figure of the report: ``draw(results_list, path, notes)`` writes ``path`` and returns
-    it, or returns why it cannot be drawn, appending to ``notes`` what it leaves out."""
+    """A figure of the report: ``draw(results_list, path, notes)`` writes ``path`` (``file``, a
+    ``.png``, with the PDF beside it: :func:`~pcdet_atlas.evaluation.results.style.render`)
+    and returns it, or returns why it cannot be drawn, appending to ``notes`` what it leaves
+    out."""
 
     file: str
     caption: str

@@ -2,10 +2,10 @@
 plus the invariants between fields; each registered analysis of
 :mod:`pcdet_atlas.evaluation.analyses` states and checks its own keys), ``build`` makes its
 entries, ``io`` reads and writes it and ``tables`` prints the paper's tables from it; ``report``
-writes the paper's report (tables and PNG figures) from several of them (``tools/report.py``):
-its own sections and figures (``queries`` reads the data, ``figures`` draws) and those of every
-registered analysis; ``archive`` keeps the files a report was made from beside it,
-gzip-compressed.
+writes the paper's report (tables, and figures as PNG and PDF) from several of them
+(``tools/report.py``): its own sections and figures (``queries`` reads the data, ``figures``
+draws, ``style`` is the figures' one look) and those of every registered analysis; ``archive``
+keeps the files a report was made from beside it, gzip-compressed.
 
 Schema (version 8; every key required unless marked optional; unknown keys are errors)::
 

@@ -1,11 +1,14 @@
-"""The report's figures that belong to no single analysis, and the drawing helpers every figure
-uses: drawn headless (matplotlib's ``Figure``, no display and no pyplot state). A figure function
-writes one PNG and returns its path, or returns a string saying why the figure cannot be drawn
-from the results it was given (too few models, no timing). What a figure leaves out of the given
-results (a model, a variant, a colour) it appends, with the reason, to ``notes`` when given a
-list, for the report to print under the figure. The data a figure shows comes from
-:mod:`~pcdet_atlas.evaluation.results.queries`; the analyses' own figures live with them
-(:mod:`pcdet_atlas.evaluation.analyses`)."""
+"""The report's figures that belong to no single analysis: drawing only. The data a figure shows
+comes from :mod:`~pcdet_atlas.evaluation.results.queries`; its style, size and files (PNG and
+PDF) from :mod:`~pcdet_atlas.evaluation.results.style`; the analyses' own figures live with them
+(:mod:`pcdet_atlas.evaluation.analyses`).
+
+A figure is a builder, ``*_figure(results_list, ..., notes)``, that returns a ``Figure`` or a
+string saying why the figure cannot be drawn from the results it was given (too few models, no
+timing), and a function of the report's ``ReportFigure`` form that builds it in the paper style
+and writes it (:func:`~pcdet_atlas.evaluation.results.style.render`). What a figure leaves out
+of the given results (a model, a variant, a colour) its builder appends, with the reason, to
+``notes`` when given a list, for the report to print under the figure."""
 
 from __future__ import annotations
 
@@ -18,49 +21,33 @@ from pcdet_atlas.evaluation.results.queries import (
     frame_cost,
     mean_asr,
 )
+from pcdet_atlas.evaluation.results.style import data_norm, figure_grid, legend_below, render
 from pcdet_atlas.evaluation.results.tables import missing_of
 
-__all__ = ["DPI", "HIGH_SCORE", "accuracy_vs_time", "figure_grid", "save_png"]
+__all__ = ["HIGH_SCORE", "accuracy_vs_time", "accuracy_vs_time_figure"]
 
-DPI = 120
+#: The high-confidence score the confidence and heatmap figures mark (the paper's 0.7).
 HIGH_SCORE = 0.7
-
-
-def figure_grid(num_panels: int, panel_size=(4.0, 3.0), max_cols: int = 4):
-    """A ``Figure`` with ``num_panels`` axes in rows of at most ``max_cols``, and those axes."""
-    from matplotlib.figure import Figure
-
-    cols = max(1, min(max_cols, num_panels))
-    rows = -(-num_panels // cols)
-    fig = Figure(
-        figsize=(panel_size[0] * cols, panel_size[1] * rows), dpi=DPI, layout="constrained"
-    )
-    axes = fig.subplots(rows, cols, squeeze=False).ravel()
-    for ax in axes[num_panels:]:
-        ax.set_visible(False)
-    return fig, axes[:num_panels]
-
-
-def save_png(fig, path: Path) -> Path:
-    """Write ``fig`` as a PNG at ``path`` (its folder made); -> ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, format="png")
-    return path
 
 
 # ----------------------------------------------------------------------------- accuracy/time
 def accuracy_vs_time(
     results_list: Sequence[Mapping], path: Path, notes: list[str] | None = None
 ) -> Path | str:
+    """:func:`accuracy_vs_time_figure` written to ``path`` (PNG, PDF beside)."""
+    return render(lambda: accuracy_vs_time_figure(results_list, notes), path)
+
+
+def accuracy_vs_time_figure(results_list: Sequence[Mapping], notes: list[str] | None = None):
     """Clean L2 mAP against measured model ms/frame per model (:func:`frame_cost`: a two-stage
     model's proposals read from the prediction store at its RPN's time; a right-pointing marker
     where that time cannot be added and the value is a lower bound), the marker coloured by the
-    mean ASR over the attack variants of all the models (:func:`mean_asr`); a model without
-    every one of them has a hollow grey marker. ``notes``: the models left out (no clean timing
-    or mAP), those drawn hollow, and how each store-served model's time was counted."""
+    mean ASR over the attack variants of all the models (:func:`mean_asr`; the colour bar spans
+    the models' values); a model without every one of them has a hollow grey marker. ``notes``:
+    the models left out (no clean timing or mAP), those drawn hollow, and how each store-served
+    model's time was counted. One column wide."""
     from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import Normalize
+    from matplotlib.lines import Line2D
     from matplotlib.ticker import FormatStrFormatter, FuncFormatter
 
     variants = attack_variants(results_list)
@@ -75,23 +62,27 @@ def accuracy_vs_time(
     if not points:
         return "no model has a clean variant with timing and L2 mAP"
     devices = sorted({str(r.get("extra", {}).get("device", "?")) for r, *_ in points})
-    fig, (ax,) = figure_grid(1, (5.5, 4.2))
-    colours = ScalarMappable(Normalize(0.0, 1.0), "viridis_r")
     hollow = [p for p in points if p[3] is None]
+    lower = any(p[4] for p in points)
+    handles = []
+    if hollow:
+        handles.append(Line2D([], [], ls="", marker="o", mfc="none", mec="grey",
+                              label="no mean ASR (not every attack variant)"))  # fmt: skip
+    if lower:
+        handles.append(Line2D([], [], ls="", marker=">", mfc="none", mec="black",
+                              label="time is a lower bound (store reads untimed)"))  # fmt: skip
+    fig, (ax,) = figure_grid(1, panel_height_in=2.5, extra_height_in=0.18 * len(handles))
+    asrs = [p[3] for p in points if p[3] is not None]
+    colours = ScalarMappable(data_norm(asrs), "viridis_r") if asrs else None
     for r, x, y, asr, lower_bound in points:
         face = "none" if asr is None else colours.to_rgba(asr)
-        ax.scatter([x], [y], s=60, facecolors=[face], edgecolors="grey" if asr is None else "black",
-                   marker=">" if lower_bound else "o", zorder=3)  # fmt: skip
-        ax.annotate(r["model"], (x, y), textcoords="offset points", xytext=(5, 4), fontsize=8)
-    if hollow:
-        ax.scatter([], [], s=60, facecolors="none", edgecolors="grey",
-                   label="no mean ASR (not every attack variant)")  # fmt: skip
-    if any(p[4] for p in points):
-        ax.scatter([], [], s=60, marker=">", facecolors="none", edgecolors="black",
-                   label="time is a lower bound (store reads untimed)")  # fmt: skip
-    if hollow or any(p[4] for p in points):
-        ax.legend(fontsize=7, loc="lower right")
-    fig.colorbar(colours, ax=ax, label="mean ASR over attack variants")
+        ax.scatter([x], [y], s=24, facecolors=[face], edgecolors="grey" if asr is None else "black",
+                   linewidths=0.6, marker=">" if lower_bound else "o", zorder=3)  # fmt: skip
+        ax.annotate(r["model"], (x, y), textcoords="offset points", xytext=(4, 3))
+    if handles:
+        legend_below(fig, handles, ncols=1)
+    if colours is not None:
+        fig.colorbar(colours, ax=ax, label="mean ASR over attack variants")
     if notes is not None and untimed:
         notes.append(f"Left out (no clean timing or clean L2 mAP): {', '.join(untimed)}.")
     if notes is not None and hollow:
@@ -101,12 +92,12 @@ def accuracy_vs_time(
     if notes is not None:
         notes += [f"Model time per frame of {note}." for note in time_notes]
     ax.set_xscale("log")
+    ax.margins(0.15)  # room for the model names inside the axes
     ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
     # minor ticks labelled at 2, 3 and 5 x 10^n only: all eight collide within a decade
     minor = FuncFormatter(lambda x, _: f"{x:g}" if f"{x:g}"[0] in "235" else "")
     ax.xaxis.set_minor_formatter(minor)
     ax.set_xlabel(f"model time per frame (ms, {', '.join(devices)})")
     ax.set_ylabel("clean L2 mAP (x100)")
-    ax.set_title("Accuracy vs time", fontsize=10)
-    ax.grid(alpha=0.3, which="both")
-    return save_png(fig, path)
+    ax.grid(which="both")
+    return fig

@@ -1,5 +1,6 @@
 """The paper's report from ``results.json`` files: ``report.md`` with its tables (and, on request,
-``report.tex`` with the same tables), and its figures as PNGs (docs/evaluation.md "Report").
+``report.tex`` with the same tables), and its figures, each a PNG with a PDF beside it
+(docs/evaluation.md "Report").
 
 The report's own sections: a model summary (clean L2 mAP/mAPH, input frames, clean rank, model
 time per frame, mean ASR per family), the LOT ablation (Tables 5 and 6) when both models of the
