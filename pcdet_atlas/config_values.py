@@ -304,9 +304,14 @@ def read_section(
         dotted = f"{section}.{key}" if section else key
         if key not in node:
             if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-                raise ConfigError(f"missing required key {dotted} (in {config_files(node)})")
+                place = f" in {where}" if where != (section or "the config") else ""
+                raise ConfigError(f"missing required key {dotted}{place} (in {config_files(node)})")
             continue
-        values[f.name] = _read_value(node, key, dotted, kind, meta)
+        # an item of a list keeps no file of its own: name its place (which names the file)
+        origin = key_source(node, key)
+        if origin == "<unknown>" and where != (section or "the config"):
+            origin = where
+        values[f.name] = _read_value(node, key, dotted, kind, meta, origin)
     try:
         return decl(**values)
     except ConfigError:
@@ -329,14 +334,13 @@ def _is_union(kind: Any) -> bool:
     return typing.get_origin(kind) in (typing.Union, types.UnionType)
 
 
-def _read_value(node: Mapping, key: str, dotted: str, kind: Any, meta: Setting) -> Any:
+def _read_value(node: Mapping, key: str, dotted: str, kind: Any, meta: Setting, origin: str) -> Any:
     raw = node[key]
 
     def fail(what: str | None = None) -> ConfigError:
         expected = meta.expected or _describe(kind, meta)
         return ConfigError(
-            f"{dotted} = {raw!r} (from {key_source(node, key)}): expected "
-            f"{expected}{f' ({what})' if what else ''}"
+            f"{dotted} = {raw!r} (from {origin}): expected {expected}{f' ({what})' if what else ''}"
         )
 
     nested = _section_type(kind)

@@ -158,3 +158,41 @@ def test_constructor_defaults_are_the_declared_defaults():
                 )
     assert not wrong, "\n".join(wrong)
     assert checked >= 20, checked
+
+
+# ------------------------------------------------------------------ DATA_CONFIG
+DATASET_BASE = "cfgs/dataset_configs/synthetic_waymo.yaml"
+
+
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        # values a hand-written bool() / int() used to read silently ('no' is truthy)
+        ("TRAIN_WITH_SPEED: 'no'\n", r"DATA_CONFIG\.TRAIN_WITH_SPEED = 'no' \(from .*bad\.yaml\)"),
+        (
+            "DATA_PROCESSOR:\n  - NAME: mask_points_and_boxes_outside_range\n    FILTER_Z: 'no'\n",
+            r"mask_points_and_boxes_outside_range\.FILTER_Z = 'no' \(from .*bad\.yaml",
+        ),
+        (
+            "SEQUENCE_CONFIG:\n  ENABLED: True\n  SAMPLE_OFFSET: [-3, 1]\n",
+            r"DATA_CONFIG\.SEQUENCE_CONFIG\.SAMPLE_OFFSET = \[-3, 1\] .*expected \[-k, 0\]",
+        ),
+        ("POINTS_TANH_DIM: [7]\n", r"DATA_CONFIG\.POINTS_TANH_DIM = \[7\] .*column indices 0-4"),
+        (
+            "POINT_CLOUD_RANGE: [0, 0, 0, 1, 1]\n",
+            r"DATA_CONFIG\.POINT_CLOUD_RANGE = \[0, 0, 0, 1, 1\]",
+        ),
+        ("SEED: 1.5\n", r"DATA_CONFIG\.SEED = 1\.5 .*expected an integer"),
+        ("USE_SHARED_MEMORY: True\n", r"DATA_CONFIG\.USE_SHARED_MEMORY = True .*read from disk"),
+    ],
+)
+def test_bad_dataset_values_name_key_value_and_file(tmp_path, body, message):
+    from pcdet_atlas.config import REPO_ROOT
+    from pcdet_atlas.datasets.waymo_dataset import WaymoDataset
+
+    path = tmp_path / "bad.yaml"
+    path.write_text(f"_BASE_CONFIG_: {REPO_ROOT / DATASET_BASE}\n{body}")
+    cfg = cfg_from_yaml_file(path)
+    root = REPO_ROOT / "data" / "synthetic_waymo"
+    with pytest.raises(ConfigError, match=message):
+        WaymoDataset(cfg, ["Vehicle"], training=False, root_path=root)
