@@ -41,6 +41,7 @@ __all__ = [
     "REQUIRED",
     "setting",
     "section",
+    "unsupported",
     "read_section",
     "declared_keys",
     "declared_defaults",
@@ -205,6 +206,16 @@ def setting(
 def section(decl: type, doc: str = "", key: str | None = None) -> Any:
     """A nested section declared by ``decl``: every key at its default when absent."""
     return setting(default_factory=decl, doc=doc, key=key)
+
+
+def unsupported(why: str) -> Any:
+    """A boolean key accepted for OpenPCDet's configs that must stay False (``why``: what is
+    not supported, for the message)."""
+    return setting(False, check=_is_false, expected=f"False ({why})", doc=f"must be False: {why}")
+
+
+def _is_false(value: bool) -> bool:
+    return value is False
 
 
 def is_declaration(obj: Any) -> bool:

@@ -19,7 +19,7 @@ import numpy as np
 from easydict import EasyDict
 
 from pcdet_atlas.config import ConfigError
-from pcdet_atlas.config_values import setting
+from pcdet_atlas.config_values import setting, unsupported
 from pcdet_atlas.datasets.dataset import DatasetConfig, DatasetTemplate
 from pcdet_atlas.datasets.multiframe import (
     SECONDS_PER_FRAME,
@@ -50,10 +50,6 @@ NUM_LOADED_FEATURES = 5  # x, y, z, intensity, elongation (the NLZ column is con
 EGO_RADIUS_M = 1.0  # history points with |x| < r and |y| < r are the ego's own (OpenPCDet)
 
 
-def _off(value: bool) -> bool:
-    return not value
-
-
 @dataclass(frozen=True, kw_only=True)
 class WaymoDatasetConfig(DatasetConfig):
     """The ``DATA_CONFIG`` keys of a Waymo-format dataset (beyond :class:`DatasetConfig`'s)."""
@@ -82,11 +78,8 @@ class WaymoDatasetConfig(DatasetConfig):
     )
     train_with_speed: bool = setting(False, doc="boxes carry vx, vy")
     sequence_config: SequenceSettings | None = setting(None, doc="multi-frame samples")
-    use_shared_memory: bool = setting(
-        False,
-        check=_off,
-        expected="False (frames are read from disk; the OS page cache serves repeated reads)",
-        doc="not supported",
+    use_shared_memory: bool = unsupported(
+        "frames are read from disk; the OS page cache serves repeated reads"
     )
     shared_memory_file_limit: int | None = setting(None, doc="accepted for OpenPCDet configs")
 

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from pcdet_atlas.config import ConfigError
-from pcdet_atlas.config_values import setting
+from pcdet_atlas.config_values import setting, unsupported
 from pcdet_atlas.datasets.augmentor.base import read_transform_config
 from pcdet_atlas.datasets.augmentor.box_ops import box_index_of_points, enlarge_boxes
 from pcdet_atlas.datasets.multiframe import compress_rows
@@ -97,10 +97,6 @@ class BackupDbInfoConfig:
     num_point_features: int = setting(ge=1, doc="its point columns")
 
 
-def _off(value: bool) -> bool:
-    return not value
-
-
 @dataclass(frozen=True, kw_only=True)
 class GTSamplingConfig:
     db_info_path: tuple[str, ...] = setting(doc="dbinfos pickles, relative to DATA_PATH")
@@ -116,12 +112,8 @@ class GTSamplingConfig:
     limit_whole_scene: bool = setting(False, doc="count the frame's own objects")
     filter_obj_points_by_timestamp: bool = setting(False, doc="keep object points in TIME_RANGE")
     time_range: tuple[float, float] | None = setting(None, doc="[t0, t1] lag range, s")
-    use_road_plane: bool = setting(
-        False, check=_off, expected="False (Waymo has no road planes)", doc="unsupported"
-    )
-    database_with_fakelidar: bool = setting(
-        False, check=_off, expected="False (not supported)", doc="unsupported"
-    )
+    use_road_plane: bool = unsupported("Waymo has no road planes")
+    database_with_fakelidar: bool = unsupported("a fake-LiDAR database is not supported")
 
 
 @TRANSFORMS.register("gt_sampling")
