@@ -47,6 +47,7 @@ __all__ = [
     "declared_defaults",
     "declared_settings",
     "fields_of",
+    "as_lists",
     "is_declaration",
 ]
 
@@ -272,6 +273,14 @@ def declared_settings(decl: type, prefix: str = "") -> list[tuple[str, Any, str]
             default = f.default_factory()
         rows.append((f"{prefix}{key}", default, meta.doc))
     return rows
+
+
+def as_lists(value: Any) -> Any:
+    """A read value with its tuples (nested ones too) as the lists YAML gave, for constructors
+    that keep a list as they got it."""
+    if isinstance(value, (tuple, list)):
+        return [as_lists(v) for v in value]
+    return value
 
 
 def fields_of(decl: Any) -> dict[str, Any]:

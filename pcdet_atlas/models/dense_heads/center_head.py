@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from pcdet_atlas.config import ConfigError
-from pcdet_atlas.config_values import section, setting, unsupported
+from pcdet_atlas.config_values import as_lists, section, setting, unsupported
 from pcdet_atlas.models.dense_heads.center_config import (
     CenterTargetConfig,
     LossConfig,
@@ -80,11 +80,6 @@ class SeparateHead(nn.Module):
 
 SECTION = "MODEL.DENSE_HEAD"
 _BOX_CODES = (("center", "center_z", "dim", "rot"), ("center", "center_z", "dim", "rot", "vel"))
-
-
-def _list(value):
-    """A read tuple as the list a YAML list was (None and scalars as they are)."""
-    return list(value) if isinstance(value, tuple) else value
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -343,17 +338,17 @@ class CenterHead(nn.Module):
             min_radius=tac.min_radius,
             cls_weight=weights.cls_weight,
             loc_weight=weights.loc_weight,
-            code_weights=_list(weights.code_weights),
+            code_weights=as_lists(weights.code_weights),
             score_thresh=post.score_thresh,
-            post_center_limit_range=_list(post.post_center_limit_range),
+            post_center_limit_range=as_lists(post.post_center_limit_range),
             max_obj_per_sample=post.max_obj_per_sample,
-            nms_thresh=_list(nms.nms_thresh),
-            nms_pre_maxsize=_list(nms.nms_pre_maxsize),
-            nms_post_maxsize=_list(nms.nms_post_maxsize),
+            nms_thresh=as_lists(nms.nms_thresh),
+            nms_pre_maxsize=as_lists(nms.nms_pre_maxsize),
+            nms_post_maxsize=as_lists(nms.nms_post_maxsize),
             nms_type=nms.nms_type,
             with_iou="iou" in head_dict,
             iou_reg_loss=settings.iou_reg_loss,
-            iou_rectifier=_list(post.iou_rectifier) if post.use_iou_to_rectify_score else None,
+            iou_rectifier=as_lists(post.iou_rectifier) if post.use_iou_to_rectify_score else None,
             bn_eps=settings.bn_eps,
             bn_momentum=settings.bn_momentum,
         )

@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from pcdet_atlas.config import ConfigError
-from pcdet_atlas.config_values import section, setting
+from pcdet_atlas.config_values import as_lists, section, setting
 from pcdet_atlas.models.dense_heads.center_config import (
     CenterTargetConfig,
     LossWeightsConfig,
@@ -79,11 +79,6 @@ class QueryHeads(nn.Module):
 SECTION = "MODEL.DENSE_HEAD"
 #: per-class NMS threshold, pre- and post-NMS sizes of Vehicle, Pedestrian, Cyclist
 _NMS_DEFAULTS = ((0.8, 0.55, 0.55), (1600, 1600, 800), (200, 200, 100))
-
-
-def _list(value):
-    """A read tuple as the list a YAML list was (None as it is)."""
-    return list(value) if isinstance(value, tuple) else value
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -386,10 +381,10 @@ class CenterFormerHead(nn.Module):
             loc_weight=weights.loc_weight,
             iou_weight=weights.iou_weight,
             corner_weight=weights.corner_weight,
-            code_weights=_list(weights.code_weights),
+            code_weights=as_lists(weights.code_weights),
             score_thresh=post.score_thresh,
-            post_center_limit_range=_list(post.post_center_limit_range),
-            iou_rectifier=_list(post.iou_rectifier),
+            post_center_limit_range=as_lists(post.post_center_limit_range),
+            iou_rectifier=as_lists(post.iou_rectifier),
             nms_thresh=per_class(nms.nms_thresh, _NMS_DEFAULTS[0]),
             nms_pre_maxsize=per_class(nms.nms_pre_maxsize, _NMS_DEFAULTS[1]),
             nms_post_maxsize=per_class(nms.nms_post_maxsize, _NMS_DEFAULTS[2]),
