@@ -31,9 +31,10 @@ import numpy as np
 from pcdet_atlas.attacks import schedule as sched
 from pcdet_atlas.attacks.metadata import make_meta
 from pcdet_atlas.attacks.tracking import FrameLabels
-from pcdet_atlas.config import ConfigError, cfg_from_yaml_file, check_known_keys, key_source
-from pcdet_atlas.config_values import check_finite, config_device, config_value
+from pcdet_atlas.config import ConfigError, cfg_from_yaml_file, key_source
+from pcdet_atlas.config_values import check_finite, config_device, read_section, section, setting
 from pcdet_atlas.datasets.multiframe import copy_rows_except
+from pcdet_atlas.ops.lidar_model import LidarConfig
 from pcdet_atlas.registry import ATTACKS
 from pcdet_atlas.utils.paths import safe_component
 
@@ -44,11 +45,35 @@ __all__ = [
     "SequenceData",
     "build_attack",
     "attack_from_file",
-    "COMMON_KEYS",
+    "AttackConfig",
+    "ScheduleConfig",
 ]
 
-#: Keys every attack YAML may hold (families add their own).
-COMMON_KEYS = {"NAME", "VARIANT", "SEED", "SCHEDULE", "LIDAR", "DEVICE"}
+
+@dataclass(frozen=True, kw_only=True)
+class ScheduleConfig:
+    """The ``SCHEDULE`` section of an attack config."""
+
+    window: int = setting(
+        sched.DEFAULT_WINDOW,
+        ge=1,
+        expected="a positive integer (frames)",
+        doc="frames per clean / spoofed window",
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class AttackConfig:
+    """The keys every attack YAML holds; a family's declaration subclasses it with its own."""
+
+    name: str = setting(doc="registered attack class")
+    variant: str = setting(
+        check=bool, expected="a non-empty variant name", doc="name recorded in the metadata"
+    )
+    seed: int = setting(0, expected="an integer", doc="global seed of every draw")
+    schedule: ScheduleConfig = section(ScheduleConfig)
+    lidar: LidarConfig = section(LidarConfig, doc="the sensor model (``LidarModel``)")
+    device: str = setting("cpu", doc="where the injection raycast runs")
 
 
 @dataclass(frozen=True)
@@ -205,14 +230,14 @@ class BaseAttack(ABC):
     CONFIDENCE: ClassVar[str | None] = None
     #: Robustness ranks average a model's per-variant ranks within this group (None: not ranked).
     RANK_GROUP: ClassVar[str | None] = None
-    #: Family-specific YAML keys (beyond :data:`COMMON_KEYS`).
-    config_keys: ClassVar[set[str]] = set()
+    #: The declaration of its YAML keys (:class:`AttackConfig` or a subclass with the family's).
+    CONFIG: ClassVar[type[AttackConfig]] = AttackConfig
 
     def __init__(
         self,
         variant: str,
-        seed: int = 0,
-        window: int = sched.DEFAULT_WINDOW,
+        seed: int = AttackConfig.seed,
+        window: int = ScheduleConfig.window,
         run_cache_size: int = 64,
     ):
         self.variant = str(variant)
@@ -232,32 +257,29 @@ class BaseAttack(ABC):
         raise NotImplementedError
 
     @classmethod
-    def _common_kwargs(cls, cfg: Mapping) -> dict:
-        check_known_keys(cfg, COMMON_KEYS | cls.config_keys, f"attack config {cls.__name__}")
-        check_finite(cfg)
+    def read_config(cls, cfg: Mapping) -> AttackConfig:
+        """The attack YAML read into :attr:`CONFIG` (every key and value checked, errors naming
+        the key, the value and the file), with ``DEVICE`` checked to exist on this machine."""
+        check_finite(cfg)  # names a NaN inside a list by its index (OFFSET_X[1])
+        settings = read_section(cls.CONFIG, cfg, where=f"attack config {cls.__name__}")
         config_device(cfg)
-        schedule_cfg = cfg.get("SCHEDULE", {}) or {}
-        check_known_keys(schedule_cfg, {"WINDOW"}, "SCHEDULE")
-        variant = cfg.get("VARIANT")
-        if not variant:
-            raise ConfigError(
-                f"attack config {cls.__name__}: missing VARIANT (from {key_source(cfg, 'NAME')})"
-            )
         # the variant names its results' folder: one safe path component
-        safe_component(str(variant), "VARIANT", key_source(cfg, "VARIANT"))
+        safe_component(settings.variant, "VARIANT", key_source(cfg, "VARIANT"))
+        return settings
+
+    @staticmethod
+    def common_kwargs(settings: AttackConfig) -> dict:
+        """The :class:`BaseAttack` keyword arguments of a read config."""
         return {
-            "variant": str(variant),
-            "seed": config_value(cfg, "SEED", int, default=0, expected="an integer"),
-            "window": config_value(
-                schedule_cfg,
-                "WINDOW",
-                int,
-                "SCHEDULE",
-                default=sched.DEFAULT_WINDOW,
-                valid=lambda w: w >= 1,
-                expected="a positive integer (frames)",
-            ),
+            "variant": settings.variant,
+            "seed": settings.seed,
+            "window": settings.schedule.window,
         }
+
+    @classmethod
+    def _common_kwargs(cls, cfg: Mapping) -> dict:
+        """:meth:`common_kwargs` of :meth:`read_config` (a family without keys of its own)."""
+        return cls.common_kwargs(cls.read_config(cfg))
 
     # ------------------------------------------------------------------ schedule
     def schedule_state(self, frame_idx: int, num_frames: int) -> ScheduleState:

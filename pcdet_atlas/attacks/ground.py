@@ -20,10 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pcdet_atlas.config import ConfigError, check_known_keys
-from pcdet_atlas.config_values import config_files, config_value
+from pcdet_atlas.config_values import fields_of, read_section, setting
 
-__all__ = ["GROUND_SLACK_M", "GroundEstimator", "GroundEstimate"]
+__all__ = ["GROUND_SLACK_M", "GroundConfig", "GroundEstimator", "GroundEstimate"]
 
 #: Widening of the discs' bounding squares, metres (a caller's ``rows`` must hold every point
 #: within ``radius + GROUND_SLACK_M`` of the centre).
@@ -40,6 +39,26 @@ class GroundEstimate:
     num_points: int
 
 
+@dataclass(frozen=True, kw_only=True)
+class GroundConfig:
+    """The ``GROUND`` section of an injection config."""
+
+    radius: float = setting(3.0, gt=0, doc="disc radius, m")
+    percentile: float = setting(10.0, ge=0, le=100, doc="low percentile of z taken as ground")
+    min_points: int = setting(10, ge=1, doc="fewest disc points to trust the estimate")
+    fallback_radius: float = setting(8.0, doc="wider disc, m")
+    fallback_z: float = setting(0.0, doc="last-resort ground height, m (vehicle frame)")
+    max_abs_z: float = setting(
+        5.0, gt=0, expected="a positive height in metres", doc="points with larger abs z ignored, m"
+    )
+
+    def __post_init__(self) -> None:
+        if not self.fallback_radius >= self.radius:
+            raise ValueError(
+                f"need RADIUS <= FALLBACK_RADIUS, got {self.radius}, {self.fallback_radius}"
+            )
+
+
 class GroundEstimator:
     """Robust local ground height.
 
@@ -54,12 +73,12 @@ class GroundEstimator:
 
     def __init__(
         self,
-        radius: float = 3.0,
-        percentile: float = 10.0,
-        min_points: int = 10,
-        fallback_radius: float = 8.0,
-        fallback_z: float = 0.0,
-        max_abs_z: float = 5.0,
+        radius: float = GroundConfig.radius,
+        percentile: float = GroundConfig.percentile,
+        min_points: int = GroundConfig.min_points,
+        fallback_radius: float = GroundConfig.fallback_radius,
+        fallback_z: float = GroundConfig.fallback_z,
+        max_abs_z: float = GroundConfig.max_abs_z,
     ):
         if not radius > 0 or not fallback_radius >= radius:
             raise ValueError(f"need 0 < radius <= fallback_radius, got {radius}, {fallback_radius}")
@@ -78,32 +97,8 @@ class GroundEstimator:
 
     @classmethod
     def from_config(cls, cfg: Mapping | None) -> GroundEstimator:
-        """Keys (all optional): ``RADIUS``, ``PERCENTILE``, ``MIN_POINTS``, ``FALLBACK_RADIUS``,
-        ``FALLBACK_Z``, ``MAX_ABS_Z``."""
-        cfg = cfg or {}
-        keys = {
-            "RADIUS": "radius",
-            "PERCENTILE": "percentile",
-            "MIN_POINTS": "min_points",
-            "FALLBACK_RADIUS": "fallback_radius",
-            "FALLBACK_Z": "fallback_z",
-            "MAX_ABS_Z": "max_abs_z",
-        }
-        check_known_keys(cfg, keys, "GROUND")
-        checks = {
-            "MAX_ABS_Z": {"valid": lambda z: z > 0, "expected": "a positive height in metres"}
-        }
-        kwargs = {
-            name: config_value(
-                cfg, key, int if key == "MIN_POINTS" else float, "GROUND", **checks.get(key, {})
-            )
-            for key, name in keys.items()
-            if key in cfg
-        }
-        try:
-            return cls(**kwargs)
-        except ValueError as err:
-            raise ConfigError(f"GROUND ({config_files(cfg)}): {err}") from err
+        """Build from a ``GROUND`` section (:class:`GroundConfig`; every key optional)."""
+        return cls(**fields_of(read_section(GroundConfig, cfg, "GROUND")))
 
     def __call__(
         self,

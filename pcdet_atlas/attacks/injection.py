@@ -32,20 +32,27 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, ScheduleState, SequenceData
+from pcdet_atlas.attacks.base import (
+    AttackConfig,
+    BaseAttack,
+    FrameAttack,
+    ScheduleConfig,
+    ScheduleState,
+    SequenceData,
+)
 from pcdet_atlas.attacks.counters import COUNTERS
-from pcdet_atlas.attacks.ground import GROUND_SLACK_M, GroundEstimator
-from pcdet_atlas.attacks.intensity import RangeIntensityModel
+from pcdet_atlas.attacks.ground import GROUND_SLACK_M, GroundConfig, GroundEstimator
+from pcdet_atlas.attacks.intensity import IntensityConfig, RangeIntensityModel
 from pcdet_atlas.attacks.raycast import disc_wedges, raycast_merge, wedge_rows
 from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary
 from pcdet_atlas.config import REPO_ROOT, ConfigError
-from pcdet_atlas.config_values import config_device, config_files, config_value
+from pcdet_atlas.config_values import config_files, fields_of, section, setting
 from pcdet_atlas.ops.lidar_model import LidarModel
 from pcdet_atlas.registry import ATTACKS
 from pcdet_atlas.utils.common import limit_period
 from pcdet_atlas.utils.seeding import numpy_generator
 
-__all__ = ["InjectionAttack", "PhantomRun", "sample_phantom"]
+__all__ = ["InjectionAttack", "InjectionConfig", "PhantomRun", "sample_phantom"]
 
 POSITION_MODES = ("relative", "global")
 
@@ -116,17 +123,44 @@ def sample_phantom(
     return trace_index, requested, order[: min(requested, size)], np.array([x, y, yaw])
 
 
-def _range_pair(cfg: Mapping, key: str, default, cast=float) -> tuple:
-    def pair(val) -> tuple:
-        if not isinstance(val, (list, tuple)) or len(val) != 2:
-            raise ValueError(val)
-        return cast(val[0]), cast(val[1])
+def _ordered(pair: tuple) -> bool:
+    return pair[0] <= pair[1]
 
-    kind = "integers" if cast is int else "numbers"
-    return config_value(
-        cfg, key, pair, default=default, valid=lambda v: v[0] <= v[1],
-        expected=f"[lo, hi], two {kind} with lo <= hi",
-    )  # fmt: skip
+
+def _range(default: tuple[float, float], doc: str):
+    return setting(default, check=_ordered, expected="[lo, hi], two numbers with lo <= hi", doc=doc)
+
+
+@dataclass(frozen=True, kw_only=True)
+class InjectionConfig(AttackConfig):
+    """The keys of an injection YAML (beyond :class:`AttackConfig`'s)."""
+
+    trace_library: TraceFilter = setting(doc="the trace library and its build filters")
+    position_mode: str = setting(
+        choices=POSITION_MODES,
+        expected=f"one of {POSITION_MODES}",
+        doc="`relative` or `global`",
+    )
+    budget: tuple[int, int] = setting(
+        ge=1,
+        check=_ordered,
+        expected="[lo, hi], two integers with 1 <= lo <= hi",
+        doc="`[lo, hi]` phantom points",
+    )
+    offset_x: tuple[float, float] = _range((15.0, 20.0), "placement range ahead, m")
+    offset_y: tuple[float, float] = _range((-3.0, 3.0), "lateral placement range, m")
+    yaw_range: tuple[float, float] = setting(
+        (-0.2, 0.2),
+        key="YAW",
+        check=_ordered,
+        expected="[lo, hi], two numbers with lo <= hi",
+        doc="heading range, rad",
+    )
+    ground: GroundConfig = section(GroundConfig, doc="local ground estimate")
+    intensity: IntensityConfig = section(IntensityConfig, doc="range correction of features")
+    p_dual: float = setting(
+        0.01, ge=0, le=1, expected="a probability in [0, 1]", doc="dual-return probability"
+    )
 
 
 @ATTACKS.register()
@@ -151,17 +185,7 @@ class InjectionAttack(BaseAttack):
     SUCCESS_IF_DETECTED = True  # the phantom is detected
     CONFIDENCE = "injection"
     RANK_GROUP = "injection"
-    config_keys = {
-        "TRACE_LIBRARY",
-        "POSITION_MODE",
-        "BUDGET",
-        "OFFSET_X",
-        "OFFSET_Y",
-        "YAW",
-        "GROUND",
-        "INTENSITY",
-        "P_DUAL",
-    }
+    CONFIG = InjectionConfig
 
     def __init__(
         self,
@@ -169,17 +193,17 @@ class InjectionAttack(BaseAttack):
         library: TraceLibrary | str | Path,
         position_mode: str,
         budget: tuple[int, int],
-        offset_x: tuple[float, float] = (15.0, 20.0),
-        offset_y: tuple[float, float] = (-3.0, 3.0),
-        yaw_range: tuple[float, float] = (-0.2, 0.2),
+        offset_x: tuple[float, float] = InjectionConfig.offset_x,
+        offset_y: tuple[float, float] = InjectionConfig.offset_y,
+        yaw_range: tuple[float, float] = InjectionConfig.yaw_range,
         ground: GroundEstimator | None = None,
         intensity: RangeIntensityModel | None = None,
-        p_dual: float = 0.01,
+        p_dual: float = InjectionConfig.p_dual,
         lidar: LidarModel | None = None,
-        device: str = "cpu",
+        device: str = InjectionConfig.device,
         trace_filter: TraceFilter | None = None,
-        seed: int = 0,
-        window: int = 32,
+        seed: int = InjectionConfig.seed,
+        window: int = ScheduleConfig.window,
     ):
         super().__init__(variant, seed=seed, window=window)
         if position_mode not in POSITION_MODES:
@@ -208,49 +232,31 @@ class InjectionAttack(BaseAttack):
     def from_config(cls, cfg: Mapping, data_root: str | Path | None = None) -> InjectionAttack:
         """Relative ``TRACE_LIBRARY.PATH`` resolves under ``data_root`` (the dataset root) when
         given, else under the repository root."""
-        kwargs = cls._common_kwargs(cfg)
-        for key in ("TRACE_LIBRARY", "POSITION_MODE", "BUDGET"):
-            if key not in cfg:
-                raise ConfigError(
-                    f"{kwargs['variant']}: InjectionAttack needs {key} (in {config_files(cfg)})"
-                )
-        trace_filter = TraceFilter.from_config(cfg["TRACE_LIBRARY"])
+        settings = cls.read_config(cfg)
+        trace_filter = TraceFilter.from_config(cfg["TRACE_LIBRARY"])  # with its cross-key check
         path = Path(trace_filter.path)
         if not path.is_absolute():
             path = Path(data_root if data_root is not None else REPO_ROOT) / path
         try:
             return cls(
                 library=path,
-                position_mode=config_value(
-                    cfg,
-                    "POSITION_MODE",
-                    str,
-                    valid=lambda m: m in POSITION_MODES,
-                    expected=f"one of {POSITION_MODES}",
-                ),  # fmt: skip
-                budget=_range_pair(cfg, "BUDGET", None, int),
-                offset_x=_range_pair(cfg, "OFFSET_X", (15.0, 20.0)),
-                offset_y=_range_pair(cfg, "OFFSET_Y", (-3.0, 3.0)),
-                yaw_range=_range_pair(cfg, "YAW", (-0.2, 0.2)),
-                ground=GroundEstimator.from_config(cfg.get("GROUND")),
-                intensity=RangeIntensityModel.from_config(cfg.get("INTENSITY")),
-                p_dual=config_value(
-                    cfg,
-                    "P_DUAL",
-                    float,
-                    default=0.01,
-                    valid=lambda p: 0.0 <= p <= 1.0,
-                    expected="a probability in [0, 1]",
-                ),  # fmt: skip
-                lidar=LidarModel.from_config(cfg.get("LIDAR")),
-                device=config_device(cfg),
+                position_mode=settings.position_mode,
+                budget=settings.budget,
+                offset_x=settings.offset_x,
+                offset_y=settings.offset_y,
+                yaw_range=settings.yaw_range,
+                ground=GroundEstimator(**fields_of(settings.ground)),
+                intensity=RangeIntensityModel(**fields_of(settings.intensity)),
+                p_dual=settings.p_dual,
+                lidar=LidarModel.from_settings(settings.lidar),
+                device=settings.device,
                 trace_filter=trace_filter,
-                **kwargs,
+                **cls.common_kwargs(settings),
             )
         except ValueError as err:
             if isinstance(err, ConfigError):
                 raise
-            raise ConfigError(f"{kwargs['variant']} ({config_files(cfg)}): {err}") from err
+            raise ConfigError(f"{settings.variant} ({config_files(cfg)}): {err}") from err
 
     @property
     def library(self) -> TraceLibrary:

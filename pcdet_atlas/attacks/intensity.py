@@ -21,13 +21,30 @@ exactly as it does to real points. Ranges are clamped to ``min_range`` to avoid 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 
-from pcdet_atlas.config import ConfigError, check_known_keys
-from pcdet_atlas.config_values import config_files, config_value
+from pcdet_atlas.config_values import fields_of, read_section, setting
 
-__all__ = ["RangeIntensityModel"]
+__all__ = ["IntensityConfig", "RangeIntensityModel"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class IntensityConfig:
+    """The ``INTENSITY`` section of an injection config."""
+
+    intensity_exponent: float = setting(2.0, doc="exponent of `r_src / r_new` on intensity")
+    elongation_exponent: float = setting(1.0, doc="exponent of `r_new / r_src` on elongation")
+    min_range: float = setting(
+        1.0, gt=0, expected="a positive range in metres", doc="ranges clamped below this, m"
+    )
+    max_intensity: float = setting(
+        1.0e4, ge=0, expected="a non-negative upper clip (raw)", doc="upper clip (raw)"
+    )
+    max_elongation: float = setting(
+        1.0e4, ge=0, expected="a non-negative upper clip (raw)", doc="upper clip (raw)"
+    )
 
 
 class RangeIntensityModel:
@@ -43,11 +60,11 @@ class RangeIntensityModel:
 
     def __init__(
         self,
-        intensity_exponent: float = 2.0,
-        elongation_exponent: float = 1.0,
-        min_range: float = 1.0,
-        max_intensity: float = 1.0e4,
-        max_elongation: float = 1.0e4,
+        intensity_exponent: float = IntensityConfig.intensity_exponent,
+        elongation_exponent: float = IntensityConfig.elongation_exponent,
+        min_range: float = IntensityConfig.min_range,
+        max_intensity: float = IntensityConfig.max_intensity,
+        max_elongation: float = IntensityConfig.max_elongation,
     ):
         if not min_range > 0:
             raise ValueError(f"min_range must be > 0, got {min_range}")
@@ -64,29 +81,8 @@ class RangeIntensityModel:
 
     @classmethod
     def from_config(cls, cfg: Mapping | None) -> RangeIntensityModel:
-        """Keys (all optional): ``INTENSITY_EXPONENT``, ``ELONGATION_EXPONENT``, ``MIN_RANGE``,
-        ``MAX_INTENSITY``, ``MAX_ELONGATION``."""
-        cfg = cfg or {}
-        keys = {
-            "INTENSITY_EXPONENT": "intensity_exponent",
-            "ELONGATION_EXPONENT": "elongation_exponent",
-            "MIN_RANGE": "min_range",
-            "MAX_INTENSITY": "max_intensity",
-            "MAX_ELONGATION": "max_elongation",
-        }
-        check_known_keys(cfg, keys, "INTENSITY")
-        clip = {"valid": lambda v: v >= 0, "expected": "a non-negative upper clip (raw)"}
-        checks = {
-            "MIN_RANGE": {"valid": lambda r: r > 0, "expected": "a positive range in metres"},
-            "MAX_INTENSITY": clip,
-            "MAX_ELONGATION": clip,
-        }
-        kwargs = {name: config_value(cfg, key, float, "INTENSITY", **checks.get(key, {}))
-                  for key, name in keys.items() if key in cfg}  # fmt: skip
-        try:
-            return cls(**kwargs)
-        except ValueError as err:
-            raise ConfigError(f"INTENSITY ({config_files(cfg)}): {err}") from err
+        """Build from an ``INTENSITY`` section (:class:`IntensityConfig`; every key optional)."""
+        return cls(**fields_of(read_section(IntensityConfig, cfg, "INTENSITY")))
 
     def __call__(
         self,

@@ -25,20 +25,45 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pcdet_atlas.attacks.base import BaseAttack, FrameAttack, ScheduleState, SequenceData
+from pcdet_atlas.attacks.base import (
+    AttackConfig,
+    BaseAttack,
+    FrameAttack,
+    ScheduleState,
+    SequenceData,
+)
 from pcdet_atlas.attacks.counters import COUNTERS
 from pcdet_atlas.attacks.raycast import wedge_rows
-from pcdet_atlas.attacks.tracking import TargetPolicy, TrackedFrame, Tracker, choose_target
-from pcdet_atlas.config import ConfigError, check_known_keys
-from pcdet_atlas.config_values import config_files, config_value
+from pcdet_atlas.attacks.tracking import (
+    TargetPolicy,
+    TrackedFrame,
+    Tracker,
+    TrackingConfig,
+    choose_target,
+)
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config_values import config_files, fields_of, read_section, section, setting
 from pcdet_atlas.ops.lidar_model import LidarModel, spherical_offsets
 from pcdet_atlas.registry import ATTACKS
 from pcdet_atlas.utils.common import limit_period
 from pcdet_atlas.utils.seeding import numpy_generator
 
-__all__ = ["PDistTable", "RemovalAttack", "sector_mask"]
+__all__ = ["PDistConfig", "PDistTable", "RemovalAttack", "RemovalConfig", "sector_mask"]
 
 _EMPTY = np.zeros((0, 5), dtype=np.float32)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PDistConfig:
+    """The ``P_DIST`` section of a removal config (checked as a table by :class:`PDistTable`)."""
+
+    edges_m: tuple[float, ...] = setting(
+        doc="lower edges of the range bins, m; the last bin is open"
+    )
+    prob: tuple[float, ...] = setting(
+        ge=0, le=1, expected="a list of probabilities in [0, 1]", doc="firing probability per bin"
+    )
+    note: str = setting("", doc="provenance of the values (free text)")
 
 
 class PDistTable:
@@ -66,24 +91,17 @@ class PDistTable:
 
     @classmethod
     def from_config(cls, cfg: Mapping) -> PDistTable:
-        """Keys: ``EDGES_M``, ``PROB``, and ``NOTE`` (free text: provenance of the values)."""
-        check_known_keys(cfg, {"EDGES_M", "PROB", "NOTE"}, "P_DIST")
-        for key in ("EDGES_M", "PROB"):
-            if key not in cfg:
-                raise ConfigError(f"P_DIST: missing {key} (in {config_files(cfg)})")
+        """Build from a ``P_DIST`` section (:class:`PDistConfig`)."""
+        settings = read_section(PDistConfig, cfg, "P_DIST")
         try:
-            return cls(cfg["EDGES_M"], cfg["PROB"])
-        except (TypeError, ValueError) as err:
+            return cls(settings.edges_m, settings.prob)
+        except ValueError as err:
             raise ConfigError(f"{err} (from {config_files(cfg)})") from err
 
     def __call__(self, range_m: float) -> float:
         if not range_m >= 0:
             raise ValueError(f"range must be >= 0, got {range_m}")
         return float(self.prob[np.searchsorted(self.edges, range_m, side="right") - 1])
-
-
-def _is_probability(p: float) -> bool:
-    return 0.0 <= p <= 1.0
 
 
 def _azimuth_elevation(xyz: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -153,6 +171,24 @@ class RemovalRun:
     track: dict[int, TrackedFrame]
 
 
+_SECTOR_WIDTH = {"gt": 0, "lt": 180, "expected": "an angle in (0, 180) degrees"}
+
+
+@dataclass(frozen=True, kw_only=True)
+class RemovalConfig(AttackConfig):
+    """The keys of a removal YAML (beyond :class:`AttackConfig`'s)."""
+
+    azimuth_width_deg: float = setting(doc="alpha, degrees", **_SECTOR_WIDTH)
+    elevation_width_deg: float = setting(16.0, doc="beta, degrees", **_SECTOR_WIDTH)
+    p_remove: float = setting(
+        ge=0, le=1, expected="a probability in [0, 1]",
+        doc="removal probability inside the sector",
+    )  # fmt: skip
+    p_dist: PDistConfig = setting(doc="firing probability by target range")
+    target: TargetPolicy = section(TargetPolicy, doc="how the target is chosen")
+    tracking: TrackingConfig = section(TrackingConfig, doc="frame-to-frame association")
+
+
 @ATTACKS.register()
 class RemovalAttack(BaseAttack):
     """A-HFR point removal aimed at a tracked vehicle.
@@ -172,14 +208,7 @@ class RemovalAttack(BaseAttack):
     SUCCESS_IF_DETECTED = False  # the target is missed
     CONFIDENCE = "removal"
     RANK_GROUP = "removal"
-    config_keys = {
-        "AZIMUTH_WIDTH_DEG",
-        "ELEVATION_WIDTH_DEG",
-        "P_REMOVE",
-        "P_DIST",
-        "TARGET",
-        "TRACKING",
-    }
+    CONFIG = RemovalConfig
 
     def __init__(
         self,
@@ -187,7 +216,7 @@ class RemovalAttack(BaseAttack):
         azimuth_width: float,
         p_remove: float,
         p_dist: PDistTable,
-        elevation_width: float = math.radians(16.0),
+        elevation_width: float = math.radians(RemovalConfig.elevation_width_deg),
         target_policy: TargetPolicy | None = None,
         tracker: Tracker | None = None,
         lidar: LidarModel | None = None,
@@ -212,36 +241,22 @@ class RemovalAttack(BaseAttack):
 
     @classmethod
     def from_config(cls, cfg: Mapping, data_root: str | Path | None = None) -> RemovalAttack:
-        kwargs = cls._common_kwargs(cfg)
-        for key in ("AZIMUTH_WIDTH_DEG", "P_REMOVE", "P_DIST"):
-            if key not in cfg:
-                raise ConfigError(
-                    f"{kwargs['variant']}: RemovalAttack needs {key} (in {config_files(cfg)})"
-                )
-        width = {"valid": lambda w: 0 < w < 180, "expected": "an angle in (0, 180) degrees"}
+        settings = cls.read_config(cfg)
         try:
             return cls(
-                azimuth_width=math.radians(config_value(cfg, "AZIMUTH_WIDTH_DEG", float, **width)),
-                elevation_width=math.radians(
-                    config_value(cfg, "ELEVATION_WIDTH_DEG", float, default=16.0, **width)
-                ),
-                p_remove=config_value(
-                    cfg,
-                    "P_REMOVE",
-                    float,
-                    valid=_is_probability,
-                    expected="a probability in [0, 1]",
-                ),
-                p_dist=PDistTable.from_config(cfg["P_DIST"]),
-                target_policy=TargetPolicy.from_config(cfg.get("TARGET")),
-                tracker=Tracker.from_config(cfg.get("TRACKING")),
-                lidar=LidarModel.from_config(cfg.get("LIDAR")),
-                **kwargs,
+                azimuth_width=math.radians(settings.azimuth_width_deg),
+                elevation_width=math.radians(settings.elevation_width_deg),
+                p_remove=settings.p_remove,
+                p_dist=PDistTable(settings.p_dist.edges_m, settings.p_dist.prob),
+                target_policy=settings.target,
+                tracker=Tracker(**fields_of(settings.tracking)),
+                lidar=LidarModel.from_settings(settings.lidar),
+                **cls.common_kwargs(settings),
             )
         except ValueError as err:
             if isinstance(err, ConfigError):
                 raise
-            raise ConfigError(f"{kwargs['variant']} ({config_files(cfg)}): {err}") from err
+            raise ConfigError(f"{settings.variant} ({config_files(cfg)}): {err}") from err
 
     # ------------------------------------------------------------------ per run
     def prepare_run(self, seq: SequenceData, run_id: int) -> RemovalRun:

@@ -26,17 +26,16 @@ Built by ``tools/data/build_trace_library.py`` from the *train* split with filte
 from __future__ import annotations
 
 import json
-import math
 import zipfile
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pcdet_atlas.config import ConfigError, cfg_from_list, cfg_from_yaml_file, check_known_keys
-from pcdet_atlas.config_values import config_files, config_value
+from pcdet_atlas.config import ConfigError, cfg_from_list, cfg_from_yaml_file
+from pcdet_atlas.config_values import config_files, read_section, setting
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.ops.boxes import points_in_boxes_mask
 from pcdet_atlas.ops.lidar_model import LidarModel
@@ -50,21 +49,7 @@ __all__ = [
     "TraceFilter",
     "build_trace_library",
     "write_trace_library",
-    "TRACE_LIBRARY_KEYS",
 ]
-
-#: Keys of the ``TRACE_LIBRARY`` section of an injection YAML.
-TRACE_LIBRARY_KEYS = {
-    "PATH",
-    "SPLIT",
-    "CLASSES",
-    "MIN_POINTS",
-    "MIN_POINTS_PER_FRAME",
-    "MIN_FRAMES",
-    "RANGE_M",
-    "MAX_POINTS_PER_TRACE",
-    "SEED",
-}
 
 
 @dataclass(frozen=True)
@@ -89,13 +74,6 @@ class Trace:
         return int(self.xyz.shape[0])
 
 
-def _class_names(value) -> tuple[str, ...]:
-    """A YAML list of class names as a tuple (a bare string is no list of classes)."""
-    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
-        raise TypeError(f"expected a list of class names, got {value!r}")
-    return tuple(value)
-
-
 @dataclass(frozen=True)
 class TraceFilter:
     """Which tracks and frames enter the library.
@@ -111,44 +89,43 @@ class TraceFilter:
         seed: seed of that subsampling.
     """
 
-    classes: tuple[str, ...] = ("Vehicle",)
-    min_points: int = 200
-    min_points_per_frame: int = 10
-    min_frames: int = 1
-    range_m: tuple[float, float] = (5.0, 50.0)
-    max_points_per_trace: int = 4000
-    seed: int = 0
-    path: str = field(default="atlas_trace_library.npz", compare=False)
-    split: str = field(default="train", compare=False)
+    classes: tuple[str, ...] = setting(
+        ("Vehicle",),
+        choices=wf.WAYMO_CLASSES,
+        check=len,
+        expected=f"a non-empty list of classes of {wf.WAYMO_CLASSES}, e.g. [Vehicle]",
+        doc="classes gathered",
+    )
+    min_points: int = setting(
+        200, ge=1, expected="a positive integer", doc="fewest aggregated points per track"
+    )
+    min_points_per_frame: int = setting(
+        10, ge=1, expected="a positive integer", doc="fewest points for a frame to contribute"
+    )
+    min_frames: int = setting(
+        1, ge=1, expected="a positive integer", doc="fewest contributing frames"
+    )
+    range_m: tuple[float, float] = setting(
+        (5.0, 50.0),
+        check=lambda b: 0 <= b[0] < b[1],
+        expected="[lo, hi], two finite numbers with 0 <= lo < hi (m)",
+        doc="box-centre range band of contributing frames, m",
+    )
+    max_points_per_trace: int = setting(
+        4000, ge=1, expected="a positive integer", doc="cap (deterministic subsample)"
+    )
+    seed: int = setting(0, doc="seed of that subsample")
+    path: str = setting(
+        "atlas_trace_library.npz",
+        compare=False,
+        doc="library file; relative = under the dataset root",
+    )
+    split: str = setting("train", compare=False, doc="split the library is built from")
 
     @classmethod
     def from_config(cls, cfg: Mapping | None) -> TraceFilter:
-        cfg = cfg or {}
-        check_known_keys(cfg, TRACE_LIBRARY_KEYS, "TRACE_LIBRARY")
-        positive = {"valid": lambda n: n >= 1, "expected": "a positive integer"}
-        names = {  # key: (field, cast, checks)
-            "PATH": ("path", str, {}),
-            "SPLIT": ("split", str, {}),
-            "CLASSES": ("classes", _class_names, {
-                "valid": lambda c: len(c) > 0 and set(c) <= set(wf.WAYMO_CLASSES),
-                "expected": f"a non-empty list of classes of {wf.WAYMO_CLASSES}, e.g. [Vehicle]",
-            }),
-            "MIN_POINTS": ("min_points", int, positive),
-            "MIN_POINTS_PER_FRAME": ("min_points_per_frame", int, positive),
-            "MIN_FRAMES": ("min_frames", int, positive),
-            "RANGE_M": ("range_m", lambda b: tuple(float(v) for v in b), {
-                "valid": lambda b: len(b) == 2 and 0 <= b[0] < b[1] < math.inf,
-                "expected": "[lo, hi], two finite numbers with 0 <= lo < hi (m)",
-            }),
-            "MAX_POINTS_PER_TRACE": ("max_points_per_trace", int, positive),
-            "SEED": ("seed", int, {}),
-        }  # fmt: skip
-        kwargs = {
-            name: config_value(cfg, key, cast, "TRACE_LIBRARY", **checks)
-            for key, (name, cast, checks) in names.items()
-            if key in cfg
-        }
-        out = cls(**kwargs)
+        """Read a ``TRACE_LIBRARY`` section (every key optional)."""
+        out = read_section(cls, cfg, "TRACE_LIBRARY")
         if out.max_points_per_trace < out.min_points:
             raise ConfigError(
                 f"TRACE_LIBRARY (from {config_files(cfg)}): need MIN_POINTS <= "

@@ -15,13 +15,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pcdet_atlas.config import check_known_keys
-from pcdet_atlas.config_values import config_value
+from pcdet_atlas.config_values import fields_of, read_section, setting
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.ops.boxes import transform_boxes
 from pcdet_atlas.utils.seeding import numpy_generator
 
-__all__ = ["FrameLabels", "TargetPolicy", "Tracker", "TrackedFrame", "choose_target"]
+__all__ = [
+    "FrameLabels",
+    "TargetPolicy",
+    "Tracker",
+    "TrackingConfig",
+    "TrackedFrame",
+    "choose_target",
+]
 
 
 @dataclass(frozen=True)
@@ -84,35 +90,32 @@ class TargetPolicy:
         range_m: ``(lo, hi)`` band of the box centre's range from the sensor origin, m.
     """
 
-    policy: str = "nearest"
-    class_name: str = "Vehicle"
-    min_points: int = 20
-    range_m: tuple[float, float] = (5.0, 50.0)
+    policy: str = setting(
+        "nearest",
+        choices=("nearest", "random"),
+        expected="'nearest' or 'random'",
+        doc="`nearest` or `random`",
+    )
+    class_name: str = setting(
+        "Vehicle",
+        key="CLASS",
+        choices=wf.WAYMO_CLASSES,
+        expected=f"one of {wf.WAYMO_CLASSES}",
+        doc="target class",
+    )
+    min_points: int = setting(
+        20, ge=0, expected="a non-negative integer", doc="fewest `num_points_in_gt`"
+    )
+    range_m: tuple[float, float] = setting(
+        (5.0, 50.0), check=lambda r: 0 <= r[0] < r[1],
+        expected="[lo, hi] in metres with 0 <= lo < hi",
+        doc="range band from the sensor origin, m",
+    )  # fmt: skip
 
     @classmethod
     def from_config(cls, cfg: Mapping | None) -> TargetPolicy:
-        """Keys: ``POLICY``, ``CLASS``, ``MIN_POINTS``, ``RANGE_M`` (all optional)."""
-        cfg = cfg or {}
-        check_known_keys(cfg, {"POLICY", "CLASS", "MIN_POINTS", "RANGE_M"}, "TARGET")
-        return cls(
-            policy=config_value(
-                cfg, "POLICY", str, "TARGET", "nearest",
-                valid=lambda p: p in ("nearest", "random"), expected="'nearest' or 'random'",
-            ),
-            class_name=config_value(
-                cfg, "CLASS", str, "TARGET", "Vehicle",
-                valid=lambda c: c in wf.WAYMO_CLASSES, expected=f"one of {wf.WAYMO_CLASSES}",
-            ),
-            min_points=config_value(
-                cfg, "MIN_POINTS", int, "TARGET", 20,
-                valid=lambda n: n >= 0, expected="a non-negative integer",
-            ),
-            range_m=config_value(
-                cfg, "RANGE_M", lambda v: tuple(float(x) for x in v), "TARGET", (5.0, 50.0),
-                valid=lambda r: len(r) == 2 and 0 <= r[0] < r[1],
-                expected="[lo, hi] in metres with 0 <= lo < hi",
-            ),
-        )  # fmt: skip
+        """Read a ``TARGET`` section (every key optional)."""
+        return read_section(cls, cfg, "TARGET")
 
 
 def choose_target(
@@ -157,6 +160,19 @@ class TrackedFrame:
         return self.box is not None
 
 
+@dataclass(frozen=True, kw_only=True)
+class TrackingConfig:
+    """The ``TRACKING`` section of a removal config."""
+
+    dt: float = setting(0.1, gt=0, expected="a positive number", doc="s per frame")
+    d_max: float = setting(
+        2.0, gt=0, expected="a positive number", doc="prediction-to-box distance bound, m"
+    )
+    volume_ratio: float = setting(
+        0.7, gt=0, le=1, expected="a ratio in (0, 1]", doc="accepted volume ratio `[q, 1/q]`"
+    )
+
+
 class Tracker:
     """Velocity-guided nearest-box association (docs/attacks.md, "Removal").
 
@@ -166,7 +182,12 @@ class Tracker:
         volume_ratio: lower bound ``q`` of the volume ratio; accepted ratios are in [q, 1/q].
     """
 
-    def __init__(self, dt: float = 0.1, d_max: float = 2.0, volume_ratio: float = 0.7):
+    def __init__(
+        self,
+        dt: float = TrackingConfig.dt,
+        d_max: float = TrackingConfig.d_max,
+        volume_ratio: float = TrackingConfig.volume_ratio,
+    ):
         if not dt > 0 or not d_max > 0 or not 0 < volume_ratio <= 1:
             raise ValueError(
                 f"need dt > 0, d_max > 0, 0 < volume_ratio <= 1; got {dt}, {d_max}, {volume_ratio}"
@@ -177,18 +198,8 @@ class Tracker:
 
     @classmethod
     def from_config(cls, cfg: Mapping | None) -> Tracker:
-        """Keys: ``DT``, ``D_MAX``, ``VOLUME_RATIO`` (all optional)."""
-        cfg = cfg or {}
-        check_known_keys(cfg, {"DT", "D_MAX", "VOLUME_RATIO"}, "TRACKING")
-        positive = {"valid": lambda v: v > 0, "expected": "a positive number"}
-        return cls(
-            dt=config_value(cfg, "DT", float, "TRACKING", 0.1, **positive),
-            d_max=config_value(cfg, "D_MAX", float, "TRACKING", 2.0, **positive),
-            volume_ratio=config_value(
-                cfg, "VOLUME_RATIO", float, "TRACKING", 0.7,
-                valid=lambda q: 0 < q <= 1, expected="a ratio in (0, 1]",
-            ),
-        )  # fmt: skip
+        """Build from a ``TRACKING`` section (:class:`TrackingConfig`; every key optional)."""
+        return cls(**fields_of(read_section(TrackingConfig, cfg, "TRACKING")))
 
     def _match(
         self, labels: FrameLabels, class_name: str, center_w: np.ndarray, volume: float

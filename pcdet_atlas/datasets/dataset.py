@@ -17,17 +17,41 @@ from __future__ import annotations
 import logging
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch.utils.data as torch_data
 
 from pcdet_atlas.config import ConfigError, key_source, resolve_repo_path
+from pcdet_atlas.config_values import read_section, setting
 from pcdet_atlas.datasets.augmentor import DataAugmentor, DataProcessor
-from pcdet_atlas.datasets.point_features import PointFeatureEncoder
+from pcdet_atlas.datasets.point_features import PointFeatureConfig, PointFeatureEncoder
 from pcdet_atlas.utils.seeding import derive_seed
 
-__all__ = ["DatasetTemplate", "collate_batch"]
+__all__ = ["DatasetConfig", "DatasetTemplate", "collate_batch"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class DatasetConfig:
+    """The ``DATA_CONFIG`` keys every dataset reads."""
+
+    dataset: str | None = setting(None, doc="registered dataset class")
+    data_path: str | None = setting(None, doc="dataset root, relative to the repository root")
+    point_cloud_range: tuple[float, float, float, float, float, float] = setting(
+        check=lambda r: all(r[i] < r[i + 3] for i in range(3)),
+        expected="6 finite numbers [x_min, y_min, z_min, x_max, y_max, z_max] with min < max (m)",
+        doc="the range points and boxes are kept in, m",
+    )
+    data_augmentor: Mapping | None = setting(
+        None, doc="training augmentations (read by DataAugmentor)"
+    )
+    point_feature_encoding: PointFeatureConfig = setting(doc="which point columns the model reads")
+    data_processor: tuple[Mapping, ...] | None = setting(
+        (), doc="processors of train and test, in order"
+    )
+    seed: int = setting(0, doc="seed of every augmentation draw")
 
 
 class DatasetTemplate(torch_data.Dataset):
@@ -37,16 +61,9 @@ class DatasetTemplate(torch_data.Dataset):
     ``class_names``, ``training``, ``mode`` (``'train'``/``'test'``).
     """
 
-    #: DATA_CONFIG keys this class reads; subclasses extend it (unknown keys are errors).
-    CONFIG_KEYS: tuple[str, ...] = (
-        "DATASET",
-        "DATA_PATH",
-        "POINT_CLOUD_RANGE",
-        "DATA_AUGMENTOR",
-        "POINT_FEATURE_ENCODING",
-        "DATA_PROCESSOR",
-        "SEED",
-    )
+    #: The declaration of the DATA_CONFIG keys this class reads; subclasses extend it (unknown
+    #: keys are errors).
+    CONFIG: ClassVar[type[DatasetConfig]] = DatasetConfig
 
     def __init__(
         self,
@@ -57,6 +74,8 @@ class DatasetTemplate(torch_data.Dataset):
         logger: logging.Logger | None = None,
     ):
         super().__init__()
+        #: the checked ``DATA_CONFIG`` (an instance of :attr:`CONFIG`)
+        self.settings = read_section(self.CONFIG, dataset_cfg, "DATA_CONFIG")
         self.dataset_cfg = dataset_cfg
         self.training = training
         self.mode = "train" if training else "test"
@@ -64,21 +83,19 @@ class DatasetTemplate(torch_data.Dataset):
         self.logger = logger if logger is not None else logging.getLogger(__name__)
         if root_path is not None:
             self.root_path = Path(root_path)
-        elif "DATA_PATH" in dataset_cfg:
-            self.root_path = resolve_repo_path(dataset_cfg.DATA_PATH)
+        elif self.settings.data_path is not None:
+            self.root_path = resolve_repo_path(self.settings.data_path)
         else:
             raise ConfigError("DATA_CONFIG: no DATA_PATH and no root_path given")
-        pc_range = dataset_cfg.get("POINT_CLOUD_RANGE")
-        if pc_range is None or len(pc_range) != 6:
-            raise ConfigError(f"DATA_CONFIG.POINT_CLOUD_RANGE must have 6 values, got {pc_range}")
-        self.point_cloud_range = np.array(pc_range, dtype=np.float32)
-        self.seed = int(dataset_cfg.get("SEED", 0))
+        self.point_cloud_range = np.array(self.settings.point_cloud_range, dtype=np.float32)
+        self.seed = self.settings.seed
         self.epoch = 0
         self.total_epochs = 0
         self._merge_all_iters_to_one_epoch = False
 
-        self.point_feature_encoder = PointFeatureEncoder.from_config(
-            dataset_cfg.POINT_FEATURE_ENCODING
+        encoding = self.settings.point_feature_encoding
+        self.point_feature_encoder = PointFeatureEncoder(
+            list(encoding.used_feature_list), list(encoding.src_feature_list)
         )
         context = {
             "root_path": self.root_path,
@@ -87,14 +104,14 @@ class DatasetTemplate(torch_data.Dataset):
             "training": training,
             "logger": self.logger,
         }
-        augmentor_cfg = dataset_cfg.get("DATA_AUGMENTOR")
+        augmentor_cfg = self.settings.data_augmentor
         self.data_augmentor = None
         if augmentor_cfg is not None:
             DataAugmentor.check_config(augmentor_cfg)  # unknown keys fail in test mode too
             if training:
                 self.data_augmentor = DataAugmentor.from_config(augmentor_cfg, **context)
         self.data_processor = DataProcessor.from_config(
-            dataset_cfg.get("DATA_PROCESSOR", []) or [],
+            list(self.settings.data_processor or ()),
             origin=key_source(dataset_cfg, "DATA_PROCESSOR"),
             **context,
         )

@@ -9,12 +9,15 @@ history point goes vehicle(t-j) -> global -> vehicle(t) through the frames' pose
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
-from pcdet_atlas.config import ConfigError, check_known_keys
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config_values import read_section, setting
 
 __all__ = [
+    "SequenceSettings",
     "SequenceConfig",
     "history_sample_indices",
     "relative_pose",
@@ -31,12 +34,30 @@ __all__ = [
 SECONDS_PER_FRAME = 0.1
 
 
+@dataclass(frozen=True, kw_only=True)
+class SequenceSettings:
+    """The ``DATA_CONFIG.SEQUENCE_CONFIG`` section."""
+
+    enabled: bool = setting(False, doc="multi-frame samples")
+    sample_offset: tuple[int, int] = setting(
+        (-3, 0),
+        check=lambda o: o[0] <= 0 and o[1] == 0,
+        expected="[-k, 0] with k >= 0",
+        doc="frames [-k, 0] of a sample",
+    )
+    onehot_timestamp: bool = setting(False, doc="one column per frame instead of the lag")
+
+
 class SequenceConfig:
     """``SEQUENCE_CONFIG``: ``ENABLED``, ``SAMPLE_OFFSET [-k, 0]``, ``ONEHOT_TIMESTAMP``."""
 
-    CONFIG_KEYS = ("ENABLED", "SAMPLE_OFFSET", "ONEHOT_TIMESTAMP")
+    CONFIG = SequenceSettings
 
-    def __init__(self, sample_offset: Sequence[int] = (-3, 0), onehot_timestamp: bool = False):
+    def __init__(
+        self,
+        sample_offset: Sequence[int] = SequenceSettings.sample_offset,
+        onehot_timestamp: bool = SequenceSettings.onehot_timestamp,
+    ):
         if len(sample_offset) != 2 or int(sample_offset[0]) > 0 or int(sample_offset[1]) != 0:
             raise ConfigError(
                 f"SEQUENCE_CONFIG.SAMPLE_OFFSET must be [-k, 0] with k >= 0, got {sample_offset!r}"
@@ -49,10 +70,14 @@ class SequenceConfig:
         """``None`` when the section is absent or ``ENABLED`` is false."""
         if cfg is None:
             return None
-        check_known_keys(cfg, cls.CONFIG_KEYS, "DATA_CONFIG.SEQUENCE_CONFIG")
-        if not cfg.get("ENABLED", False):
+        return cls.from_settings(read_section(cls.CONFIG, cfg, "DATA_CONFIG.SEQUENCE_CONFIG"))
+
+    @classmethod
+    def from_settings(cls, settings: SequenceSettings | None) -> SequenceConfig | None:
+        """``None`` when the section is absent or not enabled."""
+        if settings is None or not settings.enabled:
             return None
-        return cls(cfg.get("SAMPLE_OFFSET", [-3, 0]), cfg.get("ONEHOT_TIMESTAMP", False))
+        return cls(settings.sample_offset, settings.onehot_timestamp)
 
     @property
     def num_frames(self) -> int:

@@ -3,19 +3,39 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
-from pcdet_atlas.config import ConfigError, check_known_keys
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config_values import read_section, setting
 
-__all__ = ["PointFeatureEncoder"]
+__all__ = ["PointFeatureConfig", "PointFeatureEncoder"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class PointFeatureConfig:
+    """``DATA_CONFIG.POINT_FEATURE_ENCODING`` (OpenPCDet's lower-case keys)."""
+
+    encoding_type: str = setting(
+        "absolute_coordinates_encoding",
+        key="encoding_type",
+        choices=("absolute_coordinates_encoding",),
+        doc="only absolute_coordinates_encoding",
+    )
+    used_feature_list: tuple[str, ...] = setting(
+        key="used_feature_list", doc="the columns the model reads, x, y, z first"
+    )
+    src_feature_list: tuple[str, ...] = setting(
+        key="src_feature_list", doc="the columns the dataset produces, x, y, z first"
+    )
 
 
 class PointFeatureEncoder:
     """``absolute_coordinates_encoding``: keep ``x, y, z`` then the other ``used_feature_list``
     columns, looked up by name in ``src_feature_list`` (the columns the dataset produces)."""
 
-    CONFIG_KEYS = ("encoding_type", "used_feature_list", "src_feature_list")
+    CONFIG = PointFeatureConfig
 
     def __init__(self, used_feature_list: Sequence[str], src_feature_list: Sequence[str]):
         self.used_feature_list = list(used_feature_list)
@@ -36,14 +56,8 @@ class PointFeatureEncoder:
 
     @classmethod
     def from_config(cls, cfg: Mapping) -> PointFeatureEncoder:
-        check_known_keys(cfg, cls.CONFIG_KEYS, "DATA_CONFIG.POINT_FEATURE_ENCODING")
-        encoding = cfg.get("encoding_type", "absolute_coordinates_encoding")
-        if encoding != "absolute_coordinates_encoding":
-            raise ConfigError(
-                f"POINT_FEATURE_ENCODING.encoding_type {encoding!r} is not supported "
-                f"(only 'absolute_coordinates_encoding')"
-            )
-        return cls(cfg["used_feature_list"], cfg["src_feature_list"])
+        settings = read_section(cls.CONFIG, cfg, "DATA_CONFIG.POINT_FEATURE_ENCODING")
+        return cls(list(settings.used_feature_list), list(settings.src_feature_list))
 
     @property
     def num_point_features(self) -> int:

@@ -12,16 +12,19 @@ from __future__ import annotations
 import copy
 import logging
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from easydict import EasyDict
 
-from pcdet_atlas.config import ConfigError, check_known_keys
-from pcdet_atlas.datasets.dataset import DatasetTemplate
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config_values import setting, unsupported
+from pcdet_atlas.datasets.dataset import DatasetConfig, DatasetTemplate
 from pcdet_atlas.datasets.multiframe import (
     SECONDS_PER_FRAME,
     SequenceConfig,
+    SequenceSettings,
     compress_rows,
     copy_rows,
     history_sample_indices,
@@ -41,10 +44,44 @@ from pcdet_atlas.datasets.waymo_format import (
 )
 from pcdet_atlas.registry import DATASETS
 
-__all__ = ["WaymoDataset"]
+__all__ = ["WaymoDataset", "WaymoDatasetConfig"]
 
 NUM_LOADED_FEATURES = 5  # x, y, z, intensity, elongation (the NLZ column is consumed)
 EGO_RADIUS_M = 1.0  # history points with |x| < r and |y| < r are the ego's own (OpenPCDet)
+
+
+@dataclass(frozen=True, kw_only=True)
+class WaymoDatasetConfig(DatasetConfig):
+    """The ``DATA_CONFIG`` keys of a Waymo-format dataset (beyond :class:`DatasetConfig`'s)."""
+
+    processed_data_tag: str = setting(PROCESSED_DATA_TAG, doc="folder of the frame files")
+    data_split: dict[str, str] = setting(
+        default_factory=dict,
+        check=lambda d: all(isinstance(v, str) for v in d.values()),
+        expected="{train: <split>, test: <split>}",
+        doc="the ImageSets split per mode",
+    )
+    sampled_interval: dict[str, int] = setting(
+        default_factory=dict,
+        check=lambda d: all(type(v) is int and v >= 1 for v in d.values()),
+        expected="{train: n, test: n} with integers n >= 1",
+        doc="every n-th frame per mode",
+    )
+    filter_empty_boxes_for_train: bool = setting(False, doc="drop boxes without points (train)")
+    disable_nlz_flag_on_points: bool = setting(False, doc="keep no-label-zone points")
+    points_tanh_dim: tuple[int, ...] | None = setting(
+        None,
+        ge=0,
+        lt=NUM_LOADED_FEATURES,
+        expected=f"column indices 0-{NUM_LOADED_FEATURES - 1}",
+        doc="columns squashed by tanh (None: intensity)",
+    )
+    train_with_speed: bool = setting(False, doc="boxes carry vx, vy")
+    sequence_config: SequenceSettings | None = setting(None, doc="multi-frame samples")
+    use_shared_memory: bool = unsupported(
+        "frames are read from disk; the OS page cache serves repeated reads"
+    )
+    shared_memory_file_limit: int | None = setting(None, doc="accepted for OpenPCDet configs")
 
 
 @DATASETS.register()
@@ -58,18 +95,7 @@ class WaymoDataset(DatasetTemplate):
         sequence_cfg: :class:`SequenceConfig` or ``None`` (single frame).
     """
 
-    CONFIG_KEYS = DatasetTemplate.CONFIG_KEYS + (
-        "PROCESSED_DATA_TAG",
-        "DATA_SPLIT",
-        "SAMPLED_INTERVAL",
-        "FILTER_EMPTY_BOXES_FOR_TRAIN",
-        "DISABLE_NLZ_FLAG_ON_POINTS",
-        "POINTS_TANH_DIM",
-        "TRAIN_WITH_SPEED",
-        "SEQUENCE_CONFIG",
-        "USE_SHARED_MEMORY",
-        "SHARED_MEMORY_FILE_LIMIT",
-    )
+    CONFIG = WaymoDatasetConfig
 
     def __init__(
         self,
@@ -81,33 +107,20 @@ class WaymoDataset(DatasetTemplate):
     ):
         if not isinstance(dataset_cfg, EasyDict):  # plain dicts work too (notebooks, tests)
             dataset_cfg = EasyDict(dataset_cfg)
-        check_known_keys(dataset_cfg, self.CONFIG_KEYS, "DATA_CONFIG")
-        if dataset_cfg.get("USE_SHARED_MEMORY", False):
-            raise ConfigError(
-                "DATA_CONFIG.USE_SHARED_MEMORY=True is not supported: frames are read from disk "
-                "(the OS page cache serves repeated reads); set it to False"
-            )
-        self.sequence_cfg = SequenceConfig.from_config(dataset_cfg.get("SEQUENCE_CONFIG"))
         super().__init__(dataset_cfg, class_names, training, root_path, logger)
-        self.processed_data_tag = dataset_cfg.get("PROCESSED_DATA_TAG", PROCESSED_DATA_TAG)
+        settings = self.settings
+        self.sequence_cfg = SequenceConfig.from_settings(settings.sequence_config)
+        self.processed_data_tag = settings.processed_data_tag
         self.data_path = self.root_path / self.processed_data_tag
-        self.disable_nlz_flag = bool(dataset_cfg.get("DISABLE_NLZ_FLAG_ON_POINTS", False))
-        tanh_dims = dataset_cfg.get("POINTS_TANH_DIM")
-        self.tanh_dims = [3] if tanh_dims is None else [int(d) for d in tanh_dims]
-        if any(not 0 <= d < NUM_LOADED_FEATURES for d in self.tanh_dims):
-            raise ConfigError(
-                f"DATA_CONFIG.POINTS_TANH_DIM must index columns 0-4, got {tanh_dims}"
-            )
-        self.train_with_speed = bool(dataset_cfg.get("TRAIN_WITH_SPEED", False))
-        self.filter_empty_boxes_for_train = bool(
-            dataset_cfg.get("FILTER_EMPTY_BOXES_FOR_TRAIN", False)
-        )
+        self.disable_nlz_flag = settings.disable_nlz_flag_on_points
+        tanh_dims = settings.points_tanh_dim
+        self.tanh_dims = [3] if tanh_dims is None else list(tanh_dims)
+        self.train_with_speed = settings.train_with_speed
+        self.filter_empty_boxes_for_train = settings.filter_empty_boxes_for_train
         for key in ("DATA_SPLIT", "SAMPLED_INTERVAL"):
-            if self.mode not in dataset_cfg.get(key, {}):
+            if self.mode not in getattr(settings, key.lower()):
                 raise ConfigError(f"DATA_CONFIG.{key} needs a {self.mode!r} entry")
-        self.sampled_interval = int(dataset_cfg.SAMPLED_INTERVAL[self.mode])
-        if self.sampled_interval < 1:
-            raise ConfigError(f"DATA_CONFIG.SAMPLED_INTERVAL.{self.mode} must be >= 1")
+        self.sampled_interval = settings.sampled_interval[self.mode]
         produced = NUM_LOADED_FEATURES + (
             self.sequence_cfg.num_extra_columns if self.sequence_cfg is not None else 0
         )
@@ -121,7 +134,7 @@ class WaymoDataset(DatasetTemplate):
         self.proposals: Mapping[str, np.ndarray] | None = None
         self.proposals_source = ""
         self.proposal_history = 0
-        self.set_split(dataset_cfg.DATA_SPLIT[self.mode])
+        self.set_split(settings.data_split[self.mode])
 
     # ------------------------------------------------------------------ infos
     def set_split(self, split: str) -> None:

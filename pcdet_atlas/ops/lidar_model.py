@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from pcdet_atlas.config import ConfigError, check_known_keys
-from pcdet_atlas.config_values import config_value
+from pcdet_atlas.config_values import read_section, setting
 from pcdet_atlas.ops.beam_fit import fit_beam_table
 from pcdet_atlas.ops.lidar_presets import (
     LIDAR_PRESETS,
@@ -25,6 +25,7 @@ from pcdet_atlas.ops.lidar_presets import (
 )
 
 __all__ = [
+    "LidarConfig",
     "LidarModel",
     "WAYMO_AZIMUTH_BINS",
     "WAYMO_TOP_FOV_DEG",
@@ -56,6 +57,75 @@ def spherical_offsets(
     azimuth[azimuth == -math.pi] = math.pi
     elevation = np.arctan2(dz, horiz)
     return azimuth, elevation, np.sqrt(horiz**2 + dz**2) if with_range else None
+
+
+def _ascending(angles: Sequence[float]) -> bool:
+    return len(angles) >= 2 and all(x < y for x, y in zip(angles, angles[1:]))
+
+
+@dataclass(frozen=True, kw_only=True)
+class LidarConfig:
+    """The ``LIDAR`` section of an attack config: one beam table (a preset, or inclinations in
+    radians or degrees; none: the default Waymo TOP table) and the binning."""
+
+    preset: str | None = setting(
+        None,
+        choices=sorted(LIDAR_PRESETS),
+        expected=f"one of the LiDAR presets {', '.join(sorted(LIDAR_PRESETS))}",
+        doc="a named sensor (its beam table, offsets and azimuth bins)",
+    )
+    inclinations: tuple[float, ...] | None = setting(
+        None,
+        check=_ascending,
+        expected="a list of at least 2 beam inclinations in radians, ascending",
+        doc="beam elevation angles, rad",
+    )
+    inclinations_deg: tuple[float, ...] | None = setting(
+        None,
+        check=_ascending,
+        expected="a list of at least 2 beam inclinations in degrees, ascending",
+        doc="beam elevation angles, degrees",
+    )
+    offsets: tuple[float, ...] | None = setting(
+        None, doc="height of each laser above ORIGIN, m (one per beam of an explicit table)"
+    )
+    azimuth_bins: int | None = setting(
+        None, ge=1, expected="a positive integer", doc="azimuth columns (the preset's, else 2651)"
+    )
+    origin: tuple[float, float, float] = setting(
+        WAYMO_TOP_ORIGIN, expected="[x, y, z] in metres", doc="sensor position, m"
+    )
+    max_range: float = setting(
+        75.0, gt=0, expected="a positive range in metres", doc="maximum return range, m"
+    )
+
+    def __post_init__(self) -> None:
+        tables = [
+            key
+            for key, value in (
+                ("PRESET", self.preset),
+                ("INCLINATIONS", self.inclinations),
+                ("INCLINATIONS_DEG", self.inclinations_deg),
+            )
+            if value is not None
+        ]
+        if len(tables) > 1:
+            raise ValueError(
+                f"give one of PRESET, INCLINATIONS (rad), INCLINATIONS_DEG, not {tables}"
+            )
+        if self.offsets is None:
+            return
+        if tables in ([], ["PRESET"]):
+            raise ValueError(
+                "OFFSETS needs an explicit table (INCLINATIONS or INCLINATIONS_DEG): a "
+                "preset carries its own offsets"
+            )
+        num = len(self.inclinations or self.inclinations_deg)
+        if len(self.offsets) != num:
+            raise ValueError(
+                f"OFFSETS = {list(self.offsets)!r}: expected {num} laser heights above "
+                f"ORIGIN in metres, one per beam of {tables[0]}"
+            )
 
 
 class LidarModel:
@@ -181,71 +251,25 @@ class LidarModel:
 
     @classmethod
     def from_config(cls, cfg: Mapping | None) -> LidarModel:
-        """Build from a ``LIDAR`` config section.
+        """Build from a ``LIDAR`` config section (:class:`LidarConfig`; ``{}``: the default
+        Waymo TOP table)."""
+        return cls.from_settings(read_section(LidarConfig, cfg, "LIDAR"))
 
-        Keys (all optional): ``INCLINATIONS`` (radians) or ``INCLINATIONS_DEG``, ``AZIMUTH_BINS``,
-        ``ORIGIN``, ``MAX_RANGE``. Without inclinations, the default Waymo TOP table is used.
-        """
-        cfg = cfg or {}
-        check_known_keys(
-            cfg,
-            {
-                "PRESET", "INCLINATIONS", "INCLINATIONS_DEG", "OFFSETS", "AZIMUTH_BINS", "ORIGIN",
-                "MAX_RANGE",
-            },
-            "LIDAR",
-        )  # fmt: skip
-        tables = [k for k in ("PRESET", "INCLINATIONS", "INCLINATIONS_DEG") if k in cfg]
-        if len(tables) > 1:
-            raise ConfigError(
-                f"LIDAR: give one of PRESET, INCLINATIONS (rad), INCLINATIONS_DEG, not {tables}"
-            )
-        if "OFFSETS" in cfg and tables not in (["INCLINATIONS"], ["INCLINATIONS_DEG"]):
-            raise ConfigError(
-                "LIDAR.OFFSETS needs an explicit table (INCLINATIONS or INCLINATIONS_DEG): a "
-                "preset carries its own offsets"
-            )
-        kwargs = {
-            "azimuth_bins": config_value(
-                cfg, "AZIMUTH_BINS", int, "LIDAR", None,
-                valid=lambda m: m >= 1, expected="a positive integer",
-            ),
-            "origin": config_value(
-                cfg, "ORIGIN", lambda o: tuple(float(v) for v in o), "LIDAR", WAYMO_TOP_ORIGIN,
-                valid=lambda o: len(o) == 3, expected="[x, y, z] in metres",
-            ),
-            "max_range": config_value(
-                cfg, "MAX_RANGE", float, "LIDAR", 75.0,
-                valid=lambda r: r > 0, expected="a positive range in metres",
-            ),
-        }  # fmt: skip
-        if kwargs["azimuth_bins"] is None:
-            del kwargs["azimuth_bins"]  # the preset's, or the paper's 2651
-        if "PRESET" in cfg:
-            name = config_value(
-                cfg, "PRESET", str, "LIDAR", valid=lambda n: n in LIDAR_PRESETS,
-                expected=f"one of the LiDAR presets {', '.join(sorted(LIDAR_PRESETS))}",
-            )  # fmt: skip
-            return cls.preset(name, **kwargs)
-        for key in ("INCLINATIONS", "INCLINATIONS_DEG"):
-            if key in cfg:
-                unit = "radians" if key == "INCLINATIONS" else "degrees"
-                angles = config_value(
-                    cfg, key, lambda a: [float(v) for v in a], "LIDAR",
-                    valid=lambda a: len(a) >= 2 and all(x < y for x, y in zip(a, a[1:])),
-                    expected=f"a list of at least 2 beam inclinations in {unit}, ascending",
-                )  # fmt: skip
-                if key == "INCLINATIONS_DEG":
-                    angles = np.deg2rad(np.asarray(angles, dtype=np.float64))
-                if "OFFSETS" in cfg:
-                    num = len(angles)
-                    kwargs["offsets"] = config_value(
-                        cfg, "OFFSETS", lambda a: [float(v) for v in a], "LIDAR",
-                        valid=lambda a, n=num: len(a) == n,
-                        expected=f"{num} laser heights above ORIGIN in metres, one per beam of "
-                        f"{key}",
-                    )  # fmt: skip
-                return cls(angles, **kwargs)
+    @classmethod
+    def from_settings(cls, settings: LidarConfig) -> LidarModel:
+        """Build from a read ``LIDAR`` section."""
+        kwargs = {"origin": settings.origin, "max_range": settings.max_range}
+        if settings.azimuth_bins is not None:  # else the preset's, or the paper's 2651
+            kwargs["azimuth_bins"] = settings.azimuth_bins
+        if settings.preset is not None:
+            return cls.preset(settings.preset, **kwargs)
+        if settings.offsets is not None:
+            kwargs["offsets"] = list(settings.offsets)
+        if settings.inclinations is not None:
+            return cls(list(settings.inclinations), **kwargs)
+        if settings.inclinations_deg is not None:
+            radians = np.deg2rad(np.asarray(settings.inclinations_deg, dtype=np.float64))
+            return cls(radians, **kwargs)
         return cls.waymo_top(**kwargs)
 
     # ------------------------------------------------------------------ geometry

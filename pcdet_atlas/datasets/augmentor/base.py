@@ -4,8 +4,10 @@ Both are lists of registered :data:`~pcdet_atlas.registry.TRANSFORMS` built from
 config sections (``DATA_AUGMENTOR.AUG_CONFIG_LIST`` and ``DATA_PROCESSOR``). Every transform is
 a class with
 
-* ``CONFIG_KEYS``: the keys its config item may have besides ``NAME`` (others are errors),
-* ``from_config(cfg, **context)``: config -> plain keyword arguments. ``context`` holds what the
+* ``CONFIG``: the declaration of its config item's keys besides ``NAME`` (a frozen dataclass of
+  :func:`~pcdet_atlas.config_values.setting` fields; other keys are errors),
+* ``from_config(cfg, **context)``: config -> plain keyword arguments, reading the item with
+  :func:`read_transform_config`. ``context`` holds what the
   dataset knows: ``root_path``, ``class_names``, ``point_cloud_range``, ``training``, ``logger``,
   and ``section``, where the item sits (``DATA_AUGMENTOR.AUG_CONFIG_LIST[i] of <file>``, for
   error messages),
@@ -21,16 +23,26 @@ classes). World transforms left-multiply ``lidar_aug_matrix`` (4x4) by what they
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from pcdet_atlas.config import ConfigError, check_known_keys, key_source
+from pcdet_atlas.config import ConfigError, key_source
+from pcdet_atlas.config_values import read_section, setting
 from pcdet_atlas.datasets.proposal_history import PROPOSAL_KEYS
 from pcdet_atlas.registry import TRANSFORMS
 from pcdet_atlas.utils.common import limit_period
 from pcdet_atlas.utils.seeding import numpy_generator
 
-__all__ = ["DataAugmentor", "DataProcessor", "build_transform", "check_transform_config"]
+__all__ = [
+    "AugmentorConfig",
+    "DataAugmentor",
+    "DataProcessor",
+    "build_transform",
+    "check_transform_config",
+    "read_transform_config",
+]
 
 _VOXEL_HINT = (
     "voxelization is part of the model in pcdet_atlas (a torch op in the VFE), not of the data "
@@ -51,10 +63,17 @@ def _transform_class(item: Mapping, section: str):
         raise ConfigError(f"{section} (from {key_source(item, 'NAME')}): {err}") from err
 
 
+def read_transform_config(cls: type, item: Mapping, section: str = "<unknown>") -> Any:
+    """The config item of transform ``cls`` read into ``cls.CONFIG``; its keys are named
+    ``<NAME>.<KEY>`` in messages, and the item's place by ``section``."""
+    name = item["NAME"]
+    return read_section(cls.CONFIG, item, name, where=f"{section} ({name})", ignore=("NAME",))
+
+
 def check_transform_config(item: Mapping, section: str) -> None:
-    """Raise :class:`ConfigError` if ``item`` names no known transform or has an unknown key."""
-    cls = _transform_class(item, section)
-    check_known_keys(item, ("NAME", *cls.CONFIG_KEYS), f"{section} ({item['NAME']})")
+    """Raise :class:`ConfigError` if ``item`` names no known transform or has an unknown key or
+    a bad value."""
+    read_transform_config(_transform_class(item, section), item, section)
 
 
 def build_transform(item: Mapping, section: str, **context):
@@ -84,27 +103,38 @@ class _Pipeline:
         return f"{type(self).__name__}({self.names})"
 
 
+@dataclass(frozen=True, kw_only=True)
+class AugmentorConfig:
+    """The ``DATA_AUGMENTOR`` section (each item is read by its transform's ``CONFIG``)."""
+
+    disable_aug_list: tuple[str, ...] | None = setting((), doc="NAMEs of AUG_CONFIG_LIST left out")
+    aug_config_list: tuple[Mapping, ...] | None = setting(
+        (), doc="the augmentations, in order: each a mapping with NAME and its keys"
+    )
+
+
 class DataAugmentor(_Pipeline):
     """Training augmentations (``DATA_AUGMENTOR``), as OpenPCDet's ``DataAugmentor``."""
 
     stage = "augment"
-    SECTION_KEYS = ("DISABLE_AUG_LIST", "AUG_CONFIG_LIST")
+    CONFIG = AugmentorConfig
 
     @classmethod
-    def check_config(cls, cfg: Mapping) -> None:
-        """Validate ``DATA_AUGMENTOR`` (its keys and every item's keys) without building."""
-        check_known_keys(cfg, cls.SECTION_KEYS, "DATA_CONFIG.DATA_AUGMENTOR")
+    def check_config(cls, cfg: Mapping) -> AugmentorConfig:
+        """Validate ``DATA_AUGMENTOR`` (its keys and every item) without building."""
+        settings = read_section(cls.CONFIG, cfg, "DATA_CONFIG.DATA_AUGMENTOR")
         origin = key_source(cfg, "AUG_CONFIG_LIST")
-        for i, item in enumerate(cfg.get("AUG_CONFIG_LIST", []) or []):
+        for i, item in enumerate(settings.aug_config_list or ()):
             check_transform_config(item, f"DATA_AUGMENTOR.AUG_CONFIG_LIST[{i}] of {origin}")
+        return settings
 
     @classmethod
     def from_config(cls, cfg: Mapping, **context) -> DataAugmentor:
-        cls.check_config(cfg)
-        disabled = set(cfg.get("DISABLE_AUG_LIST", []) or [])
+        settings = cls.check_config(cfg)
+        disabled = set(settings.disable_aug_list or ())
         transforms = []
         origin = key_source(cfg, "AUG_CONFIG_LIST")
-        for i, item in enumerate(cfg.get("AUG_CONFIG_LIST", []) or []):
+        for i, item in enumerate(settings.aug_config_list or ()):
             if item["NAME"] in disabled:
                 continue
             section = f"DATA_AUGMENTOR.AUG_CONFIG_LIST[{i}] of {origin}"

@@ -27,11 +27,14 @@ from __future__ import annotations
 import logging
 import pickle
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from pcdet_atlas.config import ConfigError, check_known_keys, require_keys
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config_values import setting, unsupported
+from pcdet_atlas.datasets.augmentor.base import read_transform_config
 from pcdet_atlas.datasets.augmentor.box_ops import box_index_of_points, enlarge_boxes
 from pcdet_atlas.datasets.multiframe import compress_rows
 from pcdet_atlas.datasets.waymo_format import WAYMO_CLASSES, WaymoFormatError
@@ -77,26 +80,47 @@ def _trained_classes(
     return {name: count for name, count in counts.items() if name in class_names}
 
 
+@dataclass(frozen=True, kw_only=True)
+class PrepareConfig:
+    filter_by_min_points: tuple[str, ...] = setting(
+        (), key="filter_by_min_points", doc="'Class:n': fewest points of a database object"
+    )
+    filter_by_difficulty: tuple[int, ...] = setting(
+        (), key="filter_by_difficulty", doc="database difficulties dropped"
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class BackupDbInfoConfig:
+    db_info_path: str = setting(doc="dbinfos pickle used when DB_INFO_PATH is missing")
+    db_data_path: str = setting(doc="its stacked _global.npy")
+    num_point_features: int = setting(ge=1, doc="its point columns")
+
+
+@dataclass(frozen=True, kw_only=True)
+class GTSamplingConfig:
+    db_info_path: tuple[str, ...] = setting(doc="dbinfos pickles, relative to DATA_PATH")
+    db_data_path: tuple[str, ...] | None = setting((), doc="one stacked _global.npy per pickle")
+    backup_db_info: BackupDbInfoConfig | None = setting(None, doc="used when the first is missing")
+    use_shared_memory: bool = setting(False, doc="read the _global.npy through a memory map")
+    prepare: PrepareConfig | None = setting(None, doc="database filters")
+    sample_groups: tuple[str, ...] = setting(doc="'Class:n': objects wanted per frame")
+    num_point_features: int = setting(ge=1, doc="columns of the stored object points")
+    remove_extra_width: tuple[float, float, float] = setting(
+        (0.0, 0.0, 0.0), doc="m added to pasted boxes when clearing scene points"
+    )
+    limit_whole_scene: bool = setting(False, doc="count the frame's own objects")
+    filter_obj_points_by_timestamp: bool = setting(False, doc="keep object points in TIME_RANGE")
+    time_range: tuple[float, float] | None = setting(None, doc="[t0, t1] lag range, s")
+    use_road_plane: bool = unsupported("Waymo has no road planes")
+    database_with_fakelidar: bool = unsupported("a fake-LiDAR database is not supported")
+
+
 @TRANSFORMS.register("gt_sampling")
 class GTSampling:
     """Paste objects from a GT database into the scene (see the module docstring)."""
 
-    CONFIG_KEYS = (
-        "DB_INFO_PATH",
-        "DB_DATA_PATH",
-        "BACKUP_DB_INFO",
-        "USE_SHARED_MEMORY",
-        "PREPARE",
-        "SAMPLE_GROUPS",
-        "NUM_POINT_FEATURES",
-        "REMOVE_EXTRA_WIDTH",
-        "LIMIT_WHOLE_SCENE",
-        "FILTER_OBJ_POINTS_BY_TIMESTAMP",
-        "TIME_RANGE",
-        "USE_ROAD_PLANE",
-        "DATABASE_WITH_FAKELIDAR",
-    )
-    PREPARE_KEYS = ("filter_by_min_points", "filter_by_difficulty")
+    CONFIG = GTSamplingConfig
 
     def __init__(
         self,
@@ -106,13 +130,13 @@ class GTSampling:
         sample_groups: Mapping[str, int],
         num_point_features: int,
         db_data_paths: Sequence[str | Path] = (),
-        use_shared_memory: bool = False,
+        use_shared_memory: bool = GTSamplingConfig.use_shared_memory,
         min_points: Mapping[str, int] | None = None,
         removed_difficulty: Sequence[int] = (),
-        remove_extra_width: Sequence[float] = (0.0, 0.0, 0.0),
-        limit_whole_scene: bool = False,
-        filter_obj_points_by_timestamp: bool = False,
-        time_range: Sequence[float] | None = None,
+        remove_extra_width: Sequence[float] = GTSamplingConfig.remove_extra_width,
+        limit_whole_scene: bool = GTSamplingConfig.limit_whole_scene,
+        filter_obj_points_by_timestamp: bool = GTSamplingConfig.filter_obj_points_by_timestamp,
+        time_range: Sequence[float] | None = GTSamplingConfig.time_range,
         logger=None,
         section: str = "<unknown>",
     ):
@@ -185,50 +209,39 @@ class GTSampling:
     def from_config(
         cls, cfg: Mapping, *, root_path, class_names, logger=None, section="<unknown>", **context
     ) -> GTSampling:
-        if cfg.get("USE_ROAD_PLANE", False):
-            raise ConfigError(
-                "gt_sampling: USE_ROAD_PLANE=True needs road planes, which Waymo lacks"
-            )
-        if cfg.get("DATABASE_WITH_FAKELIDAR", False):
-            raise ConfigError("gt_sampling: DATABASE_WITH_FAKELIDAR is not supported")
-        require_keys(cfg, ("DB_INFO_PATH", "SAMPLE_GROUPS", "NUM_POINT_FEATURES"), "gt_sampling")
-        prepare = cfg.get("PREPARE", {}) or {}
-        check_known_keys(prepare, cls.PREPARE_KEYS, "gt_sampling.PREPARE")
-        info_paths = list(cfg["DB_INFO_PATH"])
-        data_paths = list(cfg.get("DB_DATA_PATH", []) or [])
-        num_features = cfg["NUM_POINT_FEATURES"]
-        backup = cfg.get("BACKUP_DB_INFO")
+        settings = read_transform_config(cls, cfg, section)
+        prepare = settings.prepare or PrepareConfig()
+        info_paths = list(settings.db_info_path)
+        data_paths = list(settings.db_data_path or ())
+        num_features = settings.num_point_features
+        backup = settings.backup_db_info
         root = Path(root_path)
-        backup_keys = ("DB_INFO_PATH", "DB_DATA_PATH", "NUM_POINT_FEATURES")
-        if backup is not None:
-            check_known_keys(backup, backup_keys, "gt_sampling.BACKUP_DB_INFO")
-            require_keys(backup, backup_keys, "gt_sampling.BACKUP_DB_INFO")
         if backup is not None and not (root / info_paths[0]).exists():
             if len(info_paths) != 1:
                 raise ConfigError("gt_sampling: BACKUP_DB_INFO needs exactly one DB_INFO_PATH")
             (logger or logging.getLogger(__name__)).warning(
                 f"gt_sampling: {root / info_paths[0]} not found; using BACKUP_DB_INFO "
-                f"{root / backup['DB_INFO_PATH']}"
+                f"{root / backup.db_info_path}"
             )
-            info_paths = [backup["DB_INFO_PATH"]]
-            data_paths = [backup["DB_DATA_PATH"]]
-            num_features = backup["NUM_POINT_FEATURES"]
+            info_paths = [backup.db_info_path]
+            data_paths = [backup.db_data_path]
+            num_features = backup.num_point_features
         return cls(
             root_path=root,
             class_names=class_names,
             db_info_paths=info_paths,
             db_data_paths=data_paths,
-            sample_groups=parse_class_counts(cfg["SAMPLE_GROUPS"], "SAMPLE_GROUPS"),
+            sample_groups=parse_class_counts(list(settings.sample_groups), "SAMPLE_GROUPS"),
             num_point_features=num_features,
-            use_shared_memory=cfg.get("USE_SHARED_MEMORY", False),
+            use_shared_memory=settings.use_shared_memory,
             min_points=parse_class_counts(
-                prepare.get("filter_by_min_points", []), "PREPARE.filter_by_min_points"
+                list(prepare.filter_by_min_points), "PREPARE.filter_by_min_points"
             ),
-            removed_difficulty=prepare.get("filter_by_difficulty", []),
-            remove_extra_width=cfg.get("REMOVE_EXTRA_WIDTH", [0.0, 0.0, 0.0]),
-            limit_whole_scene=cfg.get("LIMIT_WHOLE_SCENE", False),
-            filter_obj_points_by_timestamp=cfg.get("FILTER_OBJ_POINTS_BY_TIMESTAMP", False),
-            time_range=cfg.get("TIME_RANGE"),
+            removed_difficulty=list(prepare.filter_by_difficulty),
+            remove_extra_width=settings.remove_extra_width,
+            limit_whole_scene=settings.limit_whole_scene,
+            filter_obj_points_by_timestamp=settings.filter_obj_points_by_timestamp,
+            time_range=settings.time_range,
             logger=logger,
             section=section,
         )

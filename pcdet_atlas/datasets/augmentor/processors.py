@@ -3,13 +3,15 @@ voxelization, which is a torch op inside the model here."""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from pcdet_atlas.config import ConfigError, key_source
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config_values import fields_of, setting
+from pcdet_atlas.datasets.augmentor.base import read_transform_config
 from pcdet_atlas.datasets.multiframe import compress_rows
 from pcdet_atlas.ops.boxes import boxes_to_corners_3d
 from pcdet_atlas.registry import TRANSFORMS
@@ -57,20 +59,30 @@ def mask_boxes_outside_range(
     return inside.sum(axis=1) >= min_num_corners
 
 
+@dataclass(frozen=True, kw_only=True)
+class MaskOutsideRangeConfig:
+    remove_outside_boxes: bool = setting(True, doc="in training, drop boxes outside the range")
+    filter_z: bool = setting(False, doc="also drop points outside the z range")
+    min_num_corners: int = setting(
+        1, key="min_num_corners", ge=1, le=8, doc="corners inside for a box to stay"
+    )
+    use_center_to_filter: bool = setting(True, doc="keep a box by its centre, not its corners")
+
+
 @TRANSFORMS.register("mask_points_and_boxes_outside_range")
 class MaskPointsAndBoxesOutsideRange:
     """Drop points outside ``POINT_CLOUD_RANGE``; in training also drop boxes outside it."""
 
-    CONFIG_KEYS = ("REMOVE_OUTSIDE_BOXES", "FILTER_Z", "min_num_corners", "USE_CENTER_TO_FILTER")
+    CONFIG = MaskOutsideRangeConfig
 
     def __init__(
         self,
         point_cloud_range: Sequence[float],
         training: bool,
-        remove_outside_boxes: bool = True,
-        filter_z: bool = False,
-        min_num_corners: int = 1,
-        use_center_to_filter: bool = True,
+        remove_outside_boxes: bool = MaskOutsideRangeConfig.remove_outside_boxes,
+        filter_z: bool = MaskOutsideRangeConfig.filter_z,
+        min_num_corners: int = MaskOutsideRangeConfig.min_num_corners,
+        use_center_to_filter: bool = MaskOutsideRangeConfig.use_center_to_filter,
     ):
         if len(point_cloud_range) != 6:
             raise ConfigError(f"POINT_CLOUD_RANGE must have 6 values, got {point_cloud_range!r}")
@@ -85,14 +97,8 @@ class MaskPointsAndBoxesOutsideRange:
     def from_config(
         cls, cfg: Mapping, *, point_cloud_range, training: bool, **context
     ) -> MaskPointsAndBoxesOutsideRange:
-        return cls(
-            point_cloud_range=point_cloud_range,
-            training=training,
-            remove_outside_boxes=bool(cfg.get("REMOVE_OUTSIDE_BOXES", True)),
-            filter_z=bool(cfg.get("FILTER_Z", False)),
-            min_num_corners=int(cfg.get("min_num_corners", 1)),
-            use_center_to_filter=bool(cfg.get("USE_CENTER_TO_FILTER", True)),
-        )
+        settings = read_transform_config(cls, cfg, context.get("section", "<unknown>"))
+        return cls(point_cloud_range=point_cloud_range, training=training, **fields_of(settings))
 
     def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
         if data_dict.get("points") is not None:
@@ -150,6 +156,16 @@ def row_hash_order(points: np.ndarray, seed: int) -> np.ndarray:
     return torch.sort(keys, stable=True).indices.numpy()
 
 
+@dataclass(frozen=True, kw_only=True)
+class ShuffleConfig:
+    shuffle_enabled: dict[str, bool] = setting(
+        default_factory=lambda: {"train": True, "test": True},
+        check=lambda d: all(isinstance(v, bool) for v in d.values()),
+        expected="{train: true|false, test: true|false}",
+        doc="whether points are shuffled, per mode",
+    )
+
+
 @TRANSFORMS.register("shuffle_points")
 class ShufflePoints:
     """Randomly permute the points (``SHUFFLE_ENABLED: {train: bool, test: bool}``).
@@ -159,14 +175,15 @@ class ShufflePoints:
     frame come out in the same order (docs/data.md).
     """
 
-    CONFIG_KEYS = ("SHUFFLE_ENABLED",)
+    CONFIG = ShuffleConfig
 
     def __init__(self, enabled: bool = True):
         self.enabled = enabled
 
     @classmethod
     def from_config(cls, cfg: Mapping, *, training: bool, **context) -> ShufflePoints:
-        enabled = cfg.get("SHUFFLE_ENABLED", {"train": True, "test": True})
+        settings = read_transform_config(cls, cfg, context.get("section", "<unknown>"))
+        enabled = settings.shuffle_enabled
         mode = "train" if training else "test"
         if mode not in enabled:
             raise ConfigError(f"shuffle_points.SHUFFLE_ENABLED needs a {mode!r} entry: {enabled}")
@@ -180,32 +197,28 @@ class ShufflePoints:
         return data_dict
 
 
+@dataclass(frozen=True, kw_only=True)
+class VoxelSizeConfig:
+    voxel_size: tuple[float, float, float] = setting(
+        gt=0, expected="3 finite sizes > 0 [vx, vy, vz] (m)", doc="the model's voxel size, m"
+    )
+
+
 @TRANSFORMS.register("transform_points_to_voxels_placeholder")
 class VoxelSizePlaceholder:
     """OpenPCDet's processor of dynamic-voxel models: it states the ``VOXEL_SIZE`` (m) the model
     voxelizes with and leaves the points as they are (the model reads the size through
     :func:`processor_voxel_size`)."""
 
-    CONFIG_KEYS = ("VOXEL_SIZE",)
+    CONFIG = VoxelSizeConfig
 
     def __init__(self, voxel_size: Sequence[float]):
         self.voxel_size = tuple(float(v) for v in voxel_size)
 
     @classmethod
     def from_config(cls, cfg: Mapping, **context) -> VoxelSizePlaceholder:
-        value = cfg.get("VOXEL_SIZE")
-        ok = (
-            isinstance(value, (list, tuple))
-            and len(value) == 3
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
-            and all(math.isfinite(v) and v > 0 for v in value)
-        )
-        if not ok:
-            raise ConfigError(
-                f"transform_points_to_voxels_placeholder.VOXEL_SIZE = {value!r} (from "
-                f"{key_source(cfg, 'VOXEL_SIZE')}): expected 3 finite sizes > 0 [vx, vy, vz] (m)"
-            )
-        return cls(value)
+        settings = read_transform_config(cls, cfg, context.get("section", "<unknown>"))
+        return cls(settings.voxel_size)
 
     def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
         return data_dict

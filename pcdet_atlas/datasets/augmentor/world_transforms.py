@@ -11,10 +11,13 @@ model can map anything from the un-augmented vehicle frame into the augmented on
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
-from pcdet_atlas.config import ConfigError, require_keys
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config_values import setting
+from pcdet_atlas.datasets.augmentor.base import read_transform_config
 from pcdet_atlas.datasets.proposal_history import PROPOSAL_KEYS
 from pcdet_atlas.registry import TRANSFORMS
 
@@ -49,14 +52,39 @@ def _range_pair(value, name: str) -> tuple[float, float]:
     return low, high
 
 
+@dataclass(frozen=True, kw_only=True)
+class FlipConfig:
+    along_axis_list: tuple[str, ...] = setting(
+        ("x", "y"), choices=("x", "y"), doc="axes mirrored across, each with probability 1/2"
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class RotationConfig:
+    world_rot_angle: float | tuple[float, float] = setting(
+        expected="a number a (for [-a, a]) or a [low, high] pair, rad",
+        doc="rotation range about z, rad",
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class ScalingConfig:
+    world_scale_range: tuple[float, float] = setting(
+        gt=0,
+        check=lambda r: r[0] <= r[1],
+        expected="a [low, high] pair of scale factors with 0 < low <= high",
+        doc="scale factor range",
+    )
+
+
 @TRANSFORMS.register("random_world_flip")
 class RandomWorldFlip:
     """Mirror the scene across the x axis (y -> -y) and/or the y axis (x -> -x), each with
     probability 1/2, in ``along_axis_list`` order."""
 
-    CONFIG_KEYS = ("ALONG_AXIS_LIST",)
+    CONFIG = FlipConfig
 
-    def __init__(self, along_axis_list: Sequence[str] = ("x", "y")):
+    def __init__(self, along_axis_list: Sequence[str] = FlipConfig.along_axis_list):
         for axis in along_axis_list:
             if axis not in ("x", "y"):
                 raise ConfigError(f"ALONG_AXIS_LIST entries must be 'x' or 'y', got {axis!r}")
@@ -64,7 +92,8 @@ class RandomWorldFlip:
 
     @classmethod
     def from_config(cls, cfg: Mapping, **context) -> RandomWorldFlip:
-        return cls(along_axis_list=list(cfg.get("ALONG_AXIS_LIST", ["x", "y"])))
+        settings = read_transform_config(cls, cfg, context.get("section", "<unknown>"))
+        return cls(along_axis_list=list(settings.along_axis_list))
 
     def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
         points = data_dict["points"]
@@ -97,15 +126,15 @@ class RandomWorldFlip:
 class RandomWorldRotation:
     """Rotate the scene about the vehicle z axis by an angle ~ U(rot_range) (radians, CCW)."""
 
-    CONFIG_KEYS = ("WORLD_ROT_ANGLE",)
+    CONFIG = RotationConfig
 
     def __init__(self, rot_range: tuple[float, float] = (-np.pi / 4, np.pi / 4)):
         self.rot_range = _range_pair(rot_range, "WORLD_ROT_ANGLE")
 
     @classmethod
     def from_config(cls, cfg: Mapping, **context) -> RandomWorldRotation:
-        require_keys(cfg, ("WORLD_ROT_ANGLE",), "random_world_rotation")
-        return cls(rot_range=_range_pair(cfg["WORLD_ROT_ANGLE"], "WORLD_ROT_ANGLE"))
+        settings = read_transform_config(cls, cfg, context.get("section", "<unknown>"))
+        return cls(rot_range=_range_pair(settings.world_rot_angle, "WORLD_ROT_ANGLE"))
 
     def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
         angle = float(rng.uniform(*self.rot_range))
@@ -136,7 +165,7 @@ class RandomWorldRotation:
 class RandomWorldScaling:
     """Scale coordinates, box sizes and velocities by a factor ~ U(scale_range)."""
 
-    CONFIG_KEYS = ("WORLD_SCALE_RANGE",)
+    CONFIG = ScalingConfig
 
     def __init__(self, scale_range: tuple[float, float] = (0.95, 1.05)):
         if isinstance(scale_range, (int, float)):  # no symmetric reading, unlike an angle
@@ -151,8 +180,8 @@ class RandomWorldScaling:
 
     @classmethod
     def from_config(cls, cfg: Mapping, **context) -> RandomWorldScaling:
-        require_keys(cfg, ("WORLD_SCALE_RANGE",), "random_world_scaling")
-        return cls(scale_range=cfg["WORLD_SCALE_RANGE"])
+        settings = read_transform_config(cls, cfg, context.get("section", "<unknown>"))
+        return cls(scale_range=settings.world_scale_range)
 
     def __call__(self, data_dict: dict, rng: np.random.Generator) -> dict:
         scale = float(rng.uniform(*self.scale_range))

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-from pcdet_atlas.config import ConfigError, check_known_keys, require_keys
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config_values import as_lists, setting
+from pcdet_atlas.models.stage_config import StageConfig, read_stage
 from pcdet_atlas.registry import MODEL_STAGES
 
 
@@ -16,11 +19,24 @@ def _bn(channels: int) -> nn.BatchNorm2d:
     return nn.BatchNorm2d(channels, eps=1e-3, momentum=0.01)
 
 
+@dataclass(frozen=True, kw_only=True)
+class BEVBackboneConfig(StageConfig):
+    """``MODEL.BACKBONE_2D`` of the BEV backbones (OpenPCDet's keys)."""
+
+    layer_nums: tuple[int, ...] = setting(ge=0, doc="convs per level")
+    layer_strides: tuple[int, ...] = setting(ge=1, doc="stride of each level")
+    num_filters: tuple[int, ...] = setting(ge=1, doc="width of each level")
+    upsample_strides: tuple[float, ...] = setting(gt=0, doc="upsampling of each level")
+    num_upsample_filters: tuple[int, ...] = setting(ge=1, doc="width of each upsampled level")
+
+
 @MODEL_STAGES.register()
 class BaseBEVBackbone(nn.Module):
     """Reads ``spatial_features`` (B, C_in, H, W); writes ``spatial_features_2d``
     (B, sum(num_upsample_filters), H / s, W / s), ``s = layer_strides[0] / upsample_strides[0]``.
     """
+
+    CONFIG = BEVBackboneConfig
 
     def __init__(
         self,
@@ -81,10 +97,8 @@ class BaseBEVBackbone(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> BaseBEVBackbone:
-        keys = ["LAYER_NUMS", "LAYER_STRIDES", "NUM_FILTERS", "UPSAMPLE_STRIDES"]
-        check_known_keys(cfg, ["NAME", *keys, "NUM_UPSAMPLE_FILTERS"], "MODEL.BACKBONE_2D")
-        require_keys(cfg, [*keys, "NUM_UPSAMPLE_FILTERS"], "MODEL.BACKBONE_2D")
-        total = math.prod(int(s) for s in cfg["LAYER_STRIDES"])
+        settings = read_stage(cls, cfg, "MODEL.BACKBONE_2D")
+        total = math.prod(settings.layer_strides)
         grid = model_info.get("grid_size")
         # the map this backbone sees: the voxel grid, or what a 3D backbone's stride leaves of it
         before = int(model_info.get("backbone_stride", 1))
@@ -98,11 +112,11 @@ class BaseBEVBackbone(nn.Module):
             )
         return cls(
             input_channels=model_info["num_bev_features"],
-            layer_nums=cfg["LAYER_NUMS"],
-            layer_strides=cfg["LAYER_STRIDES"],
-            num_filters=cfg["NUM_FILTERS"],
-            upsample_strides=cfg["UPSAMPLE_STRIDES"],
-            num_upsample_filters=cfg["NUM_UPSAMPLE_FILTERS"],
+            layer_nums=as_lists(settings.layer_nums),
+            layer_strides=as_lists(settings.layer_strides),
+            num_filters=as_lists(settings.num_filters),
+            upsample_strides=as_lists(settings.upsample_strides),
+            num_upsample_filters=as_lists(settings.num_upsample_filters),
         )
 
     def forward(self, batch_dict: dict) -> dict:

@@ -9,7 +9,10 @@ from collections.abc import Mapping, Sequence
 import torch
 from torch import nn
 
-from pcdet_atlas.config import ConfigError, check_known_keys, require_keys
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config_values import as_lists
+from pcdet_atlas.models.backbones_2d.base_bev_backbone import BEVBackboneConfig
+from pcdet_atlas.models.stage_config import read_stage
 from pcdet_atlas.registry import MODEL_STAGES
 
 
@@ -45,6 +48,8 @@ class BaseBEVResBackbone(nn.Module):
     (B, sum(num_upsample_filters), H / s, W / s). Level ``i`` is a strided projecting block then
     ``layer_nums[i]`` blocks, upsampled by ``upsample_strides[i]`` (transposed conv, BN, ReLU).
     """
+
+    CONFIG = BEVBackboneConfig
 
     def __init__(
         self,
@@ -94,10 +99,8 @@ class BaseBEVResBackbone(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> BaseBEVResBackbone:
-        keys = ["LAYER_NUMS", "LAYER_STRIDES", "NUM_FILTERS", "UPSAMPLE_STRIDES"]
-        check_known_keys(cfg, ["NAME", *keys, "NUM_UPSAMPLE_FILTERS"], "MODEL.BACKBONE_2D")
-        require_keys(cfg, [*keys, "NUM_UPSAMPLE_FILTERS"], "MODEL.BACKBONE_2D")
-        total = math.prod(int(s) for s in cfg["LAYER_STRIDES"])
+        settings = read_stage(cls, cfg, "MODEL.BACKBONE_2D")
+        total = math.prod(settings.layer_strides)
         grid = model_info.get("grid_size")
         before = int(model_info.get("backbone_stride", 1))
         if grid is not None and ((grid[0] // before) % total or (grid[1] // before) % total):
@@ -107,11 +110,11 @@ class BaseBEVResBackbone(nn.Module):
             )
         return cls(
             input_channels=model_info["num_bev_features"],
-            layer_nums=cfg["LAYER_NUMS"],
-            layer_strides=cfg["LAYER_STRIDES"],
-            num_filters=cfg["NUM_FILTERS"],
-            upsample_strides=cfg["UPSAMPLE_STRIDES"],
-            num_upsample_filters=cfg["NUM_UPSAMPLE_FILTERS"],
+            layer_nums=as_lists(settings.layer_nums),
+            layer_strides=as_lists(settings.layer_strides),
+            num_filters=as_lists(settings.num_filters),
+            upsample_strides=as_lists(settings.upsample_strides),
+            num_upsample_filters=as_lists(settings.num_upsample_filters),
         )
 
     def forward(self, batch_dict: dict) -> dict:

@@ -9,11 +9,14 @@ and spatial attention (CBAM). The dense head reads ``x_up`` and the pyramid ``[x
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-from pcdet_atlas.config import ConfigError, check_known_keys, require_keys
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config_values import as_lists, setting
+from pcdet_atlas.models.stage_config import StageConfig, read_stage
 from pcdet_atlas.registry import MODEL_STAGES
 
 
@@ -66,6 +69,15 @@ def _block(cin: int, cout: int, num_layers: int, stride: int, transposed: bool) 
     return nn.Sequential(*layers)
 
 
+@dataclass(frozen=True, kw_only=True)
+class CenterFormerBEVBackboneConfig(StageConfig):
+    """``MODEL.BACKBONE_2D`` of CenterFormerBEVBackbone."""
+
+    layer_nums: tuple[int, ...] = setting(ge=0, doc="convs per block")
+    num_filters: tuple[int, ...] = setting(ge=1, doc="width per block")
+    upsample_stride: int = setting(2, ge=1, doc="upsampling of the query map")
+
+
 @MODEL_STAGES.register()
 class CenterFormerBEVBackbone(nn.Module):
     """Reads ``spatial_features`` (B, C_in, H, W); writes ``spatial_features_2d`` (B, 2 * F2,
@@ -73,13 +85,15 @@ class CenterFormerBEVBackbone(nn.Module):
     H, W), x_down (B, F1, H / 2, W / 2)]``; the cross-attention reads all three with one
     projection, so ``F0 = F1 = 2 * F2`` (CenterFormer's 256, 256, 128)."""
 
+    CONFIG = CenterFormerBEVBackboneConfig
+
     def __init__(
         self,
         *,
         input_channels: int,
         layer_nums: Sequence[int],
         num_filters: Sequence[int],
-        upsample_stride: int = 2,
+        upsample_stride: int = CenterFormerBEVBackboneConfig.upsample_stride,
     ):
         """
         Args:
@@ -116,9 +130,7 @@ class CenterFormerBEVBackbone(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> CenterFormerBEVBackbone:
-        keys = ["LAYER_NUMS", "NUM_FILTERS"]
-        check_known_keys(cfg, ["NAME", *keys, "UPSAMPLE_STRIDE"], "MODEL.BACKBONE_2D")
-        require_keys(cfg, keys, "MODEL.BACKBONE_2D")
+        settings = read_stage(cls, cfg, "MODEL.BACKBONE_2D")
         grid = model_info.get("grid_size")
         before = int(model_info.get("backbone_stride", 1))
         if grid is not None and ((grid[0] // before) % 2 or (grid[1] // before) % 2):
@@ -128,9 +140,9 @@ class CenterFormerBEVBackbone(nn.Module):
             )
         return cls(
             input_channels=model_info["num_bev_features"],
-            layer_nums=cfg["LAYER_NUMS"],
-            num_filters=cfg["NUM_FILTERS"],
-            upsample_stride=cfg.get("UPSAMPLE_STRIDE", 2),
+            layer_nums=as_lists(settings.layer_nums),
+            num_filters=as_lists(settings.num_filters),
+            upsample_stride=settings.upsample_stride,
         )
 
     def forward(self, batch_dict: dict) -> dict:

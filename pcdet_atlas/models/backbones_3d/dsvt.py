@@ -18,13 +18,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
-from pcdet_atlas.config import check_known_keys, require_keys
+from pcdet_atlas.config_values import as_lists, setting
 from pcdet_atlas.models.model_utils.dsvt_utils import (
     PositionEmbeddingLearned,
     pooling_index,
@@ -32,6 +33,7 @@ from pcdet_atlas.models.model_utils.dsvt_utils import (
     set_partition,
     window_coords,
 )
+from pcdet_atlas.models.stage_config import StageConfig, read_stage
 from pcdet_atlas.registry import MODEL_STAGES
 
 ACTIVATIONS = {"relu": F.relu, "gelu": F.gelu}
@@ -255,11 +257,58 @@ class DSVTInputLayer(nn.Module):
         return self.posembed_layers[stage_id][block_id][shift_id](location)
 
 
+_Ints = tuple[int, ...]
+
+
+@dataclass(frozen=True, kw_only=True)
+class DSVTInputLayerConfig:
+    """``MODEL.BACKBONE_3D.INPUT_LAYER`` (OpenPCDet's lower-case keys)."""
+
+    sparse_shape: tuple[int, int, int] = setting(
+        key="sparse_shape", ge=1, doc="the VFE's grid [nx, ny, nz]"
+    )
+    downsample_stride: tuple[_Ints, ...] = setting(
+        key="downsample_stride", ge=1, doc="per stage transition, [sx, sy, sz]"
+    )
+    d_model: _Ints = setting(key="d_model", ge=1, doc="width per stage")
+    set_info: tuple[_Ints, ...] = setting(key="set_info", ge=1, doc="[set size, blocks] per stage")
+    window_shape: tuple[_Ints, ...] = setting(
+        key="window_shape", ge=1, doc="window [x, y, z] per stage"
+    )
+    hybrid_factor: _Ints = setting(key="hybrid_factor", ge=1, doc="shifted windows' scale x, y, z")
+    shifts_list: tuple[tuple[_Ints, ...], ...] = setting(
+        key="shifts_list", doc="window shifts per stage"
+    )
+    normalize_pos: bool = setting(False, key="normalize_pos", doc="normalise the positions")
+
+
+@dataclass(frozen=True, kw_only=True)
+class DSVTConfig(StageConfig):
+    """``MODEL.BACKBONE_3D`` of DSVT (OpenPCDet's keys)."""
+
+    input_layer: DSVTInputLayerConfig = setting(doc="voxel sets and windows per stage")
+    block_name: tuple[str, ...] = setting(
+        key="block_name", choices=("DSVTBlock",), doc="one DSVTBlock per stage"
+    )
+    set_info: tuple[_Ints, ...] = setting(key="set_info", ge=1, doc="[set size, blocks] per stage")
+    d_model: _Ints = setting(key="d_model", ge=1, doc="width per stage")
+    nhead: _Ints = setting(key="nhead", ge=1, doc="attention heads per stage")
+    dim_feedforward: _Ints = setting(key="dim_feedforward", ge=1, doc="feed-forward width")
+    dropout: float = setting(0.0, key="dropout", ge=0, lt=1, doc="dropout")
+    activation: str = setting("gelu", key="activation", doc="feed-forward activation")
+    reduction_type: str = setting("attention", key="reduction_type", doc="pooling between stages")
+    output_shape: tuple[int, int] = setting(key="output_shape", ge=1, doc="BEV grid [nx, ny]")
+    conv_out_channel: int = setting(key="conv_out_channel", ge=1, doc="output width")
+    use_checkpoint: bool = setting(False, doc="activation checkpointing in training")
+
+
 @MODEL_STAGES.register()
 class DSVT(nn.Module):
     """Reads ``voxel_features`` (N, d_model[0]) and ``voxel_coords`` (N, 4) ``[b, z, y, x]`` on
     the VFE's grid; writes ``pillar_features`` = ``voxel_features`` (M, d_model[-1]) and
     ``voxel_coords`` (M, 4) of the last stage (z = 0 where the stages pooled z to one layer)."""
+
+    CONFIG = DSVTConfig
 
     def __init__(
         self,
@@ -269,12 +318,12 @@ class DSVT(nn.Module):
         d_model: Sequence[int],
         nhead: Sequence[int],
         dim_feedforward: Sequence[int],
-        dropout: float = 0.0,
-        activation: str = "gelu",
-        reduction_type: str = "attention",
+        dropout: float = DSVTConfig.dropout,
+        activation: str = DSVTConfig.activation,
+        reduction_type: str = DSVTConfig.reduction_type,
         output_shape: Sequence[int],
         conv_out_channel: int,
-        use_checkpoint: bool = False,
+        use_checkpoint: bool = DSVTConfig.use_checkpoint,
     ):
         """
         Args:
@@ -354,55 +403,41 @@ class DSVT(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> DSVT:
-        keys = ["block_name", "set_info", "d_model", "nhead", "dim_feedforward", "output_shape",
-                "conv_out_channel"]  # fmt: skip
-        check_known_keys(
-            cfg,
-            ["NAME", "INPUT_LAYER", *keys, "dropout", "activation", "reduction_type",
-             "USE_CHECKPOINT"],
-            "MODEL.BACKBONE_3D",
-        )  # fmt: skip
-        require_keys(cfg, ["INPUT_LAYER", *keys], "MODEL.BACKBONE_3D")
-        il = cfg["INPUT_LAYER"]
-        il_keys = ["sparse_shape", "downsample_stride", "d_model", "set_info", "window_shape",
-                   "hybrid_factor", "shifts_list"]  # fmt: skip
-        check_known_keys(il, [*il_keys, "normalize_pos"], "MODEL.BACKBONE_3D.INPUT_LAYER")
-        require_keys(il, il_keys, "MODEL.BACKBONE_3D.INPUT_LAYER")
-        if any(name != "DSVTBlock" for name in cfg["block_name"]):
-            raise ValueError(f"DSVT block_name: only 'DSVTBlock' exists, got {cfg['block_name']}")
+        settings = read_stage(cls, cfg, "MODEL.BACKBONE_3D")
+        il = settings.input_layer
         grid = tuple(int(v) for v in model_info["grid_size"])
-        if tuple(int(v) for v in il["sparse_shape"]) != grid:
+        if il.sparse_shape != grid:
             raise ValueError(
-                f"DSVT INPUT_LAYER.sparse_shape {list(il['sparse_shape'])} differs from the "
+                f"DSVT INPUT_LAYER.sparse_shape {list(il.sparse_shape)} differs from the "
                 f"VFE's grid {list(grid)} (POINT_CLOUD_RANGE / VOXEL_SIZE)"
             )
-        if model_info["num_point_features"] != cfg["d_model"][0]:
+        if model_info["num_point_features"] != settings.d_model[0]:
             raise ValueError(
-                f"DSVT d_model[0] ({cfg['d_model'][0]}) must equal the VFE output width "
+                f"DSVT d_model[0] ({settings.d_model[0]}) must equal the VFE output width "
                 f"({model_info['num_point_features']})"
             )
         input_layer = DSVTInputLayer(
-            sparse_shape=il["sparse_shape"],
-            window_shape=il["window_shape"],
-            downsample_stride=il["downsample_stride"],
-            d_model=il["d_model"],
-            set_info=il["set_info"],
-            hybrid_factor=il["hybrid_factor"],
-            shifts_list=il["shifts_list"],
-            normalize_pos=il.get("normalize_pos", False),
+            sparse_shape=as_lists(il.sparse_shape),
+            window_shape=as_lists(il.window_shape),
+            downsample_stride=as_lists(il.downsample_stride),
+            d_model=as_lists(il.d_model),
+            set_info=as_lists(il.set_info),
+            hybrid_factor=as_lists(il.hybrid_factor),
+            shifts_list=as_lists(il.shifts_list),
+            normalize_pos=il.normalize_pos,
         )
         return cls(
             input_layer=input_layer,
-            set_info=cfg["set_info"],
-            d_model=cfg["d_model"],
-            nhead=cfg["nhead"],
-            dim_feedforward=cfg["dim_feedforward"],
-            dropout=cfg.get("dropout", 0.0),
-            activation=cfg.get("activation", "gelu"),
-            reduction_type=cfg.get("reduction_type", "attention"),
-            output_shape=cfg["output_shape"],
-            conv_out_channel=cfg["conv_out_channel"],
-            use_checkpoint=cfg.get("USE_CHECKPOINT", False),
+            set_info=as_lists(settings.set_info),
+            d_model=as_lists(settings.d_model),
+            nhead=as_lists(settings.nhead),
+            dim_feedforward=as_lists(settings.dim_feedforward),
+            dropout=settings.dropout,
+            activation=settings.activation,
+            reduction_type=settings.reduction_type,
+            output_shape=as_lists(settings.output_shape),
+            conv_out_channel=settings.conv_out_channel,
+            use_checkpoint=settings.use_checkpoint,
         )
 
     def forward(self, batch_dict: dict) -> dict:

@@ -18,15 +18,18 @@ where it is from its neighbours and the VFE's polar decorations, not from an add
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pcdet_atlas.config import ConfigError, check_known_keys
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config_values import fields_of, setting
 from pcdet_atlas.models.model_utils.mamba import Mamba, PackedSequences, RMSNorm, pack_sequences
 from pcdet_atlas.models.model_utils.polar_grid import PolarGrid
 from pcdet_atlas.models.model_utils.scatter import scatter_max, scatter_mean
+from pcdet_atlas.models.stage_config import StageConfig, read_stage
 from pcdet_atlas.registry import MODEL_STAGES
 
 __all__ = [
@@ -144,6 +147,23 @@ def serialization_keys(coords: torch.Tensor, grid: PolarGrid) -> tuple[torch.Ten
     return ray_major, ring_major
 
 
+@dataclass(frozen=True, kw_only=True)
+class PolarSectorMambaConfig(StageConfig):
+    """``MODEL.BACKBONE_3D`` of PolarSectorMamba."""
+
+    d_model: int = setting(32, ge=1, doc="token width")
+    num_blocks: int = setting(2, ge=1, doc="Mamba blocks per sector")
+    d_state: int = setting(16, ge=1, doc="Mamba state size")
+    d_conv: int = setting(4, ge=1, doc="Mamba conv width")
+    expand: int = setting(2, ge=1, doc="Mamba expansion")
+    decomposed_conv: bool = setting(True, doc="a polar conv before each block")
+    position_embedding: bool = setting(False, doc="range, azimuth, height embeddings")
+    range_tokens: int = setting(8, ge=1, doc="range-band tokens per sector")
+    sector_pool: str = setting(
+        "mean_max", choices=("mean", "mean_max"), doc="pooling of a band's voxels"
+    )
+
+
 @MODEL_STAGES.register()
 class PolarSectorMamba(nn.Module):
     """Polar voxel features -> contextual voxel features, streamed sector by sector.
@@ -152,20 +172,22 @@ class PolarSectorMamba(nn.Module):
     ``batch_size``; writes ``voxel_features`` (V, num_point_features).
     """
 
+    CONFIG = PolarSectorMambaConfig
+
     def __init__(
         self,
         *,
         input_channels: int,
         grid: PolarGrid,
-        d_model: int = 32,
-        num_blocks: int = 2,
-        d_state: int = 16,
-        d_conv: int = 4,
-        expand: int = 2,
-        decomposed_conv: bool = True,
-        position_embedding: bool = False,
-        range_tokens: int = 8,
-        sector_pool: str = "mean_max",
+        d_model: int = PolarSectorMambaConfig.d_model,
+        num_blocks: int = PolarSectorMambaConfig.num_blocks,
+        d_state: int = PolarSectorMambaConfig.d_state,
+        d_conv: int = PolarSectorMambaConfig.d_conv,
+        expand: int = PolarSectorMambaConfig.expand,
+        decomposed_conv: bool = PolarSectorMambaConfig.decomposed_conv,
+        position_embedding: bool = PolarSectorMambaConfig.position_embedding,
+        range_tokens: int = PolarSectorMambaConfig.range_tokens,
+        sector_pool: str = PolarSectorMambaConfig.sector_pool,
     ):
         """
         Args:
@@ -216,17 +238,12 @@ class PolarSectorMamba(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> PolarSectorMamba:
-        keys = {
-            "D_MODEL": "d_model", "NUM_BLOCKS": "num_blocks", "D_STATE": "d_state",
-            "D_CONV": "d_conv", "EXPAND": "expand", "DECOMPOSED_CONV": "decomposed_conv",
-            "POSITION_EMBEDDING": "position_embedding", "RANGE_TOKENS": "range_tokens",
-            "SECTOR_POOL": "sector_pool",
-        }  # fmt: skip
-        check_known_keys(cfg, ["NAME", *keys], "MODEL.BACKBONE_3D")
+        settings = read_stage(cls, cfg, "MODEL.BACKBONE_3D")
         grid = model_info.get("polar_grid")
         if grid is None:
             raise ValueError("PolarSectorMamba needs a polar VFE (MODEL.VFE.NAME: PolarVFE)")
-        kwargs = {arg: cfg[key] for key, arg in keys.items() if key in cfg}
+        kwargs = fields_of(settings)
+        del kwargs["name"]
         try:
             return cls(input_channels=model_info["num_point_features"], grid=grid, **kwargs)
         except ValueError as err:

@@ -7,11 +7,13 @@ Module and parameter names, shapes and ``indice_key`` reuse are OpenPCDet's, so 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from functools import partial
 
 from torch import nn
 
-from pcdet_atlas.config import check_known_keys
+from pcdet_atlas.config_values import setting
+from pcdet_atlas.models.stage_config import StageConfig, read_stage
 from pcdet_atlas.ops.spconv import (
     SparseConv3d,
     SparseConvTensor,
@@ -68,6 +70,13 @@ class SparseBasicBlock(SparseModule):
         return out.replace_feature(self.relu(out.features + x.features))
 
 
+@dataclass(frozen=True, kw_only=True)
+class VoxelBackBoneConfig(StageConfig):
+    """``MODEL.BACKBONE_3D`` of the 8x voxel backbones."""
+
+    last_pad: int = setting(0, key="last_pad", ge=0, doc="padding of conv_out")
+
+
 class _VoxelBackBone(nn.Module):
     """Shared input / output of the 8x backbones; subclasses build ``conv_input`` .. ``conv_out``.
 
@@ -75,6 +84,8 @@ class _VoxelBackBone(nn.Module):
     ``encoded_spconv_tensor`` (stride 8), ``encoded_spconv_tensor_stride`` and
     ``multi_scale_3d_features`` / ``multi_scale_3d_strides`` (``x_conv1`` .. ``x_conv4``).
     """
+
+    CONFIG = VoxelBackBoneConfig
 
     def __init__(self, *, input_channels: int, grid_size: Sequence[int]):
         super().__init__()
@@ -87,11 +98,11 @@ class _VoxelBackBone(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> _VoxelBackBone:
-        check_known_keys(cfg, ["NAME", "last_pad"], "MODEL.BACKBONE_3D")
+        settings = read_stage(cls, cfg, "MODEL.BACKBONE_3D")
         return cls(
             input_channels=model_info["num_point_features"],
             grid_size=model_info["grid_size"],
-            last_pad=cfg.get("last_pad", 0),
+            last_pad=settings.last_pad,
         )
 
     def forward(self, batch_dict: dict) -> dict:
@@ -146,7 +157,13 @@ class VoxelBackBone8x(_VoxelBackBone):
     """OpenPCDet's ``VoxelBackBone8x``: submanifold stages at strides 1, 2, 4, 8 and a
     ``(3, 1, 1)`` / ``(2, 1, 1)`` ``conv_out`` to 128 channels."""
 
-    def __init__(self, *, input_channels: int, grid_size: Sequence[int], last_pad: int = 0):
+    def __init__(
+        self,
+        *,
+        input_channels: int,
+        grid_size: Sequence[int],
+        last_pad: int = VoxelBackBoneConfig.last_pad,
+    ):
         super().__init__(input_channels=input_channels, grid_size=grid_size)
         self.conv_input = SparseSequential(
             SubMConv3d(input_channels, 16, 3, padding=1, bias=False, indice_key="subm1"),
@@ -179,7 +196,13 @@ class VoxelResBackBone8x(_VoxelBackBone):
     """OpenPCDet's ``VoxelResBackBone8x`` (CenterPoint's): ``SparseBasicBlock`` pairs at strides
     1, 2, 4, 8 (16, 32, 64, 128 channels) and the ``(3, 1, 1)`` / ``(2, 1, 1)`` ``conv_out``."""
 
-    def __init__(self, *, input_channels: int, grid_size: Sequence[int], last_pad: int = 0):
+    def __init__(
+        self,
+        *,
+        input_channels: int,
+        grid_size: Sequence[int],
+        last_pad: int = VoxelBackBoneConfig.last_pad,
+    ):
         super().__init__(input_channels=input_channels, grid_size=grid_size)
         self.conv_input = SparseSequential(
             SubMConv3d(input_channels, 16, 3, padding=1, bias=False, indice_key="subm1"),

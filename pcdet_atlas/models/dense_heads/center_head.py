@@ -15,12 +15,23 @@ predicted box with its GT box (mapped to [-1, 1]), a DIoU regression loss on the
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-from pcdet_atlas.config import check_known_keys
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config_values import as_lists, section, setting, unsupported
+from pcdet_atlas.models.dense_heads.center_config import (
+    CenterTargetConfig,
+    LossConfig,
+    LossWeightsConfig,
+    SeparateHeadConfig,
+    branch_num_convs,
+    check_one_head,
+)
 from pcdet_atlas.models.model_utils import centernet_utils as cu
+from pcdet_atlas.models.stage_config import StageConfig, read_stage
 from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d, nms_bev
 from pcdet_atlas.registry import MODEL_STAGES
 
@@ -67,12 +78,77 @@ class SeparateHead(nn.Module):
         return {name: branch(x) for name, branch in self.branches.items()}
 
 
+SECTION = "MODEL.DENSE_HEAD"
+_BOX_CODES = (("center", "center_z", "dim", "rot"), ("center", "center_z", "dim", "rot", "vel"))
+
+
+@dataclass(frozen=True, kw_only=True)
+class CenterSeparateHeadConfig(SeparateHeadConfig):
+    head_order: tuple[str, ...] = setting(
+        _BOX_CODES[0],
+        check=lambda order: order in _BOX_CODES,
+        expected="[center, center_z, dim, rot] with optional vel",
+        doc="branches of the box code, in order",
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class CenterNmsConfig:
+    """``POST_PROCESSING.NMS_CONFIG``."""
+
+    nms_type: str = setting(
+        "nms_gpu",
+        choices=NMS_TYPES,
+        expected=f"one of {', '.join(NMS_TYPES)} (rotated BEV NMS)",
+        doc="over all classes, or class_specific_nms",
+    )
+    nms_thresh: float | tuple[float, ...] = setting(0.7, doc="IoU threshold (per class)")
+    nms_pre_maxsize: int | tuple[int, ...] = setting(4096, doc="boxes before NMS (per class)")
+    nms_post_maxsize: int | tuple[int, ...] = setting(500, doc="boxes after NMS (per class)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class CenterPostConfig:
+    """``POST_PROCESSING`` of the head."""
+
+    score_thresh: float = setting(0.1, doc="boxes scoring below are dropped")
+    post_center_limit_range: tuple[float, float, float, float, float, float] | None = setting(
+        None, doc="box centres outside are dropped, m"
+    )
+    max_obj_per_sample: int = setting(500, ge=1, doc="top-K heatmap peaks")
+    nms_config: CenterNmsConfig = section(CenterNmsConfig)
+    use_iou_to_rectify_score: bool = setting(False, doc="scores ** (1 - r) * iou ** r")
+    iou_rectifier: tuple[float, ...] | None = setting(None, doc="r per class")
+
+
+@dataclass(frozen=True, kw_only=True)
+class CenterHeadConfig(StageConfig):
+    """``MODEL.DENSE_HEAD`` of CenterHead (OpenPCDet's keys)."""
+
+    class_agnostic: bool = unsupported("one class-aware head")
+    class_names_each_head: tuple[tuple[str, ...], ...] | None = setting(
+        None, doc="one head over all CLASS_NAMES"
+    )
+    shared_conv_channel: int = setting(64, ge=1, doc="width of the shared conv")
+    use_bias_before_norm: bool = setting(False, doc="conv bias before BatchNorm")
+    num_hm_conv: int = setting(2, ge=1, doc="convs of the heatmap branch")
+    separate_head_cfg: CenterSeparateHeadConfig = section(CenterSeparateHeadConfig)
+    target_assigner_config: CenterTargetConfig = section(CenterTargetConfig)
+    loss_config: LossConfig = section(LossConfig)
+    post_processing: CenterPostConfig = section(CenterPostConfig)
+    iou_reg_loss: bool = setting(False, doc="DIoU loss of the decoded boxes")
+    bn_eps: float = setting(1e-5, gt=0, doc="BatchNorm eps")
+    bn_momentum: float = setting(0.1, key="BN_MOM", gt=0, le=1, doc="BatchNorm momentum")
+
+
 @MODEL_STAGES.register()
 class CenterHead(nn.Module):
     """Reads ``spatial_features_2d`` (B, C, H, W); writes ``head_outputs``: a dict of maps
     ``hm`` (B, num_class, H, W) logits, ``center`` (B, 2, H, W), ``center_z`` (B, 1, H, W),
     ``dim`` (B, 3, H, W) log-sizes, ``rot`` (B, 2, H, W) ``[cos, sin]``, optionally ``vel``
     (B, 2, H, W) m/s and ``iou`` (B, 1, H, W) in [-1, 1]."""
+
+    CONFIG = CenterHeadConfig
 
     def __init__(
         self,
@@ -84,29 +160,29 @@ class CenterHead(nn.Module):
         grid_size: Sequence[int],
         feature_map_stride: int = 1,
         with_velocity: bool = False,
-        shared_conv_channel: int = 64,
-        use_bias_before_norm: bool = False,
-        num_hm_conv: int = 2,
+        shared_conv_channel: int = CenterHeadConfig.shared_conv_channel,
+        use_bias_before_norm: bool = CenterHeadConfig.use_bias_before_norm,
+        num_hm_conv: int = CenterHeadConfig.num_hm_conv,
         reg_num_conv: int | Mapping[str, int] = 2,
         init_bias: float = -2.19,
-        num_max_objs: int = 500,
-        gaussian_overlap: float = 0.1,
-        min_radius: int = 2,
-        cls_weight: float = 1.0,
-        loc_weight: float = 2.0,
+        num_max_objs: int = CenterTargetConfig.num_max_objs,
+        gaussian_overlap: float = CenterTargetConfig.gaussian_overlap,
+        min_radius: int = CenterTargetConfig.min_radius,
+        cls_weight: float = LossWeightsConfig.cls_weight,
+        loc_weight: float = LossWeightsConfig.loc_weight,
         code_weights: Sequence[float] | None = None,
-        score_thresh: float = 0.1,
+        score_thresh: float = CenterPostConfig.score_thresh,
         post_center_limit_range: Sequence[float] | None = None,
-        max_obj_per_sample: int = 500,
-        nms_thresh: float | Sequence[float] = 0.7,
-        nms_pre_maxsize: int | Sequence[int] = 4096,
-        nms_post_maxsize: int | Sequence[int] = 500,
-        nms_type: str = "nms_gpu",
+        max_obj_per_sample: int = CenterPostConfig.max_obj_per_sample,
+        nms_thresh: float | Sequence[float] = CenterNmsConfig.nms_thresh,
+        nms_pre_maxsize: int | Sequence[int] = CenterNmsConfig.nms_pre_maxsize,
+        nms_post_maxsize: int | Sequence[int] = CenterNmsConfig.nms_post_maxsize,
+        nms_type: str = CenterNmsConfig.nms_type,
         with_iou: bool = False,
-        iou_reg_loss: bool = False,
+        iou_reg_loss: bool = CenterHeadConfig.iou_reg_loss,
         iou_rectifier: Sequence[float] | None = None,
-        bn_eps: float = 1e-5,
-        bn_momentum: float = 0.1,
+        bn_eps: float = CenterHeadConfig.bn_eps,
+        bn_momentum: float = CenterHeadConfig.bn_momentum,
     ):
         """
         Args:
@@ -208,108 +284,43 @@ class CenterHead(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> CenterHead:
-        check_known_keys(
-            cfg,
-            [
-                "NAME",
-                "CLASS_AGNOSTIC",
-                "CLASS_NAMES_EACH_HEAD",
-                "SHARED_CONV_CHANNEL",
-                "USE_BIAS_BEFORE_NORM",
-                "NUM_HM_CONV",
-                "SEPARATE_HEAD_CFG",
-                "TARGET_ASSIGNER_CONFIG",
-                "LOSS_CONFIG",
-                "POST_PROCESSING",
-                "IOU_REG_LOSS",
-                "BN_EPS",
-                "BN_MOM",
-            ],
-            "MODEL.DENSE_HEAD",
-        )
+        settings = read_stage(cls, cfg, SECTION)
         class_names = list(model_info["class_names"])
-        groups = cfg.get("CLASS_NAMES_EACH_HEAD", [class_names])
-        if [list(g) for g in groups] != [class_names]:
-            raise ValueError(
-                f"MODEL.DENSE_HEAD.CLASS_NAMES_EACH_HEAD: only one head over all CLASS_NAMES "
-                f"{class_names} is supported, got {groups}"
-            )
-        if cfg.get("CLASS_AGNOSTIC", False):
-            raise ValueError("MODEL.DENSE_HEAD.CLASS_AGNOSTIC: True is not supported")
-
-        sep = cfg.get("SEPARATE_HEAD_CFG", {})
-        check_known_keys(sep, ["HEAD_ORDER", "HEAD_DICT"], "MODEL.DENSE_HEAD.SEPARATE_HEAD_CFG")
-        order = list(sep.get("HEAD_ORDER", ["center", "center_z", "dim", "rot"]))
-        head_dict = sep.get("HEAD_DICT", {})
-        if order not in (
-            ["center", "center_z", "dim", "rot"],
-            ["center", "center_z", "dim", "rot", "vel"],
-        ):
-            raise ValueError(
-                "MODEL.DENSE_HEAD.SEPARATE_HEAD_CFG.HEAD_ORDER must be "
-                f"[center, center_z, dim, rot] with optional vel, got {order}"
-            )
+        check_one_head(settings.class_names_each_head, class_names)
+        order = list(settings.separate_head_cfg.head_order)
+        head_dict = settings.separate_head_cfg.head_dict
         # OpenPCDet builds a branch per HEAD_DICT entry; HEAD_ORDER lists the box code only, so
         # DSVT's ``iou`` branch is in HEAD_DICT alone
         if set(head_dict) - set(order) - {"iou"}:
-            raise ValueError(
-                f"MODEL.DENSE_HEAD.SEPARATE_HEAD_CFG.HEAD_DICT has heads not in HEAD_ORDER: "
+            raise ConfigError(
+                f"{SECTION}.SEPARATE_HEAD_CFG.HEAD_DICT has heads not in HEAD_ORDER: "
                 f"{sorted(set(head_dict) - set(order) - {'iou'})} (only 'iou' may be extra)"
             )
-        reg_num_conv = {}
-        for name in order + (["iou"] if "iou" in head_dict else []):
-            entry = head_dict.get(name, {})
-            check_known_keys(entry, ["out_channels", "num_conv"], f"HEAD_DICT.{name}")
-            if entry.get("out_channels", REG_HEADS[name]) != REG_HEADS[name]:
-                raise ValueError(f"HEAD_DICT.{name}.out_channels must be {REG_HEADS[name]}")
-            reg_num_conv[name] = int(entry.get("num_conv", 2))
-
-        tac = cfg.get("TARGET_ASSIGNER_CONFIG", {})
-        check_known_keys(
-            tac,
-            ["FEATURE_MAP_STRIDE", "NUM_MAX_OBJS", "GAUSSIAN_OVERLAP", "MIN_RADIUS"],
-            "MODEL.DENSE_HEAD.TARGET_ASSIGNER_CONFIG",
+        reg_num_conv = branch_num_convs(
+            settings.separate_head_cfg,
+            order + (["iou"] if "iou" in head_dict else []),
+            REG_HEADS,
+            f"{SECTION}.SEPARATE_HEAD_CFG",
         )
-        stride = int(tac.get("FEATURE_MAP_STRIDE", 1))
+        tac = settings.target_assigner_config
+        stride = tac.feature_map_stride
         if (
             model_info.get("backbone_stride") is not None
             and stride != model_info["backbone_stride"]
         ):
-            raise ValueError(
-                f"MODEL.DENSE_HEAD.TARGET_ASSIGNER_CONFIG.FEATURE_MAP_STRIDE ({stride}) differs "
+            raise ConfigError(
+                f"{SECTION}.TARGET_ASSIGNER_CONFIG.FEATURE_MAP_STRIDE ({stride}) differs "
                 f"from the backbones' output stride ({model_info['backbone_stride']:g} voxels "
                 f"per cell: the 3D backbone's stride times the BEV backbone's)"
             )
-        loss_cfg = cfg.get("LOSS_CONFIG", {})
-        check_known_keys(loss_cfg, ["LOSS_WEIGHTS"], "MODEL.DENSE_HEAD.LOSS_CONFIG")
-        weights = loss_cfg.get("LOSS_WEIGHTS", {})
-        check_known_keys(
-            weights, ["cls_weight", "loc_weight", "code_weights"], "LOSS_CONFIG.LOSS_WEIGHTS"
-        )
-        post = cfg.get("POST_PROCESSING", {})
-        check_known_keys(
-            post,
-            ["SCORE_THRESH", "POST_CENTER_LIMIT_RANGE", "MAX_OBJ_PER_SAMPLE", "NMS_CONFIG",
-             "USE_IOU_TO_RECTIFY_SCORE", "IOU_RECTIFIER"],
-            "MODEL.DENSE_HEAD.POST_PROCESSING",
-        )  # fmt: skip
-        rectify = bool(post.get("USE_IOU_TO_RECTIFY_SCORE", False))
-        if rectify and ("iou" not in head_dict or "IOU_RECTIFIER" not in post):
-            raise ValueError(
-                "MODEL.DENSE_HEAD.POST_PROCESSING.USE_IOU_TO_RECTIFY_SCORE needs an 'iou' "
+        weights = settings.loss_config.loss_weights
+        post = settings.post_processing
+        if post.use_iou_to_rectify_score and ("iou" not in head_dict or not post.iou_rectifier):
+            raise ConfigError(
+                f"{SECTION}.POST_PROCESSING.USE_IOU_TO_RECTIFY_SCORE needs an 'iou' "
                 "branch in SEPARATE_HEAD_CFG.HEAD_DICT and IOU_RECTIFIER (one value per class)"
             )
-        nms = post.get("NMS_CONFIG", {})
-        check_known_keys(
-            nms,
-            ["NMS_TYPE", "NMS_THRESH", "NMS_PRE_MAXSIZE", "NMS_POST_MAXSIZE"],
-            "MODEL.DENSE_HEAD.POST_PROCESSING.NMS_CONFIG",
-        )
-        if nms.get("NMS_TYPE", "nms_gpu") not in NMS_TYPES:
-            raise ValueError(
-                f"NMS_CONFIG.NMS_TYPE: only rotated BEV NMS ({', '.join(NMS_TYPES)}) is "
-                f"implemented, got {nms['NMS_TYPE']!r}"
-            )
+        nms = post.nms_config
         return cls(
             input_channels=model_info["num_bev_features"],
             num_class=len(class_names),
@@ -318,28 +329,28 @@ class CenterHead(nn.Module):
             grid_size=model_info["grid_size"],
             feature_map_stride=stride,
             with_velocity="vel" in order,
-            shared_conv_channel=cfg.get("SHARED_CONV_CHANNEL", 64),
-            use_bias_before_norm=cfg.get("USE_BIAS_BEFORE_NORM", False),
-            num_hm_conv=cfg.get("NUM_HM_CONV", 2),
+            shared_conv_channel=settings.shared_conv_channel,
+            use_bias_before_norm=settings.use_bias_before_norm,
+            num_hm_conv=settings.num_hm_conv,
             reg_num_conv=reg_num_conv,
-            num_max_objs=tac.get("NUM_MAX_OBJS", 500),
-            gaussian_overlap=tac.get("GAUSSIAN_OVERLAP", 0.1),
-            min_radius=tac.get("MIN_RADIUS", 2),
-            cls_weight=weights.get("cls_weight", 1.0),
-            loc_weight=weights.get("loc_weight", 2.0),
-            code_weights=weights.get("code_weights"),
-            score_thresh=post.get("SCORE_THRESH", 0.1),
-            post_center_limit_range=post.get("POST_CENTER_LIMIT_RANGE"),
-            max_obj_per_sample=post.get("MAX_OBJ_PER_SAMPLE", 500),
-            nms_thresh=nms.get("NMS_THRESH", 0.7),
-            nms_pre_maxsize=nms.get("NMS_PRE_MAXSIZE", 4096),
-            nms_post_maxsize=nms.get("NMS_POST_MAXSIZE", 500),
-            nms_type=nms.get("NMS_TYPE", "nms_gpu"),
+            num_max_objs=tac.num_max_objs,
+            gaussian_overlap=tac.gaussian_overlap,
+            min_radius=tac.min_radius,
+            cls_weight=weights.cls_weight,
+            loc_weight=weights.loc_weight,
+            code_weights=as_lists(weights.code_weights),
+            score_thresh=post.score_thresh,
+            post_center_limit_range=as_lists(post.post_center_limit_range),
+            max_obj_per_sample=post.max_obj_per_sample,
+            nms_thresh=as_lists(nms.nms_thresh),
+            nms_pre_maxsize=as_lists(nms.nms_pre_maxsize),
+            nms_post_maxsize=as_lists(nms.nms_post_maxsize),
+            nms_type=nms.nms_type,
             with_iou="iou" in head_dict,
-            iou_reg_loss=cfg.get("IOU_REG_LOSS", False),
-            iou_rectifier=post["IOU_RECTIFIER"] if rectify else None,
-            bn_eps=cfg.get("BN_EPS", 1e-5),
-            bn_momentum=cfg.get("BN_MOM", 0.1),
+            iou_reg_loss=settings.iou_reg_loss,
+            iou_rectifier=as_lists(post.iou_rectifier) if post.use_iou_to_rectify_score else None,
+            bn_eps=settings.bn_eps,
+            bn_momentum=settings.bn_momentum,
         )
 
     def openpcdet_names(self) -> dict[str, str | None]:

@@ -15,18 +15,28 @@ and runs class-specific rotated BEV NMS.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pcdet_atlas.config import check_known_keys
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config_values import as_lists, section, setting
+from pcdet_atlas.models.dense_heads.center_config import (
+    CenterTargetConfig,
+    LossWeightsConfig,
+    SeparateHeadConfig,
+    branch_num_convs,
+    check_one_head,
+)
 from pcdet_atlas.models.model_utils import centernet_utils as cu
 from pcdet_atlas.models.model_utils.center_transformer import (
     CenterTransformer,
     gather_neighbours,
     select_center_queries,
 )
+from pcdet_atlas.models.stage_config import StageConfig, read_stage
 from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d, nms_bev
 from pcdet_atlas.registry import MODEL_STAGES
 
@@ -66,6 +76,103 @@ class QueryHeads(nn.Module):
         return {name: branch(x) for name, branch in self.branches.items()}
 
 
+SECTION = "MODEL.DENSE_HEAD"
+#: per-class NMS threshold, pre- and post-NMS sizes of Vehicle, Pedestrian, Cyclist
+_NMS_DEFAULTS = ((0.8, 0.55, 0.55), (1600, 1600, 800), (200, 200, 100))
+
+
+@dataclass(frozen=True, kw_only=True)
+class TransformerConfig:
+    """``MODEL.DENSE_HEAD.TRANSFORMER``: the queries' cross-attention."""
+
+    depth: int = setting(3, ge=1, doc="attention blocks")
+    heads: int = setting(4, ge=1, doc="attention heads")
+    dim_head: int = setting(64, ge=1, doc="width per head")
+    mlp_dim: int = setting(256, ge=1, doc="feed-forward width")
+    dropout: float = setting(0.3, ge=0, lt=1, doc="dropout")
+    kernel_sizes: tuple[int, ...] = setting((3, 3, 3), ge=1, doc="window per pyramid level")
+
+
+@dataclass(frozen=True, kw_only=True)
+class QuerySeparateHeadConfig(SeparateHeadConfig):
+    head_order: tuple[str, ...] = setting(
+        tuple(QUERY_HEADS),
+        check=lambda order: order == tuple(QUERY_HEADS),
+        expected=f"[{', '.join(QUERY_HEADS)}]",
+        doc="the query branches, in order",
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class QueryTargetConfig(CenterTargetConfig):
+    feature_map_stride: int = setting(4, ge=1, doc="voxels per query-map cell")
+
+
+@dataclass(frozen=True, kw_only=True)
+class QueryLossWeightsConfig(LossWeightsConfig):
+    iou_weight: float = setting(1.0, key="iou_weight", ge=0, doc="IoU branch loss weight")
+    corner_weight: float = setting(1.0, key="corner_weight", ge=0, doc="corner heatmap weight")
+
+
+@dataclass(frozen=True, kw_only=True)
+class QueryLossConfig:
+    loss_weights: QueryLossWeightsConfig = section(QueryLossWeightsConfig)
+
+
+@dataclass(frozen=True, kw_only=True)
+class QueryNmsConfig:
+    """``POST_PROCESSING.NMS_CONFIG``: per-class rotated BEV NMS."""
+
+    nms_type: str = setting(
+        "nms_gpu",
+        choices=("nms_gpu", "nms_bev"),
+        expected="'nms_gpu' or 'nms_bev' (rotated BEV NMS)",
+        doc="rotated BEV NMS",
+    )
+    multi_classes_nms: bool = setting(
+        True, check=bool, expected="True (CenterFormer's NMS is per class)", doc="per class"
+    )
+    nms_thresh: float | tuple[float, ...] | None = setting(
+        None, doc="IoU threshold, one or per class (default 0.8, 0.55, 0.55)"
+    )
+    nms_pre_maxsize: int | tuple[int, ...] | None = setting(
+        None, doc="boxes before NMS, one or per class (default 1600, 1600, 800)"
+    )
+    nms_post_maxsize: int | tuple[int, ...] | None = setting(
+        None, doc="boxes after NMS, one or per class (default 200, 200, 100)"
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class QueryPostConfig:
+    score_thresh: float = setting(0.1, doc="boxes scoring below are dropped")
+    post_center_limit_range: tuple[float, float, float, float, float, float] | None = setting(
+        None, doc="box centres outside are dropped, m"
+    )
+    iou_rectifier: tuple[float, ...] | None = setting(None, doc="r per class")
+    nms_config: QueryNmsConfig = section(QueryNmsConfig)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CenterFormerHeadConfig(StageConfig):
+    """``MODEL.DENSE_HEAD`` of CenterFormerHead."""
+
+    class_names_each_head: tuple[tuple[str, ...], ...] | None = setting(
+        None, doc="one head over all CLASS_NAMES"
+    )
+    hm_head_channel: int = setting(64, ge=1, doc="width of the heatmap head")
+    corner_head: bool = setting(True, doc="corner heatmap auxiliary head")
+    num_queries: int = setting(500, ge=1, doc="top-K heatmap cells taken as queries")
+    use_gt_queries: bool = setting(True, doc="training queries include the GT centres")
+    transformer: TransformerConfig = section(TransformerConfig)
+    shared_conv_channel: int = setting(64, ge=1, doc="width of the shared conv")
+    head_conv: int = setting(64, ge=1, doc="width of the query branches")
+    separate_head_cfg: QuerySeparateHeadConfig = section(QuerySeparateHeadConfig)
+    target_assigner_config: QueryTargetConfig = section(QueryTargetConfig)
+    loss_config: QueryLossConfig = section(QueryLossConfig)
+    post_processing: QueryPostConfig = section(QueryPostConfig)
+
+
 @MODEL_STAGES.register()
 class CenterFormerHead(nn.Module):
     """Reads ``spatial_features_2d`` (B, C, H, W), the query map, and ``multi_scale_features_2d``
@@ -73,6 +180,8 @@ class CenterFormerHead(nn.Module):
     ``order`` (B, K) the queries' flat cells, ``scores`` / ``labels`` (B, K) their heatmap score
     and 0-based class, and per query ``center`` (B, 2, K), ``center_z`` (B, 1, K), ``dim``
     (B, 3, K) log-sizes, ``rot`` (B, 2, K) ``[cos, sin]``, ``iou`` (B, 1, K) in [-1, 1]."""
+
+    CONFIG = CenterFormerHeadConfig
 
     def __init__(
         self,
@@ -82,19 +191,19 @@ class CenterFormerHead(nn.Module):
         point_cloud_range: Sequence[float],
         voxel_size: Sequence[float],
         grid_size: Sequence[int],
-        feature_map_stride: int = 4,
-        hm_head_channel: int = 64,
-        corner_head: bool = True,
-        num_queries: int = 500,
-        use_gt_queries: bool = True,
-        kernel_sizes: Sequence[int] = (3, 3, 3),
-        depth: int = 3,
-        heads: int = 4,
-        dim_head: int = 64,
-        mlp_dim: int = 256,
-        dropout: float = 0.3,
-        shared_conv_channel: int = 64,
-        head_conv: int = 64,
+        feature_map_stride: int = QueryTargetConfig.feature_map_stride,
+        hm_head_channel: int = CenterFormerHeadConfig.hm_head_channel,
+        corner_head: bool = CenterFormerHeadConfig.corner_head,
+        num_queries: int = CenterFormerHeadConfig.num_queries,
+        use_gt_queries: bool = CenterFormerHeadConfig.use_gt_queries,
+        kernel_sizes: Sequence[int] = TransformerConfig.kernel_sizes,
+        depth: int = TransformerConfig.depth,
+        heads: int = TransformerConfig.heads,
+        dim_head: int = TransformerConfig.dim_head,
+        mlp_dim: int = TransformerConfig.mlp_dim,
+        dropout: float = TransformerConfig.dropout,
+        shared_conv_channel: int = CenterFormerHeadConfig.shared_conv_channel,
+        head_conv: int = CenterFormerHeadConfig.head_conv,
         reg_num_conv: Mapping[str, int] | None = None,
         init_bias: float = -2.19,
         num_max_objs: int = 500,
@@ -102,15 +211,15 @@ class CenterFormerHead(nn.Module):
         min_radius: int = 2,
         cls_weight: float = 1.0,
         loc_weight: float = 2.0,
-        iou_weight: float = 1.0,
-        corner_weight: float = 1.0,
+        iou_weight: float = QueryLossWeightsConfig.iou_weight,
+        corner_weight: float = QueryLossWeightsConfig.corner_weight,
         code_weights: Sequence[float] | None = None,
         score_thresh: float = 0.1,
         post_center_limit_range: Sequence[float] | None = None,
         iou_rectifier: Sequence[float] | None = None,
-        nms_thresh: Sequence[float] = (0.8, 0.55, 0.55),
-        nms_pre_maxsize: Sequence[int] = (1600, 1600, 800),
-        nms_post_maxsize: Sequence[int] = (200, 200, 100),
+        nms_thresh: Sequence[float] = _NMS_DEFAULTS[0],
+        nms_pre_maxsize: Sequence[int] = _NMS_DEFAULTS[1],
+        nms_post_maxsize: Sequence[int] = _NMS_DEFAULTS[2],
     ):
         """
         Args:
@@ -213,95 +322,38 @@ class CenterFormerHead(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> CenterFormerHead:
-        check_known_keys(
-            cfg,
-            ["NAME", "CLASS_NAMES_EACH_HEAD", "HM_HEAD_CHANNEL", "CORNER_HEAD", "NUM_QUERIES",
-             "USE_GT_QUERIES", "TRANSFORMER", "SHARED_CONV_CHANNEL", "HEAD_CONV",
-             "SEPARATE_HEAD_CFG", "TARGET_ASSIGNER_CONFIG", "LOSS_CONFIG", "POST_PROCESSING"],
-            "MODEL.DENSE_HEAD",
-        )  # fmt: skip
+        settings = read_stage(cls, cfg, SECTION)
         class_names = list(model_info["class_names"])
-        groups = cfg.get("CLASS_NAMES_EACH_HEAD", [class_names])
-        if [list(g) for g in groups] != [class_names]:
-            raise ValueError(
-                f"MODEL.DENSE_HEAD.CLASS_NAMES_EACH_HEAD: only one head over all CLASS_NAMES "
-                f"{class_names} is supported, got {groups}"
+        check_one_head(settings.class_names_each_head, class_names)
+        separate = settings.separate_head_cfg
+        order = list(separate.head_order)
+        if set(separate.head_dict) - set(order):
+            raise ConfigError(
+                f"{SECTION}.SEPARATE_HEAD_CFG.HEAD_DICT has heads not in HEAD_ORDER: "
+                f"{sorted(set(separate.head_dict) - set(order))}"
             )
-        tr = cfg.get("TRANSFORMER", {})
-        check_known_keys(
-            tr, ["DEPTH", "HEADS", "DIM_HEAD", "MLP_DIM", "DROPOUT", "KERNEL_SIZES"],
-            "MODEL.DENSE_HEAD.TRANSFORMER",
-        )  # fmt: skip
-        sep = cfg.get("SEPARATE_HEAD_CFG", {})
-        check_known_keys(sep, ["HEAD_ORDER", "HEAD_DICT"], "MODEL.DENSE_HEAD.SEPARATE_HEAD_CFG")
-        order = list(sep.get("HEAD_ORDER", QUERY_HEADS))
-        if order != list(QUERY_HEADS):
-            raise ValueError(
-                f"MODEL.DENSE_HEAD.SEPARATE_HEAD_CFG.HEAD_ORDER must be {list(QUERY_HEADS)}, "
-                f"got {order}"
-            )
-        head_dict = sep.get("HEAD_DICT", {})
-        if set(head_dict) - set(order):
-            raise ValueError(
-                f"MODEL.DENSE_HEAD.SEPARATE_HEAD_CFG.HEAD_DICT has heads not in HEAD_ORDER: "
-                f"{sorted(set(head_dict) - set(order))}"
-            )
-        reg_num_conv = {}
-        for name in order:
-            entry = head_dict.get(name, {})
-            check_known_keys(entry, ["out_channels", "num_conv"], f"HEAD_DICT.{name}")
-            if entry.get("out_channels", QUERY_HEADS[name]) != QUERY_HEADS[name]:
-                raise ValueError(f"HEAD_DICT.{name}.out_channels must be {QUERY_HEADS[name]}")
-            reg_num_conv[name] = int(entry.get("num_conv", 2))
-        tac = cfg.get("TARGET_ASSIGNER_CONFIG", {})
-        check_known_keys(
-            tac,
-            ["FEATURE_MAP_STRIDE", "NUM_MAX_OBJS", "GAUSSIAN_OVERLAP", "MIN_RADIUS"],
-            "MODEL.DENSE_HEAD.TARGET_ASSIGNER_CONFIG",
+        reg_num_conv = branch_num_convs(
+            separate, order, QUERY_HEADS, f"{SECTION}.SEPARATE_HEAD_CFG"
         )
-        stride = int(tac.get("FEATURE_MAP_STRIDE", 4))
+        tac = settings.target_assigner_config
+        stride = tac.feature_map_stride
         before = model_info.get("backbone_stride")
         if before is not None and stride != before:
-            raise ValueError(
-                f"MODEL.DENSE_HEAD.TARGET_ASSIGNER_CONFIG.FEATURE_MAP_STRIDE ({stride}) differs "
+            raise ConfigError(
+                f"{SECTION}.TARGET_ASSIGNER_CONFIG.FEATURE_MAP_STRIDE ({stride}) differs "
                 f"from the query map's stride ({before:g} voxels per cell: the 3D backbone's "
                 f"stride over the BEV backbone's UPSAMPLE_STRIDE)"
             )
-        loss_cfg = cfg.get("LOSS_CONFIG", {})
-        check_known_keys(loss_cfg, ["LOSS_WEIGHTS"], "MODEL.DENSE_HEAD.LOSS_CONFIG")
-        weights = loss_cfg.get("LOSS_WEIGHTS", {})
-        check_known_keys(
-            weights,
-            ["cls_weight", "loc_weight", "iou_weight", "corner_weight", "code_weights"],
-            "LOSS_CONFIG.LOSS_WEIGHTS",
-        )
-        post = cfg.get("POST_PROCESSING", {})
-        check_known_keys(
-            post,
-            ["SCORE_THRESH", "POST_CENTER_LIMIT_RANGE", "IOU_RECTIFIER", "NMS_CONFIG"],
-            "MODEL.DENSE_HEAD.POST_PROCESSING",
-        )
-        nms = post.get("NMS_CONFIG", {})
-        check_known_keys(
-            nms,
-            ["NMS_TYPE", "MULTI_CLASSES_NMS", "NMS_THRESH", "NMS_PRE_MAXSIZE", "NMS_POST_MAXSIZE"],
-            "MODEL.DENSE_HEAD.POST_PROCESSING.NMS_CONFIG",
-        )
-        if nms.get("NMS_TYPE", "nms_gpu") not in ("nms_gpu", "nms_bev"):
-            raise ValueError(
-                f"NMS_CONFIG.NMS_TYPE: only rotated BEV NMS ('nms_gpu' / 'nms_bev') is "
-                f"implemented, got {nms['NMS_TYPE']!r}"
-            )
-        if not nms.get("MULTI_CLASSES_NMS", True):
-            raise ValueError(
-                "NMS_CONFIG.MULTI_CLASSES_NMS: CenterFormer's NMS is per class (True), got False"
-            )
+        weights = settings.loss_config.loss_weights
+        post = settings.post_processing
+        nms = post.nms_config
         n = len(class_names)
 
-        def per_class(key: str, default: Sequence) -> list:
-            value = nms.get(key, default)
+        def per_class(value, default: Sequence) -> list:
+            value = default[:n] if value is None else value
             return list(value) if isinstance(value, Sequence) else [value] * n
 
+        tr = settings.transformer
         return cls(
             input_channels=model_info["num_bev_features"],
             num_class=n,
@@ -309,33 +361,33 @@ class CenterFormerHead(nn.Module):
             voxel_size=model_info["voxel_size"],
             grid_size=model_info["grid_size"],
             feature_map_stride=stride,
-            hm_head_channel=int(cfg.get("HM_HEAD_CHANNEL", 64)),
-            corner_head=bool(cfg.get("CORNER_HEAD", True)),
-            num_queries=int(cfg.get("NUM_QUERIES", 500)),
-            use_gt_queries=bool(cfg.get("USE_GT_QUERIES", True)),
-            kernel_sizes=tr.get("KERNEL_SIZES", [3, 3, 3]),
-            depth=int(tr.get("DEPTH", 3)),
-            heads=int(tr.get("HEADS", 4)),
-            dim_head=int(tr.get("DIM_HEAD", 64)),
-            mlp_dim=int(tr.get("MLP_DIM", 256)),
-            dropout=float(tr.get("DROPOUT", 0.3)),
-            shared_conv_channel=int(cfg.get("SHARED_CONV_CHANNEL", 64)),
-            head_conv=int(cfg.get("HEAD_CONV", 64)),
+            hm_head_channel=settings.hm_head_channel,
+            corner_head=settings.corner_head,
+            num_queries=settings.num_queries,
+            use_gt_queries=settings.use_gt_queries,
+            kernel_sizes=list(tr.kernel_sizes),
+            depth=tr.depth,
+            heads=tr.heads,
+            dim_head=tr.dim_head,
+            mlp_dim=tr.mlp_dim,
+            dropout=tr.dropout,
+            shared_conv_channel=settings.shared_conv_channel,
+            head_conv=settings.head_conv,
             reg_num_conv=reg_num_conv,
-            num_max_objs=tac.get("NUM_MAX_OBJS", 500),
-            gaussian_overlap=tac.get("GAUSSIAN_OVERLAP", 0.1),
-            min_radius=tac.get("MIN_RADIUS", 2),
-            cls_weight=weights.get("cls_weight", 1.0),
-            loc_weight=weights.get("loc_weight", 2.0),
-            iou_weight=weights.get("iou_weight", 1.0),
-            corner_weight=weights.get("corner_weight", 1.0),
-            code_weights=weights.get("code_weights"),
-            score_thresh=post.get("SCORE_THRESH", 0.1),
-            post_center_limit_range=post.get("POST_CENTER_LIMIT_RANGE"),
-            iou_rectifier=post.get("IOU_RECTIFIER"),
-            nms_thresh=per_class("NMS_THRESH", [0.8, 0.55, 0.55][:n]),
-            nms_pre_maxsize=per_class("NMS_PRE_MAXSIZE", [1600, 1600, 800][:n]),
-            nms_post_maxsize=per_class("NMS_POST_MAXSIZE", [200, 200, 100][:n]),
+            num_max_objs=tac.num_max_objs,
+            gaussian_overlap=tac.gaussian_overlap,
+            min_radius=tac.min_radius,
+            cls_weight=weights.cls_weight,
+            loc_weight=weights.loc_weight,
+            iou_weight=weights.iou_weight,
+            corner_weight=weights.corner_weight,
+            code_weights=as_lists(weights.code_weights),
+            score_thresh=post.score_thresh,
+            post_center_limit_range=as_lists(post.post_center_limit_range),
+            iou_rectifier=as_lists(post.iou_rectifier),
+            nms_thresh=per_class(nms.nms_thresh, _NMS_DEFAULTS[0]),
+            nms_pre_maxsize=per_class(nms.nms_pre_maxsize, _NMS_DEFAULTS[1]),
+            nms_post_maxsize=per_class(nms.nms_post_maxsize, _NMS_DEFAULTS[2]),
         )
 
     # ------------------------------------------------------------------------ running

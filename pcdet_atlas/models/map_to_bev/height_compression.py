@@ -4,11 +4,18 @@ layers stacked into channels."""
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 from torch import nn
 
-from pcdet_atlas.config import check_known_keys, require_keys
+from pcdet_atlas.config_values import setting
+from pcdet_atlas.models.stage_config import StageConfig, read_stage
 from pcdet_atlas.registry import MODEL_STAGES
+
+
+@dataclass(frozen=True, kw_only=True)
+class HeightCompressionConfig(StageConfig):
+    num_bev_features: int = setting(ge=1, doc="C * D of the 3D backbone's output")
 
 
 @MODEL_STAGES.register()
@@ -16,15 +23,16 @@ class HeightCompression(nn.Module):
     """Reads ``encoded_spconv_tensor`` (a ``SparseConvTensor`` of ``(B, C, D, H, W)``); writes
     ``spatial_features`` (B, C * D, H, W) and ``spatial_features_stride``."""
 
+    CONFIG = HeightCompressionConfig
+
     def __init__(self, *, num_bev_features: int):
         super().__init__()
         self.num_bev_features = num_bev_features
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> HeightCompression:
-        check_known_keys(cfg, ["NAME", "NUM_BEV_FEATURES"], "MODEL.MAP_TO_BEV")
-        require_keys(cfg, ["NUM_BEV_FEATURES"], "MODEL.MAP_TO_BEV")
-        return cls(num_bev_features=int(cfg["NUM_BEV_FEATURES"]))
+        settings = read_stage(cls, cfg, "MODEL.MAP_TO_BEV")
+        return cls(num_bev_features=settings.num_bev_features)
 
     def forward(self, batch_dict: dict) -> dict:
         encoded = batch_dict["encoded_spconv_tensor"]

@@ -3,17 +3,26 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 from torch import nn
 
-from pcdet_atlas.config import check_known_keys
+from pcdet_atlas.config_values import setting
+from pcdet_atlas.models.stage_config import StageConfig, read_stage
 from pcdet_atlas.registry import MODEL_STAGES
+
+
+@dataclass(frozen=True, kw_only=True)
+class PointPillarScatterConfig(StageConfig):
+    num_bev_features: int | None = setting(None, ge=1, doc="the VFE's output width")
 
 
 @MODEL_STAGES.register()
 class PointPillarScatter(nn.Module):
     """Reads ``pillar_features`` (P, C) and ``voxel_coords`` (P, 4) ``[b, z, y, x]``; writes
     ``spatial_features`` (B, C, ny, nx) with zeros where there is no pillar."""
+
+    CONFIG = PointPillarScatterConfig
 
     def __init__(self, *, num_bev_features: int, grid_size: tuple[int, int, int]):
         super().__init__()
@@ -24,8 +33,9 @@ class PointPillarScatter(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> PointPillarScatter:
-        check_known_keys(cfg, ["NAME", "NUM_BEV_FEATURES"], "MODEL.MAP_TO_BEV")
-        num = cfg.get("NUM_BEV_FEATURES", model_info["num_point_features"])
+        settings = read_stage(cls, cfg, "MODEL.MAP_TO_BEV")
+        num = settings.num_bev_features
+        num = model_info["num_point_features"] if num is None else num
         if num != model_info["num_point_features"]:
             raise ValueError(
                 f"MODEL.MAP_TO_BEV.NUM_BEV_FEATURES ({num}) must equal the VFE output width "

@@ -4,11 +4,19 @@ BEV map with the z layers stacked into channels (DSVT's output has one layer).""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 from torch import nn
 
-from pcdet_atlas.config import check_known_keys, require_keys
+from pcdet_atlas.config_values import setting
+from pcdet_atlas.models.stage_config import StageConfig, read_stage
 from pcdet_atlas.registry import MODEL_STAGES
+
+
+@dataclass(frozen=True, kw_only=True)
+class PointPillarScatter3dConfig(StageConfig):
+    input_shape: tuple[int, int, int] = setting(ge=1, doc="[nx, ny, nz] of the sparse grid")
+    num_bev_features: int = setting(ge=1, doc="the 3D backbone's width x nz")
 
 
 @MODEL_STAGES.register()
@@ -16,6 +24,8 @@ class PointPillarScatter3d(nn.Module):
     """Reads ``pillar_features`` (P, C) and ``voxel_coords`` (P, 4) ``[b, z, y, x]``; writes
     ``spatial_features`` (B, C * nz, ny, nx), feature ``c`` of layer ``z`` in channel
     ``c * nz + z`` (OpenPCDet's order), zeros where there is no voxel."""
+
+    CONFIG = PointPillarScatter3dConfig
 
     def __init__(self, *, input_shape: Sequence[int], num_bev_features: int):
         super().__init__()
@@ -30,9 +40,8 @@ class PointPillarScatter3d(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> PointPillarScatter3d:
-        check_known_keys(cfg, ["NAME", "INPUT_SHAPE", "NUM_BEV_FEATURES"], "MODEL.MAP_TO_BEV")
-        require_keys(cfg, ["INPUT_SHAPE", "NUM_BEV_FEATURES"], "MODEL.MAP_TO_BEV")
-        nx, ny, nz = (int(v) for v in cfg["INPUT_SHAPE"])
+        settings = read_stage(cls, cfg, "MODEL.MAP_TO_BEV")
+        nx, ny, nz = settings.input_shape
         grid = model_info["grid_size"]
         stride = int(model_info.get("backbone_stride", 1))
         if (nx, ny) != (grid[0] // stride, grid[1] // stride):
@@ -40,12 +49,12 @@ class PointPillarScatter3d(nn.Module):
                 f"MODEL.MAP_TO_BEV.INPUT_SHAPE {[nx, ny, nz]}: the 3D backbone leaves a "
                 f"{grid[0] // stride} x {grid[1] // stride} grid (the VFE's grid / its stride)"
             )
-        if cfg["NUM_BEV_FEATURES"] != model_info["num_point_features"] * nz:
+        if settings.num_bev_features != model_info["num_point_features"] * nz:
             raise ValueError(
-                f"MODEL.MAP_TO_BEV.NUM_BEV_FEATURES ({cfg['NUM_BEV_FEATURES']}) must be the "
+                f"MODEL.MAP_TO_BEV.NUM_BEV_FEATURES ({settings.num_bev_features}) must be the "
                 f"3D backbone's width ({model_info['num_point_features']}) x {nz} z layers"
             )
-        return cls(input_shape=(nx, ny, nz), num_bev_features=cfg["NUM_BEV_FEATURES"])
+        return cls(input_shape=(nx, ny, nz), num_bev_features=settings.num_bev_features)
 
     def forward(self, batch_dict: dict) -> dict:
         feats = batch_dict["pillar_features"]  # (P, C)

@@ -10,16 +10,24 @@ azimuth bin is wider than a BEV cell.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-from pcdet_atlas.config import check_known_keys, require_keys
+from pcdet_atlas.config_values import setting
 from pcdet_atlas.models.model_utils.scatter import scatter_max
 from pcdet_atlas.models.model_utils.voxelize import VoxelGrid
+from pcdet_atlas.models.stage_config import StageConfig, read_stage
 from pcdet_atlas.registry import MODEL_STAGES
 
 __all__ = ["SectorFeatureBuffer"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class SectorFeatureBufferConfig(StageConfig):
+    num_bev_features: int = setting(ge=1, doc="BEV channels")
+    bev_cell_m: tuple[float, float] = setting(gt=0, doc="BEV cell size [x, y], m")
 
 
 @MODEL_STAGES.register()
@@ -27,6 +35,8 @@ class SectorFeatureBuffer(nn.Module):
     """Reads ``voxel_features`` (V, C), ``voxel_coords`` (V, 4), ``voxel_point_idx`` (N_in,),
     ``voxel_point_xy`` (N_in, 2) and ``batch_size``; writes ``spatial_features`` (B, C, ny, nx)
     over :attr:`bev_grid`, features as the BEV backbone expects them (Linear, BN, ReLU)."""
+
+    CONFIG = SectorFeatureBufferConfig
 
     def __init__(
         self,
@@ -50,13 +60,12 @@ class SectorFeatureBuffer(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> SectorFeatureBuffer:
-        check_known_keys(cfg, ["NAME", "NUM_BEV_FEATURES", "BEV_CELL_M"], "MODEL.MAP_TO_BEV")
-        require_keys(cfg, ["NUM_BEV_FEATURES", "BEV_CELL_M"], "MODEL.MAP_TO_BEV")
+        settings = read_stage(cls, cfg, "MODEL.MAP_TO_BEV")
         return cls(
             input_channels=model_info["num_point_features"],
-            num_bev_features=int(cfg["NUM_BEV_FEATURES"]),
+            num_bev_features=settings.num_bev_features,
             point_cloud_range=model_info["point_cloud_range"],
-            bev_cell_m=cfg["BEV_CELL_M"],
+            bev_cell_m=settings.bev_cell_m,
         )
 
     def forward(self, batch_dict: dict) -> dict:

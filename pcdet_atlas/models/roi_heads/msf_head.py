@@ -18,17 +18,18 @@ points). The released code's reshape builds groups of 32-point slices of all fra
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pcdet_atlas.config import check_known_keys
-from pcdet_atlas.config_values import check_finite
+from pcdet_atlas.config_values import check_finite, section, setting
 from pcdet_atlas.models.model_utils.motion_sampler import propagate_boxes, sample_batch_points
 from pcdet_atlas.models.model_utils.released_names import Reshaped, renamed
 from pcdet_atlas.models.model_utils.roi_sampler import RoiSamplerConfig
-from pcdet_atlas.models.roi_heads.roi_head_template import TemporalRoIHead
+from pcdet_atlas.models.roi_heads.roi_head_template import RoiHeadConfig, TemporalRoIHead
+from pcdet_atlas.models.stage_config import read_stage
 from pcdet_atlas.ops.boxes import boxes_to_corners_3d
 from pcdet_atlas.registry import MODEL_STAGES
 
@@ -265,6 +266,38 @@ class BiFATransformer(nn.Module):
         return tokens
 
 
+@dataclass(frozen=True, kw_only=True)
+class MSFSamplerConfig:
+    """``MODEL.ROI_HEAD.SAMPLER``: points around each proposal's trajectory."""
+
+    num_points: int = setting(128, ge=1, doc="points per proposal and frame")
+    gamma: float = setting(1.1, gt=0, doc="ball radius factor")
+    radius_growth: bool = setting(True, doc="radius grows with the frame's age")
+
+
+@dataclass(frozen=True, kw_only=True)
+class MSFTransformerConfig:
+    """``MODEL.ROI_HEAD.TRANSFORMER``."""
+
+    hidden_dim: int = setting(256, ge=1, doc="token width")
+    nheads: int = setting(4, ge=1, doc="attention heads")
+    point_nheads: int = setting(8, ge=1, doc="point attention heads")
+    enc_layers: int = setting(3, ge=1, doc="encoder layers")
+    bifa_layers: int = setting(2, ge=1, doc="bidirectional feature aggregation layers")
+    dim_feedforward: int = setting(512, ge=1, doc="feed-forward width")
+    dropout: float = setting(0.1, ge=0, lt=1, doc="dropout")
+
+
+@dataclass(frozen=True, kw_only=True)
+class MSFHeadConfig(RoiHeadConfig):
+    """``MODEL.ROI_HEAD`` of MSFHead."""
+
+    num_frames: int = setting(4, ge=1, doc="frames of each trajectory")
+    sampler: MSFSamplerConfig = section(MSFSamplerConfig)
+    transformer: MSFTransformerConfig = section(MSFTransformerConfig)
+    embed_dim: int = setting(64, ge=1, doc="point embedding width")
+
+
 @MODEL_STAGES.register()
 class MSFHead(TemporalRoIHead):
     """The MSF ROI head (module docstring); config keys in :meth:`from_config` and
@@ -278,29 +311,26 @@ class MSFHead(TemporalRoIHead):
     codes) and ``traj_reg`` ``(B, R, 7)`` (the trajectory branch's codes).
     """
 
-    CONFIG_KEYS = (
-        "NAME", "NUM_FRAMES", "IOU_WEIGHT", "SAMPLER", "TRANSFORMER", "EMBED_DIM",
-        "TARGET_CONFIG", "LOSS_CONFIG",
-    )  # fmt: skip
+    CONFIG = MSFHeadConfig
 
     def __init__(
         self,
         *,
         num_class: int,
         num_point_features: int,
-        num_frames: int = 4,
+        num_frames: int = MSFHeadConfig.num_frames,
         iou_weight: Sequence[float] = (0.5, 0.4, 0.4),
-        num_points: int = 128,
-        gamma: float = 1.1,
-        radius_growth: bool = True,
-        hidden_dim: int = 256,
-        nheads: int = 4,
-        point_nheads: int = 8,
-        enc_layers: int = 3,
-        bifa_layers: int = 2,
-        dim_feedforward: int = 512,
-        dropout: float = 0.1,
-        embed_dim: int = 64,
+        num_points: int = MSFSamplerConfig.num_points,
+        gamma: float = MSFSamplerConfig.gamma,
+        radius_growth: bool = MSFSamplerConfig.radius_growth,
+        hidden_dim: int = MSFTransformerConfig.hidden_dim,
+        nheads: int = MSFTransformerConfig.nheads,
+        point_nheads: int = MSFTransformerConfig.point_nheads,
+        enc_layers: int = MSFTransformerConfig.enc_layers,
+        bifa_layers: int = MSFTransformerConfig.bifa_layers,
+        dim_feedforward: int = MSFTransformerConfig.dim_feedforward,
+        dropout: float = MSFTransformerConfig.dropout,
+        embed_dim: int = MSFHeadConfig.embed_dim,
         sampler_cfg: RoiSamplerConfig | None = None,
         roi_aug: Mapping | None = None,
         loss_weights: Mapping | None = None,
@@ -340,41 +370,24 @@ class MSFHead(TemporalRoIHead):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> MSFHead:
-        check_known_keys(cfg, cls.CONFIG_KEYS, "MODEL.ROI_HEAD")
-        sampler = cfg.get("SAMPLER", {})
-        check_known_keys(
-            sampler, ["NUM_POINTS", "GAMMA", "RADIUS_GROWTH"], "MODEL.ROI_HEAD.SAMPLER"
-        )
-        trans = cfg.get("TRANSFORMER", {})
-        check_known_keys(
-            trans,
-            [
-                "HIDDEN_DIM",
-                "NHEADS",
-                "POINT_NHEADS",
-                "ENC_LAYERS",
-                "BIFA_LAYERS",
-                "DIM_FEEDFORWARD",
-                "DROPOUT",
-            ],
-            "MODEL.ROI_HEAD.TRANSFORMER",
-        )
-        common = cls.common_config(cfg, model_info["class_names"])
+        settings = read_stage(cls, cfg, "MODEL.ROI_HEAD")
+        common = cls.common_config(settings, model_info["class_names"])
         check_finite(cfg, "MODEL.ROI_HEAD")
+        sampler, trans = settings.sampler, settings.transformer
         return cls(
             num_point_features=model_info["num_rawpoint_features"],
-            num_frames=int(cfg.get("NUM_FRAMES", 4)),
-            num_points=int(sampler.get("NUM_POINTS", 128)),
-            gamma=float(sampler.get("GAMMA", 1.1)),
-            radius_growth=bool(sampler.get("RADIUS_GROWTH", True)),
-            hidden_dim=int(trans.get("HIDDEN_DIM", 256)),
-            nheads=int(trans.get("NHEADS", 4)),
-            point_nheads=int(trans.get("POINT_NHEADS", 8)),
-            enc_layers=int(trans.get("ENC_LAYERS", 3)),
-            bifa_layers=int(trans.get("BIFA_LAYERS", 2)),
-            dim_feedforward=int(trans.get("DIM_FEEDFORWARD", 512)),
-            dropout=float(trans.get("DROPOUT", 0.1)),
-            embed_dim=int(cfg.get("EMBED_DIM", 64)),
+            num_frames=settings.num_frames,
+            num_points=sampler.num_points,
+            gamma=sampler.gamma,
+            radius_growth=sampler.radius_growth,
+            hidden_dim=trans.hidden_dim,
+            nheads=trans.nheads,
+            point_nheads=trans.point_nheads,
+            enc_layers=trans.enc_layers,
+            bifa_layers=trans.bifa_layers,
+            dim_feedforward=trans.dim_feedforward,
+            dropout=trans.dropout,
+            embed_dim=settings.embed_dim,
             **common,
         )
 

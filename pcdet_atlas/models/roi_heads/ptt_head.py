@@ -34,13 +34,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pcdet_atlas.config import check_known_keys
-from pcdet_atlas.config_values import check_finite
+from pcdet_atlas.config_values import check_finite, section, setting
 from pcdet_atlas.models.model_utils.motion_sampler import sample_batch_points
 from pcdet_atlas.models.model_utils.released_names import (
     FoldedBias,
@@ -51,7 +51,8 @@ from pcdet_atlas.models.model_utils.released_names import (
 )
 from pcdet_atlas.models.model_utils.trajectory import associate_trajectories, future_boxes
 from pcdet_atlas.models.roi_heads.msf_head import mlp, spherical_offsets
-from pcdet_atlas.models.roi_heads.roi_head_template import TemporalRoIHead
+from pcdet_atlas.models.roi_heads.roi_head_template import RoiHeadConfig, TemporalRoIHead
+from pcdet_atlas.models.stage_config import read_stage
 from pcdet_atlas.registry import MODEL_STAGES
 
 __all__ = ["PTTHead", "MemoryAttention", "box_sequence_features", "history_frames"]
@@ -135,6 +136,32 @@ def history_frames(
     return [real[back == k, :11] if k <= history_count else None for k in range(1, num_history + 1)]
 
 
+@dataclass(frozen=True, kw_only=True)
+class PTTSamplerConfig:
+    """``MODEL.ROI_HEAD.SAMPLER``."""
+
+    num_points: int = setting(256, ge=1, doc="points per proposal")
+    gamma: float = setting(1.1, gt=0, doc="ball radius factor")
+
+
+@dataclass(frozen=True, kw_only=True)
+class PTTHeadConfig(RoiHeadConfig):
+    """``MODEL.ROI_HEAD`` of PTTHead."""
+
+    num_history: int = setting(31, ge=0, doc="past frames of a track")
+    num_future: int = setting(16, ge=0, doc="future boxes predicted")
+    short_frames: int = setting(8, ge=1, doc="frames with point features")
+    association_iou: float = setting(0.5, ge=0, le=1, doc="IoU that associates proposals")
+    sampler: PTTSamplerConfig = section(PTTSamplerConfig)
+    embed_dim: int = setting(64, ge=1, doc="point embedding width")
+    point_dim: int = setting(128, ge=1, doc="point feature width")
+    box_dim: int = setting(64, ge=1, doc="box feature width")
+    pool_dim: int = setting(32, ge=1, doc="pooled width")
+    token_dim: int = setting(32, ge=1, doc="token width")
+    hidden_dim: int = setting(256, ge=1, doc="transformer width")
+    nheads: int = setting(4, ge=1, doc="attention heads")
+
+
 @MODEL_STAGES.register()
 class PTTHead(TemporalRoIHead):
     """The PTT ROI head (module docstring); config keys in :meth:`from_config` and
@@ -147,31 +174,27 @@ class PTTHead(TemporalRoIHead):
     logits), ``rcnn_reg`` and ``traj_reg`` ``(B, R, 7)`` codes, and ``aux_reg`` (empty).
     """
 
-    CONFIG_KEYS = (
-        "NAME", "NUM_HISTORY", "NUM_FUTURE", "SHORT_FRAMES", "ASSOCIATION_IOU", "IOU_WEIGHT",
-        "SAMPLER", "EMBED_DIM", "POINT_DIM", "BOX_DIM", "POOL_DIM", "TOKEN_DIM", "HIDDEN_DIM",
-        "NHEADS", "TARGET_CONFIG", "LOSS_CONFIG",
-    )  # fmt: skip
+    CONFIG = PTTHeadConfig
 
     def __init__(
         self,
         *,
         num_class: int,
         num_point_features: int,
-        num_history: int = 31,
-        num_future: int = 16,
-        short_frames: int = 8,
-        association_iou: float = 0.5,
+        num_history: int = PTTHeadConfig.num_history,
+        num_future: int = PTTHeadConfig.num_future,
+        short_frames: int = PTTHeadConfig.short_frames,
+        association_iou: float = PTTHeadConfig.association_iou,
         iou_weight: Sequence[float] = (0.5, 0.4, 0.4),
-        num_points: int = 256,
-        gamma: float = 1.1,
-        embed_dim: int = 64,
-        point_dim: int = 128,
-        box_dim: int = 64,
-        pool_dim: int = 32,
-        token_dim: int = 32,
-        hidden_dim: int = 256,
-        nheads: int = 4,
+        num_points: int = PTTSamplerConfig.num_points,
+        gamma: float = PTTSamplerConfig.gamma,
+        embed_dim: int = PTTHeadConfig.embed_dim,
+        point_dim: int = PTTHeadConfig.point_dim,
+        box_dim: int = PTTHeadConfig.box_dim,
+        pool_dim: int = PTTHeadConfig.pool_dim,
+        token_dim: int = PTTHeadConfig.token_dim,
+        hidden_dim: int = PTTHeadConfig.hidden_dim,
+        nheads: int = PTTHeadConfig.nheads,
         sampler_cfg=None,
         roi_aug: Mapping | None = None,
         loss_weights: Mapping | None = None,
@@ -232,26 +255,24 @@ class PTTHead(TemporalRoIHead):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> PTTHead:
-        check_known_keys(cfg, cls.CONFIG_KEYS, "MODEL.ROI_HEAD")
-        sampler = cfg.get("SAMPLER", {})
-        check_known_keys(sampler, ["NUM_POINTS", "GAMMA"], "MODEL.ROI_HEAD.SAMPLER")
-        common = cls.common_config(cfg, model_info["class_names"])
+        settings = read_stage(cls, cfg, "MODEL.ROI_HEAD")
+        common = cls.common_config(settings, model_info["class_names"])
         check_finite(cfg, "MODEL.ROI_HEAD")
         return cls(
             num_point_features=model_info["num_rawpoint_features"],
-            num_history=int(cfg.get("NUM_HISTORY", 31)),
-            num_future=int(cfg.get("NUM_FUTURE", 16)),
-            short_frames=int(cfg.get("SHORT_FRAMES", 8)),
-            association_iou=float(cfg.get("ASSOCIATION_IOU", 0.5)),
-            num_points=int(sampler.get("NUM_POINTS", 256)),
-            gamma=float(sampler.get("GAMMA", 1.1)),
-            embed_dim=int(cfg.get("EMBED_DIM", 64)),
-            point_dim=int(cfg.get("POINT_DIM", 128)),
-            box_dim=int(cfg.get("BOX_DIM", 64)),
-            pool_dim=int(cfg.get("POOL_DIM", 32)),
-            token_dim=int(cfg.get("TOKEN_DIM", 32)),
-            hidden_dim=int(cfg.get("HIDDEN_DIM", 256)),
-            nheads=int(cfg.get("NHEADS", 4)),
+            num_history=settings.num_history,
+            num_future=settings.num_future,
+            short_frames=settings.short_frames,
+            association_iou=settings.association_iou,
+            num_points=settings.sampler.num_points,
+            gamma=settings.sampler.gamma,
+            embed_dim=settings.embed_dim,
+            point_dim=settings.point_dim,
+            box_dim=settings.box_dim,
+            pool_dim=settings.pool_dim,
+            token_dim=settings.token_dim,
+            hidden_dim=settings.hidden_dim,
+            nheads=settings.nheads,
             **common,
         )
 

@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pcdet_atlas.config import check_known_keys
+from pcdet_atlas.config_values import as_lists, fields_of, section, setting
 from pcdet_atlas.models.model_utils.box_coder import (
     ResidualCoder,
     decode_roi_boxes,
@@ -25,25 +26,88 @@ from pcdet_atlas.models.model_utils.box_coder import (
 )
 from pcdet_atlas.models.model_utils.roi_sampler import RoiSamplerConfig, sample_rois
 from pcdet_atlas.models.model_utils.roi_utils import corner_loss, soft_iou_label
+from pcdet_atlas.models.stage_config import StageConfig
 from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d
 
-__all__ = ["TemporalRoIHead", "augment_boxes", "SMOOTH_L1_BETA"]
+__all__ = ["RoiHeadConfig", "TemporalRoIHead", "augment_boxes", "SMOOTH_L1_BETA"]
 
 #: OpenPCDet's two-stage regression loss: smooth-L1 with beta 1/9.
 SMOOTH_L1_BETA = 1.0 / 9.0
 
-#: ``TARGET_CONFIG`` key -> :class:`RoiSamplerConfig` field
-TARGET_KEYS = {
-    "ROI_PER_IMAGE": "roi_per_image", "FG_RATIO": "fg_ratio",
-    "REG_FG_THRESH": "reg_fg_thresh", "CLS_FG_THRESH": "cls_fg_thresh",
-    "CLS_BG_THRESH": "cls_bg_thresh", "CLS_BG_THRESH_LO": "cls_bg_thresh_lo",
-    "HARD_BG_RATIO": "hard_bg_ratio", "SAMPLE_ROI_BY_EACH_CLASS": "by_class",
-}  # fmt: skip
-AUG_KEYS = ("USE_ROI_AUG", "ROI_FG_AUG_TIMES", "RATIO", "USE_TRAJ_AUG")
-LOSS_WEIGHT_KEYS = (
-    "rcnn_cls_weight", "rcnn_reg_weight", "rcnn_corner_weight", "traj_reg_weight",
-    "code_weights",
-)  # fmt: skip
+_R = RoiSamplerConfig
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrajAugConfig:
+    """``TARGET_CONFIG.USE_TRAJ_AUG``."""
+
+    enabled: bool = setting(True, doc="jitter the trajectories too")
+    threshold: float = setting(0.8, ge=0, le=1, doc="IoU the jittered trajectory keeps")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RoiTargetConfig:
+    """``MODEL.ROI_HEAD.TARGET_CONFIG``: OpenPCDet's ROI sampler keys and MSF's augmentation."""
+
+    roi_per_image: int = setting(_R.roi_per_image, ge=1, doc="proposals sampled per frame")
+    fg_ratio: float = setting(_R.fg_ratio, ge=0, le=1, doc="share of foreground samples")
+    reg_fg_thresh: float = setting(_R.reg_fg_thresh, ge=0, le=1, doc="IoU for regression")
+    cls_fg_thresh: float = setting(_R.cls_fg_thresh, ge=0, le=1, doc="IoU of a positive")
+    cls_bg_thresh: float = setting(_R.cls_bg_thresh, ge=0, le=1, doc="IoU of a negative")
+    cls_bg_thresh_lo: float = setting(_R.cls_bg_thresh_lo, ge=0, le=1, doc="hard negatives")
+    hard_bg_ratio: float = setting(_R.hard_bg_ratio, ge=0, le=1, doc="share of hard negatives")
+    by_class: bool = setting(_R.by_class, key="SAMPLE_ROI_BY_EACH_CLASS", doc="per class")
+    use_roi_aug: bool = setting(True, doc="jitter the sampled proposals")
+    roi_fg_aug_times: int = setting(10, ge=1, doc="jitter tries")
+    ratio: float = setting(0.2, ge=0, le=1, doc="share of proposals kept unjittered")
+    use_traj_aug: TrajAugConfig = section(TrajAugConfig)
+
+    def sampler(self) -> RoiSamplerConfig:
+        return RoiSamplerConfig(**{f: getattr(self, f) for f in _R.__dataclass_fields__})
+
+    def roi_aug(self) -> dict:
+        """The head's ``roi_aug`` argument."""
+        return {
+            "ENABLED": self.use_roi_aug,
+            "TRIES": self.roi_fg_aug_times,
+            "KEEP_RATIO": self.ratio,
+            "TRAJ_ENABLED": self.use_traj_aug.enabled,
+            "TRAJ_THRESH": self.use_traj_aug.threshold,
+        }
+
+
+@dataclass(frozen=True, kw_only=True)
+class RoiLossWeightsConfig:
+    """``MODEL.ROI_HEAD.LOSS_CONFIG.LOSS_WEIGHTS`` (absent: the head's default)."""
+
+    rcnn_cls_weight: float | None = setting(None, key="rcnn_cls_weight", ge=0, doc="score loss")
+    rcnn_reg_weight: float | None = setting(None, key="rcnn_reg_weight", ge=0, doc="box loss")
+    rcnn_corner_weight: float | None = setting(
+        None, key="rcnn_corner_weight", ge=0, doc="corner loss"
+    )
+    traj_reg_weight: tuple[float, ...] | None = setting(
+        None, key="traj_reg_weight", ge=0, doc="trajectory losses (3)"
+    )
+    code_weights: tuple[float, ...] | None = setting(
+        None, key="code_weights", ge=0, doc="weight per box code (7)"
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class RoiLossConfig:
+    loss_weights: RoiLossWeightsConfig = section(RoiLossWeightsConfig)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RoiHeadConfig(StageConfig):
+    """The ``MODEL.ROI_HEAD`` keys of every temporal ROI head (a head adds its own)."""
+
+    iou_weight: tuple[float, ...] | None = setting(
+        None, ge=0, doc="IoU weight of the score per class (default 0.5, then 0.4)"
+    )
+    target_config: RoiTargetConfig = section(RoiTargetConfig)
+    loss_config: RoiLossConfig = section(RoiLossConfig)
+
 
 #: a trajectory function: (sample index, its chosen proposals ``(S, 9)``) -> boxes per frame
 #: ``(T, S, D >= 7)`` (frame 0: the proposals themselves) and their validity ``(T, S)`` or None
@@ -121,16 +185,7 @@ class TemporalRoIHead(nn.Module):
         self.num_class = num_class
         self.iou_weight = [float(w) for w in iou_weight]
         self.sampler_cfg = sampler_cfg or RoiSamplerConfig()
-        self.roi_aug = dict(
-            roi_aug
-            or {
-                "ENABLED": True,
-                "TRIES": 10,
-                "KEEP_RATIO": 0.2,
-                "TRAJ_ENABLED": True,
-                "TRAJ_THRESH": 0.8,
-            }
-        )
+        self.roi_aug = dict(roi_aug or RoiTargetConfig().roi_aug())
         self.loss_weights = dict(loss_weights or {})
         for key, size in (("traj_reg_weight", 3), ("code_weights", 7)):
             value = self.loss_weights.get(key)
@@ -143,32 +198,21 @@ class TemporalRoIHead(nn.Module):
         self.box_coder = ResidualCoder(7)
 
     @staticmethod
-    def common_config(cfg: Mapping, class_names: Sequence[str]) -> dict:
-        """The keyword arguments of :class:`TemporalRoIHead` from a ``MODEL.ROI_HEAD`` section."""
-        target = cfg.get("TARGET_CONFIG", {})
-        check_known_keys(target, [*TARGET_KEYS, *AUG_KEYS], "MODEL.ROI_HEAD.TARGET_CONFIG")
-        traj_aug = target.get("USE_TRAJ_AUG", {"ENABLED": True, "THRESHOLD": 0.8})
-        check_known_keys(
-            traj_aug, ["ENABLED", "THRESHOLD"], "MODEL.ROI_HEAD.TARGET_CONFIG.USE_TRAJ_AUG"
-        )
-        loss = cfg.get("LOSS_CONFIG", {})
-        check_known_keys(loss, ["LOSS_WEIGHTS"], "MODEL.ROI_HEAD.LOSS_CONFIG")
-        weights = dict(loss.get("LOSS_WEIGHTS", {}))
-        check_known_keys(weights, LOSS_WEIGHT_KEYS, "MODEL.ROI_HEAD.LOSS_CONFIG.LOSS_WEIGHTS")
+    def common_config(settings: RoiHeadConfig, class_names: Sequence[str]) -> dict:
+        """The keyword arguments of :class:`TemporalRoIHead` from a read ``MODEL.ROI_HEAD``."""
+        target = settings.target_config
+        weights = settings.loss_config.loss_weights
+        iou_weight = settings.iou_weight
+        if iou_weight is None:
+            iou_weight = [0.5] + [0.4] * (len(class_names) - 1)
         return {
             "num_class": len(class_names),
-            "iou_weight": list(cfg.get("IOU_WEIGHT", [0.5] + [0.4] * (len(class_names) - 1))),
-            "sampler_cfg": RoiSamplerConfig(
-                **{v: target[k] for k, v in TARGET_KEYS.items() if k in target}
-            ),
-            "roi_aug": {
-                "ENABLED": bool(target.get("USE_ROI_AUG", True)),
-                "TRIES": int(target.get("ROI_FG_AUG_TIMES", 10)),
-                "KEEP_RATIO": float(target.get("RATIO", 0.2)),
-                "TRAJ_ENABLED": bool(traj_aug.get("ENABLED", True)),
-                "TRAJ_THRESH": float(traj_aug.get("THRESHOLD", 0.8)),
+            "iou_weight": list(iou_weight),
+            "sampler_cfg": target.sampler(),
+            "roi_aug": target.roi_aug(),
+            "loss_weights": {
+                f: as_lists(v) for f, v in fields_of(weights).items() if v is not None
             },
-            "loss_weights": weights,
         }
 
     # ------------------------------------------------------------------ training

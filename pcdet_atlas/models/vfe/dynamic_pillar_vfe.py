@@ -18,11 +18,13 @@ other float32 rounding; ``fold_eval = False`` runs the layers one by one instead
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-from pcdet_atlas.config import ConfigError, check_known_keys
+from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config_values import setting
 from pcdet_atlas.models.model_utils.scatter import scatter_max, scatter_mean
 from pcdet_atlas.models.model_utils.voxelize import (
     VoxelGrid,
@@ -30,6 +32,7 @@ from pcdet_atlas.models.model_utils.voxelize import (
     check_voxel_size_placeholder,
     voxelize,
 )
+from pcdet_atlas.models.stage_config import StageConfig, read_stage
 from pcdet_atlas.registry import MODEL_STAGES
 
 
@@ -62,6 +65,40 @@ class PFNLayer(nn.Module):
         return weight, bias
 
 
+@dataclass(frozen=True, kw_only=True)
+class PointNetVFEConfig(StageConfig):
+    """``MODEL.VFE`` keys of the PointNet VFEs (OpenPCDet's, its spelling of ABSLOTE included)."""
+
+    voxel_size: tuple[float, float, float] | None = setting(
+        None, gt=0, doc="voxel size, m (else the DATA_PROCESSOR placeholder's)"
+    )
+    num_filters: tuple[int, ...] = setting((64, 64), ge=1, doc="widths of the PFN layers")
+    use_norm: bool = setting(True, doc="BatchNorm in the PFN layers")
+    with_distance: bool = setting(False, doc="add the point's range as a feature")
+    use_absolute_xyz: bool = setting(True, key="USE_ABSLOTE_XYZ", doc="keep absolute x, y, z")
+
+
+@dataclass(frozen=True, kw_only=True)
+class DynamicPillarVFEConfig(PointNetVFEConfig):
+    """``MODEL.VFE`` of DynamicPillarVFE."""
+
+    drop_outside_z: bool = setting(False, doc="drop points outside the z range")
+
+
+def voxel_size_of(settings, cfg: Mapping, model_info: Mapping) -> tuple[float, float, float]:
+    """``MODEL.VFE.VOXEL_SIZE``, else the DATA_PROCESSOR placeholder's; both given: equal."""
+    voxel_size = settings.voxel_size
+    if voxel_size is None:
+        voxel_size = model_info.get("voxel_size")
+    if voxel_size is None:
+        raise ConfigError(
+            "MODEL.VFE needs VOXEL_SIZE, or DATA_CONFIG.DATA_PROCESSOR a "
+            "transform_points_to_voxels_placeholder stating it (as OpenPCDet's configs do)"
+        )
+    check_voxel_size_placeholder(cfg, voxel_size, model_info)
+    return voxel_size
+
+
 @MODEL_STAGES.register("DynPillarVFE")  # OpenPCDet's name of this stage
 @MODEL_STAGES.register()
 class DynamicPillarVFE(nn.Module):
@@ -73,6 +110,8 @@ class DynamicPillarVFE(nn.Module):
 
     #: the grid has one z cell (a subclass on 3D voxels sets False)
     pillar_grid = True
+
+    CONFIG = DynamicPillarVFEConfig
 
     def __init__(
         self,
@@ -123,35 +162,16 @@ class DynamicPillarVFE(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> DynamicPillarVFE:
-        check_known_keys(
-            cfg,
-            [
-                "NAME",
-                "VOXEL_SIZE",
-                "NUM_FILTERS",
-                "USE_NORM",
-                "WITH_DISTANCE",
-                "USE_ABSLOTE_XYZ",
-                "DROP_OUTSIDE_Z",
-            ],
-            "MODEL.VFE",
-        )
-        voxel_size = cfg.get("VOXEL_SIZE", model_info.get("voxel_size"))
-        if voxel_size is None:
-            raise ConfigError(
-                "MODEL.VFE needs VOXEL_SIZE, or DATA_CONFIG.DATA_PROCESSOR a "
-                "transform_points_to_voxels_placeholder stating it (as OpenPCDet's configs do)"
-            )
-        check_voxel_size_placeholder(cfg, voxel_size, model_info)
+        settings = read_stage(cls, cfg, "MODEL.VFE")
         return cls(
             num_point_features=model_info["num_point_features"],
             point_cloud_range=model_info["point_cloud_range"],
-            voxel_size=voxel_size,
-            num_filters=cfg.get("NUM_FILTERS", (64, 64)),
-            use_norm=cfg.get("USE_NORM", True),
-            with_distance=cfg.get("WITH_DISTANCE", False),
-            use_absolute_xyz=cfg.get("USE_ABSLOTE_XYZ", True),
-            drop_outside_z=cfg.get("DROP_OUTSIDE_Z", False),
+            voxel_size=voxel_size_of(settings, cfg, model_info),
+            num_filters=settings.num_filters,
+            use_norm=settings.use_norm,
+            with_distance=settings.with_distance,
+            use_absolute_xyz=settings.use_absolute_xyz,
+            drop_outside_z=settings.drop_outside_z,
         )
 
     def get_output_feature_dim(self) -> int:

@@ -10,9 +10,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from pcdet_atlas.config import ConfigError, check_known_keys
-from pcdet_atlas.models.model_utils.voxelize import check_voxel_size_placeholder
-from pcdet_atlas.models.vfe.dynamic_pillar_vfe import DynamicPillarVFE
+from pcdet_atlas.models.stage_config import read_stage
+from pcdet_atlas.models.vfe.dynamic_pillar_vfe import (
+    DynamicPillarVFE,
+    PointNetVFEConfig,
+    voxel_size_of,
+)
 from pcdet_atlas.registry import MODEL_STAGES
 
 
@@ -26,28 +29,19 @@ class DynamicVoxelVFE(DynamicPillarVFE):
 
     pillar_grid = False
 
+    CONFIG = PointNetVFEConfig  # no DROP_OUTSIDE_Z: a voxel grid always drops outside z
+
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> DynamicVoxelVFE:
-        check_known_keys(
-            cfg,
-            ["NAME", "VOXEL_SIZE", "NUM_FILTERS", "USE_NORM", "WITH_DISTANCE", "USE_ABSLOTE_XYZ"],
-            "MODEL.VFE",
-        )
-        voxel_size = cfg.get("VOXEL_SIZE", model_info.get("voxel_size"))
-        if voxel_size is None:
-            raise ConfigError(
-                "MODEL.VFE needs VOXEL_SIZE, or DATA_CONFIG.DATA_PROCESSOR a "
-                "transform_points_to_voxels_placeholder stating it (as OpenPCDet's configs do)"
-            )
-        check_voxel_size_placeholder(cfg, voxel_size, model_info)
+        settings = read_stage(cls, cfg, "MODEL.VFE")
         return cls(
             num_point_features=model_info["num_point_features"],
             point_cloud_range=model_info["point_cloud_range"],
-            voxel_size=voxel_size,
-            num_filters=cfg.get("NUM_FILTERS", (64, 64)),
-            use_norm=cfg.get("USE_NORM", True),
-            with_distance=cfg.get("WITH_DISTANCE", False),
-            use_absolute_xyz=cfg.get("USE_ABSLOTE_XYZ", True),
+            voxel_size=voxel_size_of(settings, cfg, model_info),
+            num_filters=settings.num_filters,
+            use_norm=settings.use_norm,
+            with_distance=settings.with_distance,
+            use_absolute_xyz=settings.use_absolute_xyz,
             drop_outside_z=True,
         )
 

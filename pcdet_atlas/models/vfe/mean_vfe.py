@@ -9,17 +9,32 @@ cap taken from ``MAX_NUMBER_OF_VOXELS['train']`` in training mode and ``['test']
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 from torch import nn
 
-from pcdet_atlas.config import check_known_keys, require_keys
+from pcdet_atlas.config_values import setting
 from pcdet_atlas.models.model_utils.hard_voxelize import hard_voxelize
 from pcdet_atlas.models.model_utils.voxelize import (
     VoxelGrid,
     check_point_columns,
     check_voxel_size_placeholder,
 )
+from pcdet_atlas.models.stage_config import StageConfig, read_stage
 from pcdet_atlas.registry import MODEL_STAGES
+
+
+@dataclass(frozen=True, kw_only=True)
+class MeanVFEConfig(StageConfig):
+    """``MODEL.VFE`` of MeanVFE (hard voxelization)."""
+
+    voxel_size: tuple[float, float, float] = setting(gt=0, doc="voxel size, m")
+    max_points_per_voxel: int = setting(ge=1, doc="points kept per voxel")
+    max_number_of_voxels: dict[str, int] = setting(
+        check=lambda d: all(type(v) is int and v >= 1 for v in d.values()),
+        expected="{train: n, test: n} with integers n >= 1",
+        doc="voxels kept per sample, per mode",
+    )
 
 
 @MODEL_STAGES.register()
@@ -29,6 +44,8 @@ class MeanVFE(nn.Module):
     Reads ``batch_dict['points']`` (N, 1 + C); writes ``voxel_features`` (V, C), ``voxel_coords``
     (V, 4) ``[batch, z, y, x]`` and ``voxel_num_points`` (V,).
     """
+
+    CONFIG = MeanVFEConfig
 
     def __init__(
         self,
@@ -66,16 +83,14 @@ class MeanVFE(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> MeanVFE:
-        keys = ["NAME", "VOXEL_SIZE", "MAX_POINTS_PER_VOXEL", "MAX_NUMBER_OF_VOXELS"]
-        check_known_keys(cfg, keys, "MODEL.VFE")
-        require_keys(cfg, keys[1:], "MODEL.VFE")
-        check_voxel_size_placeholder(cfg, cfg["VOXEL_SIZE"], model_info)
+        settings = read_stage(cls, cfg, "MODEL.VFE")
+        check_voxel_size_placeholder(cfg, settings.voxel_size, model_info)
         return cls(
             num_point_features=model_info["num_point_features"],
             point_cloud_range=model_info["point_cloud_range"],
-            voxel_size=cfg["VOXEL_SIZE"],
-            max_points_per_voxel=cfg["MAX_POINTS_PER_VOXEL"],
-            max_number_of_voxels=cfg["MAX_NUMBER_OF_VOXELS"],
+            voxel_size=settings.voxel_size,
+            max_points_per_voxel=settings.max_points_per_voxel,
+            max_number_of_voxels=settings.max_number_of_voxels,
         )
 
     def get_output_feature_dim(self) -> int:

@@ -9,18 +9,37 @@ scatter (:class:`~pcdet_atlas.models.vfe.dynamic_pillar_vfe.PFNLayer`, as the pi
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-from pcdet_atlas.config import check_known_keys, require_keys
+from pcdet_atlas.config_values import setting
 from pcdet_atlas.models.model_utils.polar_grid import PolarGrid, polar_coordinates, polar_voxelize
 from pcdet_atlas.models.model_utils.scatter import scatter_mean
 from pcdet_atlas.models.model_utils.voxelize import check_point_columns
+from pcdet_atlas.models.stage_config import StageConfig, read_stage
 from pcdet_atlas.models.vfe.dynamic_pillar_vfe import PFNLayer
 from pcdet_atlas.registry import MODEL_STAGES
 
 __all__ = ["PolarVFE"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class PolarVFEConfig(StageConfig):
+    """``MODEL.VFE`` of PolarVFE."""
+
+    range_m: tuple[float, float] = setting(
+        ge=0,
+        check=lambda r: r[0] < r[1],
+        expected="[r_min, r_max] with 0 <= r_min < r_max",
+        doc="radial range, m",
+    )
+    grid_size: tuple[int, ...] = setting(ge=1, doc="polar grid cells")
+    num_sectors: int = setting(ge=1, doc="azimuth sectors")
+    origin_xy: tuple[float, float] = setting((0.0, 0.0), doc="polar origin, m")
+    num_filters: tuple[int, ...] = setting((32, 32), ge=1, doc="widths of the PFN layers")
+    use_norm: bool = setting(True, doc="BatchNorm in the PFN layers")
 
 
 @MODEL_STAGES.register()
@@ -31,6 +50,8 @@ class PolarVFE(nn.Module):
     ``[b, z, azimuth, range]``, and for the stages that go back to points ``voxel_point_idx``
     (N_in,) (the voxel of every point inside the grid) and ``voxel_point_xy`` (N_in, 2).
     """
+
+    CONFIG = PolarVFEConfig
 
     def __init__(
         self,
@@ -62,25 +83,20 @@ class PolarVFE(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> PolarVFE:
-        check_known_keys(
-            cfg,
-            ["NAME", "RANGE_M", "GRID_SIZE", "NUM_SECTORS", "ORIGIN_XY", "NUM_FILTERS", "USE_NORM"],
-            "MODEL.VFE",
-        )
-        require_keys(cfg, ["RANGE_M", "GRID_SIZE", "NUM_SECTORS"], "MODEL.VFE")
+        settings = read_stage(cls, cfg, "MODEL.VFE")
         pcr = model_info["point_cloud_range"]
         grid = PolarGrid(
-            range_m=tuple(float(v) for v in cfg["RANGE_M"]),
+            range_m=settings.range_m,
             z_range_m=(float(pcr[2]), float(pcr[5])),
-            grid_size=tuple(int(v) for v in cfg["GRID_SIZE"]),
-            num_sectors=int(cfg["NUM_SECTORS"]),
-            origin_xy=tuple(float(v) for v in cfg.get("ORIGIN_XY", (0.0, 0.0))),
+            grid_size=settings.grid_size,
+            num_sectors=settings.num_sectors,
+            origin_xy=settings.origin_xy,
         )
         return cls(
             num_point_features=model_info["num_point_features"],
             grid=grid,
-            num_filters=cfg.get("NUM_FILTERS", (32, 32)),
-            use_norm=cfg.get("USE_NORM", True),
+            num_filters=settings.num_filters,
+            use_norm=settings.use_norm,
         )
 
     def get_output_feature_dim(self) -> int:
