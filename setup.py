@@ -27,6 +27,9 @@ setup(
         "matplotlib>=3.7",
         "scipy>=1.10",
         "jsonschema>=4.18",
+        # Waymo's submission .bin (pcdet_atlas/datasets/waymo_submission.py) uses
+        # message_factory.GetMessageClass and google.protobuf.unknown_fields (tested with 7.36)
+        "protobuf>=4.22",
     ],
     extras_require={
         "test": ["pytest>=7", "hypothesis>=6.80", "shapely>=2.0", "ruff==0.17.5"],

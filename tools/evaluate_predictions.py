@@ -7,9 +7,9 @@
 ``ATLAS.MODEL_NAME`` and ``ATLAS.TEMPORAL_WINDOW`` are then used); ``--set KEY VALUE ...``
 overrides its keys, ``--data_path`` its ``DATA_PATH``. Each ``--predictions VARIANT=FILE``
 names a variant (an attack name, ``cfgs/attacks/<VARIANT>.yaml``, or an attack YAML's path)
-and the file of its per-frame predictions: OpenPCDet's ``result.pkl``, a JSON list of frames or
-a folder of one ``.npz`` per frame (``--format``, else a folder is npz, a file by extension or
-content). The attack's targets, runs and lifecycle come from
+and the file of its per-frame predictions: OpenPCDet's ``result.pkl``, a JSON list of frames, a
+folder of one ``.npz`` per frame or Waymo's submission ``.bin`` (``--format``, else a folder is
+npz, a file by extension or content). The attack's targets, runs and lifecycle come from
 the attack itself, drawn on the source data exactly as the evaluation of the project's own
 models draws them. A variant whose confidence is scored against the clean run (removal) needs
 ``clean=FILE``. Writes ``--out_dir/results.json``.

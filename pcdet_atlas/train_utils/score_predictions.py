@@ -14,8 +14,9 @@ class names of the data's ``CLASS_NAMES``, ``score`` ``(K,)`` in [0, 1], ``boxes
 converter, and ``frame_id`` or ``metadata`` with ``context_name`` and ``timestamp_micros`` to
 find the frame. Scores and boxes are read as float32, as the project's models write them.
 :func:`read_predictions` reads them from OpenPCDet's ``result.pkl`` (restricted unpickler), a
-JSON list of such frames or a folder of one ``.npz`` per frame (docs/evaluation.md "Scoring
-predictions made anywhere").
+JSON list of such frames, a folder of one ``.npz`` per frame or Waymo's submission ``.bin``
+(:mod:`pcdet_atlas.datasets.waymo_submission`; docs/evaluation.md "Scoring predictions made
+anywhere").
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import numpy as np
 
 from pcdet_atlas.attacks.base import BaseAttack
 from pcdet_atlas.config import ConfigError
+from pcdet_atlas.datasets.waymo_submission import PredictionError, read_waymo_bin
 from pcdet_atlas.evaluation import (
     build_results,
     save_results,
@@ -50,18 +52,17 @@ __all__ = [
     "FORMATS",
     "PredictionError",
     "match_predictions",
+    "predictions_format",
     "read_predictions",
     "score_predictions",
     "score_variant",
 ]
 
 #: the file formats :func:`read_predictions` reads
-FORMATS = ("pkl", "json", "npz")
+FORMATS = ("pkl", "json", "npz", "bin")
+#: formats in which a frame without detections is absent (it has no object to write)
+ABSENT_IS_EMPTY = ("bin",)
 BOX_WIDTHS = (7, 9)
-
-
-class PredictionError(ValueError):
-    """Predictions that cannot be scored; the message names the file, the frame and the field."""
 
 
 def _frame_label(index: int, frame: object) -> str:
@@ -75,33 +76,46 @@ def _frame_label(index: int, frame: object) -> str:
     return f"frame {index}"
 
 
+def predictions_format(path: str | Path, fmt: str | None = None) -> str:
+    """The format of a predictions file or folder: ``fmt`` (checked), else a folder is
+    ``npz``, a file is known by its extension (``.pkl``, ``.json``, ``.bin``), else by its
+    first byte (a pickle's protocol opcode, a JSON ``[``, an ``Objects`` message's first tag).
+
+    Raises:
+        PredictionError: naming the file, for an unknown format or a file that is not there.
+    """
+    path = Path(path)
+    if fmt is not None and fmt not in FORMATS:
+        raise PredictionError(f"{path}: unknown predictions format {fmt!r} (known: {FORMATS})")
+    if fmt is None and path.is_dir():
+        return "npz"
+    if fmt != "npz" and not path.is_file():
+        raise PredictionError(f"{path}: no such predictions file")
+    return fmt or _detect_format(path)
+
+
 def read_predictions(path: str | Path, fmt: str | None = None) -> tuple[list, list[str]]:
     """The per-frame prediction dicts of a file or folder and, per frame, where it was read
     (the file; each frame's own file for ``npz``).
 
-    Formats (:data:`FORMATS`): OpenPCDet's ``result.pkl`` (``pkl``, a list of dicts, read
-    without running code), a JSON list of frames (``json``), or a folder of ``.npz`` files, one
-    per frame (``npz``, read without pickles: arrays ``name``, ``score``, ``boxes_lidar`` and
-    ``frame_id``, or ``context_name`` and ``timestamp_micros``). ``fmt`` None: a folder is
-    ``npz``; a file by its extension (``.pkl``, ``.json``), else by its first byte (a pickle's
-    protocol opcode, a JSON ``[``).
+    Formats (:data:`FORMATS`, :func:`predictions_format`): OpenPCDet's ``result.pkl``
+    (``pkl``, a list of dicts, read without running code), a JSON list of frames (``json``), a
+    folder of ``.npz`` files, one per frame (``npz``, read without pickles: arrays ``name``,
+    ``score``, ``boxes_lidar`` and ``frame_id``, or ``context_name`` and ``timestamp_micros``),
+    or Waymo's submission ``.bin`` (``bin``: only the frames with detections,
+    :func:`~pcdet_atlas.datasets.waymo_submission.read_waymo_bin`).
 
     Raises:
-        PredictionError: naming the file, for an unknown format, a file that holds no list, or
-            an unreadable ``.npz``.
+        PredictionError: naming the file, for an unknown format, a file that holds no list, an
+            unreadable ``.npz`` or a bad ``.bin``.
     """
     path = Path(path)
-    if fmt is None and path.is_dir():
-        fmt = "npz"
+    fmt = predictions_format(path, fmt)
     if fmt == "npz":
         return _read_npz_folder(path)
-    if not path.is_file():
-        raise PredictionError(f"{path}: no such predictions file")
-    if fmt is None:
-        fmt = _detect_format(path)
-    if fmt not in FORMATS:
-        raise PredictionError(f"{path}: unknown predictions format {fmt!r} (known: {FORMATS})")
-    if fmt == "pkl":
+    if fmt == "bin":
+        frames = read_waymo_bin(path)
+    elif fmt == "pkl":
         frames = load_pickle(path)
     else:
         try:
@@ -144,12 +158,17 @@ def _detect_format(path: Path) -> str:
         return "pkl"
     if suffix == ".json":
         return "json"
+    if suffix == ".bin":
+        return "bin"
     with path.open("rb") as f:
-        head = f.read(64).lstrip()
+        raw = f.read(64)
+    head = raw.lstrip()
     if head[:1] == b"\x80":
         return "pkl"
     if head[:1] == b"[":
         return "json"
+    if raw[:1] == b"\x0a":  # field 1 (Objects.objects), length-delimited
+        return "bin"
     raise PredictionError(
         f"{path}: cannot tell the predictions format from its name or content; pass --format "
         f"({' or '.join(FORMATS)})"
@@ -257,11 +276,17 @@ def match_predictions(
     class_names: Sequence[str],
     source: str,
     frame_sources: Sequence[str] | None = None,
+    *,
+    absent_is_empty: bool = False,
 ) -> list[dict]:
     """``frames`` (per-frame prediction dicts read from ``source``) checked and put in the order
     of ``infos`` (the split's frame infos; ``frame_sources``: each frame's own file, where it
     has one), one anno dict per info with the info's ``frame_id``
     and ``metadata``.
+
+    ``absent_is_empty``: a split frame absent from ``frames`` is a frame without detections (a
+    format that writes only objects, :data:`ABSENT_IS_EMPTY`); a sequence of the split with no
+    frame in ``frames`` is still an error (a file of another split or a lost sequence).
 
     Raises:
         PredictionError: naming ``source``, the frame and the field, for a frame that is not a
@@ -290,6 +315,15 @@ def match_predictions(
         out[index] = {**checked, "frame_id": info["frame_id"],
                       "metadata": info.get("metadata", info["frame_id"])}  # fmt: skip
     missing = [info["frame_id"] for info, anno in zip(infos, out) if anno is None]
+    if missing and absent_is_empty:
+        _check_sequences_present(infos, out, source)
+        for index, anno in enumerate(out):
+            if anno is None:
+                info = infos[index]
+                out[index] = {**_check_frame(_EMPTY, source, class_names),
+                              "frame_id": info["frame_id"],
+                              "metadata": info.get("metadata", info["frame_id"])}  # fmt: skip
+        missing = []
     if missing:
         raise PredictionError(
             f"{source}: {len(missing)} of the test split's {len(infos)} frames have no "
@@ -297,6 +331,28 @@ def match_predictions(
             "empty 'name', 'score' and 'boxes_lidar')"
         )
     return out
+
+
+_EMPTY = {"name": [], "score": [], "boxes_lidar": np.zeros((0, 7))}
+
+
+def _sequence_of(info: Mapping) -> str:
+    return str(info["point_cloud"]["lidar_sequence"]) if "point_cloud" in info else "?"
+
+
+def _check_sequences_present(infos: Sequence[Mapping], out: Sequence, source: str) -> None:
+    """Raise naming the first sequence of the split none of whose frames has predictions."""
+    found: dict[str, bool] = {}
+    for info, anno in zip(infos, out):
+        seq = _sequence_of(info)
+        found[seq] = found.get(seq, False) or anno is not None
+    lost = [seq for seq, any_frame in found.items() if not any_frame]
+    if lost:
+        raise PredictionError(
+            f"{source}: {len(lost)} of the test split's {len(found)} sequences have no "
+            f"detection in any frame, the first {lost[0]!r} (predictions of another split, or "
+            "a sequence left out?)"
+        )
 
 
 def score_variant(
@@ -310,6 +366,7 @@ def score_variant(
     frame_sources: Sequence[str] | None = None,
     clean_det_annos: Sequence[Mapping] | None = None,
     temporal_window: int | None = None,
+    absent_is_empty: bool = False,
     logger: logging.Logger | None = None,
 ) -> tuple[dict, list[dict]]:
     """One variant's ``results.json`` entry from its per-frame predictions ``frames`` (read
@@ -318,6 +375,7 @@ def score_variant(
 
     ``clean_det_annos``: the clean variant's predictions (as this returns them), which an
     attack whose confidence analysis is the removal one (``CONFIDENCE == 'removal'``) needs.
+    ``absent_is_empty``: as :func:`match_predictions` takes it (a ``.bin``'s frames).
 
     Returns:
         ``(entry, det_annos)``: the entry (``num_reused_frames`` not recorded; ``extra`` with
@@ -339,7 +397,9 @@ def score_variant(
             f"variant {variant!r} ({dataset.attack.family}): its confidence is scored against "
             "the clean predictions; pass clean=FILE with --predictions"
         )
-    det_annos = match_predictions(frames, dataset.infos, class_names, source, frame_sources)
+    det_annos = match_predictions(
+        frames, dataset.infos, class_names, source, frame_sources, absent_is_empty=absent_is_empty
+    )
     for anno, info in zip(det_annos, dataset.infos):
         point_cloud = info["point_cloud"]
         anno["attack"] = dataset.frame_attack_meta(
@@ -428,9 +488,13 @@ def score_predictions(
                 f"variant(s) {needing} score their confidence against the clean predictions; "
                 "pass clean=FILE with --predictions"
             )
-    frames = {name: read_predictions(path, fmt) for name, (_, path) in files.items()}
+    formats = {name: predictions_format(path, fmt) for name, (_, path) in files.items()}
+    frames = {name: read_predictions(path, formats[name]) for name, (_, path) in files.items()}
     for name, (_, path) in files.items():  # every file checked before anything is written
-        match_predictions(frames[name][0], split.infos, class_names, str(path), frames[name][1])
+        match_predictions(
+            frames[name][0], split.infos, class_names, str(path), frames[name][1],
+            absent_is_empty=formats[name] in ABSENT_IS_EMPTY,
+        )  # fmt: skip
     out_dir = Path(out_dir)
     entries: dict = {}
     clean = None
@@ -439,7 +503,7 @@ def score_predictions(
         path = files[name][1]
         entry, det_annos = score_variant(
             data_cfg, class_names, name, attack, frames[name][0], source=str(path),
-            frame_sources=frames[name][1],
+            frame_sources=frames[name][1], absent_is_empty=formats[name] in ABSENT_IS_EMPTY,
             clean_det_annos=clean, temporal_window=temporal_window, logger=logger,
         )  # fmt: skip
         if name == "clean":

@@ -1,5 +1,6 @@
 """Scoring predictions made anywhere (``tools/evaluate_predictions.py``): the shipped CP-4f's own
-``result.pkl`` files, and the same predictions written as JSON, score exactly as the evaluation
+``result.pkl`` files, and the same predictions written as JSON, npz and Waymo's submission
+``.bin``, score exactly as the evaluation
 scored them (ASR, targets, successes and per-run counts equal; AP within 1e-9); bad input is one
 clear error naming the file, the frame and the field."""
 
@@ -13,6 +14,7 @@ import numpy as np
 import pytest
 
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
+from pcdet_atlas.datasets.waymo_submission import write_waymo_bin
 from pcdet_atlas.evaluation import load_results
 from pcdet_atlas.evaluation.results.schema import METRIC_KEYS
 from pcdet_atlas.models import build_network_from_config
@@ -167,6 +169,20 @@ def test_result_pkl_and_json_score_as_the_evaluation(normal_run, tmp_path):
         assert_same_scores(written["variants"][variant], entry)
 
 
+def test_waymo_submission_bin_scores_as_the_evaluation(normal_run, tmp_path):
+    """The predictions as a submission .bin (no object for a frame without detections; found by
+    context name and timestamp) give the evaluation's entries; the format is told by content."""
+    run, files = normal_run, normal_run["files"]
+    want = run["entries"]
+    bins = {v: write_waymo_bin(load_pickle(f), tmp_path / f"{v}.bin") for v, f in files.items()}
+    bins["rem_40"] = bins["rem_40"].rename(tmp_path / "rem_40.objects")  # no extension
+    preds = [f"clean={bins['clean']}", f"{run['inj']}={bins['inj_global_hard']}",
+             f"rem_40={bins['rem_40']}"]  # fmt: skip
+    written = load_tool("evaluate_predictions").main(tool_args(run, tmp_path / "bin", preds))
+    for variant, entry in want.items():
+        assert_same_scores(written["variants"][variant], entry)
+
+
 @pytest.mark.slow
 def test_a_changed_prediction_changes_the_score(normal_run, tmp_path):
     """The scores follow the predictions: with no detections on the spoofed frames, every
@@ -260,6 +276,19 @@ def _frame(i, **over):
 def test_bad_predictions_are_clear_errors(frames, pattern):
     with pytest.raises(PredictionError, match=pattern):
         match_predictions(frames, _infos(), CLASSES, "f.pkl")
+
+
+def test_absent_frames_of_a_submission_are_frames_without_detections():
+    infos = [{**info, "point_cloud": {"lidar_sequence": "seq_a" if i < 2 else "seq_b"}}
+             for i, info in enumerate(_infos())]  # fmt: skip
+    out = match_predictions([_frame(0), _frame(2)], infos, CLASSES, "f.bin", absent_is_empty=True)
+    assert out[1]["frame_id"] == "seq_001" and out[1]["boxes_lidar"].shape == (0, 7)
+    assert out[1]["name"].shape == out[1]["score"].shape == out[1]["pred_labels"].shape == (0,)
+    with pytest.raises(PredictionError, match=r"f\.bin: 1 of the test split's 2 sequences have "
+                       r"no detection in any frame, the first 'seq_b'"):  # fmt: skip
+        match_predictions([_frame(0)], infos, CLASSES, "f.bin", absent_is_empty=True)
+    with pytest.raises(PredictionError, match=r"1 of the test split's 3 frames have no pred"):
+        match_predictions([_frame(0), _frame(2)], infos, CLASSES, "f.pkl")
 
 
 def test_frames_are_matched_in_any_order_and_by_time():
