@@ -6,12 +6,13 @@
 ``--data_cfg`` is a DATA_CONFIG YAML or a model config holding one (its ``CLASS_NAMES``,
 ``ATLAS.MODEL_NAME`` and ``ATLAS.TEMPORAL_WINDOW`` are then used); ``--set KEY VALUE ...``
 overrides its keys, ``--data_path`` its ``DATA_PATH``. Each ``--predictions VARIANT=FILE``
-names a variant (an attack name, ``cfgs/attacks/<VARIANT>.yaml``, or an attack YAML's path)
-and the file of its per-frame predictions: OpenPCDet's ``result.pkl``, a JSON list of frames, a
-folder of one ``.npz`` per frame or Waymo's submission ``.bin`` (``--format``, else a folder is
-npz, a file by extension or content). The attack's targets, runs and lifecycle come from
-the attack itself, drawn on the source data exactly as the evaluation of the project's own
-models draws them. A variant whose confidence is scored against the clean run (removal) needs
+names a variant and the file of its per-frame predictions. The variant is an attack name
+(``cfgs/attacks/<VARIANT>.yaml``) or an attack YAML's path, whose targets, runs and lifecycle
+are drawn on the source data exactly as the evaluation of the project's own models draws them,
+or the output folder of ``tools/generate_atlas.py``, whose recorded ones are read. The file is
+OpenPCDet's ``result.pkl``, a JSON list of frames, a folder of one ``.npz`` per frame or
+Waymo's submission ``.bin`` (``--format``, else a folder is npz, a file by extension or
+content). A variant whose confidence is scored against the clean run (removal) needs
 ``clean=FILE``. Writes ``--out_dir/results.json``.
 
 The work is the library's (:mod:`pcdet_atlas.train_utils.score_predictions`, whose docstring

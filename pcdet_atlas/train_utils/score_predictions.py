@@ -6,7 +6,9 @@ its per-frame detections then get the same ``results.json`` entry :func:`evaluat
 gives the project's own models: Waymo L1/L2 AP/APH and, for an attack variant, ASR with its
 interval and per-run counts, confidence and lifecycle. The attack's targets, runs and lifecycle
 come from the attack itself: the variant's ``AtlasWaymoDataset`` gives each frame's metadata
-record exactly as it serves it to a model (a spoofed frame is simulated for it).
+record exactly as it serves it to a model (a spoofed frame is simulated for it), or from the
+records a ``tools/generate_atlas.py`` output holds (:func:`load_generated_variant`; the same
+records, read instead of simulated).
 
 Predictions are OpenPCDet anno dicts, one per frame of the split (any order): ``name`` ``(K,)``
 class names of the data's ``CLASS_NAMES``, ``score`` ``(K,)`` in [0, 1], ``boxes_lidar``
@@ -27,12 +29,13 @@ import logging
 import time
 import zipfile
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from pcdet_atlas.attacks.base import BaseAttack
-from pcdet_atlas.config import ConfigError
+from pcdet_atlas.attacks.base import BaseAttack, build_attack
+from pcdet_atlas.config import ConfigError, cfg_from_yaml_file
 from pcdet_atlas.datasets.waymo_submission import PredictionError, read_waymo_bin
 from pcdet_atlas.evaluation import (
     build_results,
@@ -49,7 +52,10 @@ from pcdet_atlas.train_utils.atlas_eval import (
 from pcdet_atlas.utils.safe_pickle import load_pickle
 
 __all__ = [
+    "ATLAS_METADATA",
     "FORMATS",
+    "GeneratedVariant",
+    "load_generated_variant",
     "PredictionError",
     "match_predictions",
     "predictions_format",
@@ -63,6 +69,48 @@ FORMATS = ("pkl", "json", "npz", "bin")
 #: formats in which a frame without detections is absent (it has no object to write)
 ABSENT_IS_EMPTY = ("bin",)
 BOX_WIDTHS = (7, 9)
+#: what ``tools/generate_atlas.py`` writes in its output root: the per-frame attack records
+#: (``{'variant', 'attack_cfg', 'frames': {frame_id: record}}``) and the merged attack config
+ATLAS_METADATA = "atlas_attack_metadata.pkl"
+ATLAS_ATTACK_YAML = "atlas_attack.yaml"
+
+
+@dataclass(frozen=True)
+class GeneratedVariant:
+    """A variant written by ``tools/generate_atlas.py``: its name, merged attack config and
+    per-frame attack records (``{frame_id: record}``, the records ``AtlasWaymoDataset`` gives)."""
+
+    name: str
+    attack_yaml: Path
+    records: Mapping[str, Mapping]
+
+
+def load_generated_variant(folder: str | Path) -> GeneratedVariant:
+    """The variant of a ``tools/generate_atlas.py`` output root (restricted unpickler).
+
+    Raises:
+        PredictionError: naming the file, for a folder without the metadata or the attack
+            config, or metadata that is not the generator's.
+    """
+    folder = Path(folder)
+    meta_path, yaml_path = folder / ATLAS_METADATA, folder / ATLAS_ATTACK_YAML
+    for path in (meta_path, yaml_path):
+        if not path.is_file():
+            raise PredictionError(
+                f"{folder}: no {path.name}; not a tools/generate_atlas.py output (variants are "
+                "an attack name, an attack YAML or such an output folder)"
+            )
+    summary = load_pickle(meta_path)
+    if (
+        not isinstance(summary, Mapping)
+        or not isinstance(summary.get("variant"), str)
+        or not isinstance(summary.get("frames"), Mapping)
+    ):
+        raise PredictionError(
+            f"{meta_path}: expected a dict with 'variant' (a name) and 'frames' ({{frame_id: "
+            "record}}), as tools/generate_atlas.py writes it"
+        )
+    return GeneratedVariant(summary["variant"], yaml_path.resolve(), summary["frames"])
 
 
 def _frame_label(index: int, frame: object) -> str:
@@ -367,6 +415,8 @@ def score_variant(
     clean_det_annos: Sequence[Mapping] | None = None,
     temporal_window: int | None = None,
     absent_is_empty: bool = False,
+    records: Mapping[str, Mapping] | None = None,
+    records_source: str = "",
     logger: logging.Logger | None = None,
 ) -> tuple[dict, list[dict]]:
     """One variant's ``results.json`` entry from its per-frame predictions ``frames`` (read
@@ -376,6 +426,8 @@ def score_variant(
     ``clean_det_annos``: the clean variant's predictions (as this returns them), which an
     attack whose confidence analysis is the removal one (``CONFIDENCE == 'removal'``) needs.
     ``absent_is_empty``: as :func:`match_predictions` takes it (a ``.bin``'s frames).
+    ``records``: each frame's attack record by ``frame_id``, read from ``records_source`` (a
+    :class:`GeneratedVariant`'s), instead of the dataset's (which simulates a spoofed frame).
 
     Returns:
         ``(entry, det_annos)``: the entry (``num_reused_frames`` not recorded; ``extra`` with
@@ -402,9 +454,16 @@ def score_variant(
     )
     for anno, info in zip(det_annos, dataset.infos):
         point_cloud = info["point_cloud"]
-        anno["attack"] = dataset.frame_attack_meta(
-            point_cloud["lidar_sequence"], int(point_cloud["sample_idx"])
-        )
+        sequence = point_cloud["lidar_sequence"]
+        if records is None:
+            anno["attack"] = dataset.frame_attack_meta(sequence, int(point_cloud["sample_idx"]))
+        elif info["frame_id"] in records:
+            anno["attack"] = {**records[info["frame_id"]], "sequence_name": sequence}
+        else:
+            raise PredictionError(
+                f"{records_source}: no attack record of frame {info['frame_id']!r} of the test "
+                "split (generated from another split or with --max_sequences?)"
+            )
     timings = {"attack_records": time.perf_counter() - t0}
     attack_infos = [anno["attack"] for anno in det_annos]
     entry = variant_entry(
@@ -447,7 +506,9 @@ def score_predictions(
     Args:
         data_cfg, class_names: the test split's data config and class names.
         predictions: ``{variant: file}``; a variant is an attack name (``cfgs/attacks/<name>.yaml``)
-            or the path of an attack YAML, as ``tools/test.py --attacks`` takes it.
+            or the path of an attack YAML, as ``tools/test.py --attacks`` takes it, or a
+            ``tools/generate_atlas.py`` output folder (its variant, attack config and per-frame
+            attack records: :func:`load_generated_variant`).
         model, config: the ``results.json`` ``model`` and ``config`` fields.
         atlas_cfg: the model config's ``ATLAS`` section, if any (checked as ``--attacks`` does).
         temporal_window: the lifecycle window (a model config's ``ATLAS.TEMPORAL_WINDOW``).
@@ -462,14 +523,20 @@ def score_predictions(
     """
     if not predictions:
         raise PredictionError("no predictions to score: pass --predictions VARIANT=FILE ...")
-    files = {}
+    files: dict[str, tuple[Path, Path]] = {}
+    generated: dict[str, GeneratedVariant] = {}
     for spec, path in predictions.items():
-        resolved = resolve_variants(spec, atlas_cfg or {})
-        if len(resolved) != 1:
-            raise PredictionError(
-                f"--predictions {spec}=...: names {len(resolved)} variants, not one"
-            )
-        ((name, yaml_path),) = resolved
+        if Path(spec).is_dir():
+            variant = load_generated_variant(spec)
+            name, yaml_path = variant.name, variant.attack_yaml
+            generated[name] = variant
+        else:
+            resolved = resolve_variants(spec, atlas_cfg or {})
+            if len(resolved) != 1:
+                raise PredictionError(
+                    f"--predictions {spec}=...: names {len(resolved)} variants, not one"
+                )
+            ((name, yaml_path),) = resolved
         if name in files:
             raise PredictionError(f"variant {name!r} has predictions twice ({spec!r})")
         files[name] = (yaml_path, Path(path))
@@ -479,7 +546,24 @@ def score_predictions(
     split = DATASETS.get(data_cfg["DATASET"])(
         dataset_cfg=data_cfg, class_names=class_names, training=False, logger=logger
     )
-    attacks = build_variant_attacks(variants, split.root_path)
+    built = build_variant_attacks([v for v in variants if v[0] not in generated], split.root_path)
+    for name, variant in generated.items():  # the merged config: VARIANT is not its file name
+        built[name] = build_attack(
+            cfg_from_yaml_file(variant.attack_yaml), data_root=split.root_path
+        )
+        if built[name].variant != name:
+            raise PredictionError(
+                f"{variant.attack_yaml}: variant {built[name].variant!r}, but its "
+                f"{ATLAS_METADATA} holds {name!r}"
+            )
+        missing = [i["frame_id"] for i in split.infos if i["frame_id"] not in variant.records]
+        if missing:
+            raise PredictionError(
+                f"{variant.attack_yaml.parent / ATLAS_METADATA}: no attack record of "
+                f"{len(missing)} of the test split's {len(split.infos)} frames, the first "
+                f"{missing[0]!r} (generated from another split or with --max_sequences?)"
+            )
+    attacks = {name: built[name] for name, _ in variants}
     fingerprints = variant_fingerprints(variants, attacks)
     if "clean" not in files:
         needing = [n for n, a in attacks.items() if a.CONFIDENCE == "removal"]
@@ -505,11 +589,15 @@ def score_predictions(
             data_cfg, class_names, name, attack, frames[name][0], source=str(path),
             frame_sources=frames[name][1], absent_is_empty=formats[name] in ABSENT_IS_EMPTY,
             clean_det_annos=clean, temporal_window=temporal_window, logger=logger,
+            records=generated[name].records if name in generated else None,
+            records_source=str(files[name][0].parent / ATLAS_METADATA),
         )  # fmt: skip
         if name == "clean":
             clean = det_annos
         extra = {**entry["extra"], "attack_sha256": fingerprints[name],
                  "predictions_sha256": _sha256(path)}  # fmt: skip
+        if name in generated:
+            extra["attack_records"] = str(files[name][0].parent / ATLAS_METADATA)
         entries[name] = {**entry, "extra": extra}
         results = build_results(
             model=model, config=config, checkpoint=None, class_names=class_names,

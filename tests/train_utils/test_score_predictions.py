@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets.waymo_submission import write_waymo_bin
 from pcdet_atlas.evaluation import load_results
@@ -181,6 +182,57 @@ def test_waymo_submission_bin_scores_as_the_evaluation(normal_run, tmp_path):
     written = load_tool("evaluate_predictions").main(tool_args(run, tmp_path / "bin", preds))
     for variant, entry in want.items():
         assert_same_scores(written["variants"][variant], entry)
+
+
+def test_attack_records_of_a_generate_atlas_output_score_as_drawn_on_the_fly(
+    normal_run, tmp_path, monkeypatch
+):
+    """A variant named by its tools/generate_atlas.py output folder takes the targets, runs and
+    lifecycle from the records written there (nothing simulated) and scores exactly as the
+    attack drawn on the fly: the evaluation's entries, the same attack fingerprint."""
+    run, files = normal_run, normal_run["files"]
+    data_yaml = tmp_path / "source.yaml"
+    data_yaml.write_text(f"_BASE_CONFIG_: {DATA_CFG}\nDATA_PATH: {run['root']}\n")
+    generate = load_tool("generate_atlas")
+    folders = {}
+    for variant, attack in [("inj_global_hard", run["inj"]), ("rem_40", ATTACKS / "rem_40.yaml")]:
+        folders[variant] = tmp_path / variant
+        generate.main(["--data_cfg", str(data_yaml), "--attack", str(attack),
+                       "--out_dir", str(folders[variant])])  # fmt: skip
+
+    def no_simulation(self, *args, **kwargs):
+        raise AssertionError("a generated variant's records are read, not simulated")
+
+    monkeypatch.setattr(AtlasWaymoDataset, "simulate_frame", no_simulation)
+    preds = [f"clean={files['clean']}", f"{folders['inj_global_hard']}={files['inj_global_hard']}",
+             f"{folders['rem_40']}={files['rem_40']}"]  # fmt: skip
+    tool = load_tool("evaluate_predictions")
+    written = tool.main(tool_args(run, tmp_path / "scored", preds))
+    for variant, entry in run["entries"].items():
+        assert_same_scores(written["variants"][variant], entry)
+    assert written["variants"]["rem_40"]["extra"]["attack_records"].startswith(str(tmp_path))
+    monkeypatch.undo()
+    on_the_fly = tool.main(tool_args(run, tmp_path / "fly", [f"clean={files['clean']}",
+                                     f"rem_40={files['rem_40']}"]))  # fmt: skip
+    assert (written["variants"]["rem_40"]["extra"]["attack_sha256"]
+            == on_the_fly["variants"]["rem_40"]["extra"]["attack_sha256"])  # fmt: skip
+
+    # records of another split, and a folder that is no generator output
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(PredictionError, match=r"empty: no atlas_attack_metadata\.pkl"):
+        tool.main(tool_args(run, tmp_path / "bad", [f"{tmp_path / 'empty'}={files['rem_40']}"]))
+    meta = load_pickle(folders["rem_40"] / "atlas_attack_metadata.pkl")
+    meta["frames"] = dict(list(meta["frames"].items())[1:])
+    save_pickle(meta, folders["rem_40"] / "atlas_attack_metadata.pkl")
+    with pytest.raises(PredictionError, match=r"no attack record of 1 of the test split's"):
+        tool.main(
+            tool_args(
+                run,
+                tmp_path / "bad",
+                [f"clean={files['clean']}", f"{folders['rem_40']}={files['rem_40']}"],
+            )
+        )
+    assert not (tmp_path / "bad").exists()
 
 
 @pytest.mark.slow
