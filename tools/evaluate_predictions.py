@@ -25,7 +25,7 @@ import argparse
 
 from pcdet_atlas.config import cfg_from_list, cfg_from_yaml_file, resolve_cli_path
 from pcdet_atlas.train_utils.score_predictions import FORMATS, score_predictions
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import add_debug_flag, add_plugin_flag, import_plugins, run_tool
 from pcdet_atlas.utils.common import create_logger
 
 DEFAULT_CLASSES = "Vehicle,Pedestrian,Cyclist"
@@ -41,6 +41,7 @@ def prediction_arg(text: str) -> tuple[str, str]:
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_debug_flag(parser)
+    add_plugin_flag(parser)
     parser.add_argument(
         "--data_cfg", required=True, help="DATA_CONFIG YAML, or a model config holding one"
     )
@@ -69,6 +70,7 @@ def parse_args(argv=None):
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
+    import_plugins(args.plugin)
     cfg = cfg_from_yaml_file(args.data_cfg)
     if args.set_cfgs:
         cfg_from_list(args.set_cfgs, cfg)
