@@ -243,8 +243,9 @@ def _check_frame(frame: object, where: str, class_names: Sequence[str]) -> dict:
     for field in ("name", "score", "boxes_lidar"):
         if field not in frame:
             raise PredictionError(f"{where}: no field {field!r}")
-    names = np.asarray(frame["name"]).reshape(-1)
-    unknown = sorted({str(n) for n in names} - set(class_names))
+    names = np.asarray(frame["name"]).reshape(-1).astype(str)
+    kinds, kind_of = np.unique(names, return_inverse=True)  # (U,) names, (K,) index into them
+    unknown = sorted(set(kinds.tolist()) - set(class_names))
     if unknown:
         raise PredictionError(
             f"{where}: field 'name' holds unknown class name(s) {unknown} (known: "
@@ -269,7 +270,8 @@ def _check_frame(frame: object, where: str, class_names: Sequence[str]) -> dict:
             f"{where}: field 'boxes_lidar' has shape {boxes.shape}, expected ({len(names)}, 7) "
             f"or ({len(names)}, 9)"
         )
-    labels = np.array([list(class_names).index(str(n)) + 1 for n in names], dtype=np.int64)
+    kind_labels = [list(class_names).index(kind) + 1 for kind in kinds.tolist()]
+    labels = np.array(kind_labels, dtype=np.int64)[kind_of.reshape(-1)]  # 1-based
     if "pred_labels" in frame:
         given = np.asarray(frame["pred_labels"]).reshape(-1)
         if given.shape != labels.shape or np.any(given != labels):
@@ -278,7 +280,7 @@ def _check_frame(frame: object, where: str, class_names: Sequence[str]) -> dict:
                 f"{list(class_names)})"
             )
     return {
-        "name": np.array([str(n) for n in names], dtype=f"<U{max(map(len, class_names))}"),
+        "name": names.astype(f"<U{max(map(len, class_names))}"),
         "score": score.astype(np.float32),
         "boxes_lidar": boxes.astype(np.float32),
         "pred_labels": labels,
@@ -515,7 +517,8 @@ def score_predictions(
         fmt: the files' format (:data:`FORMATS`); None: each file's own (:func:`read_predictions`).
 
     Returns:
-        The results dict written (``results.json``: rewritten after each variant, clean first).
+        The results dict written (``results.json``, once every variant is scored, clean first:
+        scoring is fast enough to redo whole).
 
     Raises:
         PredictionError: a bad file, frame or field, or an attack variant needing the clean
@@ -579,10 +582,8 @@ def score_predictions(
             frames[name][0], split.infos, class_names, str(path), frames[name][1],
             absent_is_empty=formats[name] in ABSENT_IS_EMPTY,
         )  # fmt: skip
-    out_dir = Path(out_dir)
     entries: dict = {}
     clean = None
-    results = None
     for name, attack in attacks.items():
         path = files[name][1]
         entry, det_annos = score_variant(
@@ -599,10 +600,9 @@ def score_predictions(
         if name in generated:
             extra["attack_records"] = str(files[name][0].parent / ATLAS_METADATA)
         entries[name] = {**entry, "extra": extra}
-        results = build_results(
-            model=model, config=config, checkpoint=None, class_names=class_names,
-            variants=entries, extra={"scored_from": "predictions",
-                                     "variants_requested": list(attacks)},
-        )  # fmt: skip
-        save_results(results, out_dir / "results.json")
+    results = build_results(
+        model=model, config=config, checkpoint=None, class_names=class_names, variants=entries,
+        extra={"scored_from": "predictions", "variants_requested": list(attacks)},
+    )  # fmt: skip
+    save_results(results, Path(out_dir) / "results.json")
     return results
