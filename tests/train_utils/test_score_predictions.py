@@ -16,7 +16,7 @@ import pytest
 from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets.waymo_submission import write_waymo_bin
-from pcdet_atlas.evaluation import load_results
+from pcdet_atlas.evaluation import build_results, load_results, save_results
 from pcdet_atlas.evaluation.results.schema import METRIC_KEYS
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.train_utils.atlas_eval import EvalContext, evaluate_variant
@@ -233,6 +233,33 @@ def test_attack_records_of_a_generate_atlas_output_score_as_drawn_on_the_fly(
             )
         )
     assert not (tmp_path / "bad").exists()
+
+
+def test_scoring_benchmark_runs_on_an_evaluation_folder(normal_run, tmp_path):
+    """tools/bench_scoring.py times both sides on a tools/test.py-like folder and finds the
+    scored entries equal to the run's."""
+    run = normal_run
+    entries = {v: run["entries"][v] for v in ("clean", "rem_40")}
+    for variant in entries:
+        (tmp_path / variant).mkdir()
+        (tmp_path / variant / "result.pkl").write_bytes(run["files"][variant].read_bytes())
+    results = build_results(
+        model="CP-4f", config=str(CFG), checkpoint=None, class_names=CLASSES, variants=entries
+    )
+    save_results(results, tmp_path / "results.json")
+    out = load_tool("bench_scoring").main(
+        [
+            "--cfg",
+            str(CFG),
+            "--eval_dir",
+            str(tmp_path),
+            "--data_path",
+            str(run["root"]),
+            "--set",
+            *SUBSET,
+        ]  # fmt: skip
+    )
+    assert out["equal"] and out["metric_s"] > 0 and out["scoring_s"] > 0
 
 
 @pytest.mark.slow
