@@ -26,6 +26,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import time
 import zipfile
 from collections.abc import Mapping, Sequence
@@ -55,6 +56,7 @@ __all__ = [
     "ATLAS_METADATA",
     "FORMATS",
     "GeneratedVariant",
+    "is_generated_spec",
     "load_generated_variant",
     "PredictionError",
     "match_predictions",
@@ -83,6 +85,13 @@ class GeneratedVariant:
     name: str
     attack_yaml: Path
     records: Mapping[str, Mapping]
+
+
+def is_generated_spec(spec: str) -> bool:
+    """Whether a ``--predictions`` variant names a ``tools/generate_atlas.py`` output: a folder
+    given as a path (``data/atlas/rem_40``, ``./rem_40``); a bare name (``rem_40``) is an attack
+    name even where a folder of that name sits in the working directory."""
+    return ("/" in spec or os.sep in spec) and Path(spec).is_dir()
 
 
 def load_generated_variant(folder: str | Path) -> GeneratedVariant:
@@ -508,9 +517,9 @@ def score_predictions(
     Args:
         data_cfg, class_names: the test split's data config and class names.
         predictions: ``{variant: file}``; a variant is an attack name (``cfgs/attacks/<name>.yaml``)
-            or the path of an attack YAML, as ``tools/test.py --attacks`` takes it, or a
-            ``tools/generate_atlas.py`` output folder (its variant, attack config and per-frame
-            attack records: :func:`load_generated_variant`).
+            or the path of an attack YAML, as ``tools/test.py --attacks`` takes it, or the path
+            of a ``tools/generate_atlas.py`` output folder (:func:`is_generated_spec`; its
+            variant, attack config and per-frame attack records: :func:`load_generated_variant`).
         model, config: the ``results.json`` ``model`` and ``config`` fields.
         atlas_cfg: the model config's ``ATLAS`` section, if any (checked as ``--attacks`` does).
         temporal_window: the lifecycle window (a model config's ``ATLAS.TEMPORAL_WINDOW``).
@@ -529,7 +538,7 @@ def score_predictions(
     files: dict[str, tuple[Path, Path]] = {}
     generated: dict[str, GeneratedVariant] = {}
     for spec, path in predictions.items():
-        if Path(spec).is_dir():
+        if is_generated_spec(spec):
             variant = load_generated_variant(spec)
             name, yaml_path = variant.name, variant.attack_yaml
             generated[name] = variant

@@ -23,6 +23,7 @@ from pcdet_atlas.train_utils.atlas_eval import EvalContext, evaluate_variant
 from pcdet_atlas.train_utils.eval_caches import EvalCaches
 from pcdet_atlas.train_utils.score_predictions import (
     PredictionError,
+    is_generated_spec,
     match_predictions,
     score_predictions,
 )
@@ -216,6 +217,14 @@ def test_attack_records_of_a_generate_atlas_output_score_as_drawn_on_the_fly(
                                      f"rem_40={files['rem_40']}"]))  # fmt: skip
     assert (written["variants"]["rem_40"]["extra"]["attack_sha256"]
             == on_the_fly["variants"]["rem_40"]["extra"]["attack_sha256"])  # fmt: skip
+
+    # a bare variant name is the attack even beside a folder of that name (predictions in it)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "clean").mkdir()
+    (tmp_path / "clean" / "result.pkl").write_bytes(files["clean"].read_bytes())
+    assert not is_generated_spec("clean") and is_generated_spec("./clean")
+    written = tool.main(tool_args(run, tmp_path / "cwd", ["clean=clean/result.pkl"]))
+    assert_same_scores(written["variants"]["clean"], run["entries"]["clean"])
 
     # records of another split, and a folder that is no generator output
     (tmp_path / "empty").mkdir()
