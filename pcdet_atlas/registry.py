@@ -110,6 +110,11 @@ class Registry:
         self._ensure_loaded()
         return len(self._items)
 
+    def registered_now(self) -> frozenset[str]:
+        """The names registered so far, without importing the built-ins (what a plugin module
+        adds is the difference before and after its import)."""
+        return frozenset(self._items)
+
     def __repr__(self) -> str:
         return f"Registry({self.name!r}, items={self.list()})"
 
@@ -119,3 +124,19 @@ TRANSFORMS = Registry("transform", autoload=("pcdet_atlas.datasets",))
 ATTACKS = Registry("attack", autoload=("pcdet_atlas.attacks",))
 DETECTORS = Registry("detector", autoload=("pcdet_atlas.models",))
 MODEL_STAGES = Registry("model stage", autoload=("pcdet_atlas.models",))
+#: the evaluation's analyses (pcdet_atlas.evaluation.analyses.register_analysis) and the
+#: confidence kinds an attack family may name (register_confidence_kind)
+ANALYSES = Registry("analysis", autoload=("pcdet_atlas.evaluation.analyses",))
+CONFIDENCE_KINDS = Registry("confidence kind", autoload=("pcdet_atlas.evaluation.analyses",))
+
+#: every registry a plugin module (``--plugin``, :func:`pcdet_atlas.utils.cli.import_plugins`)
+#: may add to, by the kind of component it holds
+REGISTRIES: dict[str, Registry] = {
+    "dataset": DATASETS,
+    "transform": TRANSFORMS,
+    "attack": ATTACKS,
+    "detector": DETECTORS,
+    "model stage": MODEL_STAGES,
+    "analysis": ANALYSES,
+    "confidence kind": CONFIDENCE_KINDS,
+}

@@ -1,7 +1,8 @@
 """The package's layers import only downward (checked on the source with ``ast``, no importing).
 
 bottom (config, config_values, registry, utils, ops, version) <- evaluation <- datasets
-<- attacks, models <- train_utils. Datasets may call the Waymo metric (OpenPCDet's
+<- attacks, models <- train_utils <- integrations (bridges to other toolkits, which only tools
+and users import). Datasets may call the Waymo metric (OpenPCDet's
 ``dataset.evaluation``); models read dataset configs; neither attacks nor models import
 evaluation, and no dataset imports an attack. Relative imports are refused: the check reads
 absolute module names. No module imports another of the package inside a function (the way to
@@ -19,7 +20,7 @@ from pcdet_atlas.config import REPO_ROOT
 
 PACKAGE = REPO_ROOT / "pcdet_atlas"
 BOTTOM = {"config", "config_values", "registry", "utils", "ops", "version"}
-LAYERS = ["evaluation", "datasets", "attacks", "models", "train_utils"]
+LAYERS = ["evaluation", "datasets", "attacks", "models", "train_utils", "integrations"]
 #: layer -> the layers (besides BOTTOM) it may import
 ALLOWED = {
     **{name: set() for name in BOTTOM},
@@ -28,6 +29,7 @@ ALLOWED = {
     "attacks": {"datasets"},
     "models": {"datasets"},
     "train_utils": {"evaluation", "datasets", "attacks", "models"},
+    "integrations": {"evaluation", "datasets", "attacks", "models", "train_utils"},
 }
 
 
@@ -97,6 +99,7 @@ def test_no_package_imports_a_layer_above_it():
         ("ops", "import pcdet_atlas.datasets.waymo_format\n", "datasets"),
         ("evaluation", "from pcdet_atlas import models\n", "models"),
         ("models", "from ..evaluation import waymo_metric\n", "relative import"),
+        ("train_utils", "from pcdet_atlas.integrations import openpcdet\n", "integrations"),
     ],
 )
 def test_the_check_finds_an_upward_import(tmp_path, layer, source, culprit):

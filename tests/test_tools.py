@@ -78,7 +78,9 @@ def test_tools_are_grouped_by_purpose():
     """The tools a user runs to benchmark sit at the top of tools/; data creation, benchmarks and
     developer tools in their subfolders, each listed in tools/README.md."""
     top = {p.stem for p in TOOLS.glob("*.py")}
-    assert top == {"train", "test", "demo", "report", "reproduce", "evaluate_predictions"}
+    assert top == {
+        "train", "test", "demo", "report", "reproduce", "evaluate_predictions", "openpcdet_test"
+    }  # fmt: skip
     assert {p.name for p in TOOLS.iterdir() if p.is_dir() and p.name != "__pycache__"} == {
         "data", "bench", "dev"
     }  # fmt: skip

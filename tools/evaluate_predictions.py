@@ -6,12 +6,13 @@
 ``--data_cfg`` is a DATA_CONFIG YAML or a model config holding one (its ``CLASS_NAMES``,
 ``ATLAS.MODEL_NAME`` and ``ATLAS.TEMPORAL_WINDOW`` are then used); ``--set KEY VALUE ...``
 overrides its keys, ``--data_path`` its ``DATA_PATH``. Each ``--predictions VARIANT=FILE``
-names a variant (an attack name, ``cfgs/attacks/<VARIANT>.yaml``, or an attack YAML's path)
-and the file of its per-frame predictions: OpenPCDet's ``result.pkl``, a JSON list of frames or
-a folder of one ``.npz`` per frame (``--format``, else a folder is npz, a file by extension or
-content). The attack's targets, runs and lifecycle come from
-the attack itself, drawn on the source data exactly as the evaluation of the project's own
-models draws them. A variant whose confidence is scored against the clean run (removal) needs
+names a variant and the file of its per-frame predictions. The variant is an attack name
+(``cfgs/attacks/<VARIANT>.yaml``) or an attack YAML's path, whose targets, runs and lifecycle
+are drawn on the source data exactly as the evaluation of the project's own models draws them,
+or the output folder of ``tools/data/generate_atlas.py``, whose recorded ones are read. The file is
+OpenPCDet's ``result.pkl``, a JSON list of frames, a folder of one ``.npz`` per frame or
+Waymo's submission ``.bin`` (``--format``, else a folder is npz, a file by extension or
+content). A variant whose confidence is scored against the clean run (removal) needs
 ``clean=FILE``. Writes ``--out_dir/results.json``.
 
 The work is the library's (:mod:`pcdet_atlas.train_utils.score_predictions`, whose docstring
@@ -24,7 +25,7 @@ import argparse
 
 from pcdet_atlas.config import cfg_from_list, cfg_from_yaml_file, resolve_cli_path
 from pcdet_atlas.train_utils.score_predictions import FORMATS, score_predictions
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import add_debug_flag, add_plugin_flag, import_plugins, run_tool
 from pcdet_atlas.utils.common import create_logger
 
 DEFAULT_CLASSES = "Vehicle,Pedestrian,Cyclist"
@@ -40,6 +41,7 @@ def prediction_arg(text: str) -> tuple[str, str]:
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_debug_flag(parser)
+    add_plugin_flag(parser)
     parser.add_argument(
         "--data_cfg", required=True, help="DATA_CONFIG YAML, or a model config holding one"
     )
@@ -68,6 +70,7 @@ def parse_args(argv=None):
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
+    import_plugins(args.plugin)
     cfg = cfg_from_yaml_file(args.data_cfg)
     if args.set_cfgs:
         cfg_from_list(args.set_cfgs, cfg)

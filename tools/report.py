@@ -22,12 +22,19 @@ from pathlib import Path
 
 from pcdet_atlas.config import repo_relative
 from pcdet_atlas.evaluation.results.report import DEFAULT_LOT_PAIR, collect_results, write_report
-from pcdet_atlas.utils.cli import RenamedFlag, add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import (
+    RenamedFlag,
+    add_debug_flag,
+    add_plugin_flag,
+    import_plugins,
+    run_tool,
+)
 
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_debug_flag(p)
+    add_plugin_flag(p)
     p.add_argument("--results", "--results_dir", dest="results", nargs="+", required=True,
                    help="results files (.json, .json.gz) or folders holding them")  # fmt: skip
     p.add_argument("--out_dir", "--out", action=RenamedFlag, old=("--out",), required=True,
@@ -48,6 +55,7 @@ def parse_args(argv=None):
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
+    import_plugins(args.plugin)
     found = collect_results(args.results)
     command = "python tools/report.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     out = write_report(

@@ -32,12 +32,13 @@ import argparse
 
 from pcdet_atlas.train_utils.atlas_run import EvalSettings, run_evaluation
 from pcdet_atlas.train_utils.setup import add_common_args, count_arg, folder_name_arg
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import add_debug_flag, add_plugin_flag, import_plugins, run_tool
 
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_debug_flag(parser)
+    add_plugin_flag(parser)
     groups = add_common_args(parser)
     evaluation = parser.add_argument_group("evaluation")
     evaluation.add_argument("--attacks", default="clean", help="'all' or a comma list of variants")
@@ -108,7 +109,9 @@ def settings_of(args: argparse.Namespace) -> EvalSettings:
 
 
 def main(argv=None) -> dict:
-    return run_evaluation(parse_args(argv).settings)
+    args = parse_args(argv)
+    import_plugins(args.plugin)
+    return run_evaluation(args.settings)
 
 
 if __name__ == "__main__":

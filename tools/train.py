@@ -69,13 +69,14 @@ from pcdet_atlas.train_utils.stages import (
     stage_from_config,
     stage_init_checkpoint,
 )
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import add_debug_flag, add_plugin_flag, import_plugins, run_tool
 from pcdet_atlas.utils.common import create_logger
 
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_debug_flag(parser)
+    add_plugin_flag(parser)
     groups = add_common_args(parser)
     train = parser.add_argument_group("training")
     train.add_argument(
@@ -147,8 +148,10 @@ def parse_args(argv=None):
 
 
 def main(argv=None) -> dict:
+    args = parse_args(argv)
+    import_plugins(args.plugin)
     with contextlib.ExitStack() as held:  # the output folder's lock, released at the end
-        return train(parse_args(argv), held)
+        return train(args, held)
 
 
 def train(args, held: contextlib.ExitStack) -> dict:

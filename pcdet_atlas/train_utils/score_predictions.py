@@ -6,7 +6,9 @@ its per-frame detections then get the same ``results.json`` entry :func:`evaluat
 gives the project's own models: Waymo L1/L2 AP/APH and, for an attack variant, ASR with its
 interval and per-run counts, confidence and lifecycle. The attack's targets, runs and lifecycle
 come from the attack itself: the variant's ``AtlasWaymoDataset`` gives each frame's metadata
-record exactly as it serves it to a model (a spoofed frame is simulated for it).
+record exactly as it serves it to a model (a spoofed frame is simulated for it), or from the
+records a ``tools/data/generate_atlas.py`` output holds (:func:`load_generated_variant`; the same
+records, read instead of simulated).
 
 Predictions are OpenPCDet anno dicts, one per frame of the split (any order): ``name`` ``(K,)``
 class names of the data's ``CLASS_NAMES``, ``score`` ``(K,)`` in [0, 1], ``boxes_lidar``
@@ -14,8 +16,9 @@ class names of the data's ``CLASS_NAMES``, ``score`` ``(K,)`` in [0, 1], ``boxes
 converter, and ``frame_id`` or ``metadata`` with ``context_name`` and ``timestamp_micros`` to
 find the frame. Scores and boxes are read as float32, as the project's models write them.
 :func:`read_predictions` reads them from OpenPCDet's ``result.pkl`` (restricted unpickler), a
-JSON list of such frames or a folder of one ``.npz`` per frame (docs/evaluation.md "Scoring
-predictions made anywhere").
+JSON list of such frames, a folder of one ``.npz`` per frame or Waymo's submission ``.bin``
+(:mod:`pcdet_atlas.datasets.waymo_submission`; docs/evaluation.md "Scoring predictions made
+anywhere").
 """
 
 from __future__ import annotations
@@ -23,15 +26,18 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import time
 import zipfile
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from pcdet_atlas.attacks.base import BaseAttack
-from pcdet_atlas.config import ConfigError
+from pcdet_atlas.attacks.base import BaseAttack, build_attack
+from pcdet_atlas.config import ConfigError, cfg_from_yaml_file
+from pcdet_atlas.datasets.waymo_submission import PredictionError, read_waymo_bin
 from pcdet_atlas.evaluation import (
     build_results,
     save_results,
@@ -48,21 +54,73 @@ from pcdet_atlas.utils.provenance import source_revision
 from pcdet_atlas.utils.safe_pickle import load_pickle
 
 __all__ = [
+    "ATLAS_METADATA",
     "FORMATS",
+    "GeneratedVariant",
+    "is_generated_spec",
+    "load_generated_variant",
     "PredictionError",
     "match_predictions",
+    "predictions_format",
     "read_predictions",
     "score_predictions",
     "score_variant",
 ]
 
 #: the file formats :func:`read_predictions` reads
-FORMATS = ("pkl", "json", "npz")
+FORMATS = ("pkl", "json", "npz", "bin")
+#: formats in which a frame without detections is absent (it has no object to write)
+ABSENT_IS_EMPTY = ("bin",)
 BOX_WIDTHS = (7, 9)
+#: what ``tools/data/generate_atlas.py`` writes in its output root: the per-frame attack records
+#: (``{'variant', 'attack_cfg', 'frames': {frame_id: record}}``) and the merged attack config
+ATLAS_METADATA = "atlas_attack_metadata.pkl"
+ATLAS_ATTACK_YAML = "atlas_attack.yaml"
 
 
-class PredictionError(ValueError):
-    """Predictions that cannot be scored; the message names the file, the frame and the field."""
+@dataclass(frozen=True)
+class GeneratedVariant:
+    """A variant written by ``tools/data/generate_atlas.py``: its name, merged attack config and
+    per-frame attack records (``{frame_id: record}``, the records ``AtlasWaymoDataset`` gives)."""
+
+    name: str
+    attack_yaml: Path
+    records: Mapping[str, Mapping]
+
+
+def is_generated_spec(spec: str) -> bool:
+    """Whether a ``--predictions`` variant names a ``tools/data/generate_atlas.py`` output: a folder
+    given as a path (``data/atlas/rem_40``, ``./rem_40``); a bare name (``rem_40``) is an attack
+    name even where a folder of that name sits in the working directory."""
+    return ("/" in spec or os.sep in spec) and Path(spec).is_dir()
+
+
+def load_generated_variant(folder: str | Path) -> GeneratedVariant:
+    """The variant of a ``tools/data/generate_atlas.py`` output root (restricted unpickler).
+
+    Raises:
+        PredictionError: naming the file, for a folder without the metadata or the attack
+            config, or metadata that is not the generator's.
+    """
+    folder = Path(folder)
+    meta_path, yaml_path = folder / ATLAS_METADATA, folder / ATLAS_ATTACK_YAML
+    for path in (meta_path, yaml_path):
+        if not path.is_file():
+            raise PredictionError(
+                f"{folder}: no {path.name}; not a tools/data/generate_atlas.py output (variants "
+                "are an attack name, an attack YAML or such an output folder)"
+            )
+    summary = load_pickle(meta_path)
+    if (
+        not isinstance(summary, Mapping)
+        or not isinstance(summary.get("variant"), str)
+        or not isinstance(summary.get("frames"), Mapping)
+    ):
+        raise PredictionError(
+            f"{meta_path}: expected a dict with 'variant' (a name) and 'frames' ({{frame_id: "
+            "record}}), as tools/data/generate_atlas.py writes it"
+        )
+    return GeneratedVariant(summary["variant"], yaml_path.resolve(), summary["frames"])
 
 
 def _frame_label(index: int, frame: object) -> str:
@@ -76,33 +134,46 @@ def _frame_label(index: int, frame: object) -> str:
     return f"frame {index}"
 
 
+def predictions_format(path: str | Path, fmt: str | None = None) -> str:
+    """The format of a predictions file or folder: ``fmt`` (checked), else a folder is
+    ``npz``, a file is known by its extension (``.pkl``, ``.json``, ``.bin``), else by its
+    first byte (a pickle's protocol opcode, a JSON ``[``, an ``Objects`` message's first tag).
+
+    Raises:
+        PredictionError: naming the file, for an unknown format or a file that is not there.
+    """
+    path = Path(path)
+    if fmt is not None and fmt not in FORMATS:
+        raise PredictionError(f"{path}: unknown predictions format {fmt!r} (known: {FORMATS})")
+    if fmt is None and path.is_dir():
+        return "npz"
+    if fmt != "npz" and not path.is_file():
+        raise PredictionError(f"{path}: no such predictions file")
+    return fmt or _detect_format(path)
+
+
 def read_predictions(path: str | Path, fmt: str | None = None) -> tuple[list, list[str]]:
     """The per-frame prediction dicts of a file or folder and, per frame, where it was read
     (the file; each frame's own file for ``npz``).
 
-    Formats (:data:`FORMATS`): OpenPCDet's ``result.pkl`` (``pkl``, a list of dicts, read
-    without running code), a JSON list of frames (``json``), or a folder of ``.npz`` files, one
-    per frame (``npz``, read without pickles: arrays ``name``, ``score``, ``boxes_lidar`` and
-    ``frame_id``, or ``context_name`` and ``timestamp_micros``). ``fmt`` None: a folder is
-    ``npz``; a file by its extension (``.pkl``, ``.json``), else by its first byte (a pickle's
-    protocol opcode, a JSON ``[``).
+    Formats (:data:`FORMATS`, :func:`predictions_format`): OpenPCDet's ``result.pkl``
+    (``pkl``, a list of dicts, read without running code), a JSON list of frames (``json``), a
+    folder of ``.npz`` files, one per frame (``npz``, read without pickles: arrays ``name``,
+    ``score``, ``boxes_lidar`` and ``frame_id``, or ``context_name`` and ``timestamp_micros``),
+    or Waymo's submission ``.bin`` (``bin``: only the frames with detections,
+    :func:`~pcdet_atlas.datasets.waymo_submission.read_waymo_bin`).
 
     Raises:
-        PredictionError: naming the file, for an unknown format, a file that holds no list, or
-            an unreadable ``.npz``.
+        PredictionError: naming the file, for an unknown format, a file that holds no list, an
+            unreadable ``.npz`` or a bad ``.bin``.
     """
     path = Path(path)
-    if fmt is None and path.is_dir():
-        fmt = "npz"
+    fmt = predictions_format(path, fmt)
     if fmt == "npz":
         return _read_npz_folder(path)
-    if not path.is_file():
-        raise PredictionError(f"{path}: no such predictions file")
-    if fmt is None:
-        fmt = _detect_format(path)
-    if fmt not in FORMATS:
-        raise PredictionError(f"{path}: unknown predictions format {fmt!r} (known: {FORMATS})")
-    if fmt == "pkl":
+    if fmt == "bin":
+        frames = read_waymo_bin(path)
+    elif fmt == "pkl":
         frames = load_pickle(path)
     else:
         try:
@@ -145,12 +216,17 @@ def _detect_format(path: Path) -> str:
         return "pkl"
     if suffix == ".json":
         return "json"
+    if suffix == ".bin":
+        return "bin"
     with path.open("rb") as f:
-        head = f.read(64).lstrip()
+        raw = f.read(64)
+    head = raw.lstrip()
     if head[:1] == b"\x80":
         return "pkl"
     if head[:1] == b"[":
         return "json"
+    if raw[:1] == b"\x0a":  # field 1 (Objects.objects), length-delimited
+        return "bin"
     raise PredictionError(
         f"{path}: cannot tell the predictions format from its name or content; pass --format "
         f"({' or '.join(FORMATS)})"
@@ -177,8 +253,9 @@ def _check_frame(frame: object, where: str, class_names: Sequence[str]) -> dict:
     for field in ("name", "score", "boxes_lidar"):
         if field not in frame:
             raise PredictionError(f"{where}: no field {field!r}")
-    names = np.asarray(frame["name"]).reshape(-1)
-    unknown = sorted({str(n) for n in names} - set(class_names))
+    names = np.asarray(frame["name"]).reshape(-1).astype(str)
+    kinds, kind_of = np.unique(names, return_inverse=True)  # (U,) names, (K,) index into them
+    unknown = sorted(set(kinds.tolist()) - set(class_names))
     if unknown:
         raise PredictionError(
             f"{where}: field 'name' holds unknown class name(s) {unknown} (known: "
@@ -203,7 +280,8 @@ def _check_frame(frame: object, where: str, class_names: Sequence[str]) -> dict:
             f"{where}: field 'boxes_lidar' has shape {boxes.shape}, expected ({len(names)}, 7) "
             f"or ({len(names)}, 9)"
         )
-    labels = np.array([list(class_names).index(str(n)) + 1 for n in names], dtype=np.int64)
+    kind_labels = [list(class_names).index(kind) + 1 for kind in kinds.tolist()]
+    labels = np.array(kind_labels, dtype=np.int64)[kind_of.reshape(-1)]  # 1-based
     if "pred_labels" in frame:
         given = np.asarray(frame["pred_labels"]).reshape(-1)
         if given.shape != labels.shape or np.any(given != labels):
@@ -212,7 +290,7 @@ def _check_frame(frame: object, where: str, class_names: Sequence[str]) -> dict:
                 f"{list(class_names)})"
             )
     return {
-        "name": np.array([str(n) for n in names], dtype=f"<U{max(map(len, class_names))}"),
+        "name": names.astype(f"<U{max(map(len, class_names))}"),
         "score": score.astype(np.float32),
         "boxes_lidar": boxes.astype(np.float32),
         "pred_labels": labels,
@@ -258,11 +336,17 @@ def match_predictions(
     class_names: Sequence[str],
     source: str,
     frame_sources: Sequence[str] | None = None,
+    *,
+    absent_is_empty: bool = False,
 ) -> list[dict]:
     """``frames`` (per-frame prediction dicts read from ``source``) checked and put in the order
     of ``infos`` (the split's frame infos; ``frame_sources``: each frame's own file, where it
     has one), one anno dict per info with the info's ``frame_id``
     and ``metadata``.
+
+    ``absent_is_empty``: a split frame absent from ``frames`` is a frame without detections (a
+    format that writes only objects, :data:`ABSENT_IS_EMPTY`); a sequence of the split with no
+    frame in ``frames`` is still an error (a file of another split or a lost sequence).
 
     Raises:
         PredictionError: naming ``source``, the frame and the field, for a frame that is not a
@@ -291,6 +375,15 @@ def match_predictions(
         out[index] = {**checked, "frame_id": info["frame_id"],
                       "metadata": info.get("metadata", info["frame_id"])}  # fmt: skip
     missing = [info["frame_id"] for info, anno in zip(infos, out) if anno is None]
+    if missing and absent_is_empty:
+        _check_sequences_present(infos, out, source)
+        for index, anno in enumerate(out):
+            if anno is None:
+                info = infos[index]
+                out[index] = {**_check_frame(_EMPTY, source, class_names),
+                              "frame_id": info["frame_id"],
+                              "metadata": info.get("metadata", info["frame_id"])}  # fmt: skip
+        missing = []
     if missing:
         raise PredictionError(
             f"{source}: {len(missing)} of the test split's {len(infos)} frames have no "
@@ -298,6 +391,28 @@ def match_predictions(
             "empty 'name', 'score' and 'boxes_lidar')"
         )
     return out
+
+
+_EMPTY = {"name": [], "score": [], "boxes_lidar": np.zeros((0, 7))}
+
+
+def _sequence_of(info: Mapping) -> str:
+    return str(info["point_cloud"]["lidar_sequence"]) if "point_cloud" in info else "?"
+
+
+def _check_sequences_present(infos: Sequence[Mapping], out: Sequence, source: str) -> None:
+    """Raise naming the first sequence of the split none of whose frames has predictions."""
+    found: dict[str, bool] = {}
+    for info, anno in zip(infos, out):
+        seq = _sequence_of(info)
+        found[seq] = found.get(seq, False) or anno is not None
+    lost = [seq for seq, any_frame in found.items() if not any_frame]
+    if lost:
+        raise PredictionError(
+            f"{source}: {len(lost)} of the test split's {len(found)} sequences have no "
+            f"detection in any frame, the first {lost[0]!r} (predictions of another split, or "
+            "a sequence left out?)"
+        )
 
 
 def score_variant(
@@ -311,6 +426,9 @@ def score_variant(
     frame_sources: Sequence[str] | None = None,
     clean_det_annos: Sequence[Mapping] | None = None,
     temporal_window: int | None = None,
+    absent_is_empty: bool = False,
+    records: Mapping[str, Mapping] | None = None,
+    records_source: str = "",
     logger: logging.Logger | None = None,
 ) -> tuple[dict, list[dict]]:
     """One variant's ``results.json`` entry from its per-frame predictions ``frames`` (read
@@ -319,6 +437,9 @@ def score_variant(
 
     ``clean_det_annos``: the clean variant's predictions (as this returns them), which an
     attack whose confidence analysis is the removal one (``CONFIDENCE == 'removal'``) needs.
+    ``absent_is_empty``: as :func:`match_predictions` takes it (a ``.bin``'s frames).
+    ``records``: each frame's attack record by ``frame_id``, read from ``records_source`` (a
+    :class:`GeneratedVariant`'s), instead of the dataset's (which simulates a spoofed frame).
 
     Returns:
         ``(entry, det_annos)``: the entry (``num_reused_frames`` not recorded; ``extra`` with
@@ -340,12 +461,21 @@ def score_variant(
             f"variant {variant!r} ({dataset.attack.family}): its confidence is scored against "
             "the clean predictions; pass clean=FILE with --predictions"
         )
-    det_annos = match_predictions(frames, dataset.infos, class_names, source, frame_sources)
+    det_annos = match_predictions(
+        frames, dataset.infos, class_names, source, frame_sources, absent_is_empty=absent_is_empty
+    )
     for anno, info in zip(det_annos, dataset.infos):
         point_cloud = info["point_cloud"]
-        anno["attack"] = dataset.frame_attack_meta(
-            point_cloud["lidar_sequence"], int(point_cloud["sample_idx"])
-        )
+        sequence = point_cloud["lidar_sequence"]
+        if records is None:
+            anno["attack"] = dataset.frame_attack_meta(sequence, int(point_cloud["sample_idx"]))
+        elif info["frame_id"] in records:
+            anno["attack"] = {**records[info["frame_id"]], "sequence_name": sequence}
+        else:
+            raise PredictionError(
+                f"{records_source}: no attack record of frame {info['frame_id']!r} of the test "
+                "split (generated from another split or with --max_sequences?)"
+            )
     timings = {"attack_records": time.perf_counter() - t0}
     attack_infos = [anno["attack"] for anno in det_annos]
     entry = variant_entry(
@@ -388,14 +518,17 @@ def score_predictions(
     Args:
         data_cfg, class_names: the test split's data config and class names.
         predictions: ``{variant: file}``; a variant is an attack name (``cfgs/attacks/<name>.yaml``)
-            or the path of an attack YAML, as ``tools/test.py --attacks`` takes it.
+            or the path of an attack YAML, as ``tools/test.py --attacks`` takes it, or the path
+            of a ``tools/data/generate_atlas.py`` output folder (:func:`is_generated_spec`; its
+            variant, attack config and per-frame attack records: :func:`load_generated_variant`).
         model, config: the ``results.json`` ``model`` and ``config`` fields.
         atlas_cfg: the model config's ``ATLAS`` section, if any (checked as ``--attacks`` does).
         temporal_window: the lifecycle window (a model config's ``ATLAS.TEMPORAL_WINDOW``).
         fmt: the files' format (:data:`FORMATS`); None: each file's own (:func:`read_predictions`).
 
     Returns:
-        The results dict written (``results.json``: rewritten after each variant, clean first).
+        The results dict written (``results.json``, once every variant is scored, clean first:
+        scoring is fast enough to redo whole).
 
     Raises:
         PredictionError: a bad file, frame or field, or an attack variant needing the clean
@@ -403,14 +536,20 @@ def score_predictions(
     """
     if not predictions:
         raise PredictionError("no predictions to score: pass --predictions VARIANT=FILE ...")
-    files = {}
+    files: dict[str, tuple[Path, Path]] = {}
+    generated: dict[str, GeneratedVariant] = {}
     for spec, path in predictions.items():
-        resolved = resolve_variants(spec, atlas_cfg or {})
-        if len(resolved) != 1:
-            raise PredictionError(
-                f"--predictions {spec}=...: names {len(resolved)} variants, not one"
-            )
-        ((name, yaml_path),) = resolved
+        if is_generated_spec(spec):
+            variant = load_generated_variant(spec)
+            name, yaml_path = variant.name, variant.attack_yaml
+            generated[name] = variant
+        else:
+            resolved = resolve_variants(spec, atlas_cfg or {})
+            if len(resolved) != 1:
+                raise PredictionError(
+                    f"--predictions {spec}=...: names {len(resolved)} variants, not one"
+                )
+            ((name, yaml_path),) = resolved
         if name in files:
             raise PredictionError(f"variant {name!r} has predictions twice ({spec!r})")
         files[name] = (yaml_path, Path(path))
@@ -420,7 +559,24 @@ def score_predictions(
     split = DATASETS.get(data_cfg["DATASET"])(
         dataset_cfg=data_cfg, class_names=class_names, training=False, logger=logger
     )
-    attacks = build_variant_attacks(variants, split.root_path)
+    built = build_variant_attacks([v for v in variants if v[0] not in generated], split.root_path)
+    for name, variant in generated.items():  # the merged config: VARIANT is not its file name
+        built[name] = build_attack(
+            cfg_from_yaml_file(variant.attack_yaml), data_root=split.root_path
+        )
+        if built[name].variant != name:
+            raise PredictionError(
+                f"{variant.attack_yaml}: variant {built[name].variant!r}, but its "
+                f"{ATLAS_METADATA} holds {name!r}"
+            )
+        missing = [i["frame_id"] for i in split.infos if i["frame_id"] not in variant.records]
+        if missing:
+            raise PredictionError(
+                f"{variant.attack_yaml.parent / ATLAS_METADATA}: no attack record of "
+                f"{len(missing)} of the test split's {len(split.infos)} frames, the first "
+                f"{missing[0]!r} (generated from another split or with --max_sequences?)"
+            )
+    attacks = {name: built[name] for name, _ in variants}
     fingerprints = variant_fingerprints(variants, attacks)
     if "clean" not in files:
         needing = [n for n, a in attacks.items() if a.CONFIDENCE == "removal"]
@@ -429,30 +585,36 @@ def score_predictions(
                 f"variant(s) {needing} score their confidence against the clean predictions; "
                 "pass clean=FILE with --predictions"
             )
-    frames = {name: read_predictions(path, fmt) for name, (_, path) in files.items()}
+    formats = {name: predictions_format(path, fmt) for name, (_, path) in files.items()}
+    frames = {name: read_predictions(path, formats[name]) for name, (_, path) in files.items()}
     for name, (_, path) in files.items():  # every file checked before anything is written
-        match_predictions(frames[name][0], split.infos, class_names, str(path), frames[name][1])
-    out_dir = Path(out_dir)
+        match_predictions(
+            frames[name][0], split.infos, class_names, str(path), frames[name][1],
+            absent_is_empty=formats[name] in ABSENT_IS_EMPTY,
+        )  # fmt: skip
     entries: dict = {}
     clean = None
-    results = None
     source = source_revision()
     for name, attack in attacks.items():
         path = files[name][1]
         entry, det_annos = score_variant(
             data_cfg, class_names, name, attack, frames[name][0], source=str(path),
-            frame_sources=frames[name][1],
+            frame_sources=frames[name][1], absent_is_empty=formats[name] in ABSENT_IS_EMPTY,
             clean_det_annos=clean, temporal_window=temporal_window, logger=logger,
+            records=generated[name].records if name in generated else None,
+            records_source=str(files[name][0].parent / ATLAS_METADATA),
         )  # fmt: skip
         if name == "clean":
             clean = det_annos
         extra = {**entry["extra"], "attack_sha256": fingerprints[name],
                  "predictions_sha256": _sha256(path)}  # fmt: skip
+        if name in generated:
+            extra["attack_records"] = str(files[name][0].parent / ATLAS_METADATA)
         entries[name] = {**entry, "extra": extra}
-        results = build_results(
-            model=model, config=config, checkpoint=None, class_names=class_names,
-            variants=entries, source=source, extra={"scored_from": "predictions",
-                                     "variants_requested": list(attacks)},
-        )  # fmt: skip
-        save_results(results, out_dir / "results.json")
+    results = build_results(
+        model=model, config=config, checkpoint=None, class_names=class_names, variants=entries,
+        source=source,
+        extra={"scored_from": "predictions", "variants_requested": list(attacks)},
+    )  # fmt: skip
+    save_results(results, Path(out_dir) / "results.json")
     return results

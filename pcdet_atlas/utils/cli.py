@@ -10,16 +10,34 @@ shows the traceback instead. Any other exception is a bug and keeps its tracebac
 A tool refuses to run on the package of another tree (:func:`check_package_tree`): with two
 clones, an editable install of one would otherwise serve the other's tools its code, configs and
 checkpoints without a word.
+
+``--plugin MODULE`` (:func:`add_plugin_flag`, repeatable) imports a user's module before the
+tool's work: a module that registers a detector, a model stage, an attack family (any registry
+of :data:`pcdet_atlas.registry.REGISTRIES`) with the project's decorators, so the configs can
+name it. :func:`import_plugins` is the one place plugins are imported.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import importlib.util
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
-__all__ = ["DEBUG_FLAG", "add_debug_flag", "check_package_tree", "is_user_error", "run_tool"]
+from pcdet_atlas.registry import REGISTRIES
+
+__all__ = [
+    "DEBUG_FLAG",
+    "PluginError",
+    "add_debug_flag",
+    "add_plugin_flag",
+    "check_package_tree",
+    "import_plugins",
+    "is_user_error",
+    "run_tool",
+]
 
 DEBUG_FLAG = "--debug"
 USER_ERROR_EXIT = 2
@@ -28,6 +46,84 @@ USER_ERROR_EXIT = 2
 def add_debug_flag(parser: argparse.ArgumentParser) -> None:
     """List ``--debug`` in the tool's ``--help`` (:func:`run_tool` reads and removes it)."""
     parser.add_argument(DEBUG_FLAG, action="store_true", help="show the full traceback of an error")
+
+
+class PluginError(ValueError):
+    """A ``--plugin`` module that cannot be found or registers nothing."""
+
+
+def add_plugin_flag(parser: argparse.ArgumentParser) -> None:
+    """``--plugin MODULE`` (repeatable; ``args.plugin``, a list): the tool calls
+    :func:`import_plugins` with it before its work."""
+    parser.add_argument(
+        "--plugin", action="append", default=[], metavar="MODULE",
+        help="import MODULE first (a dotted module name on the Python path, or a .py file): a "
+        "module registering a detector, model stage or attack family (repeatable)",
+    )  # fmt: skip
+
+
+def _import_file(path: Path):
+    """Import the ``.py`` file ``path`` as the module named by its stem (once per process)."""
+    name = path.stem
+    loaded = sys.modules.get(name)
+    if loaded is not None:
+        if Path(getattr(loaded, "__file__", "") or "").resolve() != path.resolve():
+            raise PluginError(
+                f"--plugin {path}: a module named {name!r} is imported already (from "
+                f"{getattr(loaded, '__file__', None)}); rename the file"
+            )
+        return loaded
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        del sys.modules[name]  # a failed import leaves nothing half-registered behind by name
+        raise
+    return module
+
+
+def import_plugins(modules: Sequence[str]) -> dict[str, dict[str, list[str]]]:
+    """Import each plugin module (a dotted name importable on ``sys.path``, or the path of a
+    ``.py`` file) and return what each registered: ``{module: {registry kind: [names]}}``.
+
+    A module imported before (an earlier tool in the same process) is not imported again and
+    counts as registering nothing new. Errors inside a plugin (including a name it registers
+    twice, :class:`~pcdet_atlas.registry.RegistryError`) propagate as they are.
+
+    Raises:
+        PluginError: a module that is not there, or whose first import registers nothing.
+    """
+    added: dict[str, dict[str, list[str]]] = {}
+    for spec in modules:
+        before = {kind: registry.registered_now() for kind, registry in REGISTRIES.items()}
+        is_file = spec.endswith(".py")
+        name = Path(spec).stem if is_file else spec
+        first_import = name not in sys.modules
+        if is_file:
+            if not Path(spec).is_file():
+                raise PluginError(f"--plugin {spec}: no such file")
+            _import_file(Path(spec))
+        else:
+            try:
+                importlib.import_module(spec)
+            except ModuleNotFoundError as err:
+                if err.name is None or not (spec == err.name or spec.startswith(f"{err.name}.")):
+                    raise  # the plugin imports something that is missing: its own error
+                raise PluginError(
+                    f"--plugin {spec}: no module named {err.name!r} on the Python path (pass "
+                    "a dotted module name importable from here, or the path of a .py file)"
+                ) from None
+        added[spec] = {kind: sorted(registry.registered_now() - before[kind])
+                       for kind, registry in REGISTRIES.items()
+                       if registry.registered_now() - before[kind]}  # fmt: skip
+        if first_import and not added[spec]:
+            raise PluginError(
+                f"--plugin {spec}: registered nothing in the {', '.join(REGISTRIES)} registries "
+                "(decorate its classes with e.g. @DETECTORS.register())"
+            )
+    return added
 
 
 def is_user_error(err: BaseException) -> bool:

@@ -1,5 +1,6 @@
 """Scoring predictions made anywhere (``tools/evaluate_predictions.py``): the shipped CP-4f's own
-``result.pkl`` files, and the same predictions written as JSON, score exactly as the evaluation
+``result.pkl`` files, and the same predictions written as JSON, npz and Waymo's submission
+``.bin``, score exactly as the evaluation
 scored them (ASR, targets, successes and per-run counts equal; AP within 1e-9); bad input is one
 clear error naming the file, the frame and the field."""
 
@@ -12,14 +13,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
-from pcdet_atlas.evaluation import load_results
+from pcdet_atlas.datasets.waymo_submission import write_waymo_bin
+from pcdet_atlas.evaluation import build_results, load_results, save_results
 from pcdet_atlas.evaluation.results.schema import METRIC_KEYS
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.train_utils.atlas_eval import EvalContext, evaluate_variant
 from pcdet_atlas.train_utils.eval_caches import EvalCaches
 from pcdet_atlas.train_utils.score_predictions import (
     PredictionError,
+    is_generated_spec,
     match_predictions,
     score_predictions,
 )
@@ -134,7 +138,8 @@ def test_result_pkl_and_json_score_as_the_evaluation(normal_run, tmp_path):
         assert_same_scores(written["variants"][variant], entry)
     assert written["model"] == "CP-4f" and written["checkpoint"] is None
     assert written["variants"]["rem_40"]["confidence"] is not None  # needs the clean run
-    load_tool("report").main(["--results", str(tmp_path / "pkl"), "--out", str(tmp_path / "rep")])
+    report = load_tool("report")
+    report.main(["--results", str(tmp_path / "pkl"), "--out_dir", str(tmp_path / "rep")])
     assert "CP-4f" in (tmp_path / "rep" / "report.md").read_text()
 
     # JSON, clean frames found by (context_name, timestamp_micros) instead of frame_id
@@ -165,6 +170,106 @@ def test_result_pkl_and_json_score_as_the_evaluation(normal_run, tmp_path):
     assert written["model"] == "predictions"
     for variant, entry in want.items():
         assert_same_scores(written["variants"][variant], entry)
+
+
+def test_waymo_submission_bin_scores_as_the_evaluation(normal_run, tmp_path):
+    """The predictions as a submission .bin (no object for a frame without detections; found by
+    context name and timestamp) give the evaluation's entries; the format is told by content."""
+    run, files = normal_run, normal_run["files"]
+    want = run["entries"]
+    bins = {v: write_waymo_bin(load_pickle(f), tmp_path / f"{v}.bin") for v, f in files.items()}
+    bins["rem_40"] = bins["rem_40"].rename(tmp_path / "rem_40.objects")  # no extension
+    preds = [f"clean={bins['clean']}", f"{run['inj']}={bins['inj_global_hard']}",
+             f"rem_40={bins['rem_40']}"]  # fmt: skip
+    written = load_tool("evaluate_predictions").main(tool_args(run, tmp_path / "bin", preds))
+    for variant, entry in want.items():
+        assert_same_scores(written["variants"][variant], entry)
+
+
+def test_attack_records_of_a_generate_atlas_output_score_as_drawn_on_the_fly(
+    normal_run, tmp_path, monkeypatch
+):
+    """A variant named by its tools/data/generate_atlas.py output folder takes the targets, runs and
+    lifecycle from the records written there (nothing simulated) and scores exactly as the
+    attack drawn on the fly: the evaluation's entries, the same attack fingerprint."""
+    run, files = normal_run, normal_run["files"]
+    data_yaml = tmp_path / "source.yaml"
+    data_yaml.write_text(f"_BASE_CONFIG_: {DATA_CFG}\nDATA_PATH: {run['root']}\n")
+    generate = load_tool("data/generate_atlas")
+    folders = {}
+    for variant, attack in [("inj_global_hard", run["inj"]), ("rem_40", ATTACKS / "rem_40.yaml")]:
+        folders[variant] = tmp_path / variant
+        generate.main(["--data_cfg", str(data_yaml), "--attack", str(attack),
+                       "--out_dir", str(folders[variant])])  # fmt: skip
+
+    def no_simulation(self, *args, **kwargs):
+        raise AssertionError("a generated variant's records are read, not simulated")
+
+    monkeypatch.setattr(AtlasWaymoDataset, "simulate_frame", no_simulation)
+    preds = [f"clean={files['clean']}", f"{folders['inj_global_hard']}={files['inj_global_hard']}",
+             f"{folders['rem_40']}={files['rem_40']}"]  # fmt: skip
+    tool = load_tool("evaluate_predictions")
+    written = tool.main(tool_args(run, tmp_path / "scored", preds))
+    for variant, entry in run["entries"].items():
+        assert_same_scores(written["variants"][variant], entry)
+    assert written["variants"]["rem_40"]["extra"]["attack_records"].startswith(str(tmp_path))
+    monkeypatch.undo()
+    on_the_fly = tool.main(tool_args(run, tmp_path / "fly", [f"clean={files['clean']}",
+                                     f"rem_40={files['rem_40']}"]))  # fmt: skip
+    assert (written["variants"]["rem_40"]["extra"]["attack_sha256"]
+            == on_the_fly["variants"]["rem_40"]["extra"]["attack_sha256"])  # fmt: skip
+
+    # a bare variant name is the attack even beside a folder of that name (predictions in it)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "clean").mkdir()
+    (tmp_path / "clean" / "result.pkl").write_bytes(files["clean"].read_bytes())
+    assert not is_generated_spec("clean") and is_generated_spec("./clean")
+    written = tool.main(tool_args(run, tmp_path / "cwd", ["clean=clean/result.pkl"]))
+    assert_same_scores(written["variants"]["clean"], run["entries"]["clean"])
+
+    # records of another split, and a folder that is no generator output
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(PredictionError, match=r"empty: no atlas_attack_metadata\.pkl"):
+        tool.main(tool_args(run, tmp_path / "bad", [f"{tmp_path / 'empty'}={files['rem_40']}"]))
+    meta = load_pickle(folders["rem_40"] / "atlas_attack_metadata.pkl")
+    meta["frames"] = dict(list(meta["frames"].items())[1:])
+    save_pickle(meta, folders["rem_40"] / "atlas_attack_metadata.pkl")
+    with pytest.raises(PredictionError, match=r"no attack record of 1 of the test split's"):
+        tool.main(
+            tool_args(
+                run,
+                tmp_path / "bad",
+                [f"clean={files['clean']}", f"{folders['rem_40']}={files['rem_40']}"],
+            )
+        )
+    assert not (tmp_path / "bad").exists()
+
+
+def test_scoring_benchmark_runs_on_an_evaluation_folder(normal_run, tmp_path):
+    """tools/bench/bench_scoring.py times both sides on a tools/test.py-like folder and finds the
+    scored entries equal to the run's."""
+    run = normal_run
+    entries = {v: run["entries"][v] for v in ("clean", "rem_40")}
+    for variant in entries:
+        (tmp_path / variant).mkdir()
+        (tmp_path / variant / "result.pkl").write_bytes(run["files"][variant].read_bytes())
+    results = build_results(
+        model="CP-4f", config=str(CFG), checkpoint=None, class_names=CLASSES, variants=entries
+    )
+    save_results(results, tmp_path / "results.json")
+    out = load_tool("bench/bench_scoring").main(
+        [
+            "--cfg",
+            str(CFG),
+            "--eval_dir",
+            str(tmp_path),
+            "--data_path",
+            str(run["root"]),
+            "--set",
+            *SUBSET,
+        ]  # fmt: skip
+    )
+    assert out["equal"] and out["metric_s"] > 0 and out["scoring_s"] > 0
 
 
 @pytest.mark.slow
@@ -260,6 +365,19 @@ def _frame(i, **over):
 def test_bad_predictions_are_clear_errors(frames, pattern):
     with pytest.raises(PredictionError, match=pattern):
         match_predictions(frames, _infos(), CLASSES, "f.pkl")
+
+
+def test_absent_frames_of_a_submission_are_frames_without_detections():
+    infos = [{**info, "point_cloud": {"lidar_sequence": "seq_a" if i < 2 else "seq_b"}}
+             for i, info in enumerate(_infos())]  # fmt: skip
+    out = match_predictions([_frame(0), _frame(2)], infos, CLASSES, "f.bin", absent_is_empty=True)
+    assert out[1]["frame_id"] == "seq_001" and out[1]["boxes_lidar"].shape == (0, 7)
+    assert out[1]["name"].shape == out[1]["score"].shape == out[1]["pred_labels"].shape == (0,)
+    with pytest.raises(PredictionError, match=r"f\.bin: 1 of the test split's 2 sequences have "
+                       r"no detection in any frame, the first 'seq_b'"):  # fmt: skip
+        match_predictions([_frame(0)], infos, CLASSES, "f.bin", absent_is_empty=True)
+    with pytest.raises(PredictionError, match=r"1 of the test split's 3 frames have no pred"):
+        match_predictions([_frame(0), _frame(2)], infos, CLASSES, "f.pkl")
 
 
 def test_frames_are_matched_in_any_order_and_by_time():

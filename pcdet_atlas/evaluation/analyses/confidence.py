@@ -35,7 +35,7 @@ from pcdet_atlas.evaluation.analyses.scores import (
     score_peak,
     score_values,
 )
-from pcdet_atlas.registry import Registry
+from pcdet_atlas.registry import CONFIDENCE_KINDS
 
 __all__ = [
     "CONFIDENCE_KINDS",
@@ -155,7 +155,6 @@ COMMON_PROPERTIES = {
     "fraction_above": nullable(FRAC),
     "histogram": HISTOGRAM,
 }
-CONFIDENCE_KINDS = Registry("confidence kind")
 
 
 def register_confidence_kind(kind: ConfidenceKind) -> ConfidenceKind:

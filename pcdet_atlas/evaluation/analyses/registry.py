@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import ClassVar
 
 from pcdet_atlas.evaluation.analyses.matching import IouFn, TargetMatches
-from pcdet_atlas.registry import Registry
+from pcdet_atlas.registry import ANALYSES
 
 __all__ = [
     "ANALYSES",
@@ -114,9 +114,6 @@ class Analysis:
     def figures(self) -> Sequence[ReportFigure]:
         """Its figures in the report."""
         return ()
-
-
-ANALYSES = Registry("analysis")
 
 
 def register_analysis(analysis):
