@@ -283,7 +283,7 @@ class MSFTransformerConfig:
     nheads: int = setting(4, ge=1, doc="attention heads")
     point_nheads: int = setting(8, ge=1, doc="point attention heads")
     enc_layers: int = setting(3, ge=1, doc="encoder layers")
-    bifa_layers: int = setting(2, ge=1, doc="bidirectional feature aggregation layers")
+    bifa_layers: int = setting(2, ge=0, doc="bidirectional feature aggregation layers (0: none)")
     dim_feedforward: int = setting(512, ge=1, doc="feed-forward width")
     dropout: float = setting(0.1, ge=0, lt=1, doc="dropout")
 
