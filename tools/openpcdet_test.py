@@ -30,29 +30,34 @@ def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_debug_flag(parser)
     add_plugin_flag(parser)
-    parser.add_argument(
+    model = parser.add_argument_group("model and data")
+    model.add_argument(
         "--cfg_file", "--cfg", dest="cfg_file", required=True, help="OpenPCDet model config"
     )
-    parser.add_argument("--ckpt", required=True, help="OpenPCDet checkpoint")
-    parser.add_argument("--attacks", default="all", help="'all' or a comma list of variants")
-    parser.add_argument("--out_dir", required=True, help="where results.json is written")
-    parser.add_argument(
+    model.add_argument("--ckpt", required=True, help="OpenPCDet checkpoint")
+    model.add_argument(
         "--data_path", default=None, help="the Waymo data root (default: DATA_CONFIG.DATA_PATH)"
     )
-    parser.add_argument("--batch_size", type=count_arg(1), default=1)
-    parser.add_argument("--workers", type=count_arg(0), default=4, help="loader workers")
-    parser.add_argument("--device", default="cuda", help="torch device of the model")
-    parser.add_argument(
-        "--temporal_window", type=count_arg(1), default=None,
-        help="lifecycle window (default: the input frames of DATA_CONFIG.SEQUENCE_CONFIG, or 1)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--model_name", default=None, help="results.json 'model' field (default: config name)"
-    )
-    parser.add_argument(
+    model.add_argument(
         "--set", dest="set_cfgs", default=None, nargs=argparse.REMAINDER,
         help="KEY VALUE ... overrides of the config, by OpenPCDet's cfg_from_list (last)",
     )  # fmt: skip
+    evaluation = parser.add_argument_group("evaluation")
+    evaluation.add_argument("--attacks", default="all", help="'all' or a comma list of variants")
+    evaluation.add_argument(
+        "--temporal_window", type=count_arg(1), default=None,
+        help="lifecycle window (default: the input frames of DATA_CONFIG.SEQUENCE_CONFIG, or 1)",
+    )  # fmt: skip
+    evaluation.add_argument(
+        "--model_name", default=None, help="results.json 'model' field (default: config name)"
+    )
+    evaluation.add_argument("--out_dir", required=True, help="where results.json is written")
+    runtime = parser.add_argument_group("runtime")
+    runtime.add_argument(
+        "--batch_size", type=count_arg(1), default=1, help="frames per batch (default: 1)"
+    )
+    runtime.add_argument("--workers", type=count_arg(0), default=4, help="loader workers")
+    runtime.add_argument("--device", default="cuda", help="torch device of the model")
     return parser.parse_args(argv)
 
 
