@@ -187,6 +187,10 @@ def parse_args():
         "--device", type=device_arg, default="cpu", help="cpu / cuda / cuda:N (default: cpu)"
     )
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    p.add_argument(
+        "--json", default=None, metavar="FILE",
+        help="also write the latency table's per-frame costs here (tools/bench/cost_model.py)",
+    )  # fmt: skip
     p.add_argument("--eval", action="store_true", help="L2 mAP of trained models on the val split")
     p.add_argument(
         "--share_cfg", default=None,
@@ -861,6 +865,8 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
     for cfg_file, reason in unbuilt:
         name = str(Path(cfg_file).resolve().relative_to(REPO_ROOT / "cfgs"))
         print(f"| {name} | not built: {reason} | | | | | | |")
+    if args.json:
+        write_costs_json(runs, args, device)
     for run in runs:
         if "lot_times" in run:
             lot = statistics.median(run["lot_times"][-args.frames :])
@@ -880,6 +886,21 @@ def latency_table(cfg_files: list[str], data_path: Path, args, device: torch.dev
                 f"bank then held {st['frames_held']} frames, {st['bytes_held'] / 2**20:.2f} MiB "
                 f"({st['bytes_held'] / max(1, st['frames_held']) / 1024:.1f} KiB per frame)"
             )
+
+
+def write_costs_json(runs: list[dict], args, device: torch.device) -> None:
+    """The median per-frame latency (and a two-stage model's RPN part) of each timed config, as
+    ``tools/bench/cost_model.py --costs`` reads it."""
+    models = {}
+    for run in runs:
+        name = str(Path(run["cfg"]).resolve().relative_to(REPO_ROOT / "cfgs"))
+        rpn = statistics.median(run["rpn_times"]) if run["rpn_times"] else None
+        models[name] = {"latency_s": statistics.median(run["times"]), "rpn_s": rpn,
+                        "frames": len(run["times"]), "points_per_frame": run["points"]}  # fmt: skip
+    out = {"version": 1, "device": str(device), "threads": torch.get_num_threads(),
+           "torch": torch.__version__, "batch_size": 1, "models": models}  # fmt: skip
+    Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
+    print(f"\nper-frame costs written to {args.json}")
 
 
 def bank_table(cfg_file: str, data_path: Path, args, device: torch.device) -> None:
