@@ -198,3 +198,124 @@ def test_bad_dataset_values_name_key_value_and_file(tmp_path, body, message):
     root = REPO_ROOT / "data" / "synthetic_waymo"
     with pytest.raises(ConfigError, match=message):
         WaymoDataset(cfg, ["Vehicle"], training=False, root_path=root)
+
+
+# ------------------------------------------------ MODEL, OPTIMIZATION, STAGE, ATLAS, sensor
+MODEL_CFG = "cfgs/atlas/synthetic/centerpoint.yaml"
+
+
+def model_yaml(tmp_path, body: str, base: str = MODEL_CFG):
+    from pcdet_atlas.config import REPO_ROOT
+
+    path = tmp_path / "bad.yaml"
+    path.write_text(f"_BASE_CONFIG_: {REPO_ROOT / base}\n{body}")
+    return cfg_from_yaml_file(path)
+
+
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        ("MODEL:\n  POST_PROCESSING:\n    SCORE_THRESH: 0.3\n",
+         r"MODEL\.POST_PROCESSING\.SCORE_THRESH = 0\.3 \(from .*bad\.yaml\): expected null "
+         r"\(a one-stage detector's threshold is its DENSE_HEAD"),
+        ("MODEL:\n  POST_PROCESSING:\n    EVAL_METRIC: kitti\n",
+         r"MODEL\.POST_PROCESSING\.EVAL_METRIC = 'kitti' \(from .*bad\.yaml\)"),
+        ("MODEL:\n  POST_PROCESSING:\n    OUTPUT_RAW_SCORE: true\n",
+         r"MODEL\.POST_PROCESSING\.OUTPUT_RAW_SCORE = True \(from .*bad\.yaml\)"),
+        ("MODEL:\n  RPN:\n    CFG: x.yaml\n", r"unknown key 'RPN' in MODEL \(from .*bad\.yaml"),
+        ("MODEL:\n  VFE:\n    NAME: 3\n", r"MODEL\.VFE\.NAME = 3 \(from .*bad\.yaml\)"),
+    ],
+)  # fmt: skip
+def test_bad_model_keys_name_key_value_and_file(tmp_path, body, message):
+    from pcdet_atlas.models import build_network_from_config
+
+    with pytest.raises(ConfigError, match=message):
+        build_network_from_config(model_yaml(tmp_path, body))
+
+
+def test_model_without_a_required_stage_or_class_names_names_the_key(tmp_path):
+    from pcdet_atlas.models import build_network_from_config
+
+    cfg = model_yaml(tmp_path, "")
+    del cfg.MODEL["DENSE_HEAD"]
+    missing = r"missing required key MODEL\.DENSE_HEAD .*centerpoint\.yaml"
+    with pytest.raises(ConfigError, match=missing):
+        build_network_from_config(cfg)
+    cfg = model_yaml(tmp_path, "CLASS_NAMES: []\n")
+    with pytest.raises(ConfigError, match=r"CLASS_NAMES = \[\] \(from .*bad\.yaml\)"):
+        build_network_from_config(cfg)
+
+
+def test_two_stage_post_processing_is_read_into_its_declaration(tmp_path):
+    """MSF's NMS values reach the detector as the declaration read them (and their defaults
+    when absent): what ``TwoStageDetector.detections`` thresholds with."""
+    from pcdet_atlas.models.detectors.two_stage import (
+        RPNConfig,
+        TwoStageConfig,
+        TwoStageNMSConfig,
+    )
+
+    cfg = model_yaml(
+        tmp_path,
+        "MODEL:\n  POST_PROCESSING:\n    SCORE_THRESH: 0.25\n    NMS_CONFIG:\n"
+        "      NMS_THRESH: 0.5\n",
+        base="cfgs/atlas/synthetic/msf_4f.yaml",
+    )
+    settings = read_section(TwoStageConfig, cfg.MODEL, "MODEL", ignore=["ROI_HEAD"])
+    post = settings.post_processing
+    assert post.score_thresh == 0.25 and post.not_apply_nms_for_vel is True
+    assert post.nms_config == TwoStageNMSConfig(nms_thresh=0.5)  # the rest at the defaults
+    assert isinstance(settings.rpn, RPNConfig) and settings.rpn.cfg.endswith("cp4f.yaml")
+    del cfg.MODEL["RPN"]
+    with pytest.raises(ConfigError, match=r"missing required key MODEL\.RPN \(in .*bad\.yaml"):
+        read_section(TwoStageConfig, cfg.MODEL, "MODEL", ignore=["ROI_HEAD"])
+
+
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        ("OPTIMIZATION:\n  WARMUP_EPOCH: 1.5\n", r"OPTIMIZATION\.WARMUP_EPOCH = 1\.5 .*integer"),
+        ("OPTIMIZATION:\n  LR_WARMUP: 'yes'\n", r"OPTIMIZATION\.LR_WARMUP = 'yes' .*true or"),
+        ("OPTIMIZATION:\n  DECAY_STEP_LIST: 5\n", r"OPTIMIZATION\.DECAY_STEP_LIST = 5 .*list"),
+        ("OPTIMIZATION:\n  LR_DECAY: 0\n", r"OPTIMIZATION\.LR_DECAY = 0 .*> 0"),
+    ],
+)
+def test_bad_optimization_values_name_key_value_and_file(tmp_path, body, message):
+    """Values the hand-written reads took as they came (``int(1.5)``, a truthy ``'yes'``)."""
+    from pcdet_atlas.models.optimization import check_optimization_config
+
+    with pytest.raises(ConfigError, match=message) as err:
+        check_optimization_config(model_yaml(tmp_path, body).OPTIMIZATION)
+    assert "bad.yaml" in str(err.value)
+
+
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        ("STAGE:\n  NAME: s\n  TRAIN: lot\n", r"STAGE\.TRAIN = 'lot' \(from .*bad\.yaml\)"),
+        ("STAGE:\n  NAME: s\n  TRAIN: []\n", r"STAGE\.TRAIN = \[\] .*must train something"),
+        ("STAGE:\n  NAME: s\n  TRAIN: [lot]\n  FROZE: [vfe]\n", r"unknown key 'FROZE' in STAGE"),
+        ("STAGE:\n  NAME: s\n", r"missing required key STAGE\.TRAIN \(in .*bad\.yaml\)"),
+        ("ATLAS:\n  TEMPORAL_WINDOW: 0\n", r"ATLAS\.TEMPORAL_WINDOW = 0 \(from .*bad\.yaml\)"),
+        ("ATLAS:\n  TRAINING_SEED: '7'\n", r"ATLAS\.TRAINING_SEED = '7' \(from .*bad\.yaml\)"),
+        ("ATLAS:\n  CHECKPOIN: x.pth\n", r"unknown key 'CHECKPOIN' in ATLAS \(from .*bad\.yaml"),
+    ],
+)
+def test_bad_stage_and_atlas_values_name_key_value_and_file(tmp_path, body, message):
+    from pcdet_atlas.train_utils.atlas_eval import atlas_section
+    from pcdet_atlas.train_utils.stages import stage_from_config
+
+    cfg = model_yaml(tmp_path, body)
+    with pytest.raises(ConfigError, match=message):
+        stage_from_config(cfg) if "STAGE" in cfg else atlas_section(cfg.ATLAS)
+
+
+def test_sensor_model_reads_its_section(tmp_path):
+    from pcdet_atlas.datasets.synthetic.sensor import SensorModel
+
+    path = tmp_path / "sensor.yaml"
+    path.write_text("SENSOR:\n  DROP_PROB: 0.1\n")
+    assert SensorModel.from_config(cfg_from_yaml_file(path).SENSOR) == SensorModel(drop_prob=0.1)
+    path.write_text("SENSOR:\n  DROP_PROB: 1.5\n")
+    with pytest.raises(ConfigError, match=r"SENSOR\.DROP_PROB = 1\.5 \(from .*sensor\.yaml\)"):
+        SensorModel.from_config(cfg_from_yaml_file(path).SENSOR)

@@ -477,3 +477,72 @@ def test_documented_attack_defaults_are_the_base_configs():
                 wrong.append(f"{key}: docs/attacks.md says {text}, _base_/{base}.yaml has {node}")
     assert not wrong, "\n".join(wrong)
     assert checked >= 35, checked
+
+
+# ------------------------------------------------- OPTIMIZATION, STAGE and ATLAS key tables
+def section_key_tables() -> dict[str, dict[str, str]]:
+    """``{section: {key: default}}`` of docs/getting_started.md's ``| `SECTION` key |`` tables."""
+    tables: dict[str, dict[str, str]] = {}
+    current = None
+    for line in (REPO_ROOT / "docs" / "getting_started.md").read_text().splitlines():
+        head = re.match(r"\| `([A-Z_]+)` key \| default \| meaning \|$", line)
+        if head:
+            current = tables.setdefault(head.group(1), {})
+        elif current is not None and line.startswith("| `"):
+            key, default, _ = (c.strip() for c in line.strip().strip("|").split("|"))
+            current[key.strip("`")] = default
+        elif not line.startswith("|"):
+            current = None
+    return tables
+
+
+def documented_default(value) -> str:
+    """A declared default as the tables write it."""
+    from pcdet_atlas.config_values import REQUIRED
+
+    if value is REQUIRED:
+        return "required"
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, tuple):
+        return "[" + ", ".join(documented_default(v) for v in value) + "]"
+    return str(value)
+
+
+def section_declarations() -> dict[str, type]:
+    from pcdet_atlas.models.optimization import OptimizationConfig
+    from pcdet_atlas.train_utils.atlas_eval import AtlasSection
+    from pcdet_atlas.train_utils.stages import StageSection
+
+    return {"OPTIMIZATION": OptimizationConfig, "STAGE": StageSection, "ATLAS": AtlasSection}
+
+
+def check_section_tables(declarations: dict[str, type]) -> None:
+    from pcdet_atlas.config_values import declared_settings
+
+    tables = section_key_tables()
+    assert set(tables) == set(declarations)
+    for name, decl in declarations.items():
+        declared = {key: documented_default(d) for key, d, _ in declared_settings(decl)}
+        assert tables[name] == declared, f"docs/getting_started.md's {name} table"
+
+
+def test_section_key_tables_are_the_declarations():
+    """Each table lists exactly its section's declared keys, with the declared defaults."""
+    check_section_tables(section_declarations())
+
+
+def test_a_key_added_to_a_section_declaration_fails_the_table_check():
+    import dataclasses
+
+    from pcdet_atlas.config_values import setting
+    from pcdet_atlas.models.optimization import OptimizationConfig
+
+    extended = dataclasses.make_dataclass(
+        "Extended", [("new_key", float, setting(1.0))], bases=(OptimizationConfig,),
+        frozen=True, kw_only=True,
+    )  # fmt: skip
+    with pytest.raises(AssertionError, match="OPTIMIZATION table"):
+        check_section_tables({**section_declarations(), "OPTIMIZATION": extended})

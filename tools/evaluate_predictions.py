@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 
 from pcdet_atlas.config import cfg_from_list, cfg_from_yaml_file, resolve_cli_path
+from pcdet_atlas.train_utils.atlas_eval import atlas_section
 from pcdet_atlas.train_utils.score_predictions import FORMATS, score_predictions
 from pcdet_atlas.utils.cli import add_debug_flag, add_plugin_flag, import_plugins, run_tool
 from pcdet_atlas.utils.common import create_logger
@@ -88,8 +89,9 @@ def main(argv=None) -> dict:
         class_names = list(cfg.CLASS_NAMES)
     else:
         class_names = [c.strip() for c in (args.class_names or DEFAULT_CLASSES).split(",")]
-    window = atlas_cfg.get("TEMPORAL_WINDOW") if model_cfg else args.temporal_window
-    model = args.model_name or atlas_cfg.get("MODEL_NAME") or "predictions"
+    atlas = atlas_section(atlas_cfg)
+    window = atlas.temporal_window if model_cfg else args.temporal_window
+    model = args.model_name or atlas.model_name or "predictions"
     predictions = {}
     for variant, path in args.predictions:
         if variant in predictions:

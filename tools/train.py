@@ -162,7 +162,6 @@ def train(args, held: contextlib.ExitStack) -> dict:
     require_dataset(cfg, args.cfg_file)
     require_keys(cfg, ["OPTIMIZATION"], "the detector config")
     optim_cfg = cfg.OPTIMIZATION
-    require_keys(optim_cfg, ["BATCH_SIZE_PER_GPU", "NUM_EPOCHS"], "OPTIMIZATION")  # types: load_cfg
     check_optimization_config(optim_cfg)
     for flag, path in (("--ckpt", args.ckpt), ("--pretrained_model", args.pretrained_model)):
         if path is not None and not Path(path).is_file():

@@ -8,14 +8,45 @@ package's ``__init__`` is still registering the detectors (the registry is read 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
 
-from pcdet_atlas.config import require_keys, to_plain
+from pcdet_atlas.config import to_plain
+from pcdet_atlas.config_values import config_value, read_section, setting
 from pcdet_atlas.datasets.augmentor.processors import processor_voxel_size
 from pcdet_atlas.datasets.point_features import PointFeatureEncoder
 from pcdet_atlas.models.detectors.detector3d_template import Detector3DTemplate
 from pcdet_atlas.registry import DETECTORS
 
 __all__ = ["build_network", "build_network_from_config", "num_point_features_of"]
+
+
+def _is_section(value: Any) -> bool:
+    return isinstance(value, Mapping)
+
+
+@dataclass(frozen=True, kw_only=True)
+class _NetworkSections:
+    """What building a detector reads of a full config (its other sections have their own
+    readers)."""
+
+    class_names: tuple[str, ...] = setting(
+        check=bool, expected="a non-empty list of class names", doc="index i is label i + 1"
+    )
+    data_config: Any = setting(check=_is_section, expected="a section", doc="the dataset's")
+    model: Any = setting(check=_is_section, expected="a section", doc="the detector's")
+
+
+@dataclass(frozen=True, kw_only=True)
+class _DataInputs:
+    """What the detector is told of ``DATA_CONFIG`` (the dataset reads and checks the rest)."""
+
+    point_cloud_range: tuple[float, float, float, float, float, float] = setting(
+        doc="[x_min, y_min, z_min, x_max, y_max, z_max], m"
+    )
+    point_feature_encoding: Any = setting(
+        check=_is_section, expected="a section", doc="the point columns"
+    )
 
 
 def build_network(
@@ -29,8 +60,8 @@ def build_network(
     """The detector ``DETECTORS[model_cfg.NAME]`` built from a ``MODEL`` section (``voxel_size``:
     the data config's, for a VFE whose section does not state one). Its ``build_signature``
     records these arguments."""
-    require_keys(model_cfg, ["NAME"], "MODEL")
-    detector = DETECTORS.get(model_cfg["NAME"]).from_config(
+    name = config_value(model_cfg, "NAME", str, "MODEL", expected="a registered detector name")
+    detector = DETECTORS.get(name).from_config(
         model_cfg,
         class_names=class_names,
         point_cloud_range=point_cloud_range,
@@ -50,22 +81,35 @@ def build_network(
 def num_point_features_of(data_cfg: Mapping) -> int:
     """Point columns the dataset delivers after the batch index (its ``POINT_FEATURE_ENCODING``:
     5 for ``x, y, z, intensity, elongation``, 6 with the multi-frame ``timestamp``)."""
-    require_keys(data_cfg, ["POINT_FEATURE_ENCODING"], "DATA_CONFIG")
-    return PointFeatureEncoder.from_config(data_cfg["POINT_FEATURE_ENCODING"]).num_point_features
+    encoding = config_value(
+        data_cfg, "POINT_FEATURE_ENCODING", lambda v: v, "DATA_CONFIG", valid=_is_section,
+        expected="a section (the point columns)",
+    )  # fmt: skip
+    return PointFeatureEncoder.from_config(encoding).num_point_features
 
 
 def build_network_from_config(cfg: Mapping) -> Detector3DTemplate:
     """Build the model of a full config (``CLASS_NAMES``, ``DATA_CONFIG``, ``MODEL``)."""
-    require_keys(cfg, ["CLASS_NAMES", "DATA_CONFIG", "MODEL"], "config")
-    require_keys(cfg["DATA_CONFIG"], ["POINT_CLOUD_RANGE"], "DATA_CONFIG")
-    require_keys(cfg["MODEL"], ["NAME"], "MODEL")
-    check_data = getattr(DETECTORS.get(cfg["MODEL"]["NAME"]), "check_data_config", None)
-    if check_data is not None:  # what the detector needs of its samples
-        check_data(cfg["MODEL"], cfg["DATA_CONFIG"])
-    return build_network(
-        cfg["MODEL"],
-        class_names=cfg["CLASS_NAMES"],
-        point_cloud_range=cfg["DATA_CONFIG"]["POINT_CLOUD_RANGE"],
-        num_point_features=num_point_features_of(cfg["DATA_CONFIG"]),
-        voxel_size=processor_voxel_size(cfg["DATA_CONFIG"]),
+    sections = read_section(_NetworkSections, cfg, ignore=[k for k in cfg if not _builds(k)])
+    model_cfg, data_cfg = sections.model, sections.data_config
+    data = read_section(
+        _DataInputs, data_cfg, "DATA_CONFIG", ignore=[k for k in data_cfg if not _builds(k)]
     )
+    name = config_value(model_cfg, "NAME", str, "MODEL", expected="a registered detector name")
+    check_data = getattr(DETECTORS.get(name), "check_data_config", None)
+    if check_data is not None:  # what the detector needs of its samples
+        check_data(model_cfg, data_cfg)
+    return build_network(
+        model_cfg,
+        class_names=cfg["CLASS_NAMES"],
+        point_cloud_range=data.point_cloud_range,
+        num_point_features=num_point_features_of(data_cfg),
+        voxel_size=processor_voxel_size(data_cfg),
+    )
+
+
+def _builds(key: str) -> bool:
+    """Whether building the detector reads the config key ``key`` (a top-level or
+    ``DATA_CONFIG`` key)."""
+    return key in ("CLASS_NAMES", "DATA_CONFIG", "MODEL", "POINT_CLOUD_RANGE",
+                   "POINT_FEATURE_ENCODING")  # fmt: skip

@@ -19,107 +19,93 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-from pcdet_atlas.config import ConfigError, check_known_keys, key_source, require_keys
-from pcdet_atlas.config_values import config_value
+from pcdet_atlas.config import ConfigError, key_source
+from pcdet_atlas.config_values import declared_keys, read_section, setting
 
-__all__ = ["OPTIMIZATION_KEYS", "build_optimizer", "build_scheduler", "check_optimization_config"]
+__all__ = [
+    "OPTIMIZATION_KEYS",
+    "OptimizationConfig",
+    "build_optimizer",
+    "build_scheduler",
+    "check_optimization_config",
+]
 
-OPTIMIZATION_KEYS = (
-    "BATCH_SIZE_PER_GPU",
-    "NUM_EPOCHS",
-    "OPTIMIZER",
-    "LR",
-    "WEIGHT_DECAY",
-    "MOMENTUM",
-    "MOMS",
-    "PCT_START",
-    "DIV_FACTOR",
-    "DECAY_STEP_LIST",
-    "LR_DECAY",
-    "LR_CLIP",
-    "LR_WARMUP",
-    "WARMUP_EPOCH",
-    "GRAD_NORM_CLIP",
-)
 OPTIMIZERS = ("adam_onecycle", "adam", "sgd")
 
 
-def _two_numbers(value) -> tuple[float, float]:
-    if not isinstance(value, (list, tuple)) or len(value) != 2:
-        raise ValueError(value)
-    if any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in value):
-        raise ValueError(value)
-    return float(value[0]), float(value[1])
+@dataclass(frozen=True, kw_only=True)
+class OptimizationConfig:
+    """The ``OPTIMIZATION`` section (OpenPCDet's keys)."""
+
+    batch_size_per_gpu: int = setting(ge=1, doc="samples per process and step")
+    num_epochs: int = setting(ge=1, doc="epochs of the run")
+    optimizer: str = setting(
+        choices=OPTIMIZERS, expected=f"one of {', '.join(OPTIMIZERS)}",
+        doc="adam_onecycle (AdamW), adam or sgd",
+    )  # fmt: skip
+    lr: float = setting(gt=0, doc="peak learning rate")
+    weight_decay: float = setting(0.0, ge=0, doc="weight decay (AdamW's decoupled)")
+    momentum: float = setting(0.9, ge=0, doc="SGD momentum (sgd only)")
+    moms: tuple[float, float] = setting(
+        (0.95, 0.85), ge=0, lt=1, doc="beta1 at the start and at the peak (adam_onecycle)",
+        expected="two numbers in [0, 1): beta1 at the start and at the peak, e.g. [0.95, 0.85]",
+    )  # fmt: skip
+    pct_start: float = setting(
+        0.4, gt=0, lt=1, doc="share of the steps rising to LR (adam_onecycle)",
+        expected="a number between 0 and 1, exclusive (the share of steps rising to LR)",
+    )  # fmt: skip
+    div_factor: float = setting(
+        10.0, gt=0, doc="the one-cycle schedule starts at LR / DIV_FACTOR (adam_onecycle)"
+    )
+    decay_step_list: tuple[float, ...] = setting(
+        (), ge=0, doc="epochs at which LR is multiplied by LR_DECAY (adam, sgd)"
+    )
+    lr_decay: float = setting(0.1, gt=0, doc="step decay factor (adam, sgd)")
+    lr_clip: float = setting(0.0, ge=0, doc="floor of the decayed LR (adam, sgd)")
+    lr_warmup: bool = setting(False, doc="cosine warm-up from 0 (adam, sgd)")
+    warmup_epoch: int = setting(1, ge=0, doc="epochs of the warm-up (adam, sgd)")
+    grad_norm_clip: float = setting(gt=0, doc="the gradient norm is clipped to it")
 
 
-def check_optimization_config(optim_cfg: Mapping) -> None:
-    """Check what training reads of ``OPTIMIZATION`` before anything is built or written:
-    known keys, ``OPTIMIZER``, ``GRAD_NORM_CLIP`` (required), and ``PCT_START``, ``MOMS`` and
-    ``DIV_FACTOR`` where given (``LR``, ``NUM_EPOCHS`` and ``BATCH_SIZE_PER_GPU`` are checked
-    when the config is loaded).
+#: the ``OPTIMIZATION`` section's keys
+OPTIMIZATION_KEYS = tuple(declared_keys(OptimizationConfig))
+
+
+def check_optimization_config(optim_cfg: Mapping) -> OptimizationConfig:
+    """``OPTIMIZATION`` read into its declaration, before anything is built or written.
 
     Raises:
         ConfigError: naming the key, its value, its file and what was expected.
     """
-    section = "OPTIMIZATION"
-    check_known_keys(optim_cfg, OPTIMIZATION_KEYS, section)
-    config_value(
-        optim_cfg, "OPTIMIZER", str, section, valid=lambda v: v in OPTIMIZERS,
-        expected=f"one of {', '.join(OPTIMIZERS)}",
-    )  # fmt: skip
-    config_value(
-        optim_cfg, "GRAD_NORM_CLIP", float, section, valid=lambda v: v > 0,
-        expected="a number > 0 (the gradient norm is clipped to it)",
-    )  # fmt: skip
-    config_value(
-        optim_cfg, "PCT_START", float, section, default=None, valid=lambda v: 0 < v < 1,
-        expected="a number between 0 and 1, exclusive (the share of steps rising to LR)",
-    )  # fmt: skip
-    config_value(
-        optim_cfg, "MOMS", _two_numbers, section, default=None,
-        valid=lambda v: all(0 <= m < 1 for m in v),
-        expected="two numbers in [0, 1): beta1 at the start and at the peak, e.g. [0.95, 0.85]",
-    )  # fmt: skip
-    config_value(
-        optim_cfg, "DIV_FACTOR", float, section, default=None, valid=lambda v: v > 0,
-        expected="a number > 0 (the one-cycle schedule starts at LR / DIV_FACTOR)",
-    )  # fmt: skip
+    return read_section(OptimizationConfig, optim_cfg, "OPTIMIZATION")
 
 
 def build_optimizer(model: nn.Module, optim_cfg: Mapping) -> torch.optim.Optimizer:
     """The optimizer named by ``OPTIMIZATION.OPTIMIZER`` over all trainable parameters."""
-    check_known_keys(optim_cfg, OPTIMIZATION_KEYS, "OPTIMIZATION")
-    require_keys(optim_cfg, ["OPTIMIZER", "LR"], "OPTIMIZATION")
-    name = optim_cfg["OPTIMIZER"]
+    settings = check_optimization_config(optim_cfg)
     params = [p for p in model.parameters() if p.requires_grad]
-    lr, wd = float(optim_cfg["LR"]), float(optim_cfg.get("WEIGHT_DECAY", 0.0))
-    if name == "adam_onecycle":
+    lr, wd = settings.lr, settings.weight_decay
+    if settings.optimizer == "adam_onecycle":
         return torch.optim.AdamW(params, lr=lr, betas=(0.9, 0.99), weight_decay=wd)
-    if name == "adam":
+    if settings.optimizer == "adam":
         return torch.optim.Adam(params, lr=lr, weight_decay=wd)
-    if name == "sgd":
-        return torch.optim.SGD(
-            params, lr=lr, weight_decay=wd, momentum=float(optim_cfg.get("MOMENTUM", 0.9))
-        )
-    raise ConfigError(
-        f"OPTIMIZATION.OPTIMIZER {name!r} (from {key_source(optim_cfg, 'OPTIMIZER')}) is not one "
-        f"of {', '.join(OPTIMIZERS)}"
-    )
+    return torch.optim.SGD(params, lr=lr, weight_decay=wd, momentum=settings.momentum)
 
 
 def build_scheduler(
     optimizer: torch.optim.Optimizer, optim_cfg: Mapping, *, iters_per_epoch: int, total_epochs: int
 ) -> torch.optim.lr_scheduler.LRScheduler:
     """The per-iteration LR schedule for ``total_epochs`` of ``iters_per_epoch`` steps."""
+    settings = check_optimization_config(optim_cfg)
     total_steps = max(1, iters_per_epoch * total_epochs)
-    lr = float(optim_cfg["LR"])
-    if optim_cfg["OPTIMIZER"] == "adam_onecycle":
-        moms = optim_cfg.get("MOMS", [0.95, 0.85])
-        pct_start = float(optim_cfg.get("PCT_START", 0.4))
+    lr = settings.lr
+    if settings.optimizer == "adam_onecycle":
+        moms, pct_start = settings.moms, settings.pct_start
         if float(pct_start * total_steps) - 1 == 0:  # torch's rising phase would have 0 steps
             raise ConfigError(
                 f"OPTIMIZATION.PCT_START = {pct_start} (from {key_source(optim_cfg, 'PCT_START')})"
@@ -133,19 +119,13 @@ def build_scheduler(
             pct_start=pct_start,
             anneal_strategy="cos",
             cycle_momentum=True,
-            base_momentum=float(moms[1]),
-            max_momentum=float(moms[0]),
-            div_factor=float(optim_cfg.get("DIV_FACTOR", 10)),
+            base_momentum=moms[1],
+            max_momentum=moms[0],
+            div_factor=settings.div_factor,
             final_div_factor=1e4,
         )
-    decay_epochs = [float(e) for e in optim_cfg.get("DECAY_STEP_LIST", [])]
-    decay = float(optim_cfg.get("LR_DECAY", 0.1))
-    clip = float(optim_cfg.get("LR_CLIP", 0.0))
-    warmup_iters = (
-        int(optim_cfg.get("WARMUP_EPOCH", 1)) * iters_per_epoch
-        if optim_cfg.get("LR_WARMUP", False)
-        else 0
-    )
+    decay_epochs, decay, clip = settings.decay_step_list, settings.lr_decay, settings.lr_clip
+    warmup_iters = settings.warmup_epoch * iters_per_epoch if settings.lr_warmup else 0
 
     def factor(step: int) -> float:
         epoch = step / max(1, iters_per_epoch)

@@ -26,10 +26,10 @@ from pcdet_atlas.config import (
     REPO_ROOT,
     ConfigError,
     cfg_from_yaml_file,
-    check_known_keys,
     key_source,
     to_plain,
 )
+from pcdet_atlas.config_values import declared_keys, read_section, setting
 from pcdet_atlas.datasets.loader import ContiguousBatchSampler, worker_init_fn
 from pcdet_atlas.datasets.multiframe import SequenceConfig
 from pcdet_atlas.evaluation import build_variant_result, evaluate_attack
@@ -44,6 +44,8 @@ from pcdet_atlas.utils.seeding import torch_generator
 
 __all__ = [
     "ATLAS_KEYS",
+    "AtlasSection",
+    "atlas_section",
     "resolve_variants",
     "build_variant_attacks",
     "attack_sha256",
@@ -61,9 +63,35 @@ __all__ = [
     "point_history",
 ]
 
-#: the ``ATLAS`` section's keys (``TRAINING_SEED``: the seed a checkpoint that does not record
-#: its own was trained with; ``pcdet_atlas.train_utils.checkpoint.training_seed``)
-ATLAS_KEYS = ("MODEL_NAME", "ATTACKS", "CHECKPOINT", "TEMPORAL_WINDOW", "TRAINING_SEED")
+
+@dataclass(frozen=True, kw_only=True)
+class AtlasSection:
+    """The ``ATLAS`` section of a model config: what its evaluation on the variants uses."""
+
+    model_name: str | None = setting(
+        None, doc="the model's name in results.json and the report (default: the config's name)"
+    )
+    attacks: tuple[str, ...] | None = setting(
+        None, doc="the variants of --attacks all (names under cfgs/attacks/ or YAML paths)"
+    )
+    checkpoint: str | None = setting(
+        None, doc="the default --ckpt (relative to the repository root)"
+    )
+    temporal_window: int | None = setting(None, ge=1, doc="the lifecycle window, in frames")
+    training_seed: int | None = setting(
+        None, doc="the seed of a checkpoint that does not record its own"
+    )
+
+
+#: the ``ATLAS`` section's keys
+ATLAS_KEYS = tuple(declared_keys(AtlasSection))
+
+
+def atlas_section(atlas_cfg: Mapping | None) -> AtlasSection:
+    """A model config's ``ATLAS`` section (None or absent: every key at its default), read."""
+    return read_section(AtlasSection, atlas_cfg, "ATLAS")
+
+
 ATTACK_DIR = REPO_ROOT / "cfgs" / "attacks"
 
 
@@ -75,11 +103,11 @@ def resolve_variants(spec: str, atlas_cfg: Mapping) -> list[tuple[str, Path]]:
     a file name that is not one safe path component (``...yaml``: variant ``..``) is an
     ``UnsafePathError``.
     """
-    check_known_keys(atlas_cfg, ATLAS_KEYS, "ATLAS")
+    settings = atlas_section(atlas_cfg)
     if spec == "all":
-        if "ATTACKS" not in atlas_cfg:
+        if settings.attacks is None:
             raise ConfigError("--attacks all needs ATLAS.ATTACKS in the model config")
-        names = list(atlas_cfg["ATTACKS"])
+        names = list(settings.attacks)
     else:
         names = [s.strip() for s in spec.split(",") if s.strip()]
     if not names:

@@ -33,6 +33,7 @@ from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.prediction_store import PredictionStore, use_prediction_store
 from pcdet_atlas.train_utils.atlas_eval import (
     EvalContext,
+    atlas_section,
     build_variant_attacks,
     check_test_split,
     evaluate_variant,
@@ -154,7 +155,7 @@ class EvalRun:
             data_cfg=self.cfg.DATA_CONFIG, class_names=self.cfg.CLASS_NAMES, device=self.device,
             batch_size=self.batch_size // self.world, dist=self.dist,
             workers=self.settings.workers, seed=self.settings.seed,
-            temporal_window=self.cfg.get("ATLAS", {}).get("TEMPORAL_WINDOW"),
+            temporal_window=atlas_section(self.cfg.get("ATLAS")).temporal_window,
             show_progress=self.settings.show_progress, save_to_file=self.settings.save_to_file,
             logger=logger,
         )  # fmt: skip
@@ -232,7 +233,7 @@ def _run(settings: EvalSettings, held: contextlib.ExitStack) -> dict:
     runs = []
     for ckpt, out_dir in zip(checkpoints, out_dirs):
         state = model.load_params_from_file(ckpt)  # strict: CheckpointMismatchError names it
-        seed = training_seed(state, cfg.get("ATLAS", {}).get("TRAINING_SEED"), ckpt)
+        seed = training_seed(state, atlas_section(cfg.get("ATLAS")).training_seed, ckpt)
         if file_sha256(ckpt) != ckpt_sha256[ckpt]:  # results.json records the hash taken above
             raise RuntimeError(
                 f"checkpoint {ckpt} changed since this call started (a training run rewriting "
@@ -325,7 +326,7 @@ def evaluate_checkpoint(
         extra = {**entry.get("extra", {}), "attack_sha256": run.fingerprints[variant]}
         entries[variant] = {**entry, "extra": extra}
         results = build_results(
-            model=atlas_cfg.get("MODEL_NAME", cfg.TAG), config=str(settings.cfg_file),
+            model=atlas_section(atlas_cfg).model_name or cfg.TAG, config=str(settings.cfg_file),
             checkpoint=str(ckpt), class_names=cfg.CLASS_NAMES, variants=entries,
             training_seed=training_seed, model_sha256=model_config_sha256(cfg), source=source,
             extra={"processes": run.world, "device": str(run.device),

@@ -26,7 +26,8 @@ from pathlib import Path
 
 from torch import nn
 
-from pcdet_atlas.config import ConfigError, check_known_keys, key_source, require_keys
+from pcdet_atlas.config import ConfigError, key_source
+from pcdet_atlas.config_values import read_section, setting
 from pcdet_atlas.models.detectors.detector3d_template import (
     load_state_dict_checked,
     read_checkpoint,
@@ -35,6 +36,7 @@ from pcdet_atlas.train_utils.checkpoint import find_latest_checkpoint
 from pcdet_atlas.train_utils.setup import load_cfg, output_dir_for
 
 __all__ = [
+    "StageSection",
     "TrainingStage",
     "apply_stage_freezing",
     "load_stage_init",
@@ -42,7 +44,22 @@ __all__ = [
     "stage_init_checkpoint",
 ]
 
-STAGE_KEYS = ("NAME", "INIT_FROM", "TRAIN", "FREEZE")
+
+@dataclass(frozen=True, kw_only=True)
+class StageSection:
+    """The ``STAGE`` section of a staged config."""
+
+    name: str = setting(doc="the stage's name")
+    init_from: str | None = setting(
+        None, doc="the predecessor's config, relative to the file that sets it"
+    )
+    train: tuple[str, ...] = setting(
+        check=bool, expected="a non-empty list of module names (a stage must train something)",
+        doc="the only modules that train (dotted names, e.g. lot.convssm)",
+    )  # fmt: skip
+    freeze: tuple[str, ...] = setting(
+        (), doc="modules taken from the predecessor's checkpoint and kept fixed"
+    )
 
 
 @dataclass(frozen=True)
@@ -62,25 +79,22 @@ def stage_from_config(cfg: Mapping) -> TrainingStage | None:
     sec = cfg.get("STAGE")
     if sec is None:
         return None
-    check_known_keys(sec, STAGE_KEYS, "STAGE")
-    require_keys(sec, ["NAME", "TRAIN"], "STAGE")
+    settings = read_section(StageSection, sec, "STAGE")
     source = key_source(sec, "TRAIN")
     init_from = None
-    if sec.get("INIT_FROM") is not None:
+    if settings.init_from is not None:
         base = Path(key_source(sec, "INIT_FROM")).parent
-        init_from = (base / str(sec["INIT_FROM"])).resolve()
+        init_from = (base / settings.init_from).resolve()
         if not init_from.is_file():
             raise ConfigError(
-                f"STAGE.INIT_FROM {sec['INIT_FROM']!r} (from {key_source(sec, 'INIT_FROM')}): "
-                f"no config at {init_from}"
+                f"STAGE.INIT_FROM = {settings.init_from!r} (from {key_source(sec, 'INIT_FROM')}):"
+                f" expected a config file; there is none at {init_from}"
             )
-    train, freeze = tuple(sec["TRAIN"]), tuple(sec.get("FREEZE", ()))
-    if not train:
-        raise ConfigError(f"STAGE.TRAIN (from {source}) is empty: a stage must train something")
+    train, freeze = settings.train, settings.freeze
     clash = [(t, f) for t in train for f in freeze if _under(t, f) or _under(f, t)]
     if clash:
         raise ConfigError(f"STAGE (from {source}): modules both trained and frozen: {clash}")
-    return TrainingStage(str(sec["NAME"]), init_from, train, freeze, source)
+    return TrainingStage(settings.name, init_from, train, freeze, source)
 
 
 def _under(name: str, prefix: str) -> bool:

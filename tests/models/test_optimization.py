@@ -9,8 +9,9 @@ import torch
 from pcdet_atlas.config import ConfigError
 from pcdet_atlas.models.optimization import build_optimizer, build_scheduler
 
-ONECYCLE = {"OPTIMIZER": "adam_onecycle", "LR": 0.003, "MOMS": [0.95, 0.85], "PCT_START": 0.4,
-            "DIV_FACTOR": 10, "WEIGHT_DECAY": 0.01}  # fmt: skip
+RUN = {"BATCH_SIZE_PER_GPU": 2, "NUM_EPOCHS": 1, "GRAD_NORM_CLIP": 10}
+ONECYCLE = {**RUN, "OPTIMIZER": "adam_onecycle", "LR": 0.003, "MOMS": [0.95, 0.85],
+            "PCT_START": 0.4, "DIV_FACTOR": 10, "WEIGHT_DECAY": 0.01}  # fmt: skip
 
 
 def lrs_of(optim_cfg, steps: int, iters_per_epoch: int | None = None) -> list[float]:
@@ -38,7 +39,7 @@ def test_onecycle_peaks_one_step_before_pct_start_and_ends_at_lr_over_div_over_1
 
 
 def test_warmup_of_plain_adam_rises_from_zero():
-    cfg = {"OPTIMIZER": "adam", "LR": 0.01, "LR_WARMUP": True, "WARMUP_EPOCH": 1,
+    cfg = {**RUN, "OPTIMIZER": "adam", "LR": 0.01, "LR_WARMUP": True, "WARMUP_EPOCH": 1,
            "DECAY_STEP_LIST": [5], "LR_DECAY": 0.1}  # fmt: skip
     lrs = lrs_of(cfg, 20, iters_per_epoch=4)
     assert lrs[0] == 0.0 and 0 < lrs[1] < lrs[2] < lrs[3] < 0.01 and lrs[4] == 0.01

@@ -75,9 +75,10 @@ def test_onecycle_schedule_shape_and_resume():
 
 
 def test_step_decay_and_bad_optimizer():
+    run = {"BATCH_SIZE_PER_GPU": 1, "NUM_EPOCHS": 6, "GRAD_NORM_CLIP": 10}
     cfg = EasyDict(
         OPTIMIZER="adam", LR=0.01, DECAY_STEP_LIST=[2, 4], LR_DECAY=0.1, LR_CLIP=1e-4,
-        LR_WARMUP=False,
+        LR_WARMUP=False, **run,
     )  # fmt: skip
     opt = build_optimizer(torch.nn.Linear(2, 2), cfg)
     sched = build_scheduler(opt, cfg, iters_per_epoch=5, total_epochs=6)
@@ -89,6 +90,6 @@ def test_step_decay_and_bad_optimizer():
     assert lrs[0] == pytest.approx(0.01) and lrs[10] == pytest.approx(0.001)
     assert lrs[25] == pytest.approx(1e-4)  # 1e-4 by decay and by clip
     with pytest.raises(ConfigError, match="'rmsprop'"):
-        build_optimizer(torch.nn.Linear(2, 2), EasyDict(OPTIMIZER="rmsprop", LR=0.1))
+        build_optimizer(torch.nn.Linear(2, 2), EasyDict(OPTIMIZER="rmsprop", LR=0.1, **run))
     with pytest.raises(ConfigError, match="unknown key 'LR_MAX'"):
-        build_optimizer(torch.nn.Linear(2, 2), EasyDict(OPTIMIZER="adam", LR=0.1, LR_MAX=1))
+        build_optimizer(torch.nn.Linear(2, 2), EasyDict(OPTIMIZER="adam", LR=0.1, LR_MAX=1, **run))

@@ -162,7 +162,8 @@ def test_everything_a_training_checkpoint_saves_loads_under_weights_only(tmp_pat
     """Optimizer, scheduler (OneCycleLR; LambdaLR with warm-up and decay), AMP scaler, RNG
     states and settings are plain: a resume reads them with ``weights_only=True``."""
     optim_cfg = {"OPTIMIZER": optimizer, "LR": 0.003, "WEIGHT_DECAY": 0.01,
-                 "DECAY_STEP_LIST": [1], "LR_WARMUP": True, "WARMUP_EPOCH": 1}  # fmt: skip
+                 "DECAY_STEP_LIST": [1], "LR_WARMUP": True, "WARMUP_EPOCH": 1,
+                 "BATCH_SIZE_PER_GPU": 2, "NUM_EPOCHS": 2, "GRAD_NORM_CLIP": 10}  # fmt: skip
 
     def build():
         torch.manual_seed(0)

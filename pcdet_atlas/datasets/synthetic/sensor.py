@@ -16,11 +16,13 @@ surface class of what was hit, :meth:`SensorModel.returns` decides per ray:
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from pcdet_atlas.config_values import read_section, setting
 from pcdet_atlas.datasets.synthetic.actors import (
     SURFACE_FOLIAGE,
     SURFACE_GLASS,
@@ -30,27 +32,30 @@ from pcdet_atlas.datasets.synthetic.actors import (
 __all__ = ["SensorModel"]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class SensorModel:
-    """Noise and radiometry constants (documented defaults, tuned to look like Waymo TOP)."""
+    """Noise and radiometry constants (documented defaults, tuned to look like Waymo TOP); also
+    the declaration of a config section of them (:meth:`from_config`)."""
 
-    range_std_m: float = 0.015
-    range_std_per_m: float = 0.0003
-    drop_prob: float = 0.02
-    glass_drop_prob: float = 0.5
-    foliage_drop_prob: float = 0.3
-    foliage_range_std_m: float = 0.08
-    weak_return_power: float = 8.0e-5  # P0 of the detection model, albedo * cos * (10 m / r)^2
-    retro_intensity: float = 6.0
+    range_std_m: float = setting(0.015, ge=0, doc="range noise std at 0 m, m")
+    range_std_per_m: float = setting(0.0003, ge=0, doc="range noise std growth, m per m")
+    drop_prob: float = setting(0.02, ge=0, le=1, doc="base share of dropped returns")
+    glass_drop_prob: float = setting(0.5, ge=0, le=1, doc="dropped returns on glass")
+    foliage_drop_prob: float = setting(0.3, ge=0, le=1, doc="dropped returns on foliage")
+    foliage_range_std_m: float = setting(0.08, ge=0, doc="extra range noise on foliage, m")
+    weak_return_power: float = setting(
+        8.0e-5, gt=0, doc="P0 of the detection model, albedo * cos * (10 m / r)^2"
+    )
+    retro_intensity: float = setting(6.0, ge=0, doc="intensity gain of retro-reflectors")
 
     @classmethod
-    def from_config(cls, cfg: dict | None) -> SensorModel:
-        cfg = dict(cfg or {})
-        known = {f.lower(): f for f in cls.__dataclass_fields__}
-        unknown = sorted(k for k in cfg if k.lower() not in known)
-        if unknown:
-            raise KeyError(f"SensorModel: unknown key(s) {unknown}; known: {sorted(known)}")
-        return cls(**{known[k.lower()]: float(v) for k, v in cfg.items()})
+    def from_config(cls, cfg: Mapping | None, section: str = "SENSOR") -> SensorModel:
+        """The sensor of a config section (``RANGE_STD_M``, ...; absent keys at the defaults).
+
+        Raises:
+            ConfigError: naming the file, the key, the value and what was expected.
+        """
+        return read_section(cls, cfg, section)
 
     def to_dict(self) -> dict:
         return {f: getattr(self, f) for f in self.__dataclass_fields__}

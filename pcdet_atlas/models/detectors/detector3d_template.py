@@ -12,12 +12,21 @@ from __future__ import annotations
 import pickle
 import re
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from torch import nn
 
-from pcdet_atlas.config import ConfigError, check_known_keys, key_source, require_keys
+from pcdet_atlas.config import ConfigError, key_source
+from pcdet_atlas.config_values import (
+    config_files,
+    config_value,
+    read_section,
+    section,
+    setting,
+    unsupported,
+)
 from pcdet_atlas.models.model_utils.polar_grid import PolarGrid
 from pcdet_atlas.registry import MODEL_STAGES
 from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
@@ -34,6 +43,42 @@ STAGE_CFG_KEYS = {
     "point_head": "POINT_HEAD",
     "roi_head": "ROI_HEAD",
 }
+
+
+def _text(value) -> str:
+    if not isinstance(value, str):
+        raise TypeError(value)
+    return value
+
+
+def _unset(value: float | None) -> bool:
+    return value is None
+
+
+@dataclass(frozen=True, kw_only=True)
+class PostProcessingConfig:
+    """``MODEL.POST_PROCESSING`` of a one-stage detector: OpenPCDet's keys, none of which
+    changes its detections (its dense head's ``POST_PROCESSING`` does)."""
+
+    recall_thresh_list: tuple[float, ...] = setting(
+        (0.3, 0.5, 0.7), ge=0, le=1,
+        doc="OpenPCDet's recall IoU thresholds; accepted, no recall is computed",
+    )  # fmt: skip
+    eval_metric: str = setting("waymo", choices=("waymo",), doc="waymo (the only one)")
+    score_thresh: float | None = setting(
+        None, check=_unset,
+        expected="null (a one-stage detector's threshold is its DENSE_HEAD.POST_PROCESSING's)",
+        doc="not read: set DENSE_HEAD.POST_PROCESSING.SCORE_THRESH",
+    )  # fmt: skip
+    output_raw_score: bool = unsupported("scores are output as probabilities")
+
+
+@dataclass(frozen=True, kw_only=True)
+class DetectorConfig:
+    """The keys of ``MODEL`` besides its stage sections (``VFE``, ``DENSE_HEAD``, ...)."""
+
+    name: str = setting(doc="registered detector class")
+    post_processing: PostProcessingConfig = section(PostProcessingConfig)
 
 
 class CheckpointMismatchError(RuntimeError):
@@ -135,12 +180,9 @@ class Detector3DTemplate(nn.Module):
 
     module_topology = list(STAGE_CFG_KEYS)
     required_stages: tuple[str, ...] = ()
-    #: keys ``MODEL.POST_PROCESSING`` may hold for this detector
-    #: further ``MODEL`` keys a subclass reads (beside ``NAME``, ``POST_PROCESSING``, stages)
-    EXTRA_MODEL_KEYS: tuple[str, ...] = ()
-    POST_PROCESSING_KEYS: tuple[str, ...] = (
-        "RECALL_THRESH_LIST", "EVAL_METRIC", "SCORE_THRESH", "OUTPUT_RAW_SCORE",
-    )  # fmt: skip
+    #: the declaration of the ``MODEL`` keys besides the stage sections (a subclass that reads
+    #: more declares a subclass of :class:`DetectorConfig`)
+    CONFIG: type = DetectorConfig
     #: every batch key besides ``batch_size`` that :meth:`predict` reads; a detector that
     #: declares them can keep its predictions in a ``PredictionStore`` (``prediction_store``)
     prediction_inputs: tuple[str, ...] | None = None
@@ -193,16 +235,7 @@ class Detector3DTemplate(nn.Module):
             num_point_features: point columns after the batch index (5, or 6 with time lag).
             extra: further keyword arguments of the subclass's constructor.
         """
-        stage_keys = {STAGE_CFG_KEYS[n] for n in cls.module_topology}
-        check_known_keys(
-            model_cfg,
-            ["NAME", "POST_PROCESSING", *sorted(stage_keys), *cls.EXTRA_MODEL_KEYS],
-            "MODEL",
-        )
-        post = model_cfg.get("POST_PROCESSING", {})
-        check_known_keys(post, cls.POST_PROCESSING_KEYS, "MODEL.POST_PROCESSING")
-        for name in cls.required_stages:
-            require_keys(model_cfg, [STAGE_CFG_KEYS[name]], "MODEL")
+        cls.read_config(model_cfg)
         info: dict = {
             "class_names": list(class_names),
             "num_rawpoint_features": int(num_point_features),
@@ -213,22 +246,39 @@ class Detector3DTemplate(nn.Module):
             info["voxel_size"] = tuple(float(v) for v in voxel_size)
         stages: dict[str, nn.Module] = {}
         for name in cls.module_topology:
-            section = model_cfg.get(STAGE_CFG_KEYS[name])
-            if section is None:
+            stage_cfg = model_cfg.get(STAGE_CFG_KEYS[name])
+            if stage_cfg is None:
                 continue
-            require_keys(section, ["NAME"], f"MODEL.{STAGE_CFG_KEYS[name]}")
-            stage_cls = MODEL_STAGES.get(section["NAME"])
+            stage_name = config_value(
+                stage_cfg, "NAME", _text, f"MODEL.{STAGE_CFG_KEYS[name]}",
+                expected="a registered stage name",
+            )  # fmt: skip
+            stage_cls = MODEL_STAGES.get(stage_name)
             try:
-                stages[name] = stage_cls.from_config(section, info)
+                stages[name] = stage_cls.from_config(stage_cfg, info)
             except ConfigError:
                 raise
             except ValueError as err:  # a value the stage rejects: say which section and file
-                files = sorted({key_source(section, k) for k in section} - {"<unknown>"})
+                files = sorted({key_source(stage_cfg, k) for k in stage_cfg} - {"<unknown>"})
                 raise ConfigError(
                     f"MODEL.{STAGE_CFG_KEYS[name]} ({', '.join(files) or 'built in code'}): {err}"
                 ) from err
             stage_model_info(stages[name], name, info)
         return cls(class_names=class_names, **extra, **stages)
+
+    @classmethod
+    def read_config(cls, model_cfg: Mapping) -> DetectorConfig:
+        """The ``MODEL`` section's own keys read into :attr:`CONFIG` (its stage sections are
+        read by their stages); a required stage's section missing is an error."""
+        stage_keys = sorted({STAGE_CFG_KEYS[n] for n in cls.module_topology})
+        settings = read_section(cls.CONFIG, model_cfg, "MODEL", ignore=stage_keys)
+        for name in cls.required_stages:
+            if STAGE_CFG_KEYS[name] not in model_cfg:
+                raise ConfigError(
+                    f"missing required key MODEL.{STAGE_CFG_KEYS[name]} (a {cls.__name__} needs "
+                    f"its {name} stage; in {config_files(model_cfg)})"
+                )
+        return settings
 
     def train(self, mode: bool = True) -> Detector3DTemplate:
         """``nn.Module.train``, keeping every module outside :attr:`trainable_modules` (and not

@@ -14,22 +14,32 @@ score MLP trains on the current map only).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import torch
 
 from pcdet_atlas.config import ConfigError, key_source
-from pcdet_atlas.models.detectors.detector3d_template import Detector3DTemplate
+from pcdet_atlas.config_values import read_section, setting
+from pcdet_atlas.models.detectors.detector3d_template import Detector3DTemplate, DetectorConfig
 from pcdet_atlas.models.model_utils.motion_sampler import frame_of_points
-from pcdet_atlas.models.occupancy.latent_occupancy_tracking import (
-    DEFAULT_BUFFER_LENGTH,
-    DEFAULT_FORECAST_FROM,
-)
+from pcdet_atlas.models.occupancy.latent_occupancy_tracking import LOTConfig
 from pcdet_atlas.registry import DETECTORS
 
 __all__ = ["PHiM"]
 
 #: loss terms a PHiM config may ask for (``MODEL.LOSS_TERMS``; the staged LOT training)
 LOSS_TERMS = ("detection", "occupancy", "forecast")
+
+
+@dataclass(frozen=True, kw_only=True)
+class PHiMConfig(DetectorConfig):
+    """``MODEL`` of PHiM: the detector's keys and the loss terms of a LOT training stage."""
+
+    loss_terms: tuple[str, ...] = setting(
+        ("detection",), choices=LOSS_TERMS, check=bool,
+        expected=f"a non-empty subset of {list(LOSS_TERMS)}",
+        doc="the loss terms that train (occupancy and forecast need MODEL.LOT)",
+    )  # fmt: skip
 
 
 @DETECTORS.register()
@@ -45,9 +55,9 @@ class PHiM(Detector3DTemplate):
         "vfe", "lot", "backbone_3d", "map_to_bev_module", "backbone_2d", "dense_head",
     ]  # fmt: skip
     required_stages = ("vfe", "backbone_3d", "map_to_bev_module", "backbone_2d", "dense_head")
-    EXTRA_MODEL_KEYS = ("LOSS_TERMS",)
+    CONFIG = PHiMConfig
 
-    def __init__(self, *, loss_terms: Sequence[str] = ("detection",), **kwargs):
+    def __init__(self, *, loss_terms: Sequence[str] = PHiMConfig.loss_terms, **kwargs):
         super().__init__(**kwargs)
         problem = loss_terms_problem(loss_terms, self.lot is not None)
         if problem:
@@ -56,7 +66,7 @@ class PHiM(Detector3DTemplate):
 
     @classmethod
     def from_config(cls, model_cfg: Mapping, *, num_point_features: int, **kwargs) -> PHiM:
-        terms = list(model_cfg.get("LOSS_TERMS", ["detection"]))
+        terms = list(cls.read_config(model_cfg).loss_terms)
         problem = loss_terms_problem(terms, "LOT" in model_cfg)
         if problem:
             source = key_source(model_cfg, "LOSS_TERMS") if "LOSS_TERMS" in model_cfg else "default"
@@ -147,10 +157,10 @@ class PHiM(Detector3DTemplate):
 
 def lot_history_frames(model_cfg: Mapping) -> int:
     """``K`` of a ``MODEL.LOT`` that forecasts from the previous frames; 0 otherwise."""
-    lot = model_cfg.get("LOT")
-    if not lot or lot.get("FORECAST_FROM", DEFAULT_FORECAST_FROM) != "frames":
+    if not model_cfg.get("LOT"):
         return 0
-    return int(lot.get("BUFFER_LENGTH", DEFAULT_BUFFER_LENGTH))
+    lot = read_section(LOTConfig, model_cfg["LOT"], "MODEL.LOT")
+    return lot.buffer_length if lot.forecast_from == "frames" else 0
 
 
 def loss_terms_problem(terms: Sequence[str], has_lot: bool) -> str | None:

@@ -15,34 +15,81 @@ clean data from the batch (``roi_boxes``; :mod:`pcdet_atlas.train_utils.proposal
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import torch
 
-from pcdet_atlas.config import (
-    ConfigError,
-    cfg_from_yaml_file,
-    check_known_keys,
-    key_source,
-    resolve_repo_path,
-)
+from pcdet_atlas.config import ConfigError, cfg_from_yaml_file, resolve_repo_path
+from pcdet_atlas.config_values import read_section, section, setting, unsupported
 from pcdet_atlas.models.build import build_network_from_config, num_point_features_of
 from pcdet_atlas.models.detectors.detector3d_template import (
     CheckpointMismatchError,
     Detector3DTemplate,
+    DetectorConfig,
+    PostProcessingConfig,
 )
 from pcdet_atlas.models.model_utils.motion_sampler import frame_of_points
 from pcdet_atlas.models.model_utils.roi_utils import fuse_scores, select_detections
 from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.seeding import torch_generator
 
-__all__ = ["RPN_KEYS", "TwoStageDetector", "load_rpn"]
+__all__ = [
+    "RPNConfig",
+    "TwoStageConfig",
+    "TwoStageDetector",
+    "TwoStageNMSConfig",
+    "TwoStagePostProcessing",
+    "load_rpn",
+]
 
-RPN_KEYS = ("CFG", "CHECKPOINT", "CACHE_DIR")
-#: keys ``MODEL.POST_PROCESSING.NMS_CONFIG`` may hold (``NMS_TYPE`` and ``MULTI_CLASSES_NMS``
-#: only with the values of what runs: class-agnostic rotated BEV NMS)
-NMS_CONFIG_KEYS = (
-    "NMS_THRESH", "NMS_PRE_MAXSIZE", "NMS_POST_MAXSIZE", "NMS_TYPE", "MULTI_CLASSES_NMS",
-)  # fmt: skip
+
+def _given(value: str) -> bool:
+    return bool(value)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RPNConfig:
+    """``MODEL.RPN``: the frozen proposal network."""
+
+    cfg: str = setting(check=_given, expected="a config file", doc="the RPN's config file")
+    checkpoint: str = setting(
+        check=_given, expected="a checkpoint file", doc="the RPN's trained checkpoint"
+    )
+    cache_dir: str | None = setting(None, doc="folder of precomputed training proposals")
+
+
+@dataclass(frozen=True, kw_only=True)
+class TwoStageNMSConfig:
+    """``MODEL.POST_PROCESSING.NMS_CONFIG``: class-agnostic rotated BEV NMS (the one that runs;
+    ``NMS_TYPE`` and ``MULTI_CLASSES_NMS`` only with its values)."""
+
+    nms_thresh: float = setting(0.7, gt=0, le=1, doc="BEV IoU above which a box is suppressed")
+    nms_pre_maxsize: int = setting(4096, ge=1, doc="highest-scoring boxes entering NMS")
+    nms_post_maxsize: int = setting(500, ge=1, doc="boxes kept after NMS")
+    nms_type: str = setting(
+        "nms_gpu", choices=("nms_gpu", "nms_bev"),
+        expected="'nms_gpu' or 'nms_bev': only rotated BEV NMS is implemented",
+        doc="nms_gpu or nms_bev (the same rotated BEV NMS)",
+    )  # fmt: skip
+    multi_classes_nms: bool = unsupported("only class-agnostic NMS is implemented")
+
+
+@dataclass(frozen=True, kw_only=True)
+class TwoStagePostProcessing(PostProcessingConfig):
+    """``MODEL.POST_PROCESSING`` of a two-stage detector (read by
+    :meth:`TwoStageDetector.detections`)."""
+
+    score_thresh: float = setting(0.1, ge=0, doc="refined detections below it are dropped")
+    not_apply_nms_for_vel: bool = setting(True, doc="no NMS for vehicles (as MSF and PTT)")
+    nms_config: TwoStageNMSConfig = section(TwoStageNMSConfig)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TwoStageConfig(DetectorConfig):
+    """``MODEL`` of a two-stage detector: the detector's keys and its RPN."""
+
+    rpn: RPNConfig = setting(doc="the frozen proposal network (CFG and CHECKPOINT)")
+    post_processing: TwoStagePostProcessing = section(TwoStagePostProcessing)
 
 
 def rpn_window(rpn_cfg: Mapping) -> int:
@@ -57,18 +104,15 @@ def rpn_window(rpn_cfg: Mapping) -> int:
 def load_rpn(rpn_section: Mapping) -> tuple[Detector3DTemplate, dict]:
     """Build and load the RPN of a ``MODEL.RPN`` section; returns it (eval mode, gradients off)
     and its identity ``{'cfg', 'checkpoint', 'sha256', 'window', 'cfg_dict'}``."""
-    check_known_keys(rpn_section, RPN_KEYS, "MODEL.RPN")
-    for key in ("CFG", "CHECKPOINT"):
-        if not rpn_section.get(key):
-            raise ConfigError(f"MODEL.RPN.{key} is required (the proposal network's {key.lower()})")
-    cfg_path = resolve_repo_path(rpn_section["CFG"])
-    ckpt_path = resolve_repo_path(rpn_section["CHECKPOINT"])
+    settings = read_section(RPNConfig, rpn_section, "MODEL.RPN")
+    cfg_path = resolve_repo_path(settings.cfg)
+    ckpt_path = resolve_repo_path(settings.checkpoint)
     if not cfg_path.is_file():
         raise FileNotFoundError(f"MODEL.RPN.CFG: {cfg_path} not found")
     if not ckpt_path.is_file():
         raise FileNotFoundError(
             f"MODEL.RPN.CHECKPOINT: {ckpt_path} not found (train the RPN with tools/train.py "
-            f"--cfg {rpn_section['CFG']}; docs/getting_started.md, two-stage models)"
+            f"--cfg {settings.cfg}; docs/getting_started.md, two-stage models)"
         )
     rpn_cfg = cfg_from_yaml_file(cfg_path)
     rpn = build_network_from_config(rpn_cfg)
@@ -78,12 +122,12 @@ def load_rpn(rpn_section: Mapping) -> tuple[Detector3DTemplate, dict]:
     for param in rpn.parameters():
         param.requires_grad_(False)
     info = {
-        "cfg": str(rpn_section["CFG"]),
-        "checkpoint": str(rpn_section["CHECKPOINT"]),
+        "cfg": settings.cfg,
+        "checkpoint": settings.checkpoint,
         "sha256": file_sha256(ckpt_path),
         "window": rpn_window(rpn_cfg),
         "num_point_features": num_point_features,
-        "cache_dir": rpn_section.get("CACHE_DIR"),
+        "cache_dir": settings.cache_dir,
         "cfg_dict": rpn_cfg,
     }
     return rpn, info
@@ -92,23 +136,18 @@ def load_rpn(rpn_section: Mapping) -> tuple[Detector3DTemplate, dict]:
 class TwoStageDetector(Detector3DTemplate):
     """A frozen RPN plus stages of its own (module docstring)."""
 
-    POST_PROCESSING_KEYS = Detector3DTemplate.POST_PROCESSING_KEYS + (
-        "NOT_APPLY_NMS_FOR_VEL",
-        "NMS_CONFIG",
-    )
+    CONFIG = TwoStageConfig
 
     def __init__(self, *, class_names, rpn: Detector3DTemplate, rpn_info: Mapping,
-                 post_processing: Mapping | None = None, **stages):  # fmt: skip
+                 post_processing: TwoStagePostProcessing | None = None, **stages):  # fmt: skip
         super().__init__(class_names=class_names, **stages)
         object.__setattr__(self, "rpn", rpn)  # not a submodule: frozen, not in state_dict
         self.rpn_info = {k: v for k, v in rpn_info.items() if k != "cfg_dict"}
-        self.post_processing = dict(post_processing or {})
+        self.post_processing = post_processing or TwoStagePostProcessing()
 
     @classmethod
     def from_config(cls, model_cfg: Mapping, **kwargs) -> TwoStageDetector:
-        if "RPN" not in model_cfg:
-            raise ConfigError(f"MODEL.RPN is required for {cls.__name__} (CFG and CHECKPOINT)")
-        check_post_processing(model_cfg.get("POST_PROCESSING", {}))
+        settings = cls.read_config(model_cfg)
         rpn, info = load_rpn(model_cfg["RPN"])
         rpn_points = info["num_point_features"]
         if rpn_points != kwargs["num_point_features"]:
@@ -117,9 +156,8 @@ class TwoStageDetector(Detector3DTemplate):
                 f"data {kwargs['num_point_features']}: both need x, y, z, intensity, "
                 "elongation and the time lag"
             )
-        own = {k: v for k, v in model_cfg.items() if k != "RPN"}
         return super().from_config(
-            own, rpn=rpn, rpn_info=info, post_processing=model_cfg.get("POST_PROCESSING", {}),
+            model_cfg, rpn=rpn, rpn_info=info, post_processing=settings.post_processing,
             **kwargs,
         )  # fmt: skip
 
@@ -185,9 +223,9 @@ class TwoStageDetector(Detector3DTemplate):
         MSF and PTT). ``proposals`` (the RPN's per-sample outputs) are returned as ``rois``,
         ``roi_scores``, ``roi_labels``."""
         post = self.post_processing
-        nms = post.get("NMS_CONFIG", {})
+        nms = post.nms_config
         no_nms = [1 + self.class_names.index("Vehicle")] if (
-            post.get("NOT_APPLY_NMS_FOR_VEL", True) and "Vehicle" in self.class_names
+            post.not_apply_nms_for_vel and "Vehicle" in self.class_names
         ) else []  # fmt: skip
         results = []
         for b, proposal in enumerate(proposals):
@@ -197,10 +235,10 @@ class TwoStageDetector(Detector3DTemplate):
             )
             keep = select_detections(
                 boxes[b, :n], fused, labels[b, :n],
-                score_thresh=float(post.get("SCORE_THRESH", 0.1)),
-                nms_thresh=float(nms.get("NMS_THRESH", 0.7)),
-                pre_max_size=int(nms.get("NMS_PRE_MAXSIZE", 4096)),
-                post_max_size=int(nms.get("NMS_POST_MAXSIZE", 500)),
+                score_thresh=post.score_thresh,
+                nms_thresh=nms.nms_thresh,
+                pre_max_size=nms.nms_pre_maxsize,
+                post_max_size=nms.nms_post_maxsize,
                 no_nms_labels=no_nms,
             )  # fmt: skip
             results.append({
@@ -241,31 +279,6 @@ class TwoStageDetector(Detector3DTemplate):
                 "datasets' collate_batch provides)"
             )
         return [torch_generator(int(s), purpose) for s in batch_dict["frame_seed"]]
-
-
-def check_post_processing(post: Mapping) -> None:
-    """Raise :class:`ConfigError` for a ``MODEL.POST_PROCESSING`` ``NMS_CONFIG`` key that would
-    be ignored or a value that asks for an NMS other than the one implemented."""
-    nms = post.get("NMS_CONFIG", {})
-    section = "MODEL.POST_PROCESSING.NMS_CONFIG"
-    check_known_keys(nms, NMS_CONFIG_KEYS, section)
-    if nms.get("NMS_TYPE", "nms_gpu") not in ("nms_gpu", "nms_bev"):
-        raise ConfigError(
-            f"{section}.NMS_TYPE = {nms['NMS_TYPE']!r} (from {key_source(nms, 'NMS_TYPE')}): "
-            "only rotated BEV NMS ('nms_gpu' / 'nms_bev') is implemented"
-        )
-    if nms.get("MULTI_CLASSES_NMS", False) is not False:
-        raise ConfigError(
-            f"{section}.MULTI_CLASSES_NMS = {nms['MULTI_CLASSES_NMS']!r} (from "
-            f"{key_source(nms, 'MULTI_CLASSES_NMS')}): only class-agnostic NMS (False) is "
-            "implemented"
-        )
-    flag = post.get("NOT_APPLY_NMS_FOR_VEL", True)
-    if not isinstance(flag, bool):
-        raise ConfigError(
-            f"MODEL.POST_PROCESSING.NOT_APPLY_NMS_FOR_VEL = {flag!r} (from "
-            f"{key_source(post, 'NOT_APPLY_NMS_FOR_VEL')}): expected True or False"
-        )
 
 
 def proposals_to_padded(

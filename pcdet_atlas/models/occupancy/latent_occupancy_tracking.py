@@ -24,12 +24,13 @@ before the detector sees them.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pcdet_atlas.config import check_known_keys
+from pcdet_atlas.config_values import fields_of, setting
 from pcdet_atlas.models.model_utils.centernet_utils import (
     focal_loss_centernet,
     focal_loss_centernet_prob,
@@ -37,14 +38,30 @@ from pcdet_atlas.models.model_utils.centernet_utils import (
 from pcdet_atlas.models.model_utils.polar_grid import PolarGrid
 from pcdet_atlas.models.occupancy.occupancy_targets import occupancy_target
 from pcdet_atlas.models.ssm import ConvSSM
+from pcdet_atlas.models.stage_config import StageConfig, read_stage
 from pcdet_atlas.registry import MODEL_STAGES
 
-__all__ = ["DEFAULT_BUFFER_LENGTH", "DEFAULT_FORECAST_FROM", "LatentOccupancyTracking"]
+__all__ = ["LOTConfig", "LatentOccupancyTracking"]
 
 CONFIDENCE_MAPS = ("final", "forecast")
 FORECAST_SOURCES = ("frames", "sectors")
-DEFAULT_BUFFER_LENGTH = 4
-DEFAULT_FORECAST_FROM = "frames"
+
+
+@dataclass(frozen=True, kw_only=True)
+class LOTConfig(StageConfig):
+    """``MODEL.LOT``."""
+
+    hidden_channels: int = setting(32, ge=1, doc="width of the score MLP")
+    pool_size: tuple[int, int] = setting(
+        (2, 2), ge=1, doc="(azimuth, range) grid cells per occupancy cell"
+    )
+    buffer_length: int = setting(4, ge=1, doc="K, the earlier maps the ConvSSM reads")
+    state_channels: int = setting(16, ge=1, doc="ConvSSM state width")
+    kernel_size: int = setting(3, ge=1, doc="ConvSSM kernel size")
+    filter_thresh: float = setting(0.1, doc="voxels whose confidence is below it are removed")
+    confidence_map: str = setting("final", choices=CONFIDENCE_MAPS, doc="final or forecast")
+    gt_min_sigma: float = setting(0.5, gt=0, doc="smallest sigma of the occupancy target, cells")
+    forecast_from: str = setting("frames", choices=FORECAST_SOURCES, doc="frames or sectors")
 
 
 @MODEL_STAGES.register()
@@ -56,20 +73,22 @@ class LatentOccupancyTracking(nn.Module):
     ``lot_current``, ``lot_forecast_logits``, ``lot_final`` (B, A', R') maps,
     ``lot_voxel_confidence`` (V,) and ``lot_keep`` (V,) of the input voxels."""
 
+    CONFIG = LOTConfig
+
     def __init__(
         self,
         *,
         input_channels: int,
         grid: PolarGrid,
-        hidden_channels: int = 32,
-        pool_size: tuple[int, int] = (2, 2),
-        buffer_length: int = DEFAULT_BUFFER_LENGTH,
-        state_channels: int = 16,
-        kernel_size: int = 3,
-        filter_thresh: float = 0.1,
-        confidence_map: str = "final",
-        gt_min_sigma: float = 0.5,
-        forecast_from: str = DEFAULT_FORECAST_FROM,
+        hidden_channels: int = LOTConfig.hidden_channels,
+        pool_size: tuple[int, int] = LOTConfig.pool_size,
+        buffer_length: int = LOTConfig.buffer_length,
+        state_channels: int = LOTConfig.state_channels,
+        kernel_size: int = LOTConfig.kernel_size,
+        filter_thresh: float = LOTConfig.filter_thresh,
+        confidence_map: str = LOTConfig.confidence_map,
+        gt_min_sigma: float = LOTConfig.gt_min_sigma,
+        forecast_from: str = LOTConfig.forecast_from,
     ):
         """
         Args:
@@ -114,20 +133,11 @@ class LatentOccupancyTracking(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> LatentOccupancyTracking:
-        keys = {
-            "HIDDEN_CHANNELS": "hidden_channels", "POOL_SIZE": "pool_size",
-            "BUFFER_LENGTH": "buffer_length", "STATE_CHANNELS": "state_channels",
-            "KERNEL_SIZE": "kernel_size", "FILTER_THRESH": "filter_thresh",
-            "CONFIDENCE_MAP": "confidence_map", "GT_MIN_SIGMA": "gt_min_sigma",
-            "FORECAST_FROM": "forecast_from",
-        }  # fmt: skip
-        check_known_keys(cfg, ["NAME", *keys], "MODEL.LOT")
+        settings = read_stage(cls, cfg, "MODEL.LOT")
         grid = model_info.get("polar_grid")
         if grid is None:
             raise ValueError("LOT needs a polar VFE (MODEL.VFE.NAME: PolarVFE)")
-        kwargs = {arg: cfg[key] for key, arg in keys.items() if key in cfg}
-        if "pool_size" in kwargs:
-            kwargs["pool_size"] = tuple(kwargs["pool_size"])
+        kwargs = {f: v for f, v in fields_of(settings).items() if f != "name"}
         return cls(input_channels=model_info["num_point_features"], grid=grid, **kwargs)
 
     @property
