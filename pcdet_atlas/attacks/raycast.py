@@ -12,11 +12,11 @@ How the work stays proportional to the spoof's sector:
    merged, wide ones split into pieces of at most 90°), each widened by a small angular margin.
 3. A scene point is a *candidate* if it lies in one of these wedges, tested with two cross
    products per wedge in the scene's own dtype (no trigonometry over the whole scene; the tests
-   compare in place into float 0/1 and the few hits are found word by word,
-   :func:`_sparse_nonzero`). The margins (1e-4 rad, 1 mm at the apex) are far above float32
-   rounding, so no point whose exact column is occupied can be missed. A caller that already
-   holds a sector containing the spoof's (the injection: one wedge around the phantom serves
-   its ground estimate too) passes its rows.
+   compare in place into float 0/1, cheaper on CPU than comparisons into new bool tensors). The
+   margins (1e-4 rad, 1 mm at the apex) are far above float32 rounding, so no point whose exact
+   column is occupied can be missed. A caller that already holds a sector containing the
+   spoof's (the injection: one wedge around the phantom serves its ground estimate too) passes
+   its rows.
 4. Candidates outside the elevation band of the spoof's beams are dropped (two half-space tests
    in float64 with a 1e-4 rad margin, :func:`_elevation_band_rows`), again a superset.
 5. Only the remaining candidates are binned exactly; a lookup table over the spoof's beams gives
@@ -73,9 +73,6 @@ _FULL_SCAN_FRACTION = 0.5
 _BAND_MARGIN_RAD = 1e-4
 _BAND_SLACK_M = 1e-3
 _BAND_MAX_ELEVATION_RAD = 1.2
-#: :func:`_sparse_nonzero` scans the bytes of the words holding a True only while they are at
-#: most this fraction of all the words (denser masks: one plain scan).
-_SPARSE_MAX_WORD_FRACTION = 0.25
 
 
 def _as_xyz(points, name: str) -> torch.Tensor:
@@ -203,25 +200,8 @@ def wedge_rows(
         flags = _half_plane(x, y, -math.sin(a0), math.cos(a0), ox, oy)
         torch.minimum(flags, _half_plane(x, y, math.sin(a1), -math.cos(a1), ox, oy), out=flags)
         inside = flags if inside is None else torch.maximum(inside, flags, out=inside)
-    found = _sparse_nonzero(inside)
+    found = torch.nonzero(inside.bool()).squeeze(1)
     return found if rows is None else rows[found]
-
-
-def _sparse_nonzero(flags: torch.Tensor) -> torch.Tensor:
-    """Ascending indices of the nonzero entries of ``flags`` (``(N,)`` float 0/1), cheap when
-    they are sparse: ``torch.nonzero`` over the bools viewed as int64 words of 8 finds the few
-    words holding one, then over those words' bytes only (its cost grows with the elements it
-    scans). Denser masks take one plain ``torch.nonzero``."""
-    n = flags.shape[0]
-    mask = torch.empty((n + 7) // 8 * 8, dtype=torch.bool, device=flags.device)
-    mask[n:] = False
-    mask[:n].copy_(flags)
-    words = mask.view(torch.int64)  # (N/8,)
-    hit = torch.nonzero(words).squeeze(1)  # (W,) ascending
-    if hit.numel() > _SPARSE_MAX_WORD_FRACTION * words.numel():
-        return torch.nonzero(mask[:n]).squeeze(1)
-    pos = torch.nonzero(words[hit].view(torch.bool)).squeeze(1)  # (C,) in the words' bytes
-    return torch.add(pos & 7, hit[pos >> 3], alpha=8)
 
 
 def disc_wedges(lidar: LidarModel, center_xy, radius: float) -> list[tuple[float, float]] | None:

@@ -587,8 +587,9 @@ def test_matches_previous_implementation_bitwise(p_dual):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16])
 def test_wedge_rows_match_previous_implementation(dtype):
-    """Same rows as bool half-plane tests, for sparse and dense masks (both nonzero paths),
-    points exactly on wedge edges, NaN and infinite coordinates, and among given rows."""
+    """Same rows as bool half-plane tests (the library compares in place into floats), for
+    narrow and wide wedges, points exactly on wedge edges, NaN and infinite coordinates, and
+    among given rows."""
     lidar = LidarModel.waymo_top()
     g = torch.Generator().manual_seed(0)
     for trial in range(40):
