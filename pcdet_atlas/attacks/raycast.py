@@ -81,7 +81,8 @@ def _as_xyz(points, name: str) -> torch.Tensor:
         raise ValueError(f"{name} must have shape (N, 3+), got {tuple(pts.shape)}")
     if not pts.is_floating_point():
         raise TypeError(f"{name} must be a floating-point tensor, got {pts.dtype}")
-    return pts[:, :3].detach()  # masks only: no graph
+    pts = pts if pts.shape[1] == 3 else pts[:, :3]
+    return pts.detach() if pts.requires_grad else pts  # masks only: no graph
 
 
 def _azimuth_intervals(
@@ -192,7 +193,8 @@ def wedge_rows(
     x, y = scene_xyz[:, 0].detach(), scene_xyz[:, 1].detach()  # (N,)
     if rows is not None:
         x, y = x[rows], y[rows]
-    x, y = x.to(dtype), y.to(dtype)
+    if x.dtype != dtype:
+        x, y = x.to(dtype), y.to(dtype)
     ox, oy = lidar.origin_xyz[:2]
     inside = None  # (N,) float 0/1
     for a0, a1 in wedges:
@@ -315,7 +317,7 @@ def raycast_merge(
     rays, spoof_ray = torch.unique(
         torch.where(valid, spoof_bin, sentinel), sorted=True, return_inverse=True
     )  # (K or K + 1,) ascending ray ids, (M,) slot of each spoof point
-    num_rays = rays.numel() - int(rays[-1] == sentinel)  # K
+    num_rays = rays.numel() - (int(rays[-1]) == sentinel)  # K
     if num_rays == 0:
         counters.add(raycast_calls=1, points_examined=num_spoof)
         return keep_scene, keep_spoof
@@ -397,7 +399,8 @@ def _elevation_band_rows(
         return rows
     rel = scene.index_select(0, rows).to(torch.float64)  # (C, 3)
     rel -= lidar._constants(rel.device)[0]
-    horiz, dz = torch.hypot(rel[:, 0], rel[:, 1]), rel[:, 2]  # (C,)
+    dx, dy, dz = rel.unbind(1)  # (C,) each
+    horiz = torch.hypot(dx, dy)
     keep = None
     if test_lo:
         keep = torch.add(dz, horiz, alpha=-math.tan(lo)) >= -_BAND_SLACK_M

@@ -38,7 +38,11 @@ import numpy as np
 import torch
 
 from pcdet_atlas.attacks.counters import COUNTERS, AttackCounters
-from pcdet_atlas.attacks.raycast import raycast_merge
+from pcdet_atlas.attacks.raycast import (
+    _elevation_band_rows,
+    azimuth_sector_candidates,
+    raycast_merge,
+)
 from pcdet_atlas.config import REPO_ROOT
 from pcdet_atlas.ops.lidar_model import LidarModel
 from pcdet_atlas.utils.cli import add_debug_flag, run_tool
@@ -199,6 +203,16 @@ def bench_raycast(args) -> None:
         f"  identical masks (p_dual 0 and 0.01): yes; kept {int(keep_spoof.sum())} phantom pts, "
         f"removed {int((~keep_scene).sum())} scene pts; examined {counters.points_examined} pts, "
         f"{counters.bins_touched} rays"
+    )
+    # what the elevation-band pre-filter leaves to bin exactly (the raycaster's own steps)
+    spoof_bin, spoof_fov, spoof_rng = lidar.bin_index(spoof)
+    rays = torch.unique(spoof_bin[spoof_fov & (spoof_rng > 0) & (spoof_rng <= lidar.max_range)])
+    sector = azimuth_sector_candidates(scene, torch.unique(rays % lidar.azimuth_bins), lidar)
+    beams = (int(rays[0]) // lidar.azimuth_bins, int(rays[-1]) // lidar.azimuth_bins)
+    band = _elevation_band_rows(scene, sector, lidar, *beams)
+    print(
+        f"  elevation band (beams {beams[0]}-{beams[1]}): {band.numel()} of {sector.numel()} "
+        "sector candidates binned exactly"
     )
 
     fns = {
