@@ -18,8 +18,9 @@ Fields (all non-negative ints):
     raycast_calls: calls of :func:`~pcdet_atlas.attacks.raycast.raycast_merge` that had at
         least one spoof point.
     bins_touched: distinct (azimuth, beam) rays holding a valid spoof point, summed over calls.
-    points_examined: scene points binned exactly (the candidates of the spoof's azimuth sector)
-        plus spoof points, summed over calls.
+    points_examined: scene points examined (the candidates of the spoof's azimuth sector, of
+        which those in the elevation band of its beams are binned exactly) plus spoof points,
+        summed over calls.
     dual_draws: uniforms drawn for dual returns (one per bin where the spoof is the primary echo).
     frames_simulated: frames (current or history) that went through an attack simulation.
     history_frames_resimulated: history frames of a multi-frame input that were simulated

@@ -11,13 +11,20 @@ How the work stays proportional to the spoof's sector:
 2. Their occupied azimuth columns are grouped into a few circular intervals (neighbouring runs
    merged, wide ones split into pieces of at most 90°), each widened by a small angular margin.
 3. A scene point is a *candidate* if it lies in one of these wedges, tested with two cross
-   products per wedge in the scene's own dtype (no trigonometry over the whole scene). The
+   products per wedge in the scene's own dtype (no trigonometry over the whole scene; the tests
+   compare in place into float 0/1, cheaper on CPU than comparisons into new bool tensors). The
    margins (1e-4 rad, 1 mm at the apex) are far above float32 rounding, so no point whose exact
-   column is occupied can be missed. A caller that already holds a sector containing the spoof's
-   (the injection: one wedge around the phantom serves its ground estimate too) passes its rows.
-4. Only candidates are binned exactly and merged. Ties and minima use a two-pass
-   ``scatter_reduce('amin')`` (min range per ray, then min index among the points achieving it),
-   which is deterministic on CPU and GPU; no ``index_put_`` with duplicate indices.
+   column is occupied can be missed. A caller that already holds a sector containing the
+   spoof's (the injection: one wedge around the phantom serves its ground estimate too) passes
+   its rows.
+4. Candidates outside the elevation band of the spoof's beams are dropped (two half-space tests
+   in float64 with a 1e-4 rad margin, :func:`_elevation_band_rows`), again a superset.
+5. Only the remaining candidates are binned exactly; a lookup table over the spoof's beams gives
+   each its ray slot (no sort, no binary search), and per-ray arrays carry one extra slot that
+   absorbs invalid spoof points and candidates of other rays, so no mask is compacted. Ties and
+   minima use a two-pass ``scatter_reduce('amin')`` (min range per ray, then min index among
+   the points achieving it), which is deterministic on CPU and GPU; no ``index_put_`` with
+   duplicate indices.
 
 One implementation, in torch, on every device: CPU tensors run the same code as CUDA ones.
 
@@ -61,6 +68,11 @@ _MAX_WEDGE_RAD = math.pi / 2
 _MERGE_GAP_RAD = math.radians(5.0)
 #: Above this covered fraction of the circle, every scene point is a candidate (cheaper).
 _FULL_SCAN_FRACTION = 0.5
+#: Elevation band pre-filter: margin beyond the spoof's beams (rad, >> float64 atan2 error),
+#: absolute slack of its tests (m, points near the sensor) and the steepest band edge it tests.
+_BAND_MARGIN_RAD = 1e-4
+_BAND_SLACK_M = 1e-3
+_BAND_MAX_ELEVATION_RAD = 1.2
 
 
 def _as_xyz(points, name: str) -> torch.Tensor:
@@ -69,7 +81,8 @@ def _as_xyz(points, name: str) -> torch.Tensor:
         raise ValueError(f"{name} must have shape (N, 3+), got {tuple(pts.shape)}")
     if not pts.is_floating_point():
         raise TypeError(f"{name} must be a floating-point tensor, got {pts.dtype}")
-    return pts[:, :3]
+    pts = pts if pts.shape[1] == 3 else pts[:, :3]
+    return pts.detach() if pts.requires_grad else pts  # masks only: no graph
 
 
 def _azimuth_intervals(
@@ -177,18 +190,19 @@ def wedge_rows(
     if not wedges or scene_xyz.shape[0] == 0:
         return torch.zeros(0, dtype=torch.long, device=scene_xyz.device)
     dtype = scene_xyz.dtype if scene_xyz.dtype in (torch.float32, torch.float64) else torch.float32
-    x, y = scene_xyz[:, 0], scene_xyz[:, 1]  # (N,)
+    x, y = scene_xyz[:, 0].detach(), scene_xyz[:, 1].detach()  # (N,)
     if rows is not None:
         x, y = x[rows], y[rows]
-    x, y = x.to(dtype), y.to(dtype)
+    if x.dtype != dtype:
+        x, y = x.to(dtype), y.to(dtype)
     ox, oy = lidar.origin_xyz[:2]
-    mask = None
+    inside = None  # (N,) float 0/1
     for a0, a1 in wedges:
         # inside iff cross(u0, p - o) >= 0 and cross(p - o, u1) >= 0 (wedge narrower than pi)
-        inside = _half_plane(x, y, -math.sin(a0), math.cos(a0), ox, oy)
-        inside &= _half_plane(x, y, math.sin(a1), -math.cos(a1), ox, oy)
-        mask = inside if mask is None else mask | inside
-    found = torch.nonzero(mask).squeeze(1)
+        flags = _half_plane(x, y, -math.sin(a0), math.cos(a0), ox, oy)
+        torch.minimum(flags, _half_plane(x, y, math.sin(a1), -math.cos(a1), ox, oy), out=flags)
+        inside = flags if inside is None else torch.maximum(inside, flags, out=inside)
+    found = torch.nonzero(inside.bool()).squeeze(1)
     return found if rows is None else rows[found]
 
 
@@ -223,17 +237,17 @@ def disc_wedges(lidar: LidarModel, center_xy, radius: float) -> list[tuple[float
 def _half_plane(
     x: torch.Tensor, y: torch.Tensor, a: float, b: float, ox: float, oy: float
 ) -> torch.Tensor:
-    """``a (x - ox) + b (y - oy) >= -slack`` in two passes over the points (``(N,)`` bool).
+    """``a (x - ox) + b (y - oy) >= -slack`` as a fresh ``(N,)`` float tensor of 0/1 (NaN: 0).
 
-    Divides by the larger of ``|a|``, ``|b|`` so that one fused ``add(.., alpha=..)`` and one
-    comparison suffice; NaN compares False.
+    Divides by the larger of ``|a|``, ``|b|`` so that one fused ``add(.., alpha=..)`` suffices,
+    then compares in place (a comparison into a new bool tensor is several times slower on CPU).
     """
     thresh = a * ox + b * oy - _WEDGE_SLACK_M
     if abs(b) >= abs(a):
         w = torch.add(y, x, alpha=a / b)  # (N,)
-        return w >= thresh / b if b > 0 else w <= thresh / b
+        return w.ge_(thresh / b) if b > 0 else w.le_(thresh / b)
     w = torch.add(x, y, alpha=b / a)  # (N,)
-    return w >= thresh / a if a > 0 else w <= thresh / a
+    return w.ge_(thresh / a) if a > 0 else w.le_(thresh / a)
 
 
 def raycast_merge(
@@ -295,42 +309,47 @@ def raycast_merge(
     if num_spoof == 0:
         return keep_scene, keep_spoof
 
-    # ---- spoof rays (rules 1, 2)
+    # ---- spoof rays (rules 1, 2). Per-ray arrays have K + 1 slots: slot K collects the invalid
+    # spoof points and the scene candidates that are no return of a spoof ray (never kept).
     spoof_bin, spoof_fov, spoof_rng = lidar.bin_index(spoof)  # (M,) long, bool, float64
     valid = spoof_fov & (spoof_rng > 0) & (spoof_rng <= lidar.max_range)
-    spoof_idx = torch.nonzero(valid).squeeze(1)  # (V,)
-    if spoof_idx.numel() == 0:
+    sentinel = lidar.num_bins  # after every ray id: the last of the sorted rays
+    rays, spoof_ray = torch.unique(
+        torch.where(valid, spoof_bin, sentinel), sorted=True, return_inverse=True
+    )  # (K or K + 1,) ascending ray ids, (M,) slot of each spoof point
+    num_rays = rays.numel() - (int(rays[-1]) == sentinel)  # K
+    if num_rays == 0:
         counters.add(raycast_calls=1, points_examined=num_spoof)
         return keep_scene, keep_spoof
-    rays, spoof_ray = torch.unique(spoof_bin[spoof_idx], sorted=True, return_inverse=True)
-    num_rays = rays.numel()  # K rays, ascending ray id
-    spoof_r = spoof_rng[spoof_idx]  # (V,)
-    echo_r = torch.full((num_rays,), math.inf, dtype=torch.float64, device=device)
-    echo_r.scatter_reduce_(0, spoof_ray, spoof_r, "amin")  # (K,) nearest spoof range
-    echo_idx = torch.full((num_rays,), num_spoof, dtype=torch.long, device=device)
+    rays = rays[:num_rays]  # (K,)
+    echo_r = torch.full((num_rays + 1,), math.inf, dtype=torch.float64, device=device)
+    echo_r.scatter_reduce_(0, spoof_ray, spoof_rng, "amin")  # (K+1,) nearest spoof range
+    echo_idx = torch.full((num_rays + 1,), num_spoof, dtype=torch.long, device=device)
+    spoof_ids = torch.arange(num_spoof, device=device)
     echo_idx.scatter_reduce_(
-        0, spoof_ray, torch.where(spoof_r == echo_r[spoof_ray], spoof_idx, num_spoof), "amin"
-    )  # (K,) lowest index achieving it
+        0, spoof_ray, torch.where(spoof_rng == echo_r[spoof_ray], spoof_ids, num_spoof), "amin"
+    )  # (K+1,) lowest index achieving it
 
     # ---- scene returns of those rays, from the candidates of the sector only
     columns = torch.unique(rays % lidar.azimuth_bins)  # sorted
     cand = azimuth_sector_candidates(scene, columns, lidar, candidates)  # (C,)
-    cand_bin, cand_fov, cand_rng = lidar.bin_index(scene[cand])
-    pos = torch.searchsorted(rays, cand_bin).clamp_(max=num_rays - 1)
-    is_ret = cand_fov & (cand_rng > 0) & torch.isfinite(cand_rng) & (rays[pos] == cand_bin)  # (C,)
-    ret_idx = cand[is_ret]  # (R,) scene indices
-    ret_ray = pos[is_ret]  # (R,)
-    ret_r = cand_rng[is_ret]  # (R,)
-    far_r = torch.full((num_rays,), -math.inf, dtype=torch.float64, device=device)
-    far_r.scatter_reduce_(0, ret_ray, ret_r, "amax")  # (K,) farthest scene return
-    near_r = torch.full((num_rays,), math.inf, dtype=torch.float64, device=device)
-    near_r.scatter_reduce_(0, ret_ray, ret_r, "amin")  # (K,) nearest scene return
+    beam_lo, beam_hi = int(rays[0]) // lidar.azimuth_bins, int(rays[-1]) // lidar.azimuth_bins
+    band = _elevation_band_rows(scene, cand, lidar, beam_lo, beam_hi)  # (C',) of the spoof's beams
+    cand_bin, cand_fov, cand_rng = lidar.bin_index(scene[band])  # (C',)
+    pos = _ray_slots(rays, cand_bin, beam_lo, beam_hi, lidar.azimuth_bins)  # (C',) K: none
+    is_ret = cand_fov & (cand_rng > 0) & torch.isfinite(cand_rng)  # returns of some ray
+    slot = torch.where(is_ret, pos, num_rays)  # (C',) ray slot of each return, K otherwise
+    far_r = torch.full((num_rays + 1,), -math.inf, dtype=torch.float64, device=device)
+    far_r.scatter_reduce_(0, slot, cand_rng, "amax")  # (K+1,) farthest scene return
+    near_r = torch.full((num_rays + 1,), math.inf, dtype=torch.float64, device=device)
+    near_r.scatter_reduce_(0, slot, cand_rng, "amin")  # (K+1,) nearest scene return
     has_scene = far_r > -math.inf
 
     # ---- rules 3, 4, 6
-    ray_keeps = ~has_scene | (echo_r < far_r)  # (K,)
-    keep_spoof[echo_idx[ray_keeps]] = True
-    occluded = ray_keeps[ret_ray] & (ret_r > echo_r[ret_ray])  # (R,)
+    ray_keeps = ~has_scene | (echo_r < far_r)  # (K+1,)
+    ray_keeps[num_rays] = False
+    keep_spoof[echo_idx[:num_rays]] = ray_keeps[:num_rays]  # one distinct echo per ray
+    occluded = ray_keeps[slot] & (cand_rng > echo_r[slot])  # (C',)
 
     # ---- rule 5: dual returns, drawn only in primary rays
     draws = 0
@@ -341,14 +360,14 @@ def raycast_merge(
             u = dual_uniforms(generator, draws, device)
             dual_rays = primary[u < p_dual]
             if dual_rays.numel():
-                near_idx = torch.full((num_rays,), num_scene, dtype=torch.long, device=device)
+                near_idx = torch.full((num_rays + 1,), num_scene, dtype=torch.long, device=device)
                 near_idx.scatter_reduce_(
-                    0, ret_ray, torch.where(ret_r == near_r[ret_ray], ret_idx, num_scene), "amin"
+                    0, slot, torch.where(cand_rng == near_r[slot], band, num_scene), "amin"
                 )
-                second = torch.zeros(num_rays, dtype=torch.bool, device=device)
+                second = torch.zeros(num_rays + 1, dtype=torch.bool, device=device)
                 second[dual_rays] = True
-                occluded &= ~(second[ret_ray] & (ret_idx == near_idx[ret_ray]))
-    keep_scene[ret_idx[occluded]] = False
+                occluded &= ~(second[slot] & (band == near_idx[slot]))
+    keep_scene[band] = ~occluded  # distinct rows; the others stay True
     counters.add(
         raycast_calls=1,
         bins_touched=num_rays,
@@ -356,6 +375,55 @@ def raycast_merge(
         dual_draws=draws,
     )
     return keep_scene, keep_spoof
+
+
+def _elevation_band_rows(
+    scene: torch.Tensor, rows: torch.Tensor, lidar: LidarModel, beam_lo: int, beam_hi: int
+) -> torch.Tensor:
+    """The ``rows`` (ascending) whose points may be binned into beams ``beam_lo..beam_hi``.
+
+    A superset, never missing a point whose exact elevation (:meth:`LidarModel.bin_index`) lies
+    in those beams: two half-space tests ``dz >= tan(lo) * horiz`` and ``dz <= tan(hi) * horiz``
+    in float64 against the band widened by ``_BAND_MARGIN_RAD`` (and ``_BAND_SLACK_M`` near the
+    sensor), far above float64 rounding. Non-finite points are dropped (they are no returns).
+    Every row is kept for sensors with laser offsets (a beam's elevation depends on the distance)
+    and a band edge steeper than ``_BAND_MAX_ELEVATION_RAD`` is not tested.
+    """
+    if lidar.offsets is not None or rows.numel() == 0:
+        return rows
+    mids = lidar.midpoints_np
+    lo = (float(mids[beam_lo - 1]) if beam_lo > 0 else lidar.fov_min) - _BAND_MARGIN_RAD
+    hi = (float(mids[beam_hi]) if beam_hi < mids.size else lidar.fov_max) + _BAND_MARGIN_RAD
+    test_lo, test_hi = lo > -_BAND_MAX_ELEVATION_RAD, hi < _BAND_MAX_ELEVATION_RAD
+    if not (test_lo or test_hi):
+        return rows
+    rel = scene.index_select(0, rows).to(torch.float64)  # (C, 3)
+    rel -= lidar._constants(rel.device)[0]
+    dx, dy, dz = rel.unbind(1)  # (C,) each
+    horiz = torch.hypot(dx, dy)
+    keep = None
+    if test_lo:
+        keep = torch.add(dz, horiz, alpha=-math.tan(lo)) >= -_BAND_SLACK_M
+    if test_hi:
+        below = torch.add(dz, horiz, alpha=-math.tan(hi)) <= _BAND_SLACK_M
+        keep = below if keep is None else keep & below
+    return rows[keep]
+
+
+def _ray_slots(
+    rays: torch.Tensor, bins: torch.Tensor, beam_lo: int, beam_hi: int, azimuth_bins: int
+) -> torch.Tensor:
+    """Slot in the ascending ``rays`` (``(K,)`` long ids of beams ``beam_lo..beam_hi``) of each
+    of ``bins`` (``(C,)`` long), ``K`` for a bin that is none of them.
+
+    A lookup table over the rays' beams with one "none" cell at each end, where every bin
+    outside the beams is clamped: no sort and no binary search.
+    """
+    num_rays = rays.numel()
+    base, size = beam_lo * azimuth_bins - 1, (beam_hi - beam_lo + 1) * azimuth_bins + 2
+    table = torch.full((size,), num_rays, dtype=torch.long, device=rays.device)
+    table[rays - base] = torch.arange(num_rays, device=rays.device)
+    return table[(bins - base).clamp_(0, size - 1)]
 
 
 def _check_dual(p_dual: float, generator: Generator | None) -> float:

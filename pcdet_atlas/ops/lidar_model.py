@@ -308,9 +308,8 @@ class LidarModel:
     def azimuth_index(self, azimuth: torch.Tensor) -> torch.Tensor:
         """Azimuth bin ``floor((theta + pi) / (2 pi / M))`` clamped to ``[0, M - 1]``, long."""
         width = 2 * math.pi / self.azimuth_bins
-        return torch.clamp(
-            torch.floor((azimuth + math.pi) / width), 0, self.azimuth_bins - 1
-        ).long()
+        # in place on one temporary (the same arithmetic as ``floor((theta + pi) / width)``)
+        return (azimuth + math.pi).div_(width).floor_().clamp_(0, self.azimuth_bins - 1).long()
 
     def beam_index(
         self, elevation: torch.Tensor, horiz: torch.Tensor | None = None
@@ -380,7 +379,7 @@ class LidarModel:
             beam, fov = self.beam_index(elevation), self.in_fov(elevation)
         else:
             beam, fov = self._offset_binning(elevation, rng * torch.cos(elevation))
-        return beam * self.azimuth_bins + self.azimuth_index(azimuth), fov, rng
+        return torch.add(self.azimuth_index(azimuth), beam, alpha=self.azimuth_bins), fov, rng
 
     def to_config(self) -> dict:
         """A ``LIDAR`` config section that rebuilds this model exactly."""

@@ -7,9 +7,11 @@ import torch
 from device_params import DEVICES
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from raycast_reference import reference_raycast_merge, reference_wedge_rows
 
 from pcdet_atlas.attacks.counters import AttackCounters
 from pcdet_atlas.attacks.raycast import (
+    _elevation_band_rows,
     _sector_wedges,
     azimuth_sector_candidates,
     disc_wedges,
@@ -540,3 +542,98 @@ def test_disc_wedge_rows_hold_the_sector_of_any_points_in_the_disc(seed):
         assert (~plain[0]).any()
     assert disc_wedges(lidar, (ox + 2.0, oy), 3.0) is None  # the disc holds the sensor
     assert disc_wedges(lidar, (ox + 3.0, oy), 2.99) is not None
+
+
+# ------------------------------------------- bitwise against the previous implementation
+def reference_cases():
+    """Scenes and spoofs that reach every branch of the pre-filters: sectors narrow, wide,
+    split and across the seam; spoofs partly out of the FOV or beyond max_range; NaN scene
+    points; sensors with laser offsets (no band filter) and with steep beams (band edges not
+    tested); float64, bfloat16 and extra columns."""
+    steep = LidarModel(np.deg2rad([-80.0, -60.0, -30.0, -5.0, 10.0, 45.0, 75.0]), 180)
+    lidars = [LidarModel.waymo_top(), small_lidar(), LidarModel.preset("hdl64e"), steep]
+    for seed in range(8):
+        lidar = lidars[seed % 4]
+        spread = [3.0, 20.0, 120.0, 200.0][seed // 2 % 4]
+        center = [None, 179.0, -179.5, None][seed % 4]
+        scene, spoof = random_case(seed, lidar, 3000, 600, center_deg=center, spread_deg=spread)
+        if seed % 3:  # a spoof in a few beams: the elevation band filter drops scene points
+            beam = lidar.bin_index(spoof)[0] // lidar.azimuth_bins
+            spoof = spoof[(beam >= 2) & (beam <= 4)]
+        scene[::13] = math.nan
+        spoof[::17, 2] = 100.0  # far above the FOV
+        spoof[1::19] *= 3.0  # some beyond max_range
+        yield lidar, scene, spoof
+        yield lidar, scene.double(), spoof.double()
+        yield lidar, scene.bfloat16(), spoof.bfloat16()
+        yield lidar, torch.cat([scene, torch.randn(scene.shape[0], 2)], 1), spoof
+
+
+@pytest.mark.parametrize("p_dual", [0.0, 0.5])
+def test_matches_previous_implementation_bitwise(p_dual):
+    for lidar, scene, spoof in reference_cases():
+        rows = torch.arange(0, scene.shape[0])  # the candidates path, every row
+        for cand in (None, rows):
+            got_c, exp_c = AttackCounters(), AttackCounters()
+            got = raycast_merge(
+                scene, spoof, lidar, p_dual, torch.Generator().manual_seed(3), got_c, cand
+            )
+            exp = reference_raycast_merge(
+                scene, spoof, lidar, p_dual, torch.Generator().manual_seed(3), exp_c, cand
+            )
+            assert torch.equal(got[0], exp[0]) and torch.equal(got[1], exp[1])
+            assert got_c.snapshot() == exp_c.snapshot()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16])
+def test_wedge_rows_match_previous_implementation(dtype):
+    """Same rows as bool half-plane tests (the library compares in place into floats), for
+    narrow and wide wedges, points exactly on wedge edges, NaN and infinite coordinates, and
+    among given rows."""
+    lidar = LidarModel.waymo_top()
+    g = torch.Generator().manual_seed(0)
+    for trial in range(40):
+        pts = (torch.rand(4001, 3, generator=g, dtype=torch.float64) * 2 - 1) * 10.0 ** (
+            trial % 5 - 1
+        )
+        a0 = float(torch.rand(1, generator=g)) * 2 * math.pi - math.pi
+        widths = [1e-3, 0.05, 0.5, 1.5]
+        wedges = [
+            (a0 + 0.7 * k, a0 + 0.7 * k + widths[(trial + k) % 4]) for k in range(trial % 3 + 1)
+        ]
+        r = torch.linspace(0, 40, 300, dtype=torch.float64)
+        edge = torch.stack(
+            [lidar.origin_xyz[0] + r * math.cos(a0), lidar.origin_xyz[1] + r * math.sin(a0), r], 1
+        )
+        pts = torch.cat([pts, edge])
+        pts[::97] = math.nan
+        pts[5::97, 0] = math.inf
+        pts[7::97, 1] = -math.inf
+        pts = pts.to(dtype)
+        rows = torch.arange(0, pts.shape[0], 3)
+        assert torch.equal(wedge_rows(pts, wedges, lidar), reference_wedge_rows(pts, wedges, lidar))
+        assert torch.equal(
+            wedge_rows(pts, wedges, lidar, rows), reference_wedge_rows(pts, wedges, lidar, rows)
+        )
+
+
+def test_elevation_band_keeps_every_return_of_the_spoof_beams_and_drops_the_rest():
+    """The band pre-filter (exact superset) on a Waymo-like sector: every candidate binned into
+    the spoof's beams survives it, including points on the beam midpoints bounding the band,
+    and most of the others are dropped before the exact binning."""
+    lidar = LidarModel.waymo_top()
+    g = np.random.default_rng(5)
+    n = 20000
+    incl = lidar.inclinations.numpy()
+    beams = g.integers(0, lidar.num_beams - 1, n)
+    on_mid = g.random(n) < 0.3  # exactly between two beams (a tie goes to the lower one)
+    frac_el = np.where(on_mid, (incl[beams + 1] - incl[beams]) / 2, g.uniform(-2e-3, 2e-3, n))
+    cols = g.integers(1200, 1300, n)
+    scene = ray_points(lidar, beams, cols, g.uniform(0.5, 80, n), frac_el=frac_el)
+    rows = torch.arange(n)
+    for lo, hi in ((20, 30), (0, 5), (50, 63), (31, 31)):
+        band = _elevation_band_rows(scene, rows, lidar, lo, hi)
+        exact = lidar.bin_index(scene)[0] // lidar.azimuth_bins
+        inside = torch.nonzero((exact >= lo) & (exact <= hi)).squeeze(1)
+        assert torch.isin(inside, band).all()
+        assert band.numel() < inside.numel() + 0.05 * n  # the rest dropped (but a margin)
