@@ -97,7 +97,9 @@ def test_bad_plugins_are_clear_errors(clean_registries, tmp_path, monkeypatch):
         import_plugins([str(tmp_path / "missing.py")])
     write(tmp_path / "idle_plugin.py", "X = 1\n")
     nothing = r"--plugin idle_plugin: registered nothing in the dataset, transform, attack, "
-    with pytest.raises(PluginError, match=nothing + "detector, model stage registries"):
+    with pytest.raises(
+        PluginError, match=nothing + "detector, model stage, analysis, confidence kind registries"
+    ):
         import_plugins(["idle_plugin"])
     # the plugin's own errors are its own: a missing dependency, a name taken by a built-in
     write(tmp_path / "needy_plugin.py", "import not_installed_dependency\n")
