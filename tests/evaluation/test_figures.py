@@ -213,3 +213,18 @@ def test_files_are_png_and_pdf_with_stable_bytes_and_no_leak(models, tmp_path):
     for suffix in (".png", ".pdf"):
         first = (tmp_path / "a" / "accuracy_vs_time").with_suffix(suffix)
         assert again.with_suffix(suffix).read_bytes() == first.read_bytes(), suffix
+
+
+def test_without_matplotlib_the_report_is_written_and_names_the_extra(
+    models, tmp_path, monkeypatch
+):
+    """matplotlib is the ``plots`` extra: without it the report's tables are written and each
+    figure says it was not drawn and how to install what draws it."""
+    for name in ("matplotlib", "matplotlib.style", "cycler"):
+        monkeypatch.setitem(sys.modules, name, None)  # an import of it now fails
+    out = write_report(models, tmp_path / "report")
+    text = out["report"].read_text()
+    assert "## Point injection (paper Table 3)" in text
+    assert out["figures"] and all(isinstance(r, str) for r in out["figures"].values())
+    assert text.count("Not drawn: matplotlib is not installed") == len(out["figures"])
+    assert "pip install -e .[plots]" in text and not list((tmp_path / "report").glob("*.png"))

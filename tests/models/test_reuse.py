@@ -404,7 +404,7 @@ def test_ptt_two_processes_equal_one(synthetic_root, injection, tmp_path):
             "--cfg", str(CFGS / "ptt_32f.yaml"), "--attacks", f"clean,{variant}",
             "--out_dir", str(out), "--workers", "0", "--no_progress", "--device", "cpu",
             "--set", "DATA_CONFIG.DATA_PATH", str(synthetic_root),
-            "DATA_CONFIG.SAMPLED_INTERVAL", f"train:1,test:{INTERVAL}",
+            "DATA_CONFIG.SAMPLED_INTERVAL", "train:1,test:10",  # 7 frames, 4 + 3 per process
             "DATA_CONFIG.POINT_CLOUD_RANGE", "-20.48,-20.48,-2,20.48,20.48,4",
         ]  # fmt: skip
 

@@ -18,9 +18,15 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 
-import matplotlib
+try:
+    import matplotlib
+except ModuleNotFoundError as err:  # the plots extra
+    print(f"visualize_attack.py: error: {err}; install it with pip install -e .[plots]",
+          file=sys.stderr)  # fmt: skip
+    sys.exit(2)
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

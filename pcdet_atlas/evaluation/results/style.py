@@ -23,7 +23,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from cycler import cycler
 
 from pcdet_atlas.evaluation.results.tables import ordered_variants, variant_label
 
@@ -36,6 +35,7 @@ __all__ = [
     "OKABE_ITO",
     "PDF_METADATA",
     "PNG_METADATA",
+    "PlottingUnavailable",
     "RC_PARAMS",
     "SINGLE_COLUMN_IN",
     "VariantStyle",
@@ -89,7 +89,6 @@ RC_PARAMS = {
     "grid.alpha": 0.4,
     "hatch.linewidth": 0.5,
     "legend.frameon": False,
-    "axes.prop_cycle": cycler(color=list(OKABE_ITO)),
     "figure.dpi": DPI,
     "savefig.dpi": DPI,
     "pdf.fonttype": 42,  # TrueType in the PDF: venues refuse Type 3 fonts
@@ -101,13 +100,27 @@ PNG_METADATA = {"Software": None}
 PDF_METADATA = {"Creator": None, "Producer": None, "CreationDate": None}
 
 
+class PlottingUnavailable(RuntimeError):
+    """The figures need matplotlib, an optional dependency (the ``plots`` extra)."""
+
+
 @contextmanager
 def paper_style() -> Iterator[None]:
-    """matplotlib's defaults with :data:`RC_PARAMS` on top while inside; the caller's rcParams
-    come back on exit."""
-    import matplotlib.style
+    """matplotlib's defaults with :data:`RC_PARAMS` (and the Okabe-Ito colour cycle) on top while
+    inside; the caller's rcParams come back on exit.
 
-    with matplotlib.style.context(["default", RC_PARAMS]):
+    Raises:
+        PlottingUnavailable: matplotlib is not installed (it is the ``plots`` extra).
+    """
+    try:
+        import matplotlib.style
+        from cycler import cycler
+    except ModuleNotFoundError as err:
+        raise PlottingUnavailable(
+            f"matplotlib is not installed ({err}); install the plots extra: pip install -e .[plots]"
+        ) from err
+    rc = {**RC_PARAMS, "axes.prop_cycle": cycler(color=list(OKABE_ITO))}
+    with matplotlib.style.context(["default", rc]):
         yield
 
 
@@ -201,12 +214,16 @@ def save_figure(fig, path: Path) -> Path:
 
 def render(build: Callable[[], object], path: Path) -> Path | str:
     """``build()`` (a ``Figure``, or a string saying why there is none) in :func:`paper_style`,
-    saved by :func:`save_figure`; -> the PNG's path, or that string."""
-    with paper_style():
-        fig = build()
-        if isinstance(fig, str):
-            return fig
-        return save_figure(fig, path)
+    saved by :func:`save_figure`; -> the PNG's path, or that string (also when matplotlib is not
+    installed: the report then names every figure as not drawn, with the install command)."""
+    try:
+        with paper_style():
+            fig = build()
+            if isinstance(fig, str):
+                return fig
+            return save_figure(fig, path)
+    except PlottingUnavailable as err:
+        return str(err)
 
 
 def variant_series(name: str) -> tuple[str, str]:
