@@ -25,6 +25,7 @@ unspecified when it is on (traveller59/spconv#592); the sites and their features
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Sequence
@@ -141,14 +142,19 @@ class SparseConvTensor:
 class RuleSlice:
     """The pairs of consecutive kernel offsets ``offsets[0] <= k < offsets[1]`` (see
     :class:`IndicePairs`): their block rows ``rows``, blocks ``blocks`` and groups ``groups``
-    (slices of the layer's), and the bags that sum each output (input) row's products."""
+    (slices of the layer's), and the table that sums each output row's products.
+
+    ``out_bags`` ``(N_out, offsets[1] - offsets[0])``: output row ``o``'s block row (relative to
+    ``rows.start``) for each offset of the slice, or ``pad`` where ``o`` has no pair through it;
+    ``pad`` is a padding row of the slice (every non-empty group ends in one): it reads the zero
+    row, so its product is zero and adding it changes no sum."""
 
     offsets: tuple[int, int]
     groups: slice
     rows: slice
     blocks: slice
-    out_bags: tuple[torch.Tensor, torch.Tensor]  # block rows (P_s,), each row's start (N_out,)
-    in_bags: tuple[torch.Tensor, torch.Tensor]  # block rows (P_s,), each row's start (N_in,)
+    pad: int
+    out_bags: torch.Tensor  # (N_out, offsets[1] - offsets[0]) int32
 
 
 @dataclass(frozen=True)
@@ -160,8 +166,8 @@ class IndicePairs:
     (the weight's flat ``(kD, kH, kW)`` index). The pairs are listed in groups of one offset each,
     in the weight's order (``group_offsets``, ``group_counts``; a submanifold layer's centre, which
     maps every site to itself, is not listed: it is one plain GEMM). Each group is padded to a
-    whole number of ``block``-row blocks, so that one ``bmm`` multiplies every block by its
-    offset's weight:
+    whole number of ``block``-row blocks with at least one padding row, so that one ``bmm``
+    multiplies every block by its offset's weight:
 
     - ``gather_in`` / ``gather_out`` ``(n_blocks * block,)``: the input / output row of each
       block row; padding rows read row ``N_in`` / ``N_out``, a zero row appended for them.
@@ -169,9 +175,11 @@ class IndicePairs:
       the number of (consecutive) blocks of each group.
     - ``slices``: the offsets cut into consecutive runs (one on a GPU; on the CPU runs of a few MB
       of gathered rows, which stay in cache and which the allocator reuses instead of mapping
-      fresh pages), each with the ``embedding_bag`` tables that sum every output (input) row's
-      products in kernel-offset order: the forward's and the feature gradient's reductions, with
-      no scatter, so no write collisions on any device.
+      fresh pages), each with the fixed-width ``embedding_bag`` table that sums every output
+      row's products in kernel-offset order: a reduction with no scatter, so no write collisions
+      on any device. The feature gradient's tables (:attr:`in_bags`) are built on first use; a
+      submanifold layer needs none (its feature gradient is the same rules with the mirrored,
+      transposed weights).
 
     ``out_indices`` / ``out_spatial_shape`` describe the output sites; a submanifold layer with the
     same ``indice_key`` reuses the whole object.
@@ -199,6 +207,16 @@ class IndicePairs:
     def num_pairs(self) -> int:
         """All ``(i, o, k)`` pairs, a submanifold layer's centre included."""
         return int(self.in_rows.numel()) + (int(self.in_indices.shape[0]) if self.subm else 0)
+
+    @functools.cached_property
+    def in_bags(self) -> tuple[torch.Tensor, ...]:
+        """Per slice, ``(N_in, width)``: each input row's block rows, as ``out_bags`` is each
+        output row's (the feature gradient's reduction of a regular conv)."""
+        num_in = int(self.in_indices.shape[0])
+        return tuple(
+            _bag_table(self.gather_in, self.block_offsets, self.block, part, num_in)
+            for part in self.slices
+        )
 
     @property
     def pairs(self) -> tuple[tuple[torch.Tensor, torch.Tensor], ...]:
@@ -237,11 +255,20 @@ def _block_size(num_pairs: int, num_groups: int, channels: int) -> int:
     return min(1 << (want.bit_length() - 1), 1024)
 
 
-def _group_ids(counts: torch.Tensor, total: int) -> torch.Tensor:
-    """``(total,)`` the group of each item of consecutive groups of ``counts`` items."""
-    ends = torch.zeros(total + 1, dtype=torch.long, device=counts.device)
-    ends.index_add_(0, torch.cumsum(counts, 0), torch.ones_like(counts))
-    return torch.cumsum(ends[:total], 0)
+def _bag_table(
+    gather: torch.Tensor, block_offsets: torch.Tensor, block: int, part: RuleSlice, num: int
+) -> torch.Tensor:
+    """``(num, width)``: for each of ``num`` rows and each offset of slice ``part``, the block
+    row (relative to the slice) that ``gather`` sends to it, else ``part.pad``. Padding block rows
+    (``gather == num``) land in a dropped extra row."""
+    k0, k1 = part.offsets
+    width = k1 - k0
+    rows = gather[part.rows].view(-1, block)  # (blocks, block)
+    at = (rows * width + (block_offsets[part.blocks] - k0)[:, None]).view(-1)
+    device = gather.device
+    table = torch.full(((num + 1) * width,), part.pad, dtype=torch.int32, device=device)
+    table.index_copy_(0, at, torch.arange(at.numel(), dtype=torch.int32, device=device))
+    return table[: num * width].view(num, width)
 
 
 def _batched_rules(
@@ -251,7 +278,6 @@ def _batched_rules(
     group_counts: list[int],
     num_in: int,
     num_out: int,
-    num_offsets: int,
     channels: int,
 ) -> dict:
     """The batched layout of :class:`IndicePairs` from the pairs ``in_rows`` / ``out_rows``
@@ -261,33 +287,21 @@ def _batched_rules(
     num_pairs = int(in_rows.numel())
     num_groups = len(group_offsets)
     block = _block_size(num_pairs, num_groups, channels)
-    blocks = [(c + block - 1) // block for c in group_counts]
+    # every non-empty group ends in a padding row: the slices' pad (see RuleSlice)
+    blocks = [(c + block) // block if c else 0 for c in group_counts]
     counts = torch.tensor(group_counts, dtype=torch.long, device=device)
     group_blocks = torch.tensor(blocks, dtype=torch.long, device=device)
     starts = torch.cumsum(counts, 0) - counts
     padded_starts = (torch.cumsum(group_blocks, 0) - group_blocks) * block
-    group_of_pair = _group_ids(counts, num_pairs)
     slot = torch.arange(num_pairs, device=device)
-    slot += (padded_starts - starts).index_select(0, group_of_pair)
+    slot += (padded_starts - starts).repeat_interleave(counts, output_size=num_pairs)
     num_rows = sum(blocks) * block
     gather_in = torch.full((num_rows,), num_in, dtype=torch.long, device=device)
     gather_in.index_copy_(0, slot, in_rows)
     gather_out = torch.full((num_rows,), num_out, dtype=torch.long, device=device)
     gather_out.index_copy_(0, slot, out_rows)
     offsets = torch.tensor(group_offsets, dtype=torch.long, device=device)
-    block_offsets = offsets.index_select(0, _group_ids(group_blocks, sum(blocks)))
-    column = offsets.index_select(0, group_of_pair)
-
-    def bags(p0: int, p1: int, k0: int, k1: int, row0: int, rows: torch.Tensor, num: int):
-        """Each of the ``num`` rows' block rows among pairs ``p0:p1`` (offsets ``k0:k1``), in
-        kernel-offset order: a ``(num, k1 - k0)`` table of block rows, read row-major."""
-        width = k1 - k0
-        table = torch.full((num * width,), -1, dtype=torch.long, device=device)
-        at = rows[p0:p1] * width + (column[p0:p1] - k0)
-        table.index_copy_(0, at, slot[p0:p1] - row0)
-        present = table >= 0
-        sizes = torch.count_nonzero(present.view(num, width), dim=1)
-        return table.masked_select(present), torch.cumsum(sizes, 0) - sizes
+    block_offsets = offsets.repeat_interleave(group_blocks, output_size=sum(blocks))
 
     # cut the groups into runs of about _CPU_SLICE_ELEMENTS gathered elements (one on a GPU)
     budget = _CPU_SLICE_ELEMENTS // max(channels, 1) if device.type == "cpu" else num_rows
@@ -300,17 +314,17 @@ def _batched_rules(
     cuts.append(num_groups)
     slices, block_start = [], 0
     for g0, g1 in zip(cuts[:-1], cuts[1:]):
-        if g0 == g1:
-            continue
         n = sum(blocks[g0:g1])
+        if n == 0:  # only empty groups
+            continue
         k0, k1 = group_offsets[g0], group_offsets[g1 - 1] + 1
-        p0, p1, row0 = sum(group_counts[:g0]), sum(group_counts[:g1]), block_start * block
-        slices.append(RuleSlice(
+        row0 = block_start * block
+        part = RuleSlice(
             (k0, k1), slice(g0, g1), slice(row0, row0 + n * block),
-            slice(block_start, block_start + n),
-            bags(p0, p1, k0, k1, row0, out_rows, num_out),
-            bags(p0, p1, k0, k1, row0, in_rows, num_in),
-        ))  # fmt: skip
+            slice(block_start, block_start + n), n * block - 1, gather_out.new_zeros(0),
+        )  # fmt: skip
+        table = _bag_table(gather_out, block_offsets, block, part, num_out)
+        slices.append(dataclasses.replace(part, out_bags=table))
         block_start += n
     return {
         "group_offsets": tuple(group_offsets),
@@ -396,7 +410,7 @@ def _subm_pairs(
     rules = _batched_rules(
         torch.cat([near, mirrored[0]]), torch.cat([here, mirrored[1]]),
         list(range(centre)) + list(range(centre + 1, num_offsets)), counts + counts[::-1],
-        num, num, num_offsets, channels,
+        num, num, channels,
     )  # fmt: skip
     return IndicePairs(
         indices, indices, spatial_shape, spatial_shape, kernel_size, dilation, True, **rules
@@ -460,7 +474,8 @@ def _regular_pairs(
         + key_axis[2][None, None, :]
     ).view(-1)  # (K * N,) output keys
     hit = torch.nonzero(valid, as_tuple=True)[0]  # offset-major, input order within
-    k_ids, in_rows = hit // idx.shape[0], hit % idx.shape[0]
+    k_ids = torch.div(hit, idx.shape[0], rounding_mode="floor")
+    in_rows = hit - k_ids * idx.shape[0]
     out_keys, out_rows = torch.unique(keys.index_select(0, hit), sorted=True, return_inverse=True)
     # decode the sorted keys back into [b, z, y, x]
     out_indices = torch.stack(
@@ -476,7 +491,7 @@ def _regular_pairs(
     counts = torch.bincount(k_ids, minlength=num_offsets).tolist()
     rules = _batched_rules(
         in_rows, out_rows, list(range(num_offsets)), counts, idx.shape[0], out_keys.shape[0],
-        num_offsets, channels,
+        channels,
     )  # fmt: skip
     return IndicePairs(
         indices, out_indices, spatial_shape, out_shape, kernel_size, dilation, False, **rules
@@ -651,12 +666,20 @@ class _GatherGemmReduce(torch.autograd.Function):
         centre = weight.shape[1] // 2
         grad_features = torch.zeros_like(features) if need_features else None
         grad_weight = torch.zeros_like(weight) if need_weight else None
-        for part in rules.slices:
+        # a submanifold layer's pairs are symmetric ((i, o, k) and (o, i, K - 1 - k)): its feature
+        # gradient is its forward with the mirrored, transposed weights, on the same tables
+        in_bags = None if rules.subm or not need_features else rules.in_bags
+        for s, part in enumerate(rules.slices):
             gather_out = rules.gather_out[part.rows]
-            if need_features:
+            if need_features and rules.subm:
+                grad_features += _sum_blocks(
+                    grad_rows, weight_oi.flip(0), rules.gather_in[part.rows], rules.block,
+                    rules.block_offsets[part.blocks], part.out_bags,
+                )  # fmt: skip
+            elif need_features:
                 grad_features += _sum_blocks(
                     grad_rows, weight_oi, gather_out, rules.block,
-                    rules.block_offsets[part.blocks], part.in_bags,
+                    rules.block_offsets[part.blocks], in_bags[s],
                 )  # fmt: skip
             if need_weight:
                 shape = (-1, rules.block)
@@ -684,13 +707,11 @@ def _with_zero_row(rows: torch.Tensor) -> torch.Tensor:
 
 def _sum_blocks(rows, weight, gather, block, block_offsets, bags):
     """``rows`` ``(N + 1, C)`` gathered by ``gather`` into blocks, each block times its offset's
-    ``weight`` ``(K, C, C')``, the products summed into one row per bag: ``(num_bags, C')``."""
+    ``weight`` ``(K, C, C')``, the products summed into one row per row of ``bags`` (a
+    ``(num_bags, width)`` table of block rows): ``(num_bags, C')``."""
     blocks = rows.index_select(0, gather).view(-1, block, rows.shape[1])  # (blocks, block, C)
     products = torch.bmm(blocks, weight.index_select(0, block_offsets))
-    bag_rows, bag_starts = bags
-    return torch.nn.functional.embedding_bag(
-        bag_rows, products.view(-1, weight.shape[2]), bag_starts, mode="sum"
-    )
+    return torch.nn.functional.embedding_bag(bags, products.view(-1, weight.shape[2]), mode="sum")
 
 
 class SubMConv3d(_SparseConvNd):
