@@ -140,21 +140,20 @@ class SparseConvTensor:
 
 @dataclass(frozen=True)
 class RuleSlice:
-    """The pairs of consecutive kernel offsets ``offsets[0] <= k < offsets[1]`` (see
-    :class:`IndicePairs`): their block rows ``rows``, blocks ``blocks`` and groups ``groups``
-    (slices of the layer's), and the table that sums each output row's products.
+    """The pairs of consecutive groups ``groups`` (see :class:`IndicePairs`): their block rows
+    ``rows`` and blocks ``blocks`` (slices of the layer's), and the table that sums each output
+    row's products.
 
-    ``out_bags`` ``(N_out, offsets[1] - offsets[0])``: output row ``o``'s block row (relative to
-    ``rows.start``) for each offset of the slice, or ``pad`` where ``o`` has no pair through it;
+    ``out_bags`` ``(N_out, width)``, one column per group of the slice: output row ``o``'s block
+    row (relative to ``rows.start``) in each group, or ``pad`` where ``o`` has no pair in it;
     ``pad`` is a padding row of the slice (every non-empty group ends in one): it reads the zero
     row, so its product is zero and adding it changes no sum."""
 
-    offsets: tuple[int, int]
     groups: slice
     rows: slice
     blocks: slice
     pad: int
-    out_bags: torch.Tensor  # (N_out, offsets[1] - offsets[0]) int32
+    out_bags: torch.Tensor  # (N_out, width) int32
 
 
 @dataclass(frozen=True)
@@ -163,8 +162,8 @@ class IndicePairs:
     (:class:`_GatherGemmReduce`).
 
     A pair ``(i, o, k)`` says input row ``i`` feeds output row ``o`` through kernel offset ``k``
-    (the weight's flat ``(kD, kH, kW)`` index). The pairs are listed in groups of one offset each,
-    in the weight's order (``group_offsets``, ``group_counts``; a submanifold layer's centre, which
+    (the weight's flat ``(kD, kH, kW)`` index). The pairs are listed in groups of one offset each
+    (``group_offsets``, ``group_counts``; a submanifold layer's centre, which
     maps every site to itself, is not listed: it is one plain GEMM). Each group is padded to a
     whole number of ``block``-row blocks with at least one padding row, so that one ``bmm``
     multiplies every block by its offset's weight:
@@ -214,7 +213,7 @@ class IndicePairs:
         output row's (the feature gradient's reduction of a regular conv)."""
         num_in = int(self.in_indices.shape[0])
         return tuple(
-            _bag_table(self.gather_in, self.block_offsets, self.block, part, num_in)
+            _bag_table(self.gather_in, self.group_blocks, self.block, part, num_in)
             for part in self.slices
         )
 
@@ -256,16 +255,18 @@ def _block_size(num_pairs: int, num_groups: int, channels: int) -> int:
 
 
 def _bag_table(
-    gather: torch.Tensor, block_offsets: torch.Tensor, block: int, part: RuleSlice, num: int
+    gather: torch.Tensor, group_blocks: torch.Tensor, block: int, part: RuleSlice, num: int
 ) -> torch.Tensor:
-    """``(num, width)``: for each of ``num`` rows and each offset of slice ``part``, the block
+    """``(num, width)``: for each of ``num`` rows and each group of slice ``part``, the block
     row (relative to the slice) that ``gather`` sends to it, else ``part.pad``. Padding block rows
     (``gather == num``) land in a dropped extra row."""
-    k0, k1 = part.offsets
-    width = k1 - k0
-    rows = gather[part.rows].view(-1, block)  # (blocks, block)
-    at = (rows * width + (block_offsets[part.blocks] - k0)[:, None]).view(-1)
     device = gather.device
+    width = part.groups.stop - part.groups.start
+    column = torch.arange(width, device=device).repeat_interleave(
+        group_blocks[part.groups], output_size=part.blocks.stop - part.blocks.start
+    )  # (blocks,) each block's group within the slice
+    rows = gather[part.rows].view(-1, block)  # (blocks, block)
+    at = (rows * width + column[:, None]).view(-1)
     table = torch.full(((num + 1) * width,), part.pad, dtype=torch.int32, device=device)
     table.index_copy_(0, at, torch.arange(at.numel(), dtype=torch.int32, device=device))
     return table[: num * width].view(num, width)
@@ -281,8 +282,9 @@ def _batched_rules(
     channels: int,
 ) -> dict:
     """The batched layout of :class:`IndicePairs` from the pairs ``in_rows`` / ``out_rows``
-    ``(P,)``, listed in groups of one kernel offset each (``group_offsets[g]``, ascending,
-    ``group_counts[g]`` pairs each, ``P = sum(group_counts)``)."""
+    ``(P,)``, listed in groups of one kernel offset each (``group_offsets[g]``, distinct,
+    ``group_counts[g]`` pairs each, ``P = sum(group_counts)``); each output row sums its products
+    in the groups' order."""
     device = in_rows.device
     num_pairs = int(in_rows.numel())
     num_groups = len(group_offsets)
@@ -317,13 +319,12 @@ def _batched_rules(
         n = sum(blocks[g0:g1])
         if n == 0:  # only empty groups
             continue
-        k0, k1 = group_offsets[g0], group_offsets[g1 - 1] + 1
         row0 = block_start * block
         part = RuleSlice(
-            (k0, k1), slice(g0, g1), slice(row0, row0 + n * block),
+            slice(g0, g1), slice(row0, row0 + n * block),
             slice(block_start, block_start + n), n * block - 1, gather_out.new_zeros(0),
         )  # fmt: skip
-        table = _bag_table(gather_out, block_offsets, block, part, num_out)
+        table = _bag_table(gather_out, group_blocks, block, part, num_out)
         slices.append(dataclasses.replace(part, out_bags=table))
         block_start += n
     return {
@@ -349,7 +350,7 @@ def _occupancy_code(device: torch.device) -> torch.Tensor:
     below = torch.zeros_like(byte * bit)
     for b in range(8):
         below += ((byte >> b) & 1) * (b < bit)
-    return ((below << 1) | ((byte >> bit) & 1)).reshape(-1)
+    return ((below << 1) | ((byte >> bit) & 1)).reshape(-1).to(torch.uint8)
 
 
 def _subm_pairs(
@@ -381,35 +382,39 @@ def _subm_pairs(
     deltas = deltas * torch.tensor(dilation, device=device)
     shifts = (deltas[:centre, 0] * padded[1] + deltas[:centre, 1]) * padded[2] + deltas[:centre, 2]
     if num:
-        num_words = int(sorted_keys[-1]) // 8 + 1
+        last = int(sorted_keys[-1])
+        num_words = last // 8 + 1
+        if last < 2**31:  # the neighbours' keys lie in [0, last]: half the memory traffic
+            sorted_keys, shifts = sorted_keys.int(), shifts.int()
         word = sorted_keys >> 3
-        bits = torch.zeros(num_words, dtype=torch.long, device=device)
-        bits.index_add_(0, word, 1 << (sorted_keys & 7))  # distinct bits: the sum is their OR
+        bits = torch.zeros(num_words, dtype=torch.uint8, device=device)
+        # distinct bits: the sum is their OR
+        bits.index_add_(0, word, (1 << (sorted_keys & 7)).to(torch.uint8))
         starts = torch.ones(num, dtype=torch.bool, device=device)
         starts[1:] = word[1:] != word[:-1]
-        first = torch.zeros(num_words, dtype=torch.long, device=device)
         at = torch.nonzero(starts, as_tuple=True)[0]
-        first.index_copy_(0, word.index_select(0, at), at)
+        first = torch.empty(num_words, dtype=torch.int32, device=device)  # read at set bits only
+        first.index_copy_(0, word.index_select(0, at).long(), at.int())
         # the first half's shifts are negative and the padding keeps every neighbour in the grid
         neighbour = (sorted_keys[None, :] + shifts[:, None]).view(-1)  # (K // 2 * N,)
         neighbour_word = neighbour >> 3
-        code = bits.index_select(0, neighbour_word).mul_(8).add_(neighbour & 7)
-        code = _occupancy_code(device).index_select(0, code)
+        code = bits.index_select(0, neighbour_word).to(neighbour.dtype).mul_(8)
+        code = _occupancy_code(device).index_select(0, code.add_(neighbour & 7))
         hit = torch.nonzero(code & 1, as_tuple=True)[0]  # offset-major, site order within
-        half, site = hit // num, hit % num
+        half = torch.div(hit, num, rounding_mode="floor")
+        site = hit - half * num
         found = first.index_select(0, neighbour_word.index_select(0, hit))
-        found += code.index_select(0, hit) >> 1
+        found = found.long().add_(code.index_select(0, hit) >> 1)
         counts = torch.bincount(half, minlength=centre).tolist()
         near, here = order.index_select(0, found), order.index_select(0, site)
     else:
         counts = [0] * centre
         near = here = order
     # offset k < centre reads the neighbour into the site; its mirror K - 1 - k the site into
-    # the neighbour (listed in ascending k, so the groups of the first half in reverse)
-    mirrored = [torch.cat(list(reversed(rows.split(counts)))) for rows in (here, near)]
+    # the neighbour
     rules = _batched_rules(
-        torch.cat([near, mirrored[0]]), torch.cat([here, mirrored[1]]),
-        list(range(centre)) + list(range(centre + 1, num_offsets)), counts + counts[::-1],
+        torch.cat([near, here]), torch.cat([here, near]),
+        list(range(centre)) + list(range(num_offsets - 1, centre, -1)), counts + counts,
         num, num, channels,
     )  # fmt: skip
     return IndicePairs(
