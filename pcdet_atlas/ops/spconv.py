@@ -459,6 +459,9 @@ def _regular_pairs(
     # per axis (each on its own): input coordinate i reaches output o through kernel position
     # k when o * s - p + k * d == i
     od, oh, ow = out_shape
+    num_cells = (int(idx[:, 0].max()) + 1 if idx.shape[0] else 1) * od * oh * ow
+    # the output keys lie in [0, num_cells): int32 where they fit, half the traffic
+    key_dtype = torch.int32 if num_cells <= 2**31 else torch.long
     scale = (oh * ow, ow, 1)  # each axis' share of the output's linear key
     key_axis, valid_axis = [], []
     for axis, (k, s, p, d, n_out) in enumerate(
@@ -466,22 +469,25 @@ def _regular_pairs(
     ):
         num = idx[None, :, 1 + axis] + p - torch.arange(k, device=device)[:, None] * d  # (k, N)
         o = torch.div(num, s, rounding_mode="floor")
-        key_axis.append(o * scale[axis])
-        valid_axis.append((num % s == 0) & (o >= 0) & (o < n_out))
+        key_axis.append((o * scale[axis]).to(key_dtype))
+        valid_axis.append((o * s == num) & (o >= 0) & (o < n_out))
     kd, kh, kw = kernel_size
     num_offsets = kd * kh * kw
     valid = (
         valid_axis[0][:, None, None] & valid_axis[1][None, :, None] & valid_axis[2][None, None, :]
     ).view(-1)  # (K * N,), K in the weight's (kD, kH, kW) order
-    keys = (
-        (key_axis[0] + idx[None, :, 0] * (od * oh * ow))[:, None, None]
-        + key_axis[1][None, :, None]
-        + key_axis[2][None, None, :]
-    ).view(-1)  # (K * N,) output keys
+    key_z = key_axis[0] + (idx[None, :, 0] * (od * oh * ow)).to(key_dtype)
+    keys = ((key_z[:, None] + key_axis[1][None, :])[:, :, None] + key_axis[2][None, None, :]).view(
+        -1
+    )  # (K * N,) output keys
     hit = torch.nonzero(valid, as_tuple=True)[0]  # offset-major, input order within
     k_ids = torch.div(hit, idx.shape[0], rounding_mode="floor")
     in_rows = hit - k_ids * idx.shape[0]
-    out_keys, out_rows = torch.unique(keys.index_select(0, hit), sorted=True, return_inverse=True)
+    hit_keys = keys.index_select(0, hit)
+    # a sort of the pairs' int32 keys beats flagging the reached cells in a grid-sized bitmap
+    # and ranking them (and does not grow with the grid)
+    out_keys, out_rows = torch.unique(hit_keys, sorted=True, return_inverse=True)
+    out_keys = out_keys.long()
     # decode the sorted keys back into [b, z, y, x]
     out_indices = torch.stack(
         [
