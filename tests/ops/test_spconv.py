@@ -254,6 +254,42 @@ def test_rows_never_repeat_within_a_kernel_offset(conv_cls, kwargs):
         assert out_rows.unique().numel() == out_rows.numel()
 
 
+@pytest.mark.parametrize("conv_cls,kwargs", RULE_CASES)
+def test_reduction_tables_list_every_pair_once_and_pad_reads_zero(conv_cls, kwargs):
+    """Each slice's fixed-width table names every pair's block row once, in its output row;
+    the other entries name the slice's pad row, a padding row (it reads the zero row, so its
+    product adds nothing)."""
+    x = random_sparse((6, 7, 5), 2, 2, 60, seed=11)
+    rules = conv_cls(2, 2, **kwargs)._rules(x)
+    num_in, num_out = rules.in_indices.shape[0], rules.out_indices.shape[0]
+    listed = 0
+    for part in rules.slices:
+        row0 = part.rows.start
+        assert int(rules.gather_in[row0 + part.pad]) == num_in
+        assert int(rules.gather_out[row0 + part.pad]) == num_out
+        table = part.out_bags.long()
+        real = table != part.pad
+        assert real.sum() == (rules.gather_out[part.rows] < num_out).sum()
+        out_of_entry = torch.arange(num_out)[:, None].expand_as(table)[real]
+        assert torch.equal(rules.gather_out[row0 + table[real]], out_of_entry)
+        listed += int(real.sum())
+    assert listed == sum(rules.group_counts) > 60
+
+
+def test_regular_rules_on_a_grid_past_int32_keys_match_a_small_grid():
+    """A grid of more than 2**31 output cells takes int64 keys: the same sites near its far
+    corner give the same features, shifted, as on a small grid (int32 keys)."""
+    x = random_sparse((6, 7, 5), 2, 3, 40, seed=5)
+    inner = x.indices + torch.tensor([0, 1, 1, 1], dtype=torch.int32)  # reach stays in the grid
+    small = SparseConvTensor(x.features, inner, (8, 9, 7), 2)
+    shift = torch.tensor([0, 1992, 1991, 1993], dtype=torch.int32)
+    big = SparseConvTensor(x.features, inner + shift, (2000, 2000, 2000), 2)
+    conv = SparseConv3d(3, 4, 3, padding=1).double()
+    want, got = conv(small), conv(big)
+    assert torch.equal(got.indices, want.indices + shift)
+    torch.testing.assert_close(got.features, want.features, rtol=0, atol=0)
+
+
 @pytest.fixture
 def restore_deterministic_mode(monkeypatch):
     """Leaves torch's deterministic mode as it found it; cuBLAS needs a fixed workspace in it."""
