@@ -641,9 +641,10 @@ class _GatherGemmReduce(torch.autograd.Function):
     that does not grow with the number of kernel offsets: per slice of offsets
     (:class:`IndicePairs`; one on a GPU) one gather of the pairs' input rows into blocks of one
     offset each, one ``bmm`` of every block with its offset's weight, one ``embedding_bag``
-    summing each output row's products in kernel-offset order; plus one GEMM for a submanifold
+    summing each output row's products in its groups' order; plus one GEMM for a submanifold
     layer's centre. The backward has the same form: the feature gradient gathers the output
-    gradient's rows and sums them per input row; the weight gradient is one ``bmm`` of the
+    gradient's rows and sums them per input row (a submanifold layer: its forward with the
+    mirrored, transposed weights); the weight gradient is one ``bmm`` of the
     gathered blocks and a sum over each offset's blocks (``segment_reduce``).
 
     No op writes two values into one place, so the result is deterministic on CPU and GPU, in
