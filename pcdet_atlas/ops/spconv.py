@@ -193,8 +193,6 @@ class IndicePairs:
     subm: bool
     group_offsets: tuple[int, ...]
     group_counts: tuple[int, ...]
-    in_rows: torch.Tensor  # (P,) int64, group by group
-    out_rows: torch.Tensor  # (P,) int64
     block: int
     gather_in: torch.Tensor  # (n_blocks * block,) int64
     gather_out: torch.Tensor  # (n_blocks * block,) int64
@@ -205,7 +203,7 @@ class IndicePairs:
     @property
     def num_pairs(self) -> int:
         """All ``(i, o, k)`` pairs, a submanifold layer's centre included."""
-        return int(self.in_rows.numel()) + (int(self.in_indices.shape[0]) if self.subm else 0)
+        return sum(self.group_counts) + (int(self.in_indices.shape[0]) if self.subm else 0)
 
     @functools.cached_property
     def in_bags(self) -> tuple[torch.Tensor, ...]:
@@ -222,16 +220,17 @@ class IndicePairs:
         """``pairs[k] = (in_rows, out_rows)`` for each kernel offset ``k`` in the weight's order
         (a view for tests and tools; the convolution reads the batched layout)."""
         num_offsets = math.prod(self.kernel_size)
-        empty = self.in_rows.new_zeros(0)
+        empty = self.gather_in.new_zeros(0)
         pairs = [(empty, empty)] * num_offsets
-        for k, in_rows, out_rows in zip(
-            self.group_offsets,
-            self.in_rows.split(list(self.group_counts)),
-            self.out_rows.split(list(self.group_counts)),
-        ):
-            pairs[k] = (in_rows, out_rows)
+        start = 0
+        for k, count, blocks in zip(
+            self.group_offsets, self.group_counts, self.group_blocks.tolist()
+        ):  # each group's pairs, then its padding rows
+            rows = slice(start, start + count)
+            pairs[k] = (self.gather_in[rows], self.gather_out[rows])
+            start += blocks * self.block
         if self.subm:
-            rows = torch.arange(self.in_indices.shape[0], device=self.in_rows.device)
+            rows = torch.arange(self.in_indices.shape[0], device=self.gather_in.device)
             pairs[num_offsets // 2] = (rows, rows)
         return tuple(pairs)
 
@@ -273,8 +272,8 @@ def _bag_table(
 
 
 def _batched_rules(
-    in_rows: torch.Tensor,
-    out_rows: torch.Tensor,
+    in_rows: Sequence[torch.Tensor],
+    out_rows: Sequence[torch.Tensor],
     group_offsets: list[int],
     group_counts: list[int],
     num_in: int,
@@ -282,11 +281,11 @@ def _batched_rules(
     channels: int,
 ) -> dict:
     """The batched layout of :class:`IndicePairs` from the pairs ``in_rows`` / ``out_rows``
-    ``(P,)``, listed in groups of one kernel offset each (``group_offsets[g]``, distinct,
-    ``group_counts[g]`` pairs each, ``P = sum(group_counts)``); each output row sums its products
-    in the groups' order."""
-    device = in_rows.device
-    num_pairs = int(in_rows.numel())
+    (each a list of consecutive parts, ``(P,)`` in all), listed in groups of one kernel offset
+    each (``group_offsets[g]``, distinct, ``group_counts[g]`` pairs each,
+    ``P = sum(group_counts)``); each output row sums its products in the groups' order."""
+    device = in_rows[0].device
+    num_pairs = sum(int(rows.numel()) for rows in in_rows)
     num_groups = len(group_offsets)
     block = _block_size(num_pairs, num_groups, channels)
     # every non-empty group ends in a padding row: the slices' pad (see RuleSlice)
@@ -299,9 +298,11 @@ def _batched_rules(
     slot += (padded_starts - starts).repeat_interleave(counts, output_size=num_pairs)
     num_rows = sum(blocks) * block
     gather_in = torch.full((num_rows,), num_in, dtype=torch.long, device=device)
-    gather_in.index_copy_(0, slot, in_rows)
+    for rows, at in zip(in_rows, slot.split([int(r.numel()) for r in in_rows])):
+        gather_in.index_copy_(0, at, rows)
     gather_out = torch.full((num_rows,), num_out, dtype=torch.long, device=device)
-    gather_out.index_copy_(0, slot, out_rows)
+    for rows, at in zip(out_rows, slot.split([int(r.numel()) for r in out_rows])):
+        gather_out.index_copy_(0, at, rows)
     offsets = torch.tensor(group_offsets, dtype=torch.long, device=device)
     block_offsets = offsets.repeat_interleave(group_blocks, output_size=sum(blocks))
 
@@ -330,8 +331,6 @@ def _batched_rules(
     return {
         "group_offsets": tuple(group_offsets),
         "group_counts": tuple(group_counts),
-        "in_rows": in_rows,
-        "out_rows": out_rows,
         "block": block,
         "gather_in": gather_in,
         "gather_out": gather_out,
@@ -413,7 +412,7 @@ def _subm_pairs(
     # offset k < centre reads the neighbour into the site; its mirror K - 1 - k the site into
     # the neighbour
     rules = _batched_rules(
-        torch.cat([near, here]), torch.cat([here, near]),
+        [near, here], [here, near],
         list(range(centre)) + list(range(num_offsets - 1, centre, -1)), counts + counts,
         num, num, channels,
     )  # fmt: skip
@@ -501,7 +500,7 @@ def _regular_pairs(
     # nonzero lists (k, n) row-major: each offset's pairs are one group
     counts = torch.bincount(k_ids, minlength=num_offsets).tolist()
     rules = _batched_rules(
-        in_rows, out_rows, list(range(num_offsets)), counts, idx.shape[0], out_keys.shape[0],
+        [in_rows], [out_rows], list(range(num_offsets)), counts, idx.shape[0], out_keys.shape[0],
         channels,
     )  # fmt: skip
     return IndicePairs(
