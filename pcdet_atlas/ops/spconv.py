@@ -279,11 +279,15 @@ def _batched_rules(
     num_in: int,
     num_out: int,
     channels: int,
+    mirrored: bool = False,
 ) -> dict:
     """The batched layout of :class:`IndicePairs` from the pairs ``in_rows`` / ``out_rows``
     (each a list of consecutive parts, ``(P,)`` in all), listed in groups of one kernel offset
     each (``group_offsets[g]``, distinct, ``group_counts[g]`` pairs each,
-    ``P = sum(group_counts)``); each output row sums its products in the groups' order."""
+    ``P = sum(group_counts)``); each output row sums its products in the groups' order.
+    ``mirrored``: the second half of the groups lists the first half's pairs reversed, group by
+    group (a submanifold layer); when the layer takes more than one slice, the second half's
+    slices then mirror the first half's."""
     device = in_rows[0].device
     num_pairs = sum(int(rows.numel()) for rows in in_rows)
     num_groups = len(group_offsets)
@@ -306,15 +310,20 @@ def _batched_rules(
     offsets = torch.tensor(group_offsets, dtype=torch.long, device=device)
     block_offsets = offsets.repeat_interleave(group_blocks, output_size=sum(blocks))
 
-    # cut the groups into runs of about _CPU_SLICE_ELEMENTS gathered elements (one on a GPU)
+    # cut the groups into runs of about _CPU_SLICE_ELEMENTS gathered elements (one on a GPU);
+    # mirrored: the second half's groups mirror the first's, and are cut alike
     budget = _CPU_SLICE_ELEMENTS // max(channels, 1) if device.type == "cpu" else num_rows
+    mirrored = mirrored and num_rows > budget
+    cut_groups = num_groups // 2 if mirrored else num_groups
     cuts, rows = [0], 0
-    for g, n in enumerate(blocks):
+    for g, n in enumerate(blocks[:cut_groups]):
         if rows and rows + n * block > budget:
             cuts.append(g)
             rows = 0
         rows += n * block
-    cuts.append(num_groups)
+    cuts.append(cut_groups)
+    if mirrored:
+        cuts += [cut_groups + g for g in cuts[1:]]
     slices, block_start = [], 0
     for g0, g1 in zip(cuts[:-1], cuts[1:]):
         n = sum(blocks[g0:g1])
@@ -414,7 +423,7 @@ def _subm_pairs(
     rules = _batched_rules(
         [near, here], [here, near],
         list(range(centre)) + list(range(num_offsets - 1, centre, -1)), counts + counts,
-        num, num, channels,
+        num, num, channels, mirrored=True,
     )  # fmt: skip
     return IndicePairs(
         indices, indices, spatial_shape, spatial_shape, kernel_size, dilation, True, **rules
@@ -677,38 +686,80 @@ class _GatherGemmReduce(torch.autograd.Function):
         centre = weight.shape[1] // 2
         grad_features = torch.zeros_like(features) if need_features else None
         grad_weight = torch.zeros_like(weight) if need_weight else None
-        # a submanifold layer's pairs are symmetric ((i, o, k) and (o, i, K - 1 - k)): its feature
-        # gradient is its forward with the mirrored, transposed weights, on the same tables
-        in_bags = None if rules.subm or not need_features else rules.in_bags
-        for s, part in enumerate(rules.slices):
-            gather_out = rules.gather_out[part.rows]
-            if need_features and rules.subm:
-                grad_features += _sum_blocks(
-                    grad_rows, weight_oi.flip(0), rules.gather_in[part.rows], rules.block,
-                    rules.block_offsets[part.blocks], part.out_bags,
-                )  # fmt: skip
-            elif need_features:
-                grad_features += _sum_blocks(
-                    grad_rows, weight_oi, gather_out, rules.block,
-                    rules.block_offsets[part.blocks], in_bags[s],
-                )  # fmt: skip
-            if need_weight:
-                shape = (-1, rules.block)
-                blocks_in = rows.index_select(0, rules.gather_in[part.rows]).view(
-                    *shape, rows.shape[1]
-                )
-                blocks_out = grad_rows.index_select(0, gather_out).view(*shape, grad_rows.shape[1])
-                partial = torch.bmm(blocks_out.transpose(1, 2), blocks_in)  # (blocks, out, in)
-                per_group = torch.segment_reduce(
-                    partial.flatten(1), "sum", lengths=rules.group_blocks[part.groups], unsafe=True
-                )  # (groups, out * in)
-                offsets = torch.tensor(rules.group_offsets[part.groups], device=weight.device)
-                grad_weight[:, offsets] = per_group.view(-1, *partial.shape[1:]).transpose(0, 1)
+        if rules.subm:
+            _subm_backward(grad_rows, rows, weight, rules, grad_features, grad_weight)
+        else:
+            in_bags = rules.in_bags if need_features else None
+            for s, part in enumerate(rules.slices):
+                gather_out = rules.gather_out[part.rows]
+                if need_features:
+                    grad_features += _sum_blocks(
+                        grad_rows, weight_oi, gather_out, rules.block,
+                        rules.block_offsets[part.blocks], in_bags[s],
+                    )  # fmt: skip
+                if need_weight:
+                    blocks_in = rows.index_select(0, rules.gather_in[part.rows])
+                    blocks_out = grad_rows.index_select(0, gather_out)
+                    _weight_grad(blocks_out, blocks_in, rules, part.groups, grad_weight)
         if rules.subm and need_features:
             grad_features.addmm_(grad_out, weight[:, centre])
         if rules.subm and need_weight:
             grad_weight[:, centre] = grad_out.t() @ features
         return grad_features, grad_weight, None
+
+
+def _subm_backward(grad_rows, rows, weight, rules, grad_features, grad_weight) -> None:
+    """A submanifold layer's backward into ``grad_features`` / ``grad_weight`` (either None).
+
+    Its pairs are symmetric: ``(i, o, k)`` and ``(o, i, K - 1 - k)``, the second half of its
+    slices holding the first half's pairs reversed, row for row. So the feature gradient is the
+    forward with the mirrored, transposed weights on the same tables, and the output gradient
+    gathered at one slice's input rows is what the weight gradient of its mirror slice reads at
+    that slice's output rows: one gather of the output gradient serves both. In one slice (a
+    GPU) the two halves of its rows mirror each other."""
+    weight_mirror = weight.permute(1, 0, 2).flip(0)  # (K, out, in), offset k holds K - 1 - k's
+    if len(rules.slices) == 1:
+        (part,) = rules.slices
+        grad = grad_rows.index_select(0, rules.gather_in[part.rows])
+        if grad_features is not None:
+            grad_features += _reduce_blocks(
+                grad, weight_mirror, rules.block, rules.block_offsets[part.blocks], part.out_bags
+            )
+        if grad_weight is not None:
+            blocks_in = rows.index_select(0, rules.gather_in[part.rows])
+            half_rows, half_groups = grad.shape[0] // 2, len(rules.group_counts) // 2
+            groups = (slice(0, half_groups), slice(half_groups, 2 * half_groups))
+            _weight_grad(grad[half_rows:], blocks_in[:half_rows], rules, groups[0], grad_weight)
+            _weight_grad(grad[:half_rows], blocks_in[half_rows:], rules, groups[1], grad_weight)
+        return
+    half = len(rules.slices) // 2
+    for pair in zip(rules.slices[:half], rules.slices[half:]):
+        grads = [grad_rows.index_select(0, rules.gather_in[part.rows]) for part in pair]
+        if grad_features is not None:
+            for part, grad in zip(pair, grads):
+                grad_features += _reduce_blocks(
+                    grad, weight_mirror, rules.block, rules.block_offsets[part.blocks],
+                    part.out_bags,
+                )  # fmt: skip
+        if grad_weight is not None:
+            for part, grad in zip(pair, reversed(grads)):
+                blocks_in = rows.index_select(0, rules.gather_in[part.rows])
+                _weight_grad(grad, blocks_in, rules, part.groups, grad_weight)
+
+
+def _weight_grad(blocks_out, blocks_in, rules, groups: slice, grad_weight) -> None:
+    """Writes the weight gradient of the offsets of ``groups`` into ``grad_weight`` ``(out, K,
+    in)`` from its gathered output-gradient and input rows ``(rows, out)`` / ``(rows, in)``: one
+    ``bmm`` of the blocks, summed over each group's blocks."""
+    shape = (-1, rules.block)
+    blocks_out = blocks_out.view(*shape, blocks_out.shape[1])
+    blocks_in = blocks_in.view(*shape, blocks_in.shape[1])
+    partial = torch.bmm(blocks_out.transpose(1, 2), blocks_in)  # (blocks, out, in)
+    per_group = torch.segment_reduce(
+        partial.flatten(1), "sum", lengths=rules.group_blocks[groups], unsafe=True
+    )  # (groups, out * in)
+    offsets = torch.tensor(rules.group_offsets[groups], device=grad_weight.device)
+    grad_weight[:, offsets] = per_group.view(-1, *partial.shape[1:]).transpose(0, 1)
 
 
 def _with_zero_row(rows: torch.Tensor) -> torch.Tensor:
@@ -720,7 +771,12 @@ def _sum_blocks(rows, weight, gather, block, block_offsets, bags):
     """``rows`` ``(N + 1, C)`` gathered by ``gather`` into blocks, each block times its offset's
     ``weight`` ``(K, C, C')``, the products summed into one row per row of ``bags`` (a
     ``(num_bags, width)`` table of block rows): ``(num_bags, C')``."""
-    blocks = rows.index_select(0, gather).view(-1, block, rows.shape[1])  # (blocks, block, C)
+    return _reduce_blocks(rows.index_select(0, gather), weight, block, block_offsets, bags)
+
+
+def _reduce_blocks(gathered, weight, block, block_offsets, bags):
+    """:func:`_sum_blocks` on rows already gathered, ``(n_blocks * block, C)``."""
+    blocks = gathered.view(-1, block, gathered.shape[1])  # (blocks, block, C)
     products = torch.bmm(blocks, weight.index_select(0, block_offsets))
     return torch.nn.functional.embedding_bag(bags, products.view(-1, weight.shape[2]), mode="sum")
 

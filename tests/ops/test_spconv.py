@@ -5,6 +5,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from pcdet_atlas.ops import spconv
 from pcdet_atlas.ops.spconv import (
     SparseConv3d,
     SparseConvTensor,
@@ -207,6 +208,33 @@ def test_gradients_match_dense_reference(subm):
     (at_sites(dense_out, out.indices) * upstream).sum().backward()
     for got, want in zip(sparse_grads, (feats_ref.grad, weight_ref.grad, bias_ref.grad)):
         torch.testing.assert_close(got, want)
+
+
+@pytest.mark.parametrize("conv_cls", [SubMConv3d, SparseConv3d])
+def test_many_slices_give_the_one_slice_result(conv_cls, monkeypatch):
+    """Cut into many slices (the CPU's few-MB runs; a submanifold layer's second half mirroring
+    its first, whose backward shares one gather between a slice and its mirror), a layer gives
+    the forward and gradients of its one-slice form."""
+    x = random_sparse((6, 7, 5), 2, 3, 80, seed=7)
+    conv = conv_cls(3, 4, 3).double()
+    g = torch.Generator().manual_seed(2)
+    upstream = torch.randn(conv(x).features.shape, generator=g, dtype=torch.float64)
+
+    def run():
+        feats = x.features.clone().requires_grad_(True)
+        conv.weight.grad = None
+        out = conv(x.replace_feature(feats))
+        (out.features * upstream).sum().backward()
+        return len(conv._rules(x).slices), out.features, feats.grad, conv.weight.grad
+
+    one = run()
+    monkeypatch.setattr(spconv, "_CPU_SLICE_ELEMENTS", 64)
+    many = run()
+    assert one[0] == 1 and many[0] >= 4
+    if conv_cls is SubMConv3d:  # the second half of the slices mirrors the first
+        assert many[0] % 2 == 0
+    for got, want in zip(many[1:], one[1:]):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.parametrize("conv_cls", [SubMConv3d, SparseConv3d])
