@@ -25,6 +25,7 @@ unspecified when it is on (traveller59/spconv#592); the sites and their features
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Sequence
@@ -139,16 +140,20 @@ class SparseConvTensor:
 
 @dataclass(frozen=True)
 class RuleSlice:
-    """The pairs of consecutive kernel offsets ``offsets[0] <= k < offsets[1]`` (see
-    :class:`IndicePairs`): their block rows ``rows``, blocks ``blocks`` and groups ``groups``
-    (slices of the layer's), and the bags that sum each output (input) row's products."""
+    """The pairs of consecutive groups ``groups`` (see :class:`IndicePairs`): their block rows
+    ``rows`` and blocks ``blocks`` (slices of the layer's), and the table that sums each output
+    row's products.
 
-    offsets: tuple[int, int]
+    ``out_bags`` ``(N_out, width)``, one column per group of the slice: output row ``o``'s block
+    row (relative to ``rows.start``) in each group, or ``pad`` where ``o`` has no pair in it;
+    ``pad`` is a padding row of the slice (every non-empty group ends in one): it reads the zero
+    row, so its product is zero and adding it changes no sum."""
+
     groups: slice
     rows: slice
     blocks: slice
-    out_bags: tuple[torch.Tensor, torch.Tensor]  # block rows (P_s,), each row's start (N_out,)
-    in_bags: tuple[torch.Tensor, torch.Tensor]  # block rows (P_s,), each row's start (N_in,)
+    pad: int
+    out_bags: torch.Tensor  # (N_out, width) int32
 
 
 @dataclass(frozen=True)
@@ -157,11 +162,11 @@ class IndicePairs:
     (:class:`_GatherGemmReduce`).
 
     A pair ``(i, o, k)`` says input row ``i`` feeds output row ``o`` through kernel offset ``k``
-    (the weight's flat ``(kD, kH, kW)`` index). The pairs are listed in groups of one offset each,
-    in the weight's order (``group_offsets``, ``group_counts``; a submanifold layer's centre, which
+    (the weight's flat ``(kD, kH, kW)`` index). The pairs are listed in groups of one offset each
+    (``group_offsets``, ``group_counts``; a submanifold layer's centre, which
     maps every site to itself, is not listed: it is one plain GEMM). Each group is padded to a
-    whole number of ``block``-row blocks, so that one ``bmm`` multiplies every block by its
-    offset's weight:
+    whole number of ``block``-row blocks with at least one padding row, so that one ``bmm``
+    multiplies every block by its offset's weight:
 
     - ``gather_in`` / ``gather_out`` ``(n_blocks * block,)``: the input / output row of each
       block row; padding rows read row ``N_in`` / ``N_out``, a zero row appended for them.
@@ -169,9 +174,11 @@ class IndicePairs:
       the number of (consecutive) blocks of each group.
     - ``slices``: the offsets cut into consecutive runs (one on a GPU; on the CPU runs of a few MB
       of gathered rows, which stay in cache and which the allocator reuses instead of mapping
-      fresh pages), each with the ``embedding_bag`` tables that sum every output (input) row's
-      products in kernel-offset order: the forward's and the feature gradient's reductions, with
-      no scatter, so no write collisions on any device.
+      fresh pages), each with the fixed-width ``embedding_bag`` table that sums every output
+      row's products in kernel-offset order: a reduction with no scatter, so no write collisions
+      on any device. The feature gradient's tables (:attr:`in_bags`) are built on first use; a
+      submanifold layer needs none (its feature gradient is the same rules with the mirrored,
+      transposed weights).
 
     ``out_indices`` / ``out_spatial_shape`` describe the output sites; a submanifold layer with the
     same ``indice_key`` reuses the whole object.
@@ -186,8 +193,6 @@ class IndicePairs:
     subm: bool
     group_offsets: tuple[int, ...]
     group_counts: tuple[int, ...]
-    in_rows: torch.Tensor  # (P,) int64, group by group
-    out_rows: torch.Tensor  # (P,) int64
     block: int
     gather_in: torch.Tensor  # (n_blocks * block,) int64
     gather_out: torch.Tensor  # (n_blocks * block,) int64
@@ -198,23 +203,34 @@ class IndicePairs:
     @property
     def num_pairs(self) -> int:
         """All ``(i, o, k)`` pairs, a submanifold layer's centre included."""
-        return int(self.in_rows.numel()) + (int(self.in_indices.shape[0]) if self.subm else 0)
+        return sum(self.group_counts) + (int(self.in_indices.shape[0]) if self.subm else 0)
+
+    @functools.cached_property
+    def in_bags(self) -> tuple[torch.Tensor, ...]:
+        """Per slice, ``(N_in, width)``: each input row's block rows, as ``out_bags`` is each
+        output row's (the feature gradient's reduction of a regular conv)."""
+        num_in = int(self.in_indices.shape[0])
+        return tuple(
+            _bag_table(self.gather_in, self.group_blocks, self.block, part, num_in)
+            for part in self.slices
+        )
 
     @property
     def pairs(self) -> tuple[tuple[torch.Tensor, torch.Tensor], ...]:
         """``pairs[k] = (in_rows, out_rows)`` for each kernel offset ``k`` in the weight's order
         (a view for tests and tools; the convolution reads the batched layout)."""
         num_offsets = math.prod(self.kernel_size)
-        empty = self.in_rows.new_zeros(0)
+        empty = self.gather_in.new_zeros(0)
         pairs = [(empty, empty)] * num_offsets
-        for k, in_rows, out_rows in zip(
-            self.group_offsets,
-            self.in_rows.split(list(self.group_counts)),
-            self.out_rows.split(list(self.group_counts)),
-        ):
-            pairs[k] = (in_rows, out_rows)
+        start = 0
+        for k, count, blocks in zip(
+            self.group_offsets, self.group_counts, self.group_blocks.tolist()
+        ):  # each group's pairs, then its padding rows
+            rows = slice(start, start + count)
+            pairs[k] = (self.gather_in[rows], self.gather_out[rows])
+            start += blocks * self.block
         if self.subm:
-            rows = torch.arange(self.in_indices.shape[0], device=self.in_rows.device)
+            rows = torch.arange(self.in_indices.shape[0], device=self.gather_in.device)
             pairs[num_offsets // 2] = (rows, rows)
         return tuple(pairs)
 
@@ -237,86 +253,93 @@ def _block_size(num_pairs: int, num_groups: int, channels: int) -> int:
     return min(1 << (want.bit_length() - 1), 1024)
 
 
-def _group_ids(counts: torch.Tensor, total: int) -> torch.Tensor:
-    """``(total,)`` the group of each item of consecutive groups of ``counts`` items."""
-    ends = torch.zeros(total + 1, dtype=torch.long, device=counts.device)
-    ends.index_add_(0, torch.cumsum(counts, 0), torch.ones_like(counts))
-    return torch.cumsum(ends[:total], 0)
+def _bag_table(
+    gather: torch.Tensor, group_blocks: torch.Tensor, block: int, part: RuleSlice, num: int
+) -> torch.Tensor:
+    """``(num, width)``: for each of ``num`` rows and each group of slice ``part``, the block
+    row (relative to the slice) that ``gather`` sends to it, else ``part.pad``. Padding block rows
+    (``gather == num``) land in a dropped extra row."""
+    device = gather.device
+    width = part.groups.stop - part.groups.start
+    column = torch.arange(width, device=device).repeat_interleave(
+        group_blocks[part.groups], output_size=part.blocks.stop - part.blocks.start
+    )  # (blocks,) each block's group within the slice
+    rows = gather[part.rows].view(-1, block)  # (blocks, block)
+    at = (rows * width + column[:, None]).view(-1)
+    table = torch.full(((num + 1) * width,), part.pad, dtype=torch.int32, device=device)
+    table.index_copy_(0, at, torch.arange(at.numel(), dtype=torch.int32, device=device))
+    return table[: num * width].view(num, width)
 
 
 def _batched_rules(
-    in_rows: torch.Tensor,
-    out_rows: torch.Tensor,
+    in_rows: Sequence[torch.Tensor],
+    out_rows: Sequence[torch.Tensor],
     group_offsets: list[int],
     group_counts: list[int],
     num_in: int,
     num_out: int,
-    num_offsets: int,
     channels: int,
+    mirrored: bool = False,
 ) -> dict:
     """The batched layout of :class:`IndicePairs` from the pairs ``in_rows`` / ``out_rows``
-    ``(P,)``, listed in groups of one kernel offset each (``group_offsets[g]``, ascending,
-    ``group_counts[g]`` pairs each, ``P = sum(group_counts)``)."""
-    device = in_rows.device
-    num_pairs = int(in_rows.numel())
+    (each a list of consecutive parts, ``(P,)`` in all), listed in groups of one kernel offset
+    each (``group_offsets[g]``, distinct, ``group_counts[g]`` pairs each,
+    ``P = sum(group_counts)``); each output row sums its products in the groups' order.
+    ``mirrored``: the second half of the groups lists the first half's pairs reversed, group by
+    group (a submanifold layer); when the layer takes more than one slice, the second half's
+    slices then mirror the first half's."""
+    device = in_rows[0].device
+    num_pairs = sum(int(rows.numel()) for rows in in_rows)
     num_groups = len(group_offsets)
     block = _block_size(num_pairs, num_groups, channels)
-    blocks = [(c + block - 1) // block for c in group_counts]
+    # every non-empty group ends in a padding row: the slices' pad (see RuleSlice)
+    blocks = [(c + block) // block if c else 0 for c in group_counts]
     counts = torch.tensor(group_counts, dtype=torch.long, device=device)
     group_blocks = torch.tensor(blocks, dtype=torch.long, device=device)
     starts = torch.cumsum(counts, 0) - counts
     padded_starts = (torch.cumsum(group_blocks, 0) - group_blocks) * block
-    group_of_pair = _group_ids(counts, num_pairs)
     slot = torch.arange(num_pairs, device=device)
-    slot += (padded_starts - starts).index_select(0, group_of_pair)
+    slot += (padded_starts - starts).repeat_interleave(counts, output_size=num_pairs)
     num_rows = sum(blocks) * block
     gather_in = torch.full((num_rows,), num_in, dtype=torch.long, device=device)
-    gather_in.index_copy_(0, slot, in_rows)
+    for rows, at in zip(in_rows, slot.split([int(r.numel()) for r in in_rows])):
+        gather_in.index_copy_(0, at, rows)
     gather_out = torch.full((num_rows,), num_out, dtype=torch.long, device=device)
-    gather_out.index_copy_(0, slot, out_rows)
+    for rows, at in zip(out_rows, slot.split([int(r.numel()) for r in out_rows])):
+        gather_out.index_copy_(0, at, rows)
     offsets = torch.tensor(group_offsets, dtype=torch.long, device=device)
-    block_offsets = offsets.index_select(0, _group_ids(group_blocks, sum(blocks)))
-    column = offsets.index_select(0, group_of_pair)
+    block_offsets = offsets.repeat_interleave(group_blocks, output_size=sum(blocks))
 
-    def bags(p0: int, p1: int, k0: int, k1: int, row0: int, rows: torch.Tensor, num: int):
-        """Each of the ``num`` rows' block rows among pairs ``p0:p1`` (offsets ``k0:k1``), in
-        kernel-offset order: a ``(num, k1 - k0)`` table of block rows, read row-major."""
-        width = k1 - k0
-        table = torch.full((num * width,), -1, dtype=torch.long, device=device)
-        at = rows[p0:p1] * width + (column[p0:p1] - k0)
-        table.index_copy_(0, at, slot[p0:p1] - row0)
-        present = table >= 0
-        sizes = torch.count_nonzero(present.view(num, width), dim=1)
-        return table.masked_select(present), torch.cumsum(sizes, 0) - sizes
-
-    # cut the groups into runs of about _CPU_SLICE_ELEMENTS gathered elements (one on a GPU)
+    # cut the groups into runs of about _CPU_SLICE_ELEMENTS gathered elements (one on a GPU);
+    # mirrored: the second half's groups mirror the first's, and are cut alike
     budget = _CPU_SLICE_ELEMENTS // max(channels, 1) if device.type == "cpu" else num_rows
+    mirrored = mirrored and num_rows > budget
+    cut_groups = num_groups // 2 if mirrored else num_groups
     cuts, rows = [0], 0
-    for g, n in enumerate(blocks):
+    for g, n in enumerate(blocks[:cut_groups]):
         if rows and rows + n * block > budget:
             cuts.append(g)
             rows = 0
         rows += n * block
-    cuts.append(num_groups)
+    cuts.append(cut_groups)
+    if mirrored:
+        cuts += [cut_groups + g for g in cuts[1:]]
     slices, block_start = [], 0
     for g0, g1 in zip(cuts[:-1], cuts[1:]):
-        if g0 == g1:
-            continue
         n = sum(blocks[g0:g1])
-        k0, k1 = group_offsets[g0], group_offsets[g1 - 1] + 1
-        p0, p1, row0 = sum(group_counts[:g0]), sum(group_counts[:g1]), block_start * block
-        slices.append(RuleSlice(
-            (k0, k1), slice(g0, g1), slice(row0, row0 + n * block),
-            slice(block_start, block_start + n),
-            bags(p0, p1, k0, k1, row0, out_rows, num_out),
-            bags(p0, p1, k0, k1, row0, in_rows, num_in),
-        ))  # fmt: skip
+        if n == 0:  # only empty groups
+            continue
+        row0 = block_start * block
+        part = RuleSlice(
+            slice(g0, g1), slice(row0, row0 + n * block),
+            slice(block_start, block_start + n), n * block - 1, gather_out.new_zeros(0),
+        )  # fmt: skip
+        table = _bag_table(gather_out, group_blocks, block, part, num_out)
+        slices.append(dataclasses.replace(part, out_bags=table))
         block_start += n
     return {
         "group_offsets": tuple(group_offsets),
         "group_counts": tuple(group_counts),
-        "in_rows": in_rows,
-        "out_rows": out_rows,
         "block": block,
         "gather_in": gather_in,
         "gather_out": gather_out,
@@ -335,7 +358,7 @@ def _occupancy_code(device: torch.device) -> torch.Tensor:
     below = torch.zeros_like(byte * bit)
     for b in range(8):
         below += ((byte >> b) & 1) * (b < bit)
-    return ((below << 1) | ((byte >> bit) & 1)).reshape(-1)
+    return ((below << 1) | ((byte >> bit) & 1)).reshape(-1).to(torch.uint8)
 
 
 def _subm_pairs(
@@ -367,36 +390,40 @@ def _subm_pairs(
     deltas = deltas * torch.tensor(dilation, device=device)
     shifts = (deltas[:centre, 0] * padded[1] + deltas[:centre, 1]) * padded[2] + deltas[:centre, 2]
     if num:
-        num_words = int(sorted_keys[-1]) // 8 + 1
+        last = int(sorted_keys[-1])
+        num_words = last // 8 + 1
+        if last < 2**31:  # the neighbours' keys lie in [0, last]: half the memory traffic
+            sorted_keys, shifts = sorted_keys.int(), shifts.int()
         word = sorted_keys >> 3
-        bits = torch.zeros(num_words, dtype=torch.long, device=device)
-        bits.index_add_(0, word, 1 << (sorted_keys & 7))  # distinct bits: the sum is their OR
+        bits = torch.zeros(num_words, dtype=torch.uint8, device=device)
+        # distinct bits: the sum is their OR
+        bits.index_add_(0, word, (1 << (sorted_keys & 7)).to(torch.uint8))
         starts = torch.ones(num, dtype=torch.bool, device=device)
         starts[1:] = word[1:] != word[:-1]
-        first = torch.zeros(num_words, dtype=torch.long, device=device)
         at = torch.nonzero(starts, as_tuple=True)[0]
-        first.index_copy_(0, word.index_select(0, at), at)
+        first = torch.empty(num_words, dtype=torch.int32, device=device)  # read at set bits only
+        first.index_copy_(0, word.index_select(0, at).long(), at.int())
         # the first half's shifts are negative and the padding keeps every neighbour in the grid
         neighbour = (sorted_keys[None, :] + shifts[:, None]).view(-1)  # (K // 2 * N,)
         neighbour_word = neighbour >> 3
-        code = bits.index_select(0, neighbour_word).mul_(8).add_(neighbour & 7)
-        code = _occupancy_code(device).index_select(0, code)
+        code = bits.index_select(0, neighbour_word).to(neighbour.dtype).mul_(8)
+        code = _occupancy_code(device).index_select(0, code.add_(neighbour & 7))
         hit = torch.nonzero(code & 1, as_tuple=True)[0]  # offset-major, site order within
-        half, site = hit // num, hit % num
+        half = torch.div(hit, num, rounding_mode="floor")
+        site = hit - half * num
         found = first.index_select(0, neighbour_word.index_select(0, hit))
-        found += code.index_select(0, hit) >> 1
+        found = found.long().add_(code.index_select(0, hit) >> 1)
         counts = torch.bincount(half, minlength=centre).tolist()
         near, here = order.index_select(0, found), order.index_select(0, site)
     else:
         counts = [0] * centre
         near = here = order
     # offset k < centre reads the neighbour into the site; its mirror K - 1 - k the site into
-    # the neighbour (listed in ascending k, so the groups of the first half in reverse)
-    mirrored = [torch.cat(list(reversed(rows.split(counts)))) for rows in (here, near)]
+    # the neighbour
     rules = _batched_rules(
-        torch.cat([near, mirrored[0]]), torch.cat([here, mirrored[1]]),
-        list(range(centre)) + list(range(centre + 1, num_offsets)), counts + counts[::-1],
-        num, num, num_offsets, channels,
+        [near, here], [here, near],
+        list(range(centre)) + list(range(num_offsets - 1, centre, -1)), counts + counts,
+        num, num, channels, mirrored=True,
     )  # fmt: skip
     return IndicePairs(
         indices, indices, spatial_shape, spatial_shape, kernel_size, dilation, True, **rules
@@ -440,6 +467,9 @@ def _regular_pairs(
     # per axis (each on its own): input coordinate i reaches output o through kernel position
     # k when o * s - p + k * d == i
     od, oh, ow = out_shape
+    num_cells = (int(idx[:, 0].max()) + 1 if idx.shape[0] else 1) * od * oh * ow
+    # the output keys lie in [0, num_cells): int32 where they fit, half the traffic
+    key_dtype = torch.int32 if num_cells <= 2**31 else torch.long
     scale = (oh * ow, ow, 1)  # each axis' share of the output's linear key
     key_axis, valid_axis = [], []
     for axis, (k, s, p, d, n_out) in enumerate(
@@ -447,21 +477,25 @@ def _regular_pairs(
     ):
         num = idx[None, :, 1 + axis] + p - torch.arange(k, device=device)[:, None] * d  # (k, N)
         o = torch.div(num, s, rounding_mode="floor")
-        key_axis.append(o * scale[axis])
-        valid_axis.append((num % s == 0) & (o >= 0) & (o < n_out))
+        key_axis.append((o * scale[axis]).to(key_dtype))
+        valid_axis.append((o * s == num) & (o >= 0) & (o < n_out))
     kd, kh, kw = kernel_size
     num_offsets = kd * kh * kw
     valid = (
         valid_axis[0][:, None, None] & valid_axis[1][None, :, None] & valid_axis[2][None, None, :]
     ).view(-1)  # (K * N,), K in the weight's (kD, kH, kW) order
-    keys = (
-        (key_axis[0] + idx[None, :, 0] * (od * oh * ow))[:, None, None]
-        + key_axis[1][None, :, None]
-        + key_axis[2][None, None, :]
-    ).view(-1)  # (K * N,) output keys
+    key_z = key_axis[0] + (idx[None, :, 0] * (od * oh * ow)).to(key_dtype)
+    keys = ((key_z[:, None] + key_axis[1][None, :])[:, :, None] + key_axis[2][None, None, :]).view(
+        -1
+    )  # (K * N,) output keys
     hit = torch.nonzero(valid, as_tuple=True)[0]  # offset-major, input order within
-    k_ids, in_rows = hit // idx.shape[0], hit % idx.shape[0]
-    out_keys, out_rows = torch.unique(keys.index_select(0, hit), sorted=True, return_inverse=True)
+    k_ids = torch.div(hit, idx.shape[0], rounding_mode="floor")
+    in_rows = hit - k_ids * idx.shape[0]
+    hit_keys = keys.index_select(0, hit)
+    # a sort of the pairs' int32 keys beats flagging the reached cells in a grid-sized bitmap
+    # and ranking them (and does not grow with the grid)
+    out_keys, out_rows = torch.unique(hit_keys, sorted=True, return_inverse=True)
+    out_keys = out_keys.long()
     # decode the sorted keys back into [b, z, y, x]
     out_indices = torch.stack(
         [
@@ -475,8 +509,8 @@ def _regular_pairs(
     # nonzero lists (k, n) row-major: each offset's pairs are one group
     counts = torch.bincount(k_ids, minlength=num_offsets).tolist()
     rules = _batched_rules(
-        in_rows, out_rows, list(range(num_offsets)), counts, idx.shape[0], out_keys.shape[0],
-        num_offsets, channels,
+        [in_rows], [out_rows], list(range(num_offsets)), counts, idx.shape[0], out_keys.shape[0],
+        channels,
     )  # fmt: skip
     return IndicePairs(
         indices, out_indices, spatial_shape, out_shape, kernel_size, dilation, False, **rules
@@ -615,9 +649,10 @@ class _GatherGemmReduce(torch.autograd.Function):
     that does not grow with the number of kernel offsets: per slice of offsets
     (:class:`IndicePairs`; one on a GPU) one gather of the pairs' input rows into blocks of one
     offset each, one ``bmm`` of every block with its offset's weight, one ``embedding_bag``
-    summing each output row's products in kernel-offset order; plus one GEMM for a submanifold
+    summing each output row's products in its groups' order; plus one GEMM for a submanifold
     layer's centre. The backward has the same form: the feature gradient gathers the output
-    gradient's rows and sums them per input row; the weight gradient is one ``bmm`` of the
+    gradient's rows and sums them per input row (a submanifold layer: its forward with the
+    mirrored, transposed weights); the weight gradient is one ``bmm`` of the
     gathered blocks and a sum over each offset's blocks (``segment_reduce``).
 
     No op writes two values into one place, so the result is deterministic on CPU and GPU, in
@@ -651,30 +686,80 @@ class _GatherGemmReduce(torch.autograd.Function):
         centre = weight.shape[1] // 2
         grad_features = torch.zeros_like(features) if need_features else None
         grad_weight = torch.zeros_like(weight) if need_weight else None
-        for part in rules.slices:
-            gather_out = rules.gather_out[part.rows]
-            if need_features:
-                grad_features += _sum_blocks(
-                    grad_rows, weight_oi, gather_out, rules.block,
-                    rules.block_offsets[part.blocks], part.in_bags,
-                )  # fmt: skip
-            if need_weight:
-                shape = (-1, rules.block)
-                blocks_in = rows.index_select(0, rules.gather_in[part.rows]).view(
-                    *shape, rows.shape[1]
-                )
-                blocks_out = grad_rows.index_select(0, gather_out).view(*shape, grad_rows.shape[1])
-                partial = torch.bmm(blocks_out.transpose(1, 2), blocks_in)  # (blocks, out, in)
-                per_group = torch.segment_reduce(
-                    partial.flatten(1), "sum", lengths=rules.group_blocks[part.groups], unsafe=True
-                )  # (groups, out * in)
-                offsets = torch.tensor(rules.group_offsets[part.groups], device=weight.device)
-                grad_weight[:, offsets] = per_group.view(-1, *partial.shape[1:]).transpose(0, 1)
+        if rules.subm:
+            _subm_backward(grad_rows, rows, weight, rules, grad_features, grad_weight)
+        else:
+            in_bags = rules.in_bags if need_features else None
+            for s, part in enumerate(rules.slices):
+                gather_out = rules.gather_out[part.rows]
+                if need_features:
+                    grad_features += _sum_blocks(
+                        grad_rows, weight_oi, gather_out, rules.block,
+                        rules.block_offsets[part.blocks], in_bags[s],
+                    )  # fmt: skip
+                if need_weight:
+                    blocks_in = rows.index_select(0, rules.gather_in[part.rows])
+                    blocks_out = grad_rows.index_select(0, gather_out)
+                    _weight_grad(blocks_out, blocks_in, rules, part.groups, grad_weight)
         if rules.subm and need_features:
             grad_features.addmm_(grad_out, weight[:, centre])
         if rules.subm and need_weight:
             grad_weight[:, centre] = grad_out.t() @ features
         return grad_features, grad_weight, None
+
+
+def _subm_backward(grad_rows, rows, weight, rules, grad_features, grad_weight) -> None:
+    """A submanifold layer's backward into ``grad_features`` / ``grad_weight`` (either None).
+
+    Its pairs are symmetric: ``(i, o, k)`` and ``(o, i, K - 1 - k)``, the second half of its
+    slices holding the first half's pairs reversed, row for row. So the feature gradient is the
+    forward with the mirrored, transposed weights on the same tables, and the output gradient
+    gathered at one slice's input rows is what the weight gradient of its mirror slice reads at
+    that slice's output rows: one gather of the output gradient serves both. In one slice (a
+    GPU) the two halves of its rows mirror each other."""
+    weight_mirror = weight.permute(1, 0, 2).flip(0)  # (K, out, in), offset k holds K - 1 - k's
+    if len(rules.slices) == 1:
+        (part,) = rules.slices
+        grad = grad_rows.index_select(0, rules.gather_in[part.rows])
+        if grad_features is not None:
+            grad_features += _reduce_blocks(
+                grad, weight_mirror, rules.block, rules.block_offsets[part.blocks], part.out_bags
+            )
+        if grad_weight is not None:
+            blocks_in = rows.index_select(0, rules.gather_in[part.rows])
+            half_rows, half_groups = grad.shape[0] // 2, len(rules.group_counts) // 2
+            groups = (slice(0, half_groups), slice(half_groups, 2 * half_groups))
+            _weight_grad(grad[half_rows:], blocks_in[:half_rows], rules, groups[0], grad_weight)
+            _weight_grad(grad[:half_rows], blocks_in[half_rows:], rules, groups[1], grad_weight)
+        return
+    half = len(rules.slices) // 2
+    for pair in zip(rules.slices[:half], rules.slices[half:]):
+        grads = [grad_rows.index_select(0, rules.gather_in[part.rows]) for part in pair]
+        if grad_features is not None:
+            for part, grad in zip(pair, grads):
+                grad_features += _reduce_blocks(
+                    grad, weight_mirror, rules.block, rules.block_offsets[part.blocks],
+                    part.out_bags,
+                )  # fmt: skip
+        if grad_weight is not None:
+            for part, grad in zip(pair, reversed(grads)):
+                blocks_in = rows.index_select(0, rules.gather_in[part.rows])
+                _weight_grad(grad, blocks_in, rules, part.groups, grad_weight)
+
+
+def _weight_grad(blocks_out, blocks_in, rules, groups: slice, grad_weight) -> None:
+    """Writes the weight gradient of the offsets of ``groups`` into ``grad_weight`` ``(out, K,
+    in)`` from its gathered output-gradient and input rows ``(rows, out)`` / ``(rows, in)``: one
+    ``bmm`` of the blocks, summed over each group's blocks."""
+    shape = (-1, rules.block)
+    blocks_out = blocks_out.view(*shape, blocks_out.shape[1])
+    blocks_in = blocks_in.view(*shape, blocks_in.shape[1])
+    partial = torch.bmm(blocks_out.transpose(1, 2), blocks_in)  # (blocks, out, in)
+    per_group = torch.segment_reduce(
+        partial.flatten(1), "sum", lengths=rules.group_blocks[groups], unsafe=True
+    )  # (groups, out * in)
+    offsets = torch.tensor(rules.group_offsets[groups], device=grad_weight.device)
+    grad_weight[:, offsets] = per_group.view(-1, *partial.shape[1:]).transpose(0, 1)
 
 
 def _with_zero_row(rows: torch.Tensor) -> torch.Tensor:
@@ -684,13 +769,16 @@ def _with_zero_row(rows: torch.Tensor) -> torch.Tensor:
 
 def _sum_blocks(rows, weight, gather, block, block_offsets, bags):
     """``rows`` ``(N + 1, C)`` gathered by ``gather`` into blocks, each block times its offset's
-    ``weight`` ``(K, C, C')``, the products summed into one row per bag: ``(num_bags, C')``."""
-    blocks = rows.index_select(0, gather).view(-1, block, rows.shape[1])  # (blocks, block, C)
+    ``weight`` ``(K, C, C')``, the products summed into one row per row of ``bags`` (a
+    ``(num_bags, width)`` table of block rows): ``(num_bags, C')``."""
+    return _reduce_blocks(rows.index_select(0, gather), weight, block, block_offsets, bags)
+
+
+def _reduce_blocks(gathered, weight, block, block_offsets, bags):
+    """:func:`_sum_blocks` on rows already gathered, ``(n_blocks * block, C)``."""
+    blocks = gathered.view(-1, block, gathered.shape[1])  # (blocks, block, C)
     products = torch.bmm(blocks, weight.index_select(0, block_offsets))
-    bag_rows, bag_starts = bags
-    return torch.nn.functional.embedding_bag(
-        bag_rows, products.view(-1, weight.shape[2]), bag_starts, mode="sum"
-    )
+    return torch.nn.functional.embedding_bag(bags, products.view(-1, weight.shape[2]), mode="sum")
 
 
 class SubMConv3d(_SparseConvNd):

@@ -5,6 +5,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from pcdet_atlas.ops import spconv
 from pcdet_atlas.ops.spconv import (
     SparseConv3d,
     SparseConvTensor,
@@ -210,6 +211,33 @@ def test_gradients_match_dense_reference(subm):
 
 
 @pytest.mark.parametrize("conv_cls", [SubMConv3d, SparseConv3d])
+def test_many_slices_give_the_one_slice_result(conv_cls, monkeypatch):
+    """Cut into many slices (the CPU's few-MB runs; a submanifold layer's second half mirroring
+    its first, whose backward shares one gather between a slice and its mirror), a layer gives
+    the forward and gradients of its one-slice form."""
+    x = random_sparse((6, 7, 5), 2, 3, 80, seed=7)
+    conv = conv_cls(3, 4, 3).double()
+    g = torch.Generator().manual_seed(2)
+    upstream = torch.randn(conv(x).features.shape, generator=g, dtype=torch.float64)
+
+    def run():
+        feats = x.features.clone().requires_grad_(True)
+        conv.weight.grad = None
+        out = conv(x.replace_feature(feats))
+        (out.features * upstream).sum().backward()
+        return len(conv._rules(x).slices), out.features, feats.grad, conv.weight.grad
+
+    one = run()
+    monkeypatch.setattr(spconv, "_CPU_SLICE_ELEMENTS", 64)
+    many = run()
+    assert one[0] == 1 and many[0] >= 4
+    if conv_cls is SubMConv3d:  # the second half of the slices mirrors the first
+        assert many[0] % 2 == 0
+    for got, want in zip(many[1:], one[1:]):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("conv_cls", [SubMConv3d, SparseConv3d])
 def test_gradcheck_features_and_weight(conv_cls):
     """The conv's own backward against finite differences, for the features and the weight."""
     x = random_sparse((4, 4, 4), 1, 2, 8, seed=7)
@@ -252,6 +280,42 @@ def test_rows_never_repeat_within_a_kernel_offset(conv_cls, kwargs):
     for in_rows, out_rows in rules.pairs:
         assert in_rows.unique().numel() == in_rows.numel()
         assert out_rows.unique().numel() == out_rows.numel()
+
+
+@pytest.mark.parametrize("conv_cls,kwargs", RULE_CASES)
+def test_reduction_tables_list_every_pair_once_and_pad_reads_zero(conv_cls, kwargs):
+    """Each slice's fixed-width table names every pair's block row once, in its output row;
+    the other entries name the slice's pad row, a padding row (it reads the zero row, so its
+    product adds nothing)."""
+    x = random_sparse((6, 7, 5), 2, 2, 60, seed=11)
+    rules = conv_cls(2, 2, **kwargs)._rules(x)
+    num_in, num_out = rules.in_indices.shape[0], rules.out_indices.shape[0]
+    listed = 0
+    for part in rules.slices:
+        row0 = part.rows.start
+        assert int(rules.gather_in[row0 + part.pad]) == num_in
+        assert int(rules.gather_out[row0 + part.pad]) == num_out
+        table = part.out_bags.long()
+        real = table != part.pad
+        assert real.sum() == (rules.gather_out[part.rows] < num_out).sum()
+        out_of_entry = torch.arange(num_out)[:, None].expand_as(table)[real]
+        assert torch.equal(rules.gather_out[row0 + table[real]], out_of_entry)
+        listed += int(real.sum())
+    assert listed == sum(rules.group_counts) > 60
+
+
+def test_regular_rules_on_a_grid_past_int32_keys_match_a_small_grid():
+    """A grid of more than 2**31 output cells takes int64 keys: the same sites near its far
+    corner give the same features, shifted, as on a small grid (int32 keys)."""
+    x = random_sparse((6, 7, 5), 2, 3, 40, seed=5)
+    inner = x.indices + torch.tensor([0, 1, 1, 1], dtype=torch.int32)  # reach stays in the grid
+    small = SparseConvTensor(x.features, inner, (8, 9, 7), 2)
+    shift = torch.tensor([0, 1992, 1991, 1993], dtype=torch.int32)
+    big = SparseConvTensor(x.features, inner + shift, (2000, 2000, 2000), 2)
+    conv = SparseConv3d(3, 4, 3, padding=1).double()
+    want, got = conv(small), conv(big)
+    assert torch.equal(got.indices, want.indices + shift)
+    torch.testing.assert_close(got.features, want.features, rtol=0, atol=0)
 
 
 @pytest.fixture
