@@ -10,9 +10,9 @@
 - docs/attacks.md's key tables name every key the attacks accept, no other, with the defaults
   of the ``_base_`` configs.
 
-The parsers are read in one child process: each tool runs as ``__main__`` until it parses its
-arguments, which stops it. ``tools/dev/official_waymo_metric/`` runs in its own venv
-(TensorFlow), so its options are read from its source (``add_argument`` literals).
+The parsers are read by ``tool_parsers.read_parsers`` (one child process).
+``tools/dev/official_waymo_metric/`` runs in its own venv (TensorFlow), so its options are read
+from its source (``add_argument`` literals).
 """
 
 from __future__ import annotations
@@ -21,14 +21,12 @@ import ast
 import glob
 import importlib
 import inspect
-import json
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
+from tool_parsers import read_parsers
 
 from pcdet_atlas.config import REPO_ROOT
 from pcdet_atlas.utils.entry_points import COMMANDS
@@ -40,28 +38,6 @@ OFFICIAL_VENV = "tools/dev/official_waymo_metric/"
 CALL = re.compile(r"tools/[\w/]+\.py|(?<![\w/.-])atlas-[a-z]+(?:-[a-z]+)*\b")
 FLAG = re.compile(r"(?<![\w-])--[A-Za-z][\w-]*")
 REPO_PATH = re.compile(r"(?<![\w/.<-])cfgs/[\w./{},*-]*\.yaml")
-
-PARSERS = r"""
-import argparse, json, runpy, sys
-
-class Parsed(Exception):
-    pass
-
-def capture(self, *args, **kwargs):
-    raise Parsed(self)
-
-argparse.ArgumentParser.parse_args = capture
-argparse.ArgumentParser.parse_known_args = capture
-found = {}
-for path in sys.argv[1:]:
-    sys.argv = [path]
-    try:
-        runpy.run_path(path, run_name="__main__")
-    except Parsed as parsed:
-        parser = parsed.args[0]
-        found[path] = sorted({s for a in parser._actions for s in a.option_strings})
-print(json.dumps(found))
-"""
 
 
 def markdown_docs() -> list[Path]:
@@ -121,12 +97,8 @@ def tool_options(documented_calls):
     missing = [t for t in tools if not (REPO_ROOT / t).is_file()]
     assert not missing, f"the docs name tools that do not exist: {missing}"
     ours = [t for t in tools if not t.startswith(OFFICIAL_VENV)]
-    run = subprocess.run(
-        [sys.executable, "-c", PARSERS, *ours], cwd=REPO_ROOT, capture_output=True, text=True,
-        timeout=600,
-    )  # fmt: skip
-    assert run.returncode == 0, run.stderr[-3000:]
-    options = json.loads(run.stdout.strip().splitlines()[-1])
+    options = {tool: sorted({s for flags, _, _ in rows for s in flags})
+               for tool, rows in read_parsers(ours).items()}  # fmt: skip
     unparsed = sorted(set(ours) - set(options))
     assert not unparsed, f"these tools ran to the end without parsing arguments: {unparsed}"
     for tool in set(tools) - set(ours):
