@@ -18,12 +18,14 @@ import pytest
 import torch
 import yaml
 from easydict import EasyDict
+from malicious_files import malicious_checkpoint
 
 from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset as ProjectAtlasDataset
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.evaluation import load_results
 from pcdet_atlas.evaluation.results.schema import METRIC_KEYS
 from pcdet_atlas.utils.common import load_tool
+from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
 STANDIN = Path(__file__).resolve().parent / "openpcdet_standin"
 ATTACKS = REPO_ROOT / "cfgs" / "attacks"
@@ -237,6 +239,17 @@ def test_openpcdet_test_tool_runs_and_scores_an_openpcdet_model(
         same_scores(scored["variants"][variant], entry)
     load_tool("report").main(["--results", str(out), "--out_dir", str(tmp_path / "report")])
     assert "oracle" in (tmp_path / "report" / "report.md").read_text()
+
+
+def test_a_checkpoint_that_could_run_code_is_refused_before_openpcdet_reads_it(openpcdet, tmp_path):
+    marker = tmp_path / "ran"
+    ckpt = malicious_checkpoint(tmp_path / "evil.pth", marker, model_state={})
+    with pytest.raises(RefusedGlobalError, match="evil.pth"):
+        openpcdet.evaluate_openpcdet(
+            {"CLASS_NAMES": CLASSES, "DATA_CONFIG": {}, "MODEL": {}}, ckpt, "clean",
+            tmp_path / "out", config="x.yaml", model_name="x", device="cpu",
+        )  # fmt: skip
+    assert not marker.exists() and not (tmp_path / "out").exists()
 
 
 def test_without_openpcdet_the_tool_names_the_import_error(monkeypatch, tmp_path, capsys):

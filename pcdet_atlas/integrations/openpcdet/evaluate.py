@@ -26,6 +26,8 @@ from pcdet_atlas.attacks.base import BaseAttack
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.evaluation import build_results, save_results
 from pcdet_atlas.integrations.openpcdet.dataset import RECORD_KEY, attack_data_cfg
+from pcdet_atlas.models.detectors.detector3d_template import read_checkpoint
+from pcdet_atlas.models.openpcdet_checkpoint import OPENPCDET_SAFE_GLOBALS
 from pcdet_atlas.train_utils.atlas_eval import (
     ATTACK_DIR,
     build_variant_attacks,
@@ -128,6 +130,10 @@ def evaluate_openpcdet(
         temporal_window: the lifecycle window; None: :func:`default_temporal_window`.
     """
     logger = logger or logging.getLogger("pcdet_atlas")
+    # OpenPCDet's load_params_from_file unpickles the file as torch.load does by default; it is
+    # read here first with weights_only=True, so a file that could run code is refused (named)
+    # before anything else is built
+    read_checkpoint(ckpt, safe_globals=OPENPCDET_SAFE_GLOBALS)
     class_names = list(cfg["CLASS_NAMES"])
     variants = _variants(attacks)
     split_cfg = split_data_cfg(cfg["DATA_CONFIG"], root_path)
