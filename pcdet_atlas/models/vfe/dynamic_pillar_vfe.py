@@ -171,7 +171,8 @@ class DynamicPillarVFE(nn.Module):
             use_norm=settings.use_norm,
             with_distance=settings.with_distance,
             use_absolute_xyz=settings.use_absolute_xyz,
-            drop_outside_z=settings.drop_outside_z,
+            # a declaration without DROP_OUTSIDE_Z (a voxel grid's) always drops outside z
+            drop_outside_z=getattr(settings, "drop_outside_z", True),
         )
 
     def get_output_feature_dim(self) -> int:

@@ -8,13 +8,9 @@ voxel; DSVT-V reads its output. Points outside the z range are dropped, as OpenP
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
-from pcdet_atlas.models.stage_config import read_stage
 from pcdet_atlas.models.vfe.dynamic_pillar_vfe import (
     DynamicPillarVFE,
     PointNetVFEConfig,
-    voxel_size_of,
 )
 from pcdet_atlas.registry import MODEL_STAGES
 
@@ -30,20 +26,6 @@ class DynamicVoxelVFE(DynamicPillarVFE):
     pillar_grid = False
 
     CONFIG = PointNetVFEConfig  # no DROP_OUTSIDE_Z: a voxel grid always drops outside z
-
-    @classmethod
-    def from_config(cls, cfg: Mapping, model_info: Mapping) -> DynamicVoxelVFE:
-        settings = read_stage(cls, cfg, "MODEL.VFE")
-        return cls(
-            num_point_features=model_info["num_point_features"],
-            point_cloud_range=model_info["point_cloud_range"],
-            voxel_size=voxel_size_of(settings, cfg, model_info),
-            num_filters=settings.num_filters,
-            use_norm=settings.use_norm,
-            with_distance=settings.with_distance,
-            use_absolute_xyz=settings.use_absolute_xyz,
-            drop_outside_z=True,
-        )
 
     def forward(self, batch_dict: dict) -> dict:
         batch_dict = super().forward(batch_dict)
