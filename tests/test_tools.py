@@ -188,3 +188,22 @@ def test_a_tool_refuses_the_package_of_another_tree(tmp_path):
         check_package_tree(other / "tools" / "bench" / "bench_models.py")  # a tool in a subfolder
     check_package_tree(TOOLS / "bench" / "bench_models.py")
     check_package_tree(tmp_path / "scripts" / "mine.py")  # a script outside any checkout
+
+
+def test_a_benchmark_baseline_child_may_import_the_named_tree(tmp_path, monkeypatch):
+    """--baseline_src runs this checkout's benchmark with another tree's package on purpose: the
+    child names that tree (baseline_tree_env), and only that tree is accepted."""
+    from pcdet_atlas.utils import cli
+
+    repo = Path(cli.__file__).resolve().parents[2]
+    other = tmp_path / "clone"
+    (other / "tools" / "bench").mkdir(parents=True)
+    (other / "pcdet_atlas").mkdir()
+    env = cli.baseline_tree_env(repo)
+    assert env[cli.BASELINE_TREE_ENV] == str(repo)
+    assert env["PYTHONPATH"].split(os.pathsep)[0] == str(repo)
+    monkeypatch.setenv(cli.BASELINE_TREE_ENV, str(repo))
+    cli.check_package_tree(other / "tools" / "bench" / "bench_models.py")
+    monkeypatch.setenv(cli.BASELINE_TREE_ENV, str(tmp_path / "elsewhere"))
+    with pytest.raises(cli.OtherTreeError):
+        cli.check_package_tree(other / "tools" / "bench" / "bench_models.py")

@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.util
+import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -137,13 +138,30 @@ class OtherTreeError(RuntimeError):
     """The imported ``pcdet_atlas`` is not the one beside the running tool."""
 
 
+# A benchmark's --baseline_src child runs this checkout's script on purpose with the package of
+# another source tree; it names that tree in this variable, and only that tree is then accepted.
+BASELINE_TREE_ENV = "PCDET_ATLAS_BASELINE_TREE"
+
+
+def baseline_tree_env(src: str | Path) -> dict[str, str]:
+    """The environment of a benchmark's child that imports ``pcdet_atlas`` from ``src``."""
+    src = Path(src).resolve()
+    repo = Path(__file__).resolve().parent.parent.parent
+    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(src), str(repo)]),
+                **{BASELINE_TREE_ENV: str(src)})  # fmt: skip
+
+
 def check_package_tree(tool_file: str | Path) -> None:
     """Raise :class:`OtherTreeError` when ``tool_file`` (a ``tools/*.py`` or ``tools/*/*.py`` of
-    a checkout) runs with the ``pcdet_atlas`` package of another checkout."""
+    a checkout) runs with the ``pcdet_atlas`` package of another checkout, unless that package's
+    tree is the one named in ``$PCDET_ATLAS_BASELINE_TREE`` (:func:`baseline_tree_env`)."""
     tool_path = Path(tool_file).resolve()
     tools = next((p for p in tool_path.parents if p.name == "tools"), tool_path.parent)
     tool_root = tools.parent
     package_root = Path(__file__).resolve().parent.parent.parent  # .../pcdet_atlas/utils/cli.py
+    baseline = os.environ.get(BASELINE_TREE_ENV)
+    if baseline and Path(baseline).resolve() == package_root:
+        return
     if (tool_root / "pcdet_atlas").is_dir() and tool_root != package_root:
         raise OtherTreeError(
             f"{Path(tool_file).name} of {tool_root} imports pcdet_atlas from {package_root}: "

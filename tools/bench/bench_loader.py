@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -26,7 +25,7 @@ from pathlib import Path
 
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.datasets import build_dataloader
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import add_debug_flag, baseline_tree_env, run_tool
 
 CFG_DIR = REPO_ROOT / "cfgs" / "dataset_configs"
 CLASS_NAMES = ["Vehicle", "Pedestrian", "Cyclist"]
@@ -112,7 +111,7 @@ def _compare(args, root: Path) -> None:
     npts = {}
     for _ in range(args.repeats):
         for tree, src in trees.items():
-            env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(src), str(REPO_ROOT)]))
+            env = baseline_tree_env(src)
             cmd = [
                 sys.executable,
                 __file__,

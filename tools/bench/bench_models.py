@@ -108,7 +108,7 @@ from pcdet_atlas.train_utils import eval_one_epoch
 from pcdet_atlas.train_utils.atlas_eval import point_history
 from pcdet_atlas.train_utils.proposal_bank import ProposalBank
 from pcdet_atlas.train_utils.setup import device_arg
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import add_debug_flag, baseline_tree_env, run_tool
 
 
 def _read_hwm_kib() -> int | None:
@@ -319,7 +319,7 @@ def _tree_child(tree: str, src: Path, argv: list[str]) -> dict:
     """Run this script with ``argv`` in a fresh process that imports ``pcdet_atlas`` from the
     source tree ``src``; returns the JSON of its last output line, whose ``package`` must lie in
     ``src``."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(src), str(REPO_ROOT)]))
+    env = baseline_tree_env(src)
     out = subprocess.run([sys.executable, __file__, *argv], env=env, capture_output=True, text=True)
     if out.returncode:
         raise SystemExit(f"{tree}: {' '.join(argv)} failed:\n{out.stderr[-4000:]}")
