@@ -204,10 +204,6 @@ def check_known_keys(node: Mapping, allowed: Iterable[str], section: str) -> Non
             )
 
 
-def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
 def _is_number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
@@ -236,9 +232,6 @@ EXPERIMENT_VALUES: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
         ),
         "6 finite numbers [x_min, y_min, z_min, x_max, y_max, z_max] with min < max (m)",
     ),
-    ("OPTIMIZATION.BATCH_SIZE_PER_GPU", lambda v: _is_int(v) and v >= 1, "an integer >= 1"),
-    ("OPTIMIZATION.NUM_EPOCHS", lambda v: _is_int(v) and v >= 1, "an integer >= 1"),
-    ("OPTIMIZATION.LR", lambda v: _is_number(v) and v > 0, "a finite number > 0"),
 )
 
 

@@ -69,6 +69,7 @@ from pcdet_atlas.datasets.fingerprint import data_config_fingerprint
 from pcdet_atlas.evaluation.results import ResultsError, collect_results, write_report
 from pcdet_atlas.evaluation.results.archive import archive_run_results
 from pcdet_atlas.train_utils.atlas_eval import (
+    atlas_section,
     build_variant_attacks,
     resolve_variants,
     variant_fingerprints,
@@ -89,7 +90,7 @@ def shipped_configs() -> list[Path]:
     """Synthetic model configs whose checkpoint ships (stage configs without one are skipped)."""
     out = []
     for path in sorted((REPO_ROOT / "cfgs" / "atlas" / "synthetic").rglob("*.yaml")):
-        ckpt = cfg_from_yaml_file(path).get("ATLAS", {}).get("CHECKPOINT")
+        ckpt = atlas_section(cfg_from_yaml_file(path).get("ATLAS")).checkpoint
         if ckpt and (REPO_ROOT / ckpt).is_file():
             out.append(path.relative_to(REPO_ROOT))  # as results.json and the report name it
     return out

@@ -21,6 +21,7 @@ import yaml
 
 from pcdet_atlas.config import ConfigError, resolve_cli_path, resolve_repo_path, to_plain
 from pcdet_atlas.evaluation import load_results
+from pcdet_atlas.train_utils.atlas_eval import atlas_section
 from pcdet_atlas.train_utils.checkpoint import CHECKPOINT_NAME
 from pcdet_atlas.train_utils.setup import output_dir_for
 from pcdet_atlas.utils.paths import join_under
@@ -41,8 +42,7 @@ def resolve_checkpoint(arg: str | None, atlas_cfg) -> Path:
     ``ATLAS.CHECKPOINT`` (relative to the repository root)."""
     if arg is not None:
         ckpt, path = arg, resolve_cli_path(arg)
-    elif atlas_cfg.get("CHECKPOINT") is not None:
-        ckpt = atlas_cfg.CHECKPOINT
+    elif (ckpt := atlas_section(atlas_cfg).checkpoint) is not None:
         path = resolve_repo_path(ckpt)
     else:
         raise ConfigError("no checkpoint: pass --ckpt (the config's ATLAS.CHECKPOINT is null)")

@@ -17,6 +17,7 @@ from pcdet_atlas.config import (
     check_experiment_config,
     resolve_repo_path,
 )
+from pcdet_atlas.models.optimization import check_optimization_config
 from pcdet_atlas.train_utils.dist import init_dist_pytorch, init_dist_slurm
 from pcdet_atlas.utils.cli import RenamedFlag
 from pcdet_atlas.utils.common import resolve_device
@@ -127,6 +128,8 @@ def load_cfg(cfg_file: str, set_cfgs: list[str] | None):
     if set_cfgs:
         cfg_from_list(set_cfgs, cfg)
     check_experiment_config(cfg)
+    if "OPTIMIZATION" in cfg:  # every key against its declaration, before anything is built
+        check_optimization_config(cfg.OPTIMIZATION)
     group, tag = exp_group_and_tag(cfg_file)
     cfg.TAG, cfg.EXP_GROUP_PATH = tag, group
     return cfg

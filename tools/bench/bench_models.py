@@ -105,7 +105,7 @@ from pcdet_atlas.models import build_network_from_config, load_data_to_device
 from pcdet_atlas.models.detectors import PTT, TwoStageDetector
 from pcdet_atlas.registry import DETECTORS
 from pcdet_atlas.train_utils import eval_one_epoch
-from pcdet_atlas.train_utils.atlas_eval import point_history
+from pcdet_atlas.train_utils.atlas_eval import atlas_section, point_history
 from pcdet_atlas.train_utils.proposal_bank import ProposalBank
 from pcdet_atlas.train_utils.setup import device_arg
 from pcdet_atlas.utils.cli import add_debug_flag, baseline_tree_env, run_tool
@@ -489,7 +489,7 @@ def reuse_table(cfg_files: list[str], data_path: Path, args, device: torch.devic
         frames = recomputed = 0
         context = EvalContext(
             data_cfg=cfg.DATA_CONFIG, class_names=cfg.CLASS_NAMES, device=device,
-            workers=args.workers, temporal_window=cfg.ATLAS.get("TEMPORAL_WINDOW"),
+            workers=args.workers, temporal_window=atlas_section(cfg.get("ATLAS")).temporal_window,
             show_progress=False,
         )  # fmt: skip
         clean = None
@@ -593,7 +593,7 @@ def vfe_forms_table(cfg_files: list[str], data_path: Path, args, device: torch.d
         cfg, batches, _ = _config_frames(cfg_file, data_path, args.frames + 1, device)
         torch.manual_seed(0)
         model = build_network_from_config(cfg).to(device)
-        ckpt = cfg.get("ATLAS", {}).get("CHECKPOINT")
+        ckpt = atlas_section(cfg.get("ATLAS")).checkpoint
         if ckpt and (REPO_ROOT / ckpt).is_file():
             model.load_params_from_file(REPO_ROOT / ckpt)
         else:  # running statistics of real features (their plain average), not BN's 0 / 1
@@ -650,7 +650,7 @@ def _timed_runs(
         except FileNotFoundError as err:  # a two-stage config whose RPN is not trained here
             unbuilt.append((cfg_file, str(err).split(" (")[0]))
             continue
-        ckpt = cfg.get("ATLAS", {}).get("CHECKPOINT")
+        ckpt = atlas_section(cfg.get("ATLAS")).checkpoint
         trained = bool(ckpt) and (REPO_ROOT / ckpt).is_file()
         if trained:
             model.load_params_from_file(REPO_ROOT / ckpt)
@@ -913,7 +913,7 @@ def bank_table(cfg_file: str, data_path: Path, args, device: torch.device) -> No
     attack = REPO_ROOT / "cfgs" / "attacks" / f"{args.bank_variant}.yaml"
     torch.manual_seed(0)
     model = build_network_from_config(cfg).to(device).eval()
-    ckpt = cfg.ATLAS.get("CHECKPOINT")
+    ckpt = atlas_section(cfg.get("ATLAS")).checkpoint
     if ckpt and (REPO_ROOT / ckpt).is_file():
         model.load_params_from_file(REPO_ROOT / ckpt)
     results = {}

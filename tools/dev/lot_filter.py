@@ -23,7 +23,11 @@ from torch.utils.data import DataLoader, Subset
 from pcdet_atlas.config import resolve_cli_path, resolve_repo_path
 from pcdet_atlas.datasets import build_dataloader
 from pcdet_atlas.models import build_network_from_config
-from pcdet_atlas.train_utils.atlas_eval import build_attack_loader, resolve_variants
+from pcdet_atlas.train_utils.atlas_eval import (
+    atlas_section,
+    build_attack_loader,
+    resolve_variants,
+)
 from pcdet_atlas.train_utils.lot_analysis import (
     collect_confidences,
     forecast_quality,
@@ -71,9 +75,10 @@ def main(argv=None) -> dict:
     require_dataset(cfg, args.cfg)
     if "LOT" not in cfg.MODEL:
         raise SystemExit(f"{args.cfg}: MODEL has no LOT section (a PHiM+LOT config is needed)")
-    if args.ckpt is None and not cfg.ATLAS.get("CHECKPOINT"):
+    shipped = atlas_section(cfg.get("ATLAS")).checkpoint
+    if args.ckpt is None and not shipped:
         raise SystemExit(f"{args.cfg}: no ATLAS.CHECKPOINT; pass --ckpt")
-    ckpt = resolve_cli_path(args.ckpt) if args.ckpt else resolve_repo_path(cfg.ATLAS.CHECKPOINT)
+    ckpt = resolve_cli_path(args.ckpt) if args.ckpt else resolve_repo_path(shipped)
     model = build_network_from_config(cfg)
     model.load_params_from_file(ckpt)
     model.eval()
