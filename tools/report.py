@@ -21,7 +21,12 @@ import sys
 from pathlib import Path
 
 from pcdet_atlas.config import repo_relative
-from pcdet_atlas.evaluation.results.report import DEFAULT_LOT_PAIR, collect_results, write_report
+from pcdet_atlas.evaluation.results.report import (
+    DEFAULT_LOT_CONTROL,
+    DEFAULT_LOT_PAIR,
+    collect_results,
+    write_report,
+)
 from pcdet_atlas.utils.cli import (
     RenamedFlag,
     add_debug_flag,
@@ -44,6 +49,11 @@ def parse_args(argv=None):
         "--lot_pair", nargs=2, default=list(DEFAULT_LOT_PAIR), metavar=("BASE", "DEFENDED"),
         help="model names of the LOT ablation (default: %(default)s)",
     )  # fmt: skip
+    p.add_argument(
+        "--lot_control", default=DEFAULT_LOT_CONTROL, metavar="NAME",
+        help="model name of the ablation's no-LOT control, compared with DEFENDED where the "
+        "results have it (default: %(default)s)",
+    )  # fmt: skip
     args = p.parse_args(argv)
     if Path(args.out_dir).exists() and not Path(args.out_dir).is_dir():
         p.error(
@@ -60,7 +70,8 @@ def main(argv=None) -> dict:
     command = "python tools/report.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     out = write_report(
         [r for _, r in found], args.out_dir, sources=[str(repo_relative(p)) for p, _ in found],
-        latex=args.latex, lot_pair=tuple(args.lot_pair), command=command,
+        latex=args.latex, lot_pair=tuple(args.lot_pair), lot_control=args.lot_control,
+        command=command,
     )  # fmt: skip
     print(f"report: {out['report']}" + (f"  latex: {out['latex']}" if out["latex"] else ""))
     for name, result in out["figures"].items():

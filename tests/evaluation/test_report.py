@@ -45,6 +45,7 @@ from pcdet_atlas.evaluation.results.report import (
     write_report,
 )
 from pcdet_atlas.evaluation.results.seeds import seed_groups, seed_spread_text
+from pcdet_atlas.evaluation.results.tables import variant_label
 
 sys.path.insert(0, str(REPO_ROOT / "tests" / "models"))
 from model_batches import load_tool  # noqa: E402
@@ -218,7 +219,7 @@ def test_summary_lot_and_centre_gap_tables(models):
     assert phim["Mean inj. ASR"] == "missing (1 of 2 variants)" and phim["Mean rem. ASR"] != "-"
     lot = lot_ablation_table(models[2], models[3]).splitlines()
     assert lot[0] == ("| Variant | PHiM L2 mAP | PHiM ASR | PHiM+LOT L2 mAP | PHiM+LOT ASR | "
-                      "ΔASR |")  # fmt: skip
+                      "ΔASR vs PHiM |")  # fmt: skip
     inj = next(r for r in lot if r.startswith("| Rel-Fixed Easy |")).split("|")
     a, b = models[2]["variants"]["inj_rel_easy"], models[3]["variants"]["inj_rel_easy"]
     assert inj[-2].strip() == f"{b['asr'] - a['asr']:+.2f}"
@@ -269,6 +270,45 @@ def test_summary_lot_and_centre_gap_tables(models):
     assert cp4f.endswith("| missing |")
     peak = models[0]["variants"]["rem_10"]["confidence"]["peak_gap"]
     assert f"{peak:.3f}" in next(r for r in gap if r.startswith("| CenterPoint |"))
+
+
+def test_lot_ablation_against_its_no_lot_control(models, tmp_path):
+    """With the control (the same detector fine-tuned without LOT) the ablation's change is
+    PHiM+LOT minus the control, per variant and per family mean, with the paired interval;
+    without it the report says the change also counts the extra epochs."""
+    control = model("PHiM (no-LOT control)", 0.66, 0.35, 0.75, 125.0)
+    phim, lot = models[2], models[3]
+    table = md_table(lot_ablation_table(phim, lot, control=control))
+    col = "ΔASR vs PHiM (no-LOT control) [95% CI]"
+    assert list(table["Clean"])[1:] == [
+        "PHiM L2 mAP", "PHiM ASR", "PHiM (no-LOT control) L2 mAP", "PHiM (no-LOT control) ASR",
+        "PHiM+LOT L2 mAP", "PHiM+LOT ASR", col, "ΔASR vs PHiM"]  # fmt: skip
+    for name in VARIANTS:
+        row = table[variant_label(name)]
+        want = lot["variants"][name]["asr"] - control["variants"][name]["asr"]
+        paired = paired_from_results([lot, control], [name])
+        lo, hi = paired["ci"]["PHiM+LOT"]["PHiM (no-LOT control)"]
+        assert row[col] == f"{want:+.2f} [{lo:+.2f}, {hi:+.2f}]"
+        to_phim = lot["variants"][name]["asr"] - phim["variants"][name]["asr"]
+        assert row["ΔASR vs PHiM"] == f"{to_phim:+.2f}"
+    for family in ("injection", "removal"):
+        names = [n for n, f in VARIANTS.items() if f == family]
+        row = table[f"{family.capitalize()}, mean"]
+        want = np.mean([lot["variants"][n]["asr"] - control["variants"][n]["asr"] for n in names])
+        assert row[col].startswith(f"{want:+.2f} [")
+        assert row["PHiM (no-LOT control) ASR"] == (
+            f"{np.mean([control['variants'][n]['asr'] for n in names]):.2f}"
+        )
+    assert table["Clean"][col] == "-"
+    text = write_report([phim, control, lot], tmp_path / "with")["report"].read_text()
+    part = report_part(text, "## LOT ablation: PHiM, PHiM (no-LOT control) and PHiM+LOT")
+    assert "what LOT does" in part and col in part
+    text = write_report([phim, lot], tmp_path / "without")["report"].read_text()
+    assert "also counts PHiM+LOT's extra fine-tuning epochs" in report_part(
+        text, "## LOT ablation: PHiM vs PHiM+LOT"
+    )
+    tex = write_report([phim, control, lot], tmp_path / "tex", latex=True)["latex"].read_text()
+    assert "ASR change vs PHiM (no-LOT control)" in tex and "ΔASR" not in tex
 
 
 def test_paired_comparison_per_rank_group(models, tmp_path):

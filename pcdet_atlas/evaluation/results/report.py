@@ -29,6 +29,7 @@ from pcdet_atlas.evaluation.analyses.registry import (
     registered_analyses,
 )
 from pcdet_atlas.evaluation.results import figures, queries
+from pcdet_atlas.evaluation.results.build import paired_from_results
 from pcdet_atlas.evaluation.results.io import find_results_files, load_results
 from pcdet_atlas.evaluation.results.schema import ResultsError
 from pcdet_atlas.evaluation.results.seeds import seed_spread_text
@@ -43,6 +44,7 @@ from pcdet_atlas.evaluation.results.tables import (
 )
 
 __all__ = [
+    "DEFAULT_LOT_CONTROL",
     "DEFAULT_LOT_PAIR",
     "collect_results",
     "lot_ablation_table",
@@ -54,6 +56,9 @@ __all__ = [
 
 #: The model names (``ATLAS.MODEL_NAME``) of the LOT ablation: the detector and its defence.
 DEFAULT_LOT_PAIR = ("PHiM", "PHiM+LOT")
+#: The model name of the ablation's control: the detector fine-tuned on the defence's last-stage
+#: schedule with the defence off (cfgs/atlas/synthetic/phim_lot_fine/control.yaml).
+DEFAULT_LOT_CONTROL = "PHiM (no-LOT control)"
 
 
 def collect_results(paths: Sequence[str | Path]) -> list[tuple[Path, dict]]:
@@ -160,27 +165,75 @@ def summary_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str
     return "\n\n".join([text, *(f"ms/frame of {note}." for note in notes)])
 
 
-def lot_ablation_table(base: Mapping, defended: Mapping, fmt: str = "markdown") -> str:
-    """The LOT ablation (paper Tables 5 and 6): per variant both models' L2 mAP and ASR (with
-    intervals) and the ASR change the defence makes (defended - base)."""
-    names = ordered_variants(set(base["variants"]) | set(defended["variants"]))
-    header = ["Variant", f"{base['model']} L2 mAP", f"{base['model']} ASR",
-              f"{defended['model']} L2 mAP", f"{defended['model']} ASR", "ΔASR"]  # fmt: skip
+def _paired_cell(defended: Mapping, control: Mapping, variants: Sequence[str]) -> str:
+    """``defended - control`` of the mean ASR over ``variants`` with its paired 95% interval
+    (:func:`~pcdet_atlas.evaluation.results.build.paired_from_results`), ``-`` where the two were
+    not scored on the same runs or a variant lacks an ASR."""
+    pair = (defended, control)
+    if not variants or any((r["variants"].get(v) or {}).get("asr") is None
+                           for r in pair for v in variants):  # fmt: skip
+        return "-"
+    try:
+        paired = paired_from_results([defended, control], variants)
+    except ResultsError:
+        return "-"
+    a, b = defended["model"], control["model"]
+    text = f"{paired['difference'][a][b]:+.2f}"
+    if paired["ci"] is not None:
+        lo, hi = paired["ci"][a][b]
+        text += f" [{lo:+.2f}, {hi:+.2f}]"
+    return text
+
+
+def lot_ablation_table(
+    base: Mapping, defended: Mapping, fmt: str = "markdown", control: Mapping | None = None
+) -> str:
+    """The LOT ablation (paper Tables 5 and 6): per variant each model's L2 mAP and ASR (with
+    intervals) and the ASR change the defence makes.
+
+    With ``control`` (the same detector fine-tuned on the defence's last-stage schedule without
+    the defence) the change is ``defended - control`` with its paired interval over the
+    sequences, per variant and per family mean (the rows "Injection, mean" and "Removal, mean"),
+    beside ``defended - base``, which also counts the extra epochs. Without it, only
+    ``defended - base``."""
+    models = [base] + ([control] if control is not None else []) + [defended]
+    names = ordered_variants(set().union(*(m["variants"] for m in models)))
+    header = ["Variant"]
+    for m in models:
+        header += [f"{m['model']} L2 mAP", f"{m['model']} ASR"]
+    if control is not None:
+        header.append(f"ΔASR vs {control['model']} [95% CI]")
+    header.append(f"ΔASR vs {base['model']}")
     rows = []
     for name in names:
-        a, b = base["variants"].get(name), defended["variants"].get(name)
+        entries = [m["variants"].get(name) for m in models]
         cells = [variant_label(name)]
-        for entry in (a, b):
+        for entry in entries:
             cells += [MISSING, MISSING] if entry is None else [
                 _fmt(entry["L2/mAP"], 100, 1), _fmt_ci(entry)]  # fmt: skip
+        if control is not None:
+            cells.append("-" if name == "clean" else _paired_cell(defended, control, [name]))
+        a, b = entries[0], entries[-1]
         delta = None
         if a is not None and b is not None and a["asr"] is not None and b["asr"] is not None:
             delta = b["asr"] - a["asr"]
         cells.append("-" if delta is None else f"{delta:+.2f}")
         rows.append(cells)
+    if control is not None:
+        for family in ("injection", "removal"):
+            variants = queries.attack_variants(models, family)
+            if variants:
+                row = [f"{family.capitalize()}, mean"]
+                for m in models:
+                    row += ["", _mean_asr_cell(m, variants)]
+                base_mean = queries.mean_asr(base, variants)
+                lot_mean = queries.mean_asr(defended, variants)
+                rows.append(row + [_paired_cell(defended, control, variants),
+                                   "-" if base_mean is None or lot_mean is None
+                                   else f"{lot_mean - base_mean:+.2f}"])  # fmt: skip
     if fmt == "latex":
         rows = [[latex_escape(c) for c in row] for row in rows]
-        header[-1] = "ASR change"
+        header = [h.replace("ΔASR", "ASR change") for h in header]
     return _render(fmt, None, header, rows)
 
 
@@ -210,13 +263,29 @@ def _summary_section(results_list: Sequence[Mapping], fmt: str) -> list[tuple[st
     return [("Models", summary_table(results_list, fmt))]
 
 
-def _lot_section(lot_pair: tuple[str, str]):
+def _lot_section(lot_pair: tuple[str, str], lot_control: str | None):
     def make(results_list: Sequence[Mapping], fmt: str) -> list[tuple[str, str]]:
         by_name = {r["model"]: r for r in results_list}
         if lot_pair[0] not in by_name or lot_pair[1] not in by_name:
             return []
-        return [(f"LOT ablation: {lot_pair[0]} vs {lot_pair[1]} (paper Tables 5 and 6)",
-                 lot_ablation_table(by_name[lot_pair[0]], by_name[lot_pair[1]], fmt))]  # fmt: skip
+        control = by_name.get(lot_control) if lot_control else None
+        table = lot_ablation_table(by_name[lot_pair[0]], by_name[lot_pair[1]], fmt, control)
+        if control is None:
+            title = f"LOT ablation: {lot_pair[0]} vs {lot_pair[1]} (paper Tables 5 and 6)"
+            if fmt == "markdown":
+                table += (f"\n\nNo no-LOT control ({lot_control or 'none named'}) in these "
+                          f"results: the change from {lot_pair[0]} also counts {lot_pair[1]}'s "
+                          "extra fine-tuning epochs, not LOT alone.")  # fmt: skip
+        else:
+            title = (f"LOT ablation: {lot_pair[0]}, {lot_control} and {lot_pair[1]} "
+                     "(paper Tables 5 and 6)")  # fmt: skip
+            if fmt == "markdown":
+                table += (f"\n\nΔASR vs {lot_control}: {lot_pair[1]} minus the same detector "
+                          "fine-tuned on the same last-stage schedule without LOT (what LOT "
+                          "does), with its paired 95% interval over the sequences; the rows "
+                          "\"mean\" compare each family's mean ASR. ΔASR vs "
+                          f"{lot_pair[0]} also counts the extra epochs.")  # fmt: skip
+        return [(title, table)]
 
     return make
 
@@ -226,12 +295,15 @@ def _seeds_section(results_list: Sequence[Mapping], fmt: str) -> list[tuple[str,
     return [] if seeds is None else [("Seed-to-seed spread", seeds)]
 
 
-def report_sections(lot_pair: tuple[str, str] = DEFAULT_LOT_PAIR) -> list[ReportSection]:
+def report_sections(
+    lot_pair: tuple[str, str] = DEFAULT_LOT_PAIR, lot_control: str | None = DEFAULT_LOT_CONTROL
+) -> list[ReportSection]:
     """The report's sections in their order: its own (the model summary, the LOT ablation of
-    ``lot_pair``, the seed-to-seed spread) and those of every registered analysis."""
+    ``lot_pair`` with its no-LOT control ``lot_control`` where the results have it, the
+    seed-to-seed spread) and those of every registered analysis."""
     own = [
         ReportSection(_summary_section, order=10),
-        ReportSection(_lot_section(lot_pair), order=30),
+        ReportSection(_lot_section(lot_pair, lot_control), order=30),
         ReportSection(_seeds_section, order=90, latex=False),
     ]
     found = own + [s for analysis in registered_analyses() for s in analysis.sections()]
@@ -259,6 +331,7 @@ def write_report(
     sources: Sequence[str | Path] | None = None,
     latex: bool = False,
     lot_pair: tuple[str, str] = DEFAULT_LOT_PAIR,
+    lot_control: str | None = DEFAULT_LOT_CONTROL,
     command: str | None = None,
     appendix: str | None = None,
 ) -> dict:
@@ -288,7 +361,7 @@ def write_report(
         "ASR.",
         "",
     ]
-    sections = report_sections(lot_pair)
+    sections = report_sections(lot_pair, lot_control)
     for section in sections:
         for title, text in section.make(results_list, "markdown"):
             lines += [f"## {title}", "", text, ""]
