@@ -84,21 +84,44 @@ def _candidate_edges(gt: Objects, det: Objects, thr: np.ndarray) -> tuple[np.nda
     the class threshold (with a 1e-6 relative margin), so no pair that can match is ever lost.
     Pairs come ordered by (frame, class), then prediction, then GT (each in input order), in
     blocks of at most :data:`EDGE_CHUNK` pairs.
+
+    Only pairs whose hull centres lie within reach along x are formed: the GTs of each (frame,
+    class) are sorted by hull centre x, and a prediction reaches those whose centre is within its
+    own half-extent plus the largest GT half-extent of the group (and a margin far above the
+    float64 rounding of the sort key), a range found by binary search: the hulls of any other
+    pair do not overlap along x, so their bound is 0.
     """
+    if len(gt.cls) == 0 or len(det.cls) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
     gt_key = gt.frame * 64 + gt.cls
     det_key = det.frame * 64 + det.cls
-    g_order = np.argsort(gt_key, kind="stable")
-    g_sorted = gt_key[g_order]
-    d_order = np.argsort(det_key, kind="stable")
-    d_key = det_key[d_order]
-    g_lo = np.searchsorted(g_sorted, d_key)  # (P,) each prediction's GTs: g_order[g_lo:g_hi]
-    counts = np.searchsorted(g_sorted, d_key, side="right") - g_lo
     gb, db = _hull(gt.boxes), _hull(det.boxes)  # (K, 9): x, y, z, dx, dy, dz, ex, ey, footprint
+    d_order = np.argsort(det_key, kind="stable")
+    groups, g_group = np.unique(gt_key, return_inverse=True)  # (F,), (G,) group of each GT
+    d_group = np.minimum(np.searchsorted(groups, det_key), len(groups) - 1)  # (P,)
+    d_in = groups[d_group] == det_key  # the prediction's (frame, class) has GTs
+    reach = np.zeros(len(groups))  # (F,) largest GT hull half-extent along x per group
+    np.maximum.at(reach, g_group, gb[:, 6])
+    # sort key: group rank, then hull centre x, groups spaced wider than any window; pairs
+    # across groups that rounding might still let through are dropped below by group
+    x0 = min(float(gb[:, 0].min()), float(db[:, 0].min()))
+    x1 = max(float(gb[:, 0].max()), float(db[:, 0].max()))
+    window = db[:, 6] + reach[d_group] + 1e-3  # (P,) metres
+    span = (x1 - x0) + 2 * float(window.max()) + 1.0
+    g_sort = g_group * span + (gb[:, 0] - x0)
+    g_order = np.argsort(g_sort, kind="stable")
+    g_sorted = g_sort[g_order]
+    d_centre = d_group * span + (db[:, 0] - x0)
+    margin = 1e-12 * np.abs(d_centre) + 1e-6  # ~1e4 times the keys' float64 rounding
+    g_lo = np.searchsorted(g_sorted, d_centre - window - margin)  # (P,) first GT in reach
+    g_hi = np.searchsorted(g_sorted, d_centre + window + margin, side="right")
+    counts = np.where(d_in, g_hi - g_lo, 0)[d_order]  # per prediction in d_order
+    g_lo = g_lo[d_order]
     d_hi, d_lo = (
         [db[:, j] + db[:, h] for j, h in ((0, 6), (1, 7))],
         [db[:, j] - db[:, h] for j, h in ((0, 6), (1, 7))],
     )  # per axis (K,): the hull's upper and lower bound
-    g_hi, g_lo_xy = (
+    g_hi_xy, g_lo_xy = (
         [gb[:, j] + gb[:, h] for j, h in ((0, 6), (1, 7))],
         [gb[:, j] - gb[:, h] for j, h in ((0, 6), (1, 7))],
     )
@@ -116,12 +139,12 @@ def _candidate_edges(gt: Objects, det: Objects, thr: np.ndarray) -> tuple[np.nda
         di, gi = d_order[row], g_order[g_lo[row] + offset]
         # the hulls' overlap along x and y first, from per-box bounds (the same floats as
         # per pair): a pair without both has bound 0 and is dropped below anyway
-        over_x = np.minimum(d_hi[0][di], g_hi[0][gi]) - np.maximum(d_lo[0][di], g_lo_xy[0][gi])
-        near = over_x > 0
-        di, gi, over_x = di[near], gi[near], over_x[near]
-        over_y = np.minimum(d_hi[1][di], g_hi[1][gi]) - np.maximum(d_lo[1][di], g_lo_xy[1][gi])
+        over_x = np.minimum(d_hi[0][di], g_hi_xy[0][gi]) - np.maximum(d_lo[0][di], g_lo_xy[0][gi])
+        near = (over_x > 0) & (g_group[gi] == d_group[di])
+        row, di, gi, over_x = row[near], di[near], gi[near], over_x[near]
+        over_y = np.minimum(d_hi[1][di], g_hi_xy[1][gi]) - np.maximum(d_lo[1][di], g_lo_xy[1][gi])
         near = over_y > 0
-        di, gi, over = di[near], gi[near], (over_x[near], over_y[near])
+        row, di, gi, over = row[near], di[near], gi[near], (over_x[near], over_y[near])
         a, b = db[di], gb[gi]  # (E, 9)
         zo = np.minimum(a[:, 2] + a[:, 5] / 2, b[:, 2] + b[:, 5] / 2) - np.maximum(
             a[:, 2] - a[:, 5] / 2, b[:, 2] - b[:, 5] / 2
@@ -131,8 +154,10 @@ def _candidate_edges(gt: Objects, det: Objects, thr: np.ndarray) -> tuple[np.nda
         union = a[:, 8] * a[:, 5] + b[:, 8] * b[:, 5] - inter
         bound = np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
         keep = (bound >= thr[det.cls[di]] * (1 - 1e-6)) & (zo >= 0)
-        pred_idx.append(di[keep])
-        gt_idx.append(gi[keep])
+        row, di, gi = row[keep], di[keep], gi[keep]
+        by_input = np.lexsort((gi, row))  # each prediction's GTs in input order
+        pred_idx.append(di[by_input])
+        gt_idx.append(gi[by_input])
         start = stop
     return cat(pred_idx, np.int64), cat(gt_idx, np.int64)
 
@@ -270,18 +295,87 @@ def _accumulate(gt: Objects, det: Objects, thr: np.ndarray, cutoffs: np.ndarray,
     if len(multi) == 0:
         return acc
     order = multi[np.argsort(comp[multi], kind="stable")]
-    bounds = np.flatnonzero(np.diff(comp[order])) + 1
-    for edges in np.split(order, bounds):
+    starts = np.flatnonzero(np.r_[True, np.diff(comp[order]) != 0])
+    g_sorted = gi[order]
+    one_gt = np.minimum.reduceat(g_sorted, starts) == np.maximum.reduceat(g_sorted, starts)
+    sizes = np.diff(np.r_[starts, len(order)])
+    rows = []  # per subset matching: (cls, hi, tp, tp_l1, ha, lo)
+    if one_gt.any():
+        edges = order[np.repeat(one_gt, sizes)]
+        if matcher == "hungarian":
+            rows.append(_one_gt_components(edges, comp, pi, weight, ha, is_l1, det.cls, n_pred))
+        else:
+            rows.append(_one_gt_greedy(edges, comp, pi, weight, ha, is_l1, det, n_pred))
+    for first, size in zip(starts[~one_gt], sizes[~one_gt]):
+        edges = order[first : first + size]
         edge_data = (pi[edges], gi[edges], weight[edges], iou[edges], ha[edges], is_l1[edges])
-        _solve_component(acc, det, edge_data, n_pred, matcher)
+        rows.append(_solve_component(det, edge_data, n_pred, matcher))
+    cls, hi, tp, tp_l1, hsum, lo = (np.concatenate(col) for col in zip(*rows))
+    acc.add(cls, hi, tp, tp_l1, hsum, lo)
     return acc
 
 
-def _solve_component(acc: _Accumulator, det: Objects, edge_data, n_pred, matcher: str) -> None:
-    """Match one connected component at every distinct prediction subset and accumulate.
+def _one_gt_components(edges, comp, pi, weight, ha, is_l1, det_cls, n_pred):
+    """The matchings of every component whose edges share one GT, at all their subsets at once.
+
+    A subset keeps the predictions of ``n_pred >= hi``; a maximum-weight matching to a single GT
+    takes the present prediction of the highest weight, the lowest prediction index among equal
+    weights (as ``linear_sum_assignment`` breaks the tie, which :func:`_solve_component` uses).
+    The edges are ordered by component, ``n_pred`` descending and prediction index; a running
+    best over each component's edges, taken at the last edge of each ``n_pred`` value, is the
+    matching of that subset. Returns the rows :func:`_solve_component` would give.
+    """
+    p = pi[edges]
+    n = n_pred[p]
+    c = comp[edges]
+    order = np.lexsort((p, -n, c))
+    edges, p, n, c = edges[order], p[order], n[order], c[order]
+    w = weight[edges]
+    first = np.r_[True, c[1:] != c[:-1]]
+    starts = np.flatnonzero(first)
+    pos = np.arange(len(c)) - np.repeat(starts, np.diff(np.r_[starts, len(c)]))
+    best = np.arange(len(c))  # per edge: the best edge among its component's edges so far
+    for j in range(1, int(pos.max()) + 1):
+        at = np.flatnonzero(pos == j)
+        prev = best[at - 1]
+        take = (w[at] > w[prev]) | ((w[at] == w[prev]) & (p[at] < p[prev]))
+        best[at] = np.where(take, at, prev)
+    last = np.r_[(c[1:] != c[:-1]) | (n[1:] != n[:-1]), True]  # last edge of each subset
+    ends = np.flatnonzero(last)
+    hi = n[ends]
+    next_in_comp = np.r_[c[ends[1:]] == c[ends[:-1]], False]
+    lo = np.where(next_in_comp, np.r_[hi[1:], 0], 0)
+    keep = hi > 0
+    chosen = edges[best[ends[keep]]]
+    matched = (weight[chosen] > 0).astype(np.int64)
+    return (det_cls[p[ends[keep]]], hi[keep], matched, is_l1[chosen] * matched,
+            ha[chosen].astype(np.float64) * matched, lo[keep])  # fmt: skip
+
+
+def _one_gt_greedy(edges, comp, pi, weight, ha, is_l1, det: Objects, n_pred):
+    """The greedy (score-first) matchings of every component whose edges share one GT: the
+    prediction of the highest score (lowest index on ties) among those of positive weight takes
+    the GT at every cutoff that keeps it, as :func:`_match_score_first` in
+    :func:`_solve_component`. Returns the same rows."""
+    edges = edges[weight[edges] > 0]
+    p, c = pi[edges], comp[edges]
+    order = np.lexsort((p, -det.score[p], c))
+    edges, p, c = edges[order], p[order], c[order]
+    first = np.r_[True, c[1:] != c[:-1]]
+    chosen, p = edges[first], p[first]
+    k = len(chosen)
+    return (det.cls[p], n_pred[p], np.ones(k, np.int64), is_l1[chosen],
+            ha[chosen].astype(np.float64), np.zeros(k, np.int64))  # fmt: skip
+
+
+def _solve_component(det: Objects, edge_data, n_pred, matcher: str):
+    """Match one connected component at every distinct prediction subset.
 
     ``edge_data``: per edge (prediction index, GT index, integer weight, float32 IoU, heading
     accuracy, GT-is-level-1); ``n_pred``: per prediction, the number of cutoffs keeping it.
+    Returns per subset matching ``(cls, hi, tp, tp_l1, ha, lo)`` arrays: ``tp`` matches, of them
+    ``tp_l1`` to level-1 GTs, with heading accuracy summing to ``ha``, at cutoffs ``lo <= k <
+    hi``.
     """
     pe, ge, we, ioue, hae, l1e = edge_data
     preds, p_local = np.unique(pe, return_inverse=True)
@@ -300,8 +394,10 @@ def _solve_component(acc: _Accumulator, det: Objects, edge_data, n_pred, matcher
         # greedy matching of a score-sorted prefix is the prefix of the full greedy matching
         by_score = np.lexsort((preds, -det.score[preds]))
         rows, cols = _match_score_first(w, by_score, iou)
-        acc.add(cls, n[rows], 1, l1[rows, cols], ha[rows, cols])
-        return
+        k = len(rows)
+        return (np.full(k, cls), n[rows], np.ones(k, np.int64), l1[rows, cols],
+                ha[rows, cols], np.zeros(k, np.int64))  # fmt: skip
+    out = []
     levels = np.unique(n)[::-1]  # distinct subsets, largest cutoff bound first
     for j, hi in enumerate(levels):
         lo = levels[j + 1] if j + 1 < len(levels) else 0
@@ -309,9 +405,14 @@ def _solve_component(acc: _Accumulator, det: Objects, edge_data, n_pred, matcher
             break
         present = np.nonzero(n >= hi)[0]
         rows, cols = _match_hungarian(w[present])
-        acc.add(
-            cls, hi, len(rows), l1[present[rows], cols].sum(), ha[present[rows], cols].sum(), lo
+        out.append((cls, hi, len(rows), l1[present[rows], cols].sum(),
+                    ha[present[rows], cols].sum(), lo))  # fmt: skip
+    if not out:
+        return tuple(np.zeros(0, np.int64) for _ in range(4)) + (
+            np.zeros(0, np.float64),
+            np.zeros(0, np.int64),
         )
+    return tuple(np.array(col) for col in zip(*out))
 
 
 # --------------------------------------------------------------------------------------------

@@ -462,3 +462,98 @@ def test_component_and_subset_shortcuts_match_plain_reference(official, matcher)
     for cls, thr in (("Vehicle", 0.7), ("Pedestrian", 0.5), ("Cyclist", 0.5)):
         ref = _reference_tp(gts, dets, cls, thr, greedy=matcher == "score_first")
         np.testing.assert_array_equal(curves[f"{cls}/L2"]["tp"], ref, err_msg=cls)
+
+
+# ------------------------------------------------------------------------------------------------
+# the candidate pairs' x-sweep and the one-GT components' closed form, against plain forms
+# ------------------------------------------------------------------------------------------------
+def _random_objects(seed: int, frames: int, n_gt: int, n_det: int, spread: float):
+    """Objects of both sides: half the predictions noisy copies of GTs (so that many pairs can
+    match), the rest anywhere; some boxes huge, frames and classes mixed, equal x centres
+    across groups."""
+    from pcdet_atlas.evaluation.waymo_inputs import Objects
+
+    rng = np.random.default_rng(seed)
+    boxes = np.zeros((n_gt, 7), np.float32)
+    boxes[:, 0] = np.round(rng.uniform(-spread, spread, n_gt), 1)  # repeated x across groups
+    boxes[:, 1] = rng.uniform(-spread, spread, n_gt)
+    boxes[:, 2] = rng.uniform(0, 2, n_gt)
+    boxes[:, 3:6] = rng.uniform(0.3, 6.0, (n_gt, 3))
+    boxes[rng.random(n_gt) < 0.02, 3] = 400.0  # a box reaching across the whole frame
+    boxes[:, 6] = rng.uniform(-np.pi, np.pi, n_gt)
+    frame, cls = rng.integers(0, frames, n_gt), rng.integers(0, 3, n_gt)
+    gt = Objects(frame=frame, cls=cls, boxes=boxes, score=None, level=rng.integers(1, 3, n_gt))
+    src = rng.integers(0, n_gt, n_det)
+    det_boxes = boxes[src] + rng.normal(0, 0.15, (n_det, 7)).astype(np.float32)
+    det_boxes[:, 3:6] = np.abs(det_boxes[:, 3:6]) + 0.05
+    far = rng.random(n_det) < 0.5
+    det_boxes[far, :2] = rng.uniform(-spread, spread, (far.sum(), 2))
+    det = Objects(frame=frame[src], cls=cls[src], boxes=det_boxes,
+                  score=rng.random(n_det).astype(np.float32), level=None)  # fmt: skip
+    return gt, det
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_candidate_pairs_keep_every_pair_that_can_match(seed):
+    """The x-sweep forms no pair across frames or classes and loses none whose IoU reaches the
+    threshold (all same-group pairs with the exact IoU as reference), in (frame, class),
+    prediction, GT input order."""
+    from pcdet_atlas.evaluation import waymo_metric as wm
+
+    gt, det = _random_objects(seed, frames=5, n_gt=150, n_det=300, spread=6.0 + 10 * seed)
+    thr = np.array([0.7, 0.5, 0.5], np.float32) * (0.2 if seed % 2 else 1.0)
+    pi, gi = wm._candidate_edges(gt, det, thr)
+    assert (det.frame[pi] == gt.frame[gi]).all() and (det.cls[pi] == gt.cls[gi]).all()
+    pos = np.empty(len(det.cls), np.int64)
+    pos[np.argsort(det.frame * 64 + det.cls, kind="stable")] = np.arange(len(det.cls))
+    assert (np.diff(pos[pi] * len(gt.cls) + gi) > 0).all()  # the documented order
+    same = (det.frame[:, None] == gt.frame[None]) & (det.cls[:, None] == gt.cls[None])
+    all_p, all_g = np.nonzero(same)
+    iou = wm._waymo_iou(det.boxes[all_p], gt.boxes[all_g])
+    can = iou >= thr[det.cls[all_p]]
+    assert can.sum() > 50  # the input has matchable pairs to lose
+    found = set(zip(pi.tolist(), gi.tolist()))
+    assert all((p, g) in found for p, g in zip(all_p[can].tolist(), all_g[can].tolist()))
+
+
+@pytest.mark.parametrize("matcher", ["hungarian", "score_first"])
+def test_one_gt_components_equal_the_general_matching(matcher):
+    """Components whose predictions all reach one GT are matched in closed form at every
+    subset: the same rows as _solve_component's Hungarian or greedy matching, ties in weight
+    and in score (lowest prediction index wins, as linear_sum_assignment and the greedy order),
+    predictions kept by no cutoff and zero weights included."""
+    from pcdet_atlas.evaluation import waymo_metric as wm
+    from pcdet_atlas.evaluation.waymo_inputs import Objects
+
+    rng = np.random.default_rng(7)
+    num_comp, edges_per = 300, rng.integers(2, 7, 300)
+    comp = np.repeat(np.arange(num_comp), edges_per)
+    n_edges = len(comp)
+    pi = rng.permutation(n_edges)  # each prediction in one edge
+    weight = rng.integers(0, 4, n_edges) * 250_000  # many ties, some zero weights
+    ha = rng.random(n_edges)
+    is_l1 = np.repeat(rng.integers(0, 2, num_comp), edges_per)
+    det_cls = np.empty(n_edges, np.int64)
+    det_cls[pi] = np.repeat(rng.integers(0, 3, num_comp), edges_per)  # one class per component
+    n_of_pred = rng.integers(0, 5, n_edges)  # 0: kept by no cutoff
+    score = rng.integers(0, 3, n_edges).astype(np.float32) / 4  # ties in score
+    det = Objects(frame=np.zeros(n_edges, np.int64), cls=det_cls, boxes=None, score=score,
+                  level=None)  # fmt: skip
+    edges = np.arange(n_edges)[::-1].copy()
+    if matcher == "hungarian":
+        fast = wm._one_gt_components(edges, comp, pi, weight, ha, is_l1, det_cls, n_of_pred)
+    else:
+        fast = wm._one_gt_greedy(edges, comp, pi, weight, ha, is_l1, det, n_of_pred)
+    rows = []
+    for c in range(num_comp):
+        e = np.flatnonzero(comp == c)
+        edge_data = (pi[e], np.zeros(len(e), np.int64), weight[e], np.ones(len(e), np.float32),
+                     ha[e], is_l1[e])  # fmt: skip
+        rows.append(wm._solve_component(det, edge_data, n_of_pred, matcher))
+    slow = [np.concatenate(col) for col in zip(*rows)]
+    assert len(slow[0]) == len(fast[0]) > num_comp // 2
+
+    def as_rows(r):  # rows carry no component: compare as multisets of (cls, hi, lo, tp, ...)
+        return sorted(zip(*(np.asarray(r[i]).tolist() for i in (0, 1, 5, 2, 3, 4))))
+
+    assert as_rows(fast) == as_rows(slow)
