@@ -144,6 +144,13 @@ def parse_args(argv=None):
         help="on CPU, leave glibc malloc as it is (default: keep freed memory for reuse, "
         "pcdet_atlas.train_utils.cpu_memory; faster CPU steps, same results: docs/benchmarks.md)",
     )
+    groups["runtime"].add_argument(
+        "--trim_every",
+        type=count_arg(0),
+        default=20,
+        help="on CPU, give the heap's free memory back to the OS every N steps (0: once per "
+        "epoch); bounds the memory a long run holds (default: %(default)s)",
+    )
     return parser.parse_args(argv)
 
 
@@ -284,6 +291,7 @@ def train(args, held: contextlib.ExitStack) -> dict:
         logger_iter_interval=args.logger_iter_interval, show_progress=not args.no_progress,
         train_settings=train_settings, ckpt_save_time_interval=args.ckpt_save_time_interval,
         merge_all_iters_to_one_epoch=args.merge_all_iters_to_one_epoch,
+        cpu_trim_every=args.trim_every or None,
     )  # fmt: skip
     result = {"output_dir": out_dir, "state": state}
     if args.num_epochs_to_eval > 0:

@@ -53,9 +53,10 @@ def retain_freed_cpu_memory() -> bool:
 def trim_cpu_memory() -> bool:
     """Give the free memory of the heap back to the OS now (glibc ``malloc_trim(0)``).
 
-    With :func:`retain_freed_cpu_memory` the heap keeps what it once held, and fragmentation can
-    add to it over a long run; the trainer calls this once per epoch, which costs one step's
-    worth of page faults. Returns False where there is no ``malloc_trim``.
+    With :func:`retain_freed_cpu_memory` the heap keeps what it once held, and steps of varying
+    sizes fragment it over a long run; the trainer calls this every ``--trim_every`` steps and at
+    each epoch's end, each time one step's worth of page faults. Returns False where there is no
+    ``malloc_trim``.
     """
     malloc_trim = getattr(_libc(), "malloc_trim", None)
     if malloc_trim is None:

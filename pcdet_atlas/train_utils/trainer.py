@@ -209,6 +209,7 @@ def train_model(
     train_settings: Mapping | None = None,
     ckpt_save_time_interval: float | None = 300.0,
     merge_all_iters_to_one_epoch: bool = False,
+    cpu_trim_every: int | None = 20,
 ) -> TrainState:
     """Train from where ``state`` stands to ``total_epochs``; saves ``checkpoint_epoch_N.pth``
     every ``ckpt_save_interval`` epochs (and at the end), keeping the newest
@@ -220,7 +221,11 @@ def train_model(
     settings in effect, :func:`~pcdet_atlas.train_utils.checkpoint.resume_settings`) is stored in
     each checkpoint. ``merge_all_iters_to_one_epoch``: the loader's dataset is merged to
     ``total_epochs`` passes (``build_dataloader(merge_all_iters_to_one_epoch=True,
-    total_epochs=...)``) and the epochs share one pass over it (module docstring)."""
+    total_epochs=...)``) and the epochs share one pass over it (module docstring). On CPU the
+    heap's free memory goes back to the OS every ``cpu_trim_every`` steps (None: once per epoch;
+    :func:`~pcdet_atlas.train_utils.cpu_memory.trim_cpu_memory`): with freed memory retained,
+    steps of varying sizes fragment the heap, which otherwise grows over an epoch to several
+    times a step's peak."""
     rank, _ = get_dist_info()
     ckpt_dir = Path(ckpt_dir)
     last_save = time.monotonic()
@@ -255,6 +260,11 @@ def train_model(
             save_checkpoint(state_dict(), ckpt_dir / LATEST_NAME)
             last_save = time.monotonic()
 
+    def after_step() -> None:
+        save_latest()
+        if device.type == "cpu" and cpu_trim_every and state.it % cpu_trim_every == 0:
+            trim_cpu_memory()
+
     epochs = tqdm.trange(
         state.epoch, total_epochs, desc="epochs", dynamic_ncols=True,
         disable=not show_progress or rank != 0,
@@ -266,7 +276,7 @@ def train_model(
             model, optimizer, scheduler, dataloader, state=state, device=device,
             grad_norm_clip=grad_norm_clip, scaler=scaler, use_amp=use_amp, tb_log=tb_log,
             logger=logger, logger_iter_interval=logger_iter_interval, show_progress=show_progress,
-            after_step=save_latest, batches=batches, epoch_batches=epoch_batches,
+            after_step=after_step, batches=batches, epoch_batches=epoch_batches,
         )  # fmt: skip
         state.epoch = epoch + 1
         state.epoch_it, state.epoch_loss_sums = 0, {}

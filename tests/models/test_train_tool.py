@@ -342,6 +342,31 @@ def test_checkpoint_rotation_removes_the_oldest_only_after_the_new_one_is_writte
     assert [p.name for p in tmp_path.iterdir()] == ["checkpoint_epoch_2.pth"]
 
 
+@pytest.mark.parametrize("every,want", [(2, [2, 4, 5, 6, 8, 10]), (None, [5, 10])])
+def test_cpu_training_trims_the_heap_every_n_steps_and_each_epoch(
+    tmp_path, monkeypatch, every, want
+):
+    """On CPU the trainer gives free heap memory back every ``cpu_trim_every`` steps (the
+    counts after which it trims; an epoch's last step trims at the epoch's end) and after every
+    epoch: the heap that retain_freed_cpu_memory keeps is bounded by a few steps' peak
+    (docs/benchmarks.md, "Training step")."""
+    from pcdet_atlas.train_utils import trainer
+
+    model = _ToyModel()
+    loader = torch.utils.data.DataLoader([{"x": torch.ones(2)}] * 5, batch_size=1)
+    optimizer = torch.optim.SGD(model.parameters(), lr=0.1)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
+    state = trainer.TrainState()
+    trims = []
+    monkeypatch.setattr(trainer, "trim_cpu_memory", lambda: trims.append(state.it))
+    trainer.train_model(
+        model, optimizer, scheduler, loader, None, state=state, total_epochs=2,
+        device=torch.device("cpu"), seed=0, grad_norm_clip=10.0, ckpt_dir=tmp_path,
+        show_progress=False, cpu_trim_every=every,
+    )  # fmt: skip
+    assert trims == want
+
+
 @pytest.mark.slow
 def test_merged_epochs_train_as_many_steps_as_plain_epochs_and_resume_exactly(
     synthetic_root, tmp_path, monkeypatch
