@@ -23,7 +23,8 @@ An evaluation directory that already holds files is an error unless ``--overwrit
 first) or ``--resume`` (keep the variants an earlier call with the same setting finished there).
 
 The work is the library's (:mod:`pcdet_atlas.train_utils.atlas_run`, whose docstrings state the
-folder layout and the resume rules); this file maps the flags onto its ``EvalSettings``.
+folder layout and the resume rules); this file maps the flags onto its ``EvalSettings``. On CPU
+the process keeps freed memory for reuse (``--default_malloc``: off; docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from __future__ import annotations
 import argparse
 
 from pcdet_atlas.train_utils.atlas_run import EvalSettings, run_evaluation
+from pcdet_atlas.train_utils.cpu_memory import retain_freed_cpu_memory
 from pcdet_atlas.train_utils.setup import add_common_args, count_arg, folder_name_arg
 from pcdet_atlas.utils.cli import add_debug_flag, add_plugin_flag, import_plugins, run_tool
 
@@ -111,6 +113,8 @@ def settings_of(args: argparse.Namespace) -> EvalSettings:
 def main(argv=None) -> dict:
     args = parse_args(argv)
     import_plugins(args.plugin)
+    if not args.default_malloc:  # CPU inference reuses freed pages (harmless on a GPU run)
+        retain_freed_cpu_memory()
     return run_evaluation(args.settings)
 
 

@@ -138,13 +138,6 @@ def parse_args(argv=None):
     )
     ckpts.add_argument("--no_progress", action="store_true", default=False, help="no tqdm bars")
     groups["runtime"].add_argument(
-        "--default_malloc",
-        action="store_true",
-        default=False,
-        help="on CPU, leave glibc malloc as it is (default: keep freed memory for reuse, "
-        "pcdet_atlas.train_utils.cpu_memory; faster CPU steps, same results: docs/benchmarks.md)",
-    )
-    groups["runtime"].add_argument(
         "--trim_every",
         type=count_arg(0),
         default=20,

@@ -13,12 +13,17 @@ import tqdm
 from torch import nn
 
 from pcdet_atlas.models.batch import load_data_to_device
+from pcdet_atlas.train_utils.cpu_memory import trim_cpu_memory
 from pcdet_atlas.train_utils.dist import all_gather_objects, get_dist_info, unwrap_model
 from pcdet_atlas.train_utils.eval_caches import VariantCache
 from pcdet_atlas.train_utils.proposal_bank import ProposalBank
 from pcdet_atlas.utils.paths import join_under
 
 __all__ = ["predict_dataset", "eval_one_epoch", "write_prediction_files"]
+
+#: on CPU, free heap memory goes back to the OS every this many batches (a process that keeps
+#: freed memory for reuse, as tools/test.py does, would otherwise grow by fragmentation)
+TRIM_EVERY_BATCHES = 20
 
 
 @torch.no_grad()
@@ -72,7 +77,7 @@ def predict_dataset(
         disable=not show_progress or rank != 0,
     )  # fmt: skip
     t_end = time.perf_counter()
-    for batch in dataloader:
+    for i, batch in enumerate(dataloader, 1):
         t0 = time.perf_counter()
         batch_dev = load_data_to_device(batch, device)
         if bank is not None:
@@ -90,6 +95,8 @@ def predict_dataset(
             timings["data"] = timings.get("data", 0.0) + (t0 - t_end)
             timings["model"] = timings.get("model", 0.0) + (t1 - t0)
         bar.update()
+        if device.type == "cpu" and i % TRIM_EVERY_BATCHES == 0:
+            trim_cpu_memory()  # bound a heap that retain_freed_cpu_memory keeps
         t_end = time.perf_counter()
     bar.close()
     if bank is not None and cache is not None:

@@ -119,6 +119,11 @@ def add_common_args(parser: argparse.ArgumentParser) -> dict[str, argparse._Argu
         help="master port of --launcher slurm (torchrun sets its own)",
     )  # fmt: skip
     runtime.add_argument("--local_rank", type=int, default=None, help="unused: from LOCAL_RANK")
+    runtime.add_argument(
+        "--default_malloc", action="store_true", default=False,
+        help="on CPU, leave glibc malloc as it is (default: keep freed memory for reuse, "
+        "pcdet_atlas.train_utils.cpu_memory; faster CPU steps, same results: docs/benchmarks.md)",
+    )  # fmt: skip
     return {"model": model, "outputs": outputs, "runtime": runtime}
 
 

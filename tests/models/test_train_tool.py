@@ -539,3 +539,40 @@ def test_every_shipped_training_config_passes_the_optimization_checks():
     assert len(configs) > 10
     for path in configs:
         check_optimization_config(cfg_from_yaml_file(path).OPTIMIZATION)
+
+
+def test_cpu_evaluation_trims_the_heap_every_20_batches(monkeypatch):
+    """predict_dataset gives free heap memory back every TRIM_EVERY_BATCHES batches on CPU
+    (tools/test.py keeps freed memory for reuse, which fragmentation would otherwise grow)."""
+    from pcdet_atlas.train_utils import eval_utils
+
+    class Frames(torch.utils.data.Dataset):
+        class_names = ["Vehicle"]
+        infos = [{"frame_id": f"f{i}"} for i in range(45)]
+
+        def __len__(self):
+            return len(self.infos)
+
+        def __getitem__(self, i):
+            return {"frame_id": self.infos[i]["frame_id"], "x": torch.ones(1)}
+
+        def generate_prediction_dicts(self, batch, pred_dicts, class_names):
+            return [{"frame_id": f} for f in batch["frame_id"]]
+
+    class Model(torch.nn.Module):
+        def stored_predict(self, batch):
+            return [{} for _ in batch["frame_id"]]
+
+    def collate(samples):
+        return {
+            "frame_id": [s["frame_id"] for s in samples],
+            "x": torch.stack([s["x"] for s in samples]),
+        }
+
+    trims = []
+    loader = torch.utils.data.DataLoader(Frames(), batch_size=1, collate_fn=collate)
+    monkeypatch.setattr(eval_utils, "trim_cpu_memory", lambda: trims.append(len(trims)))
+    annos, _ = eval_utils.predict_dataset(Model(), loader, device=torch.device("cpu"),
+                                          show_progress=False)  # fmt: skip
+    assert [a["frame_id"] for a in annos] == [f"f{i}" for i in range(45)]
+    assert eval_utils.TRIM_EVERY_BATCHES == 20 and len(trims) == 2  # after batches 20 and 40
