@@ -335,8 +335,10 @@ def _one_gt_components(edges, comp, pi, weight, ha, is_l1, det_cls, n_pred):
     starts = np.flatnonzero(first)
     pos = np.arange(len(c)) - np.repeat(starts, np.diff(np.r_[starts, len(c)]))
     best = np.arange(len(c))  # per edge: the best edge among its component's edges so far
+    by_pos = np.argsort(pos, kind="stable")
+    bounds = np.searchsorted(pos[by_pos], np.arange(int(pos.max()) + 2))  # edges at each pos
     for j in range(1, int(pos.max()) + 1):
-        at = np.flatnonzero(pos == j)
+        at = by_pos[bounds[j] : bounds[j + 1]]  # the j-th edge of every component that has one
         prev = best[at - 1]
         take = (w[at] > w[prev]) | ((w[at] == w[prev]) & (p[at] < p[prev]))
         best[at] = np.where(take, at, prev)
