@@ -69,9 +69,9 @@ from pcdet_atlas.datasets.fingerprint import data_config_fingerprint
 from pcdet_atlas.evaluation.results import ResultsError, collect_results, write_report
 from pcdet_atlas.evaluation.results.archive import archive_run_results
 from pcdet_atlas.train_utils.atlas_eval import (
-    atlas_section,
     build_variant_attacks,
     resolve_variants,
+    trained_checkpoint,
     variant_fingerprints,
 )
 from pcdet_atlas.train_utils.eval_folder import eval_dir, finished_variants, resolve_checkpoint
@@ -90,8 +90,7 @@ def shipped_configs() -> list[Path]:
     """Synthetic model configs whose checkpoint ships (stage configs without one are skipped)."""
     out = []
     for path in sorted((REPO_ROOT / "cfgs" / "atlas" / "synthetic").rglob("*.yaml")):
-        ckpt = atlas_section(cfg_from_yaml_file(path).get("ATLAS")).checkpoint
-        if ckpt and (REPO_ROOT / ckpt).is_file():
+        if trained_checkpoint(cfg_from_yaml_file(path).get("ATLAS")) is not None:
             out.append(path.relative_to(REPO_ROOT))  # as results.json and the report name it
     return out
 

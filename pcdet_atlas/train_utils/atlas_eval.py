@@ -27,6 +27,7 @@ from pcdet_atlas.config import (
     ConfigError,
     cfg_from_yaml_file,
     key_source,
+    resolve_repo_path,
     to_plain,
 )
 from pcdet_atlas.config_values import declared_keys, read_section, setting
@@ -46,6 +47,7 @@ __all__ = [
     "ATLAS_KEYS",
     "AtlasSection",
     "atlas_section",
+    "trained_checkpoint",
     "resolve_variants",
     "build_variant_attacks",
     "attack_sha256",
@@ -90,6 +92,13 @@ ATLAS_KEYS = tuple(declared_keys(AtlasSection))
 def atlas_section(atlas_cfg: Mapping | None) -> AtlasSection:
     """A model config's ``ATLAS`` section (None or absent: every key at its default), read."""
     return read_section(AtlasSection, atlas_cfg, "ATLAS")
+
+
+def trained_checkpoint(atlas_cfg: Mapping | None) -> Path | None:
+    """The config's ``ATLAS.CHECKPOINT`` (relative to the repository root) when that file is
+    there; None when the key is null or the file absent (a model not trained here)."""
+    ckpt = atlas_section(atlas_cfg).checkpoint
+    return resolve_repo_path(ckpt) if ckpt and resolve_repo_path(ckpt).is_file() else None
 
 
 ATTACK_DIR = REPO_ROOT / "cfgs" / "attacks"

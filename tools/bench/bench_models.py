@@ -105,7 +105,7 @@ from pcdet_atlas.models import build_network_from_config, load_data_to_device
 from pcdet_atlas.models.detectors import PTT, TwoStageDetector
 from pcdet_atlas.registry import DETECTORS
 from pcdet_atlas.train_utils import eval_one_epoch
-from pcdet_atlas.train_utils.atlas_eval import atlas_section, point_history
+from pcdet_atlas.train_utils.atlas_eval import atlas_section, point_history, trained_checkpoint
 from pcdet_atlas.train_utils.proposal_bank import ProposalBank
 from pcdet_atlas.train_utils.setup import device_arg
 from pcdet_atlas.utils.cli import add_debug_flag, baseline_tree_env, run_tool
@@ -593,9 +593,9 @@ def vfe_forms_table(cfg_files: list[str], data_path: Path, args, device: torch.d
         cfg, batches, _ = _config_frames(cfg_file, data_path, args.frames + 1, device)
         torch.manual_seed(0)
         model = build_network_from_config(cfg).to(device)
-        ckpt = atlas_section(cfg.get("ATLAS")).checkpoint
-        if ckpt and (REPO_ROOT / ckpt).is_file():
-            model.load_params_from_file(REPO_ROOT / ckpt)
+        ckpt = trained_checkpoint(cfg.get("ATLAS"))
+        if ckpt is not None:
+            model.load_params_from_file(ckpt)
         else:  # running statistics of real features (their plain average), not BN's 0 / 1
             for module in model.vfe.modules():
                 if isinstance(module, torch.nn.BatchNorm1d):
@@ -650,14 +650,15 @@ def _timed_runs(
         except FileNotFoundError as err:  # a two-stage config whose RPN is not trained here
             unbuilt.append((cfg_file, str(err).split(" (")[0]))
             continue
-        ckpt = atlas_section(cfg.get("ATLAS")).checkpoint
-        trained = bool(ckpt) and (REPO_ROOT / ckpt).is_file()
+        ckpt = trained_checkpoint(cfg.get("ATLAS"))
+        trained = ckpt is not None
         if trained:
-            model.load_params_from_file(REPO_ROOT / ckpt)
+            model.load_params_from_file(ckpt)
         n_points = statistics.mean(int(b["points"].shape[0]) for b in batches)
         runs.append(
             {"cfg": cfg_file, "cfg_obj": cfg, "model": model, "batches": batches,
-             "trained": trained, "ships_ckpt": bool(ckpt), "times": [], "points": n_points,
+             "trained": trained, "ships_ckpt": bool(atlas_section(cfg.get("ATLAS")).checkpoint),
+             "times": [], "points": n_points,
              "params": sum(p.numel() for p in model.parameters()), "rpn_times": []}
         )  # fmt: skip
         if getattr(model, "lot", None) is not None:  # time LOT inside the frames
@@ -913,9 +914,9 @@ def bank_table(cfg_file: str, data_path: Path, args, device: torch.device) -> No
     attack = REPO_ROOT / "cfgs" / "attacks" / f"{args.bank_variant}.yaml"
     torch.manual_seed(0)
     model = build_network_from_config(cfg).to(device).eval()
-    ckpt = atlas_section(cfg.get("ATLAS")).checkpoint
-    if ckpt and (REPO_ROOT / ckpt).is_file():
-        model.load_params_from_file(REPO_ROOT / ckpt)
+    ckpt = trained_checkpoint(cfg.get("ATLAS"))
+    if ckpt is not None:
+        model.load_params_from_file(ckpt)
     results = {}
     for mode in ("warm-up", "bank", "no bank"):  # warm-up: frame 0, untimed (first reads, allocs)
         dataset, loader = build_attack_loader(
