@@ -300,6 +300,13 @@ def test_lot_ablation_against_its_no_lot_control(models, tmp_path):
             f"{np.mean([control['variants'][n]['asr'] for n in names]):.2f}"
         )
     assert table["Clean"][col] == "-"
+    # a control not scored on the same targets is named under the table, not paired
+    other = copy.deepcopy(control)
+    other["variants"]["rem_10"]["runs"][0]["num_targets"] += 1
+    text = lot_ablation_table(phim, lot, control=other)
+    assert md_table(text)[variant_label("rem_10")][col] == "-"
+    assert "Not paired over rem_10: " in text and "not scored on the same" in text
+    assert md_table(text)["Removal, mean"][col] == "-"
     text = write_report([phim, control, lot], tmp_path / "with")["report"].read_text()
     part = report_part(text, "## LOT ablation: PHiM, PHiM (no-LOT control) and PHiM+LOT")
     assert "what LOT does" in part and col in part

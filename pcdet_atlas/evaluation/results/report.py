@@ -165,17 +165,21 @@ def summary_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> str
     return "\n\n".join([text, *(f"ms/frame of {note}." for note in notes)])
 
 
-def _paired_cell(defended: Mapping, control: Mapping, variants: Sequence[str]) -> str:
+def _paired_cell(
+    defended: Mapping, control: Mapping, variants: Sequence[str], notes: list[str]
+) -> str:
     """``defended - control`` of the mean ASR over ``variants`` with its paired 95% interval
-    (:func:`~pcdet_atlas.evaluation.results.build.paired_from_results`), ``-`` where the two were
-    not scored on the same runs or a variant lacks an ASR."""
+    (:func:`~pcdet_atlas.evaluation.results.build.paired_from_results`); ``-`` where a variant
+    lacks an ASR, and where the two cannot be paired (not scored on the same runs, no per-run
+    counts), with the reason added to ``notes``."""
     pair = (defended, control)
     if not variants or any((r["variants"].get(v) or {}).get("asr") is None
                            for r in pair for v in variants):  # fmt: skip
         return "-"
     try:
         paired = paired_from_results([defended, control], variants)
-    except ResultsError:
+    except ResultsError as err:
+        notes.append(f"Not paired over {', '.join(variants)}: {err}.")
         return "-"
     a, b = defended["model"], control["model"]
     text = f"{paired['difference'][a][b]:+.2f}"
@@ -204,7 +208,7 @@ def lot_ablation_table(
     if control is not None:
         header.append(f"ΔASR vs {control['model']} [95% CI]")
     header.append(f"ΔASR vs {base['model']}")
-    rows = []
+    rows, notes = [], []
     for name in names:
         entries = [m["variants"].get(name) for m in models]
         cells = [variant_label(name)]
@@ -212,7 +216,7 @@ def lot_ablation_table(
             cells += [MISSING, MISSING] if entry is None else [
                 _fmt(entry["L2/mAP"], 100, 1), _fmt_ci(entry)]  # fmt: skip
         if control is not None:
-            cells.append("-" if name == "clean" else _paired_cell(defended, control, [name]))
+            cells.append("-" if name == "clean" else _paired_cell(defended, control, [name], notes))
         a, b = entries[0], entries[-1]
         delta = None
         if a is not None and b is not None and a["asr"] is not None and b["asr"] is not None:
@@ -228,13 +232,14 @@ def lot_ablation_table(
                     row += ["", _mean_asr_cell(m, variants)]
                 base_mean = queries.mean_asr(base, variants)
                 lot_mean = queries.mean_asr(defended, variants)
-                rows.append(row + [_paired_cell(defended, control, variants),
+                rows.append(row + [_paired_cell(defended, control, variants, notes),
                                    "-" if base_mean is None or lot_mean is None
                                    else f"{lot_mean - base_mean:+.2f}"])  # fmt: skip
     if fmt == "latex":
         rows = [[latex_escape(c) for c in row] for row in rows]
         header = [h.replace("ΔASR", "ASR change") for h in header]
-    return _render(fmt, None, header, rows)
+        return _render(fmt, None, header, rows)
+    return "\n\n".join([_render(fmt, None, header, rows), *notes])
 
 
 def rpn_cell(results: Mapping) -> str:
