@@ -19,12 +19,16 @@ dataset: docs/synthetic.md "A larger validation split".
 ``--jobs N`` evaluates N models at once, each a ``tools/test.py`` process with ``--threads``
 torch threads (default: the cores divided among the jobs); its output goes to ``reproduce.log``
 in the folder above the model's ``reproduce/results.json``. The run resumes: a later call
-with the same data, variants, ``--set`` and ``--no_reuse`` as the one ``run.json`` in ``--out``
-records skips each model whose variants ``tools/test.py --resume`` would all keep (same merged
-config, checkpoint bytes, setting and test split: its info pkls and frame files, by the dataset
+skips each model whose variants ``tools/test.py --resume`` would all keep (same merged config,
+checkpoint bytes, variants, device and test split: its info pkls and frame files, by the dataset
 fingerprint in ``results.json``) and lets a model left unfinished go on from its last finished
-variant; any other model, or a call with another setting, is evaluated again. A ``run.json`` that
-is truncated or holds a key of the wrong type is an error naming the file and the key.
+variant; any other model is evaluated again. A call with the same data, models, variants,
+``--set`` and ``--no_reuse`` as the one ``run.json`` in ``--out`` records continues that run (its
+calls and wall time add up); a call with another model set starts a new run that still keeps
+what earlier calls evaluated of its models, and the report marks those models (their time is
+their own evaluation's, not in the run's total); a ``--no_reuse`` call keeps only its own run's.
+A ``run.json`` that is truncated or holds a key of the wrong type is an error naming the file
+and the key.
 ``--overwrite`` evaluates everything again. The models share a prediction store
 (``tools/test.py --prediction_store``, under ``--eval_dir``; ``--no_store``: none) that the
 two-stage models and the configs that are their RPN use, so a two-stage model reads the
@@ -255,6 +259,8 @@ RUN_RECORD_TYPES = {
     "model_wall_s": (dict,), "prediction_store": (str, type(None)),
 }  # fmt: skip
 _RUN_TYPES = {"config": _TEXT, "results": _TEXT, "wall_s": _NUMBER}
+#: Keys of a ``runs`` entry that a call of an older version did not write.
+_OPTIONAL_RUN_TYPES = {"earlier_run": (bool,)}
 
 
 def _typed(value, types: tuple) -> bool:
@@ -288,6 +294,9 @@ def read_run_record(path: Path) -> dict:
             if not isinstance(run, dict) or not _typed(run.get(key), types):
                 got = run.get(key) if isinstance(run, dict) else run
                 raise bad(f"runs[{i}].{key}", got, " or ".join(t.__name__ for t in types))
+        for key, types in _OPTIONAL_RUN_TYPES.items():
+            if key in run and not _typed(run[key], types):
+                raise bad(f"runs[{i}].{key}", run[key], " or ".join(t.__name__ for t in types))
     for name, wall in record.get("model_wall_s", {}).items():
         if not _typed(wall, _NUMBER):
             raise bad(f"model_wall_s.{name}", wall, "a number of seconds")
@@ -394,7 +403,10 @@ def reproduce(args, argv=None) -> dict:
 
     def evaluate(cfg: Path) -> None:
         results, wanted, evaluated = evaluation_of(cfg, args, root, data_fingerprints)
-        resumable = resume and evaluated is not None
+        # what an earlier call evaluated of this model is kept whichever models that call had:
+        # a model's variants depend on its own config, checkpoint and data alone
+        resumable = evaluated is not None and not args.overwrite and (resume or not args.no_reuse)
+        earlier_run = resumable and not resume and bool(wanted & evaluated)
         done = resumable and wanted <= evaluated
         if not done:
             store = store_of(cfg, rpns, args)
@@ -412,8 +424,10 @@ def reproduce(args, argv=None) -> dict:
                 raise RuntimeError(f"{cfg}: tools/test.py exited with {code}; its output: {log}")
         wall = evaluation_time(json.loads(results.read_text()))
         when = "done in an earlier call, " if done else ""
+        when += "evaluated by a run of another model set, " if earlier_run else ""
         print(f"{cfg}: {when}{wall / 60:.1f} min, {results}", flush=True)
-        save_state({"config": str(cfg), "results": str(results), "wall_s": wall})
+        save_state({"config": str(cfg), "results": str(results), "wall_s": wall,
+                    "earlier_run": earlier_run})  # fmt: skip
 
     rpns = {rpn_config(cfg) for cfg in cfgs} - {None}
     threading.Thread(target=heartbeat, daemon=True).start()
@@ -468,7 +482,13 @@ def write_run_report(state: dict, out_dir: Path) -> dict:
             if calls > 1
             else "."
         )
-        + " A model's time is the sum of its variants' evaluation times.",
+        + " A model's time is the sum of its variants' evaluation times."
+        + (
+            " Models marked † were evaluated, in whole or in part, by calls of another model set"
+            " before this run: their time counts those calls' work, which the total does not."
+            if any(run.get("earlier_run") for run in state["runs"])
+            else ""
+        ),
         "",
         "| Model | Wall time (min) | Frames recomputed | Frames reused | s per recomputed frame |",
         "|:---|---:|---:|---:|---:|",
@@ -481,8 +501,10 @@ def write_run_report(state: dict, out_dir: Path) -> dict:
         else:
             recomputed, reused = (sum(c[i] for c in counts) for i in (0, 1))
             per_frame = f"{run['wall_s'] / recomputed:.2f}" if recomputed else "-"
+        mark = " †" if run.get("earlier_run") else ""
         lines.append(
-            f"| {r['model']} | {run['wall_s'] / 60:.1f} | {recomputed} | {reused} | {per_frame} |"
+            f"| {r['model']}{mark} | {run['wall_s'] / 60:.1f} | {recomputed} | {reused} "
+            f"| {per_frame} |"
         )
     sources = [str(repo_relative(out_dir / r["archived"])) for r in state["runs"]]
     state["device"] = device

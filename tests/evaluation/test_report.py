@@ -517,6 +517,7 @@ def test_reproduce_names_a_truncated_or_mistyped_run_json(tmp_path):
         (lambda r: r.update(runs={}), "runs", "list"),
         (lambda r: r["runs"][0].pop("results"), "runs[0].results", "str"),
         (lambda r: r["runs"][0].update(wall_s="1"), "runs[0].wall_s", "int or float"),
+        (lambda r: r["runs"][0].update(earlier_run=1), "runs[0].earlier_run", "bool"),
         (lambda r: r["model_wall_s"].update({"a.yaml": None}), "model_wall_s.a.yaml", "a number"),
         (lambda r: r["cpus"].append(3), "cpus[1]", "a CPU model name"),
     ]:
@@ -622,11 +623,23 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     changed = reproduce.main(argv(20))  # another setting: evaluated again
     assert all(Path(r["results"]).stat().st_mtime_ns > s
                for r, s in zip(changed["run"]["runs"], stamps))  # fmt: skip
-    # another model set is another run: its time and calls are not added to this one's
+    stamps = [Path(r["results"]).stat().st_mtime_ns for r in changed["run"]["runs"]]
+    assert not any(r["earlier_run"] for r in changed["run"]["runs"])
+    # another model set is another run: its time and calls are not added to this one's, and it
+    # keeps the model an earlier call evaluated, marked in the report
     one = argv(20)
     del one[one.index("--cfgs") + 2]  # the first model only
     alone = reproduce.main(one)
     assert alone["run"]["calls"] == 1 and len(alone["run"]["runs"]) == 1
+    assert Path(alone["run"]["runs"][0]["results"]).stat().st_mtime_ns == stamps[0]
+    assert alone["run"]["runs"][0]["earlier_run"] is True
+    assert alone["run"]["runs"][0]["wall_s"] == changed["run"]["runs"][0]["wall_s"]
+    text = alone["report"].read_text()
+    assert "| CenterPoint † |" in text and "Models marked † were evaluated" in text
+    # ... and a --no_reuse run evaluates it again: it times what reuse skips
+    alone = reproduce.main(["--no_reuse", *one])
+    assert Path(alone["run"]["runs"][0]["results"]).stat().st_mtime_ns > stamps[0]
+    assert alone["run"]["runs"][0]["earlier_run"] is False
 
 
 def test_reproduce_starts_rpns_then_the_longest_models_first():
