@@ -15,6 +15,7 @@ from torch.utils.data import DataLoader, DistributedSampler, RandomSampler
 
 from pcdet_atlas.config import ConfigError
 from pcdet_atlas.registry import DATASETS
+from pcdet_atlas.utils.processes import tie_to_parent
 from pcdet_atlas.utils.seeding import derive_seed, torch_generator
 
 __all__ = ["ContiguousBatchSampler", "ResumableSampler", "build_dataloader", "worker_init_fn"]
@@ -118,10 +119,13 @@ class ResumableSampler(torch.utils.data.Sampler):
 
 
 def worker_init_fn(worker_id: int, seed: int | None = None) -> None:
-    """Seed a worker's global RNGs from ``(seed, 'worker', worker_id)`` for third-party code.
+    """Tie a loader worker to the process that forked it (it dies with it, even when that one
+    is killed: :func:`~pcdet_atlas.utils.processes.tie_to_parent`), and seed the worker's
+    global RNGs from ``(seed, 'worker', worker_id)`` for third-party code.
 
     pcdet_atlas itself never draws from global RNGs (its draws are keyed per frame).
     """
+    tie_to_parent()
     if seed is None:
         return
     worker_seed = derive_seed(int(seed), "worker", int(worker_id))

@@ -8,9 +8,31 @@ import signal
 import sys
 from collections.abc import Callable
 
-__all__ = ["die_with_parent"]
+__all__ = ["die_with_parent", "tie_to_parent"]
 
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def tie_to_parent(sig: int = signal.SIGKILL) -> None:
+    """Have the kernel send this process ``sig`` when its parent dies, even by SIGKILL (Linux
+    ``prctl(PR_SET_PDEATHSIG)``; nothing elsewhere): for a child that was forked, not started by
+    ``subprocess``, such as a data loader worker. A worker whose parent is killed while it hands
+    over a batch can otherwise block for ever on the pipe nobody reads, holding the files and
+    the output folder's lock it inherited. If the parent died already, this process ends now.
+
+    Raises:
+        OSError: the kernel refused the call.
+    """
+    if not sys.platform.startswith("linux"):
+        return
+    _set_death_signal(ctypes.CDLL(None, use_errno=True).prctl, sig, os.getppid())
+
+
+def _set_death_signal(prctl, sig: int, parent: int) -> None:
+    if prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0) != 0:  # subprocess raises in the parent
+        raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+    if parent == 1 or os.getppid() != parent:  # orphaned before prctl took effect
+        os._exit(128 + int(sig))
 
 
 def die_with_parent(sig: int = signal.SIGTERM) -> Callable[[], None] | None:
@@ -28,9 +50,6 @@ def die_with_parent(sig: int = signal.SIGTERM) -> Callable[[], None] | None:
     parent = os.getpid()
 
     def preexec() -> None:
-        if prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0) != 0:  # subprocess raises in the parent
-            raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
-        if os.getppid() != parent:  # the parent died before prctl took effect
-            os._exit(128 + int(sig))
+        _set_death_signal(prctl, sig, parent)
 
     return preexec

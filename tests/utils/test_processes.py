@@ -42,3 +42,47 @@ def test_a_child_dies_when_its_parent_is_killed():
     finally:
         if running(child):
             os.kill(child, signal.SIGKILL)
+
+
+LOADER = """
+import time
+import numpy as np
+from torch.utils.data import DataLoader, Dataset
+from pcdet_atlas.datasets import worker_init_fn
+
+class Slow(Dataset):
+    def __len__(self):
+        return 1000
+    def __getitem__(self, i):
+        time.sleep(0.05)
+        return {"points": np.zeros(1 << 18, np.float32)}  # pickled through the pipe: 1 MiB
+
+def collate(samples):  # numpy, as the datasets' collate_batch: sent through the pipe
+    return samples
+
+loader = DataLoader(Slow(), batch_size=4, num_workers=1, worker_init_fn=worker_init_fn,
+                    collate_fn=collate)
+it = iter(loader)
+next(it)
+print(*[w.pid for w in it._workers], flush=True)
+time.sleep(60)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl(PR_SET_PDEATHSIG)")
+def test_a_loader_worker_dies_when_its_process_is_killed():
+    """A worker tied by worker_init_fn leaves with its killed process; without it, one blocked
+    handing over a batch would stay, holding the output folder's lock it inherited."""
+    parent = subprocess.Popen([sys.executable, "-c", LOADER], stdout=subprocess.PIPE, text=True)
+    (worker,) = map(int, parent.stdout.readline().split())
+    try:
+        assert running(worker)
+        parent.kill()
+        parent.wait()
+        deadline = time.monotonic() + 5
+        while running(worker) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert not running(worker), "the loader worker outlived its killed process"
+    finally:
+        if running(worker):
+            os.kill(worker, signal.SIGKILL)
