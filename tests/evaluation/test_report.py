@@ -44,7 +44,11 @@ from pcdet_atlas.evaluation.results.report import (
     summary_table,
     write_report,
 )
-from pcdet_atlas.evaluation.results.seeds import seed_groups, seed_spread_text
+from pcdet_atlas.evaluation.results.seeds import (
+    one_per_model_config,
+    seed_groups,
+    seed_spread_text,
+)
 from pcdet_atlas.evaluation.results.tables import variant_label
 
 sys.path.insert(0, str(REPO_ROOT / "tests" / "models"))
@@ -852,6 +856,15 @@ def test_seed_to_seed_spread(models, tmp_path):
                 assert sum(cell in part for part in (beyond, above, within)) == 1
     assert classes == {"beyond", "above", "within"}  # the fixture has pairs of each class
     assert seed_spread_text(models) is None  # no seed pair: no section
+    # the ranks and their fit count a model once: its retraining is left out, and named
+    left_out = ("One result per model config: left out CenterPoint seed 2 (a retraining of "
+                "CenterPoint with seed 2)")  # fmt: skip
+    ranks = report_part(text, "## Robustness ranks")
+    assert left_out in ranks and "CenterPoint seed 2 |" not in ranks.split(left_out)[0]
+    assert left_out in report_part(text, "### Robustness rank correlation")
+    kept, note = one_per_model_config(results_list)
+    assert kept == results_list[:-1] and note.startswith(left_out)
+    assert one_per_model_config(models) == (list(models), None)
 
 
 def test_seed_pairs_need_a_known_and_different_seed():

@@ -18,6 +18,7 @@ from pcdet_atlas.evaluation.analyses.registry import (
 )
 from pcdet_atlas.evaluation.results.build import ranks_from_results
 from pcdet_atlas.evaluation.results.queries import ranked_variants, ranked_variants_note
+from pcdet_atlas.evaluation.results.seeds import one_per_model_config
 from pcdet_atlas.evaluation.results.style import OKABE_ITO, figure_grid, legend_below, render
 from pcdet_atlas.evaluation.results.tables import format_ranks
 
@@ -34,12 +35,15 @@ def rank_correlation(
 def rank_correlation_figure(results_list: Sequence[Mapping], notes: list[str] | None = None):
     """Removal rank against injection rank per model, with the least-squares line and R² in the
     legend under the panel (paper Fig. "Robustness Correlation"); over the ranked variants every
-    model has with an ASR (``notes``: which variants, and those left out). One column wide."""
+    model has with an ASR and one result per model config (``notes``: which variants, and the
+    results left out). One column wide."""
     from matplotlib.ticker import MaxNLocator
 
+    results_list, retrained = one_per_model_config(results_list)
     variants, dropped = ranked_variants(results_list)
     if notes is not None:
         notes.append(ranked_variants_note(variants, dropped))
+        notes += [retrained] if retrained else []
     groups = {results_list[0]["variants"][n]["rank_group"] for n in variants} if variants else set()
     if len(results_list) < 3 or not {"injection", "removal"} <= groups:
         return (
@@ -72,10 +76,11 @@ def rank_correlation_figure(results_list: Sequence[Mapping], notes: list[str] | 
 
 
 def _ranks_text(results_list) -> str:
-    """The ranks over the ranked variants every model has with an ASR, naming them and the
-    variants left out."""
+    """The ranks over the ranked variants every model has with an ASR, one result per model
+    config, naming the variants and the results left out."""
+    results_list, retrained = one_per_model_config(results_list)
     variants, dropped = ranked_variants(results_list)
-    note = ranked_variants_note(variants, dropped)
+    note = ranked_variants_note(variants, dropped) + (f"\n\n{retrained}" if retrained else "")
     if len(results_list) < 2 or not variants:
         return f"needs at least 2 models with a common ranked variant\n\n{note}"
     ranks = format_ranks(ranks_from_results(results_list, variants=variants), "markdown")

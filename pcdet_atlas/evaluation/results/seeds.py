@@ -17,7 +17,7 @@ from pcdet_atlas.evaluation.results.build import paired_from_results
 from pcdet_atlas.evaluation.results.schema import ResultsError
 from pcdet_atlas.evaluation.results.tables import _render, ordered_variants, variant_label
 
-__all__ = ["seed_groups", "seed_spread", "seed_spread_text"]
+__all__ = ["one_per_model_config", "seed_groups", "seed_spread", "seed_spread_text"]
 
 
 def _label(results: Mapping) -> str:
@@ -49,6 +49,24 @@ def seed_groups(results_list: Sequence[Mapping]) -> tuple[list[list[Mapping]], l
         if not unknown and len(set(seeds)) == len(seeds):
             groups.append(members)
     return groups, notes
+
+
+def one_per_model_config(results_list: Sequence[Mapping]) -> tuple[list[Mapping], str | None]:
+    """The results with one per model config: of a model trained with several seeds
+    (:func:`seed_groups`) only the first in the report's order stays, so that a retraining does
+    not count as another detector (in the robustness ranks and their fit). Returns the results
+    kept and a note naming those left out (None when none is)."""
+    groups, _ = seed_groups(results_list)
+    left_out = {id(r): group[0] for group in groups for r in group[1:]}
+    if not left_out:
+        return list(results_list), None
+    kept = [r for r in results_list if id(r) not in left_out]
+    names = "; ".join(
+        f"{r['model']} (a retraining of {first['model']} with seed {r['training_seed']})"
+        for r in results_list
+        if (first := left_out.get(id(r))) is not None
+    )
+    return kept, f"One result per model config: left out {names} (see the seed-to-seed spread)."
 
 
 def _paired(results_list: Sequence[Mapping], variants: Sequence[str]) -> dict | None:
