@@ -26,7 +26,8 @@ variant; any other model is evaluated again. A call with the same data, models, 
 ``--set`` and ``--no_reuse`` as the one ``run.json`` in ``--out`` records continues that run (its
 calls and wall time add up); a call with another model set starts a new run that still keeps
 what earlier calls evaluated of its models, and the report marks those models (their time is
-their own evaluation's, not in the run's total); a ``--no_reuse`` call keeps only its own run's.
+their own evaluation's, not in the run's total; the run's first call finds them, ``run.json``'s
+``earlier_run_models``); a ``--no_reuse`` call keeps only its own run's.
 A ``run.json`` that is truncated or holds a key of the wrong type is an error naming the file
 and the key.
 ``--overwrite`` evaluates everything again. The models share a prediction store
@@ -257,6 +258,7 @@ RUN_RECORD_TYPES = {
     "cpu_cores": (int, type(None)), "machine": _TEXT, "cpus": (list,),
     "device": (str, type(None)), "total_wall_s": _NUMBER, "calls": (int,), "runs": (list,),
     "model_wall_s": (dict,), "prediction_store": (str, type(None)),
+    "earlier_run_models": (list,),
 }  # fmt: skip
 _RUN_TYPES = {"config": _TEXT, "results": _TEXT, "wall_s": _NUMBER}
 #: Keys of a ``runs`` entry that a call of an older version did not write.
@@ -303,6 +305,9 @@ def read_run_record(path: Path) -> dict:
     for i, cpu in enumerate(record.get("cpus", [])):
         if not isinstance(cpu, str):
             raise bad(f"cpus[{i}]", cpu, "a CPU model name")
+    for i, name in enumerate(record.get("earlier_run_models", [])):
+        if not isinstance(name, str):
+            raise bad(f"earlier_run_models[{i}]", name, "a model config path")
     return record
 
 
@@ -372,12 +377,25 @@ def reproduce(args, argv=None) -> dict:
         elapsed_before = float(previous.get("total_wall_s", 0.0))
         calls += int(previous.get("calls", 1))
         cpus = list(dict.fromkeys([*previous.get("cpus", []), *cpus]))
+    data_fingerprints: dict = {}  # the test splits' (tools/test.py --resume), once per run
+    # the models of which calls before this run (of another model set) evaluated variants that
+    # it keeps: found in its first call, before it evaluates anything, and carried by the others
+    if resume:
+        earlier = set(previous.get("earlier_run_models", []))
+    elif args.overwrite or args.no_reuse:
+        earlier = set()
+    else:
+        earlier = set()
+        for cfg in cfgs:
+            _, wanted, evaluated = evaluation_of(cfg, args, root, data_fingerprints)
+            if evaluated is not None and wanted & evaluated:
+                earlier.add(str(cfg))
     command = shlex.join(sys.argv[1:] if argv is None else argv)
     state = {"setting": setting, "command": command, "jobs": args.jobs, "threads": threads,
              "cpu_cores": os.cpu_count(), "machine": platform.machine(), "cpus": cpus,
              "device": None,
              "total_wall_s": elapsed_before, "calls": calls, "runs": [],
-             "model_wall_s": known,
+             "model_wall_s": known, "earlier_run_models": sorted(earlier),
              "prediction_store": None if args.no_store else str(store_path(args))}  # fmt: skip
     lock = threading.Lock()
     start = time.perf_counter()
@@ -399,14 +417,12 @@ def reproduce(args, argv=None) -> dict:
         while not finished.wait(60):
             save_state()
 
-    data_fingerprints: dict = {}  # the test splits' (tools/test.py --resume), once per run
-
     def evaluate(cfg: Path) -> None:
         results, wanted, evaluated = evaluation_of(cfg, args, root, data_fingerprints)
         # what an earlier call evaluated of this model is kept whichever models that call had:
         # a model's variants depend on its own config, checkpoint and data alone
         resumable = evaluated is not None and not args.overwrite and (resume or not args.no_reuse)
-        earlier_run = resumable and not resume and bool(wanted & evaluated)
+        earlier_run = resumable and str(cfg) in earlier
         done = resumable and wanted <= evaluated
         if not done:
             store = store_of(cfg, rpns, args)

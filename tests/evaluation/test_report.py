@@ -524,6 +524,7 @@ def test_reproduce_names_a_truncated_or_mistyped_run_json(tmp_path):
         (lambda r: r["runs"][0].update(earlier_run=1), "runs[0].earlier_run", "bool"),
         (lambda r: r["model_wall_s"].update({"a.yaml": None}), "model_wall_s.a.yaml", "a number"),
         (lambda r: r["cpus"].append(3), "cpus[1]", "a CPU model name"),
+        (lambda r: r.update(earlier_run_models=[1]), "earlier_run_models[0]", "a model config"),
     ]:
         bad = copy.deepcopy(good)
         mutate(bad)
@@ -640,6 +641,10 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     assert alone["run"]["runs"][0]["wall_s"] == changed["run"]["runs"][0]["wall_s"]
     text = alone["report"].read_text()
     assert "| CenterPoint † |" in text and "Models marked † were evaluated" in text
+    # ... marked in the calls that continue that run too
+    again = reproduce.main(one)
+    assert again["run"]["calls"] == 2 and again["run"]["runs"][0]["earlier_run"] is True
+    assert again["run"]["earlier_run_models"] == ["cfgs/atlas/synthetic/centerpoint.yaml"]
     # ... and a --no_reuse run evaluates it again: it times what reuse skips
     alone = reproduce.main(["--no_reuse", *one])
     assert Path(alone["run"]["runs"][0]["results"]).stat().st_mtime_ns > stamps[0]
