@@ -57,7 +57,7 @@ import subprocess
 import sys
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 from pathlib import Path
 
 from tqdm import tqdm
@@ -328,6 +328,23 @@ def start_order(cfgs: list[Path], known: dict[str, float], rpns=frozenset()) -> 
     return sorted(cfgs, key=lambda cfg: (str(cfg) not in names, -known.get(str(cfg), math.inf)))
 
 
+def evaluate_all(cfgs: list[Path], evaluate, jobs: int) -> None:
+    """``evaluate(cfg)`` for each config in order, ``jobs`` at a time. When one fails, the
+    models not started yet do not start (a two-stage model would otherwise run without the
+    proposals of a failed RPN), those running finish, and the first failure is raised."""
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        futures = [pool.submit(evaluate, cfg) for cfg in cfgs]
+        wait(futures, return_when=FIRST_EXCEPTION)
+        failed = [f for f in futures if f.done() and not f.cancelled() and f.exception()]
+        if failed:
+            cancelled = sum(f.cancel() for f in futures)
+            print(f"a model failed: {cancelled} model(s) not started are cancelled; waiting for "
+                  "the running ones", flush=True)  # fmt: skip
+            failed[0].result()
+        for future in futures:
+            future.result()
+
+
 def rpn_config(cfg: Path) -> Path | None:
     """The config of a two-stage model's RPN (``MODEL.RPN.CFG``, as the run names configs),
     None for another model."""
@@ -447,9 +464,7 @@ def reproduce(args, argv=None) -> dict:
 
     rpns = {rpn_config(cfg) for cfg in cfgs} - {None}
     threading.Thread(target=heartbeat, daemon=True).start()
-    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        for future in [pool.submit(evaluate, cfg) for cfg in start_order(cfgs, known, rpns)]:
-            future.result()
+    evaluate_all(start_order(cfgs, known, rpns), evaluate, args.jobs)
     finished.set()
     save_state()
     order = {str(cfg): i for i, cfg in enumerate(cfgs)}

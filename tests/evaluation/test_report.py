@@ -9,6 +9,8 @@ import gzip
 import json
 import re
 import sys
+import threading
+import time
 import zlib
 from pathlib import Path
 
@@ -649,6 +651,33 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     alone = reproduce.main(["--no_reuse", *one])
     assert Path(alone["run"]["runs"][0]["results"]).stat().st_mtime_ns > stamps[0]
     assert alone["run"]["runs"][0]["earlier_run"] is False
+
+
+def test_reproduce_starts_no_model_after_one_failed(capsys):
+    """A failed model (an RPN, say) stops the models not started yet; the running ones finish;
+    its error is raised."""
+    reproduce = load_tool("reproduce")
+    started, release = [], threading.Event()
+
+    def evaluate(cfg):
+        started.append(cfg)
+        if cfg == "rpn":
+            raise RuntimeError("rpn: tools/test.py exited with 1")
+        if cfg == "running":
+            assert release.wait(10)
+
+    def release_soon():
+        time.sleep(0.5)
+        release.set()
+
+    threading.Thread(target=release_soon, daemon=True).start()
+    with pytest.raises(RuntimeError, match="rpn: tools/test.py exited with 1"):
+        reproduce.evaluate_all(["running", "rpn", "two_stage", "other"], evaluate, jobs=2)
+    assert started == ["running", "rpn"] and release.is_set()
+    assert "2 model(s) not started are cancelled" in capsys.readouterr().out
+    done = []
+    reproduce.evaluate_all(["a", "b", "c"], done.append, jobs=2)
+    assert sorted(done) == ["a", "b", "c"]
 
 
 def test_reproduce_starts_rpns_then_the_longest_models_first():
