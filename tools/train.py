@@ -241,6 +241,7 @@ def train(args, held: contextlib.ExitStack) -> dict:
         state = TrainState(
             epoch=ckpt["epoch"], it=ckpt["it"], epoch_it=ckpt.get("epoch_it", 0),
             epoch_loss_sums=dict(ckpt.get("epoch_loss_sums") or {}),
+            runs=list(ckpt.get("train_runs") or []),
         )  # fmt: skip
         if state.it != state.epoch * steps_per_epoch + state.epoch_it:
             raise ValueError(

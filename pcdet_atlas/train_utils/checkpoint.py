@@ -2,15 +2,17 @@
 
 A checkpoint is a dict ``{'epoch', 'it', 'epoch_it', 'epoch_loss_sums', 'model_state',
 'optimizer_state', 'scheduler_state', 'scaler_state', 'rng_state', 'cuda_rng_state',
-'train_settings', 'version'}``; ``epoch`` counts the finished epochs and ``it`` the optimizer
-steps taken; ``epoch_it`` the batches of the next epoch already trained (0 at an epoch's end; a
-``latest_model.pth`` written mid-epoch has more) and ``epoch_loss_sums`` their summed losses;
-``rng_state`` is torch's CPU generator and ``cuda_rng_state`` the CUDA generators (None when the
-process never used CUDA); ``train_settings`` holds the settings in effect
-(:func:`resume_settings`; :func:`check_resume_settings` compares them on resume). Checkpoints
-written before ``cuda_rng_state`` or a setting was recorded lack them: nothing is restored or
-compared for what is absent. ``model_state`` alone is what ``--pretrained_model`` /
-``tools/test.py`` load (strictly, with a readable error on mismatch).
+'train_settings', 'train_runs', 'version'}``; ``epoch`` counts the finished epochs and ``it``
+the optimizer steps taken; ``epoch_it`` the batches of the next epoch already trained (0 at an
+epoch's end; a ``latest_model.pth`` written mid-epoch has more) and ``epoch_loss_sums`` their
+summed losses; ``rng_state`` is torch's CPU generator and ``cuda_rng_state`` the CUDA generators
+(None when the process never used CUDA); ``train_settings`` holds the settings in effect
+(:func:`resume_settings`; :func:`check_resume_settings` compares them on resume) and
+``train_runs`` the training calls that produced it, each with the iteration it started from and
+its runtime and code (``trainer.run_record``: device, threads, versions, source commit).
+Checkpoints written before ``cuda_rng_state``, ``train_runs`` or a setting was recorded lack
+them: nothing is restored or compared for what is absent. ``model_state`` alone is what
+``--pretrained_model`` / ``tools/test.py`` load (strictly, with a readable error on mismatch).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import hashlib
 import json
 import os
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
@@ -62,6 +64,7 @@ def checkpoint_state(
     epoch_it: int = 0,
     epoch_loss_sums: Mapping[str, float] | None = None,
     train_settings: Mapping | None = None,
+    train_runs: Sequence[Mapping] = (),
 ) -> dict:
     """The checkpoint dict (tensors moved to CPU)."""
     state = {k: v.detach().cpu() for k, v in unwrap_model(model).state_dict().items()}
@@ -80,6 +83,7 @@ def checkpoint_state(
         # e.g. GPU dropout masks: without it they would restart after a resume
         "cuda_rng_state": torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None,
         "train_settings": None if train_settings is None else dict(train_settings),
+        "train_runs": [dict(run) for run in train_runs],
         "version": f"pcdet_atlas+{__version__}",
     }
 
@@ -291,12 +295,12 @@ def training_seed(ckpt: Mapping, declared: int | None, path: str | Path) -> int 
 
 def export_model_checkpoint(src: str | Path, dst: str | Path) -> Path:
     """Keep only ``epoch``, ``it``, ``model_state``, ``model_info``, ``train_settings`` (the
-    seed and schedule the weights were trained with: :func:`training_seed`) and ``version`` of a
-    training checkpoint (the small file a model zoo ships; ``tools/test.py`` and
-    ``--pretrained_model`` read it)."""
+    seed and schedule the weights were trained with: :func:`training_seed`), ``train_runs`` (the
+    runtime and code of each training call) and ``version`` of a training checkpoint (the small
+    file a model zoo ships; ``tools/test.py`` and ``--pretrained_model`` read it)."""
     ckpt = read_checkpoint(src)
     if "model_state" not in ckpt:
         raise KeyError(f"{src} is not a pcdet_atlas checkpoint (no 'model_state')")
-    names = ("epoch", "it", "model_state", "model_info", "train_settings", "version")
+    names = ("epoch", "it", "model_state", "model_info", "train_settings", "train_runs", "version")
     keep = {k: ckpt[k] for k in names if k in ckpt}
     return save_checkpoint(keep, dst)

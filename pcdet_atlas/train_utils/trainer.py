@@ -33,7 +33,9 @@ from pcdet_atlas.models.batch import load_data_to_device
 from pcdet_atlas.train_utils.checkpoint import LATEST_NAME, checkpoint_state, save_checkpoint
 from pcdet_atlas.train_utils.cpu_memory import trim_cpu_memory
 from pcdet_atlas.train_utils.dist import get_dist_info
+from pcdet_atlas.utils.provenance import source_revision
 from pcdet_atlas.utils.seeding import derive_seed
+from pcdet_atlas.version import __version__
 
 __all__ = ["TrainState", "iterations_per_epoch", "train_one_epoch", "train_model"]
 
@@ -42,13 +44,37 @@ __all__ = ["TrainState", "iterations_per_epoch", "train_one_epoch", "train_model
 class TrainState:
     """Where training stands: finished epochs, optimizer steps taken, the batches of the next
     epoch already trained (``epoch_it``, non-zero only when resumed mid-epoch) with their summed
-    losses, and the mean losses of the epochs finished in this process."""
+    losses, the mean losses of the epochs finished in this process, and ``runs``: the training
+    calls that brought it here, oldest first (:func:`run_record`; a checkpoint's ``train_runs``)."""
 
     epoch: int = 0
     it: int = 0
     epoch_it: int = 0
     epoch_loss_sums: dict[str, float] = field(default_factory=dict)
     history: list[dict[str, float]] = field(default_factory=list)
+    runs: list[dict] = field(default_factory=list)
+
+
+def run_record(state: TrainState, device: torch.device, processes: int = 1) -> dict:
+    """What a training call that starts at ``state`` runs on: the iteration and epoch it starts
+    from, the device, the CPU threads, the process count, torch's and this package's versions
+    and the source commit (:func:`~pcdet_atlas.utils.provenance.source_revision`; None where
+    unknown). Together, a checkpoint's records say which code and runtime trained which
+    iterations, what a bit-exact retraining has to repeat (the float results of a step depend on
+    the thread count and the code); iterations before the first record's ``from_it`` were
+    trained by a version that kept none."""
+    revision = source_revision()
+    return {
+        "from_epoch": int(state.epoch),
+        "from_it": int(state.it),
+        "device": str(device),
+        "threads": int(torch.get_num_threads()),
+        "processes": int(processes),
+        "torch": str(torch.__version__),  # a str subclass: plain text loads under weights_only
+        "package": __version__,
+        "source_commit": None if revision is None else revision.commit,
+        "source_dirty": None if revision is None else revision.dirty,
+    }
 
 
 def iterations_per_epoch(dataloader, total_epochs: int, merged: bool = False) -> int:
@@ -226,9 +252,11 @@ def train_model(
     :func:`~pcdet_atlas.train_utils.cpu_memory.trim_cpu_memory`): with freed memory retained,
     steps of varying sizes fragment the heap, which otherwise grows over an epoch to several
     times a step's peak."""
-    rank, _ = get_dist_info()
+    rank, world = get_dist_info()
     ckpt_dir = Path(ckpt_dir)
     last_save = time.monotonic()
+    if state.epoch < total_epochs:
+        state.runs.append(run_record(state, device, world))
     batches, epoch_batches = None, None
     if merge_all_iters_to_one_epoch and state.epoch < total_epochs:
         merged = getattr(dataloader.dataset, "total_epochs", None)
@@ -249,7 +277,7 @@ def train_model(
         return checkpoint_state(
             model, optimizer, scheduler, scaler, epoch=state.epoch, it=state.it,
             epoch_it=state.epoch_it, epoch_loss_sums=state.epoch_loss_sums,
-            train_settings=train_settings,
+            train_settings=train_settings, train_runs=state.runs,
         )  # fmt: skip
 
     def save_latest() -> None:

@@ -7,9 +7,11 @@ import pytest
 import torch
 from model_batches import load_tool
 
+import pcdet_atlas
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
 from pcdet_atlas.models import build_network_from_config
-from pcdet_atlas.train_utils import checkpoint_state, save_checkpoint
+from pcdet_atlas.train_utils import checkpoint_state, export_model_checkpoint, save_checkpoint
+from pcdet_atlas.utils.provenance import source_revision
 
 CFG = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "centerpoint.yaml"
 
@@ -57,6 +59,18 @@ def test_train_lowers_loss_and_resumes_bit_exactly(synthetic_root, tmp_path):
         assert torch.equal(a["model_state"][k], b["model_state"][k]), k
     assert a["scheduler_state"]["last_epoch"] == b["scheduler_state"]["last_epoch"] == 6
     assert history[-1] == resumed["state"].history[0]
+    # each checkpoint names the training calls behind it: where each started, on what, from
+    # which code; the resumed run's adds its own to those of the checkpoint it resumed
+    (run,) = a["train_runs"]
+    assert run["from_epoch"] == 0 and run["from_it"] == 0 and run["device"] == "cpu"
+    assert run["threads"] == torch.get_num_threads() and run["processes"] == 1
+    assert run["torch"] == str(torch.__version__) and run["package"] == pcdet_atlas.__version__
+    revision = source_revision()
+    assert run["source_commit"] == (revision and revision.commit)
+    first, second = b["train_runs"]
+    assert first == run and (second["from_epoch"], second["from_it"]) == (2, 4)
+    small = export_model_checkpoint(resumed_dir / "checkpoint_epoch_3.pth", tmp_path / "s.pth")
+    assert torch.load(small, weights_only=True)["train_runs"] == b["train_runs"]
 
 
 @pytest.mark.parametrize(
