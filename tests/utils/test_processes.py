@@ -29,7 +29,12 @@ def running(pid: int) -> bool:
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl(PR_SET_PDEATHSIG)")
 def test_a_child_dies_when_its_parent_is_killed():
-    parent = subprocess.Popen([sys.executable, "-c", PARENT], stdout=subprocess.PIPE, text=True)
+    assert_child_dies_with_it(PARENT, "the child outlived its killed parent")
+
+
+def assert_child_dies_with_it(script: str, message: str) -> None:
+    """Run ``script`` (it prints a child's pid), SIGKILL it, and check the child ends within 5 s."""
+    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
     child = int(parent.stdout.readline())
     try:
         assert running(child)
@@ -38,7 +43,7 @@ def test_a_child_dies_when_its_parent_is_killed():
         deadline = time.monotonic() + 5
         while running(child) and time.monotonic() < deadline:
             time.sleep(0.02)
-        assert not running(child), "the child outlived its killed parent"
+        assert not running(child), message
     finally:
         if running(child):
             os.kill(child, signal.SIGKILL)
@@ -64,7 +69,7 @@ loader = DataLoader(Slow(), batch_size=4, num_workers=1, worker_init_fn=worker_i
                     collate_fn=collate)
 it = iter(loader)
 next(it)
-print(*[w.pid for w in it._workers], flush=True)
+print(it._workers[0].pid, flush=True)
 time.sleep(60)
 """
 
@@ -73,16 +78,4 @@ time.sleep(60)
 def test_a_loader_worker_dies_when_its_process_is_killed():
     """A worker tied by worker_init_fn leaves with its killed process; without it, one blocked
     handing over a batch would stay, holding the output folder's lock it inherited."""
-    parent = subprocess.Popen([sys.executable, "-c", LOADER], stdout=subprocess.PIPE, text=True)
-    (worker,) = map(int, parent.stdout.readline().split())
-    try:
-        assert running(worker)
-        parent.kill()
-        parent.wait()
-        deadline = time.monotonic() + 5
-        while running(worker) and time.monotonic() < deadline:
-            time.sleep(0.02)
-        assert not running(worker), "the loader worker outlived its killed process"
-    finally:
-        if running(worker):
-            os.kill(worker, signal.SIGKILL)
+    assert_child_dies_with_it(LOADER, "the loader worker outlived its killed process")
