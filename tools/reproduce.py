@@ -397,14 +397,12 @@ def reproduce(args, argv=None) -> dict:
     data_fingerprints: dict = {}  # the test splits' (tools/test.py --resume), once per run
     # the models of which calls before this run (of another model set) evaluated variants that
     # it keeps: found in its first call, before it evaluates anything, and carried by the others
-    if resume:
-        earlier = set(previous.get("earlier_run_models", []))
-    elif args.overwrite or args.no_reuse:
-        earlier = set()
-    else:
-        earlier = set()
+    earlier = set(previous.get("earlier_run_models", [])) if resume else set()
+    found: dict = {}  # evaluation_of by config, looked up once: evaluate() reuses it
+    if not (resume or args.overwrite or args.no_reuse):
         for cfg in cfgs:
-            _, wanted, evaluated = evaluation_of(cfg, args, root, data_fingerprints)
+            found[cfg] = evaluation_of(cfg, args, root, data_fingerprints)
+            _, wanted, evaluated = found[cfg]
             if evaluated is not None and wanted & evaluated:
                 earlier.add(str(cfg))
     command = shlex.join(sys.argv[1:] if argv is None else argv)
@@ -435,7 +433,8 @@ def reproduce(args, argv=None) -> dict:
             save_state()
 
     def evaluate(cfg: Path) -> None:
-        results, wanted, evaluated = evaluation_of(cfg, args, root, data_fingerprints)
+        looked_up = found.pop(cfg, None)
+        results, wanted, evaluated = looked_up or evaluation_of(cfg, args, root, data_fingerprints)
         # what an earlier call evaluated of this model is kept whichever models that call had:
         # a model's variants depend on its own config, checkpoint and data alone
         resumable = evaluated is not None and not args.overwrite and (resume or not args.no_reuse)

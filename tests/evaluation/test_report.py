@@ -541,7 +541,7 @@ def test_reproduce_names_a_truncated_or_mistyped_run_json(tmp_path):
 
 
 @pytest.mark.slow
-def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
+def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path, monkeypatch):
     """tools/reproduce.py end to end on the fixture data: two models evaluated at once, clean and
     one removal variant on 5 frames; the report and its run record with the wall time and reuse
     counts; a second call resumes (evaluates nothing), a model stopped mid-way goes on from its
@@ -636,7 +636,16 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path):
     # keeps the model an earlier call evaluated, marked in the report
     one = argv(20)
     del one[one.index("--cfgs") + 2]  # the first model only
+    looked_up, evaluation_of = [], reproduce.evaluation_of
+
+    def counted(cfg, *rest):
+        looked_up.append(str(cfg))
+        return evaluation_of(cfg, *rest)
+
+    monkeypatch.setattr(reproduce, "evaluation_of", counted)  # a first call: once per model
     alone = reproduce.main(one)
+    monkeypatch.setattr(reproduce, "evaluation_of", evaluation_of)
+    assert looked_up == ["cfgs/atlas/synthetic/centerpoint.yaml"]
     assert alone["run"]["calls"] == 1 and len(alone["run"]["runs"]) == 1
     assert Path(alone["run"]["runs"][0]["results"]).stat().st_mtime_ns == stamps[0]
     assert alone["run"]["runs"][0]["earlier_run"] is True
