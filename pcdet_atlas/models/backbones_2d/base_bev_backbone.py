@@ -60,19 +60,9 @@ class BaseBEVBackbone(nn.Module):
         total_stride = 1
         out_strides = []
         for i in range(n):
-            layers: list[nn.Module] = [
-                nn.ZeroPad2d(1),
-                nn.Conv2d(in_channels[i], num_filters[i], 3, stride=layer_strides[i], bias=False),
-                _bn(num_filters[i]),
-                nn.ReLU(),
-            ]
-            for _ in range(layer_nums[i]):
-                layers += [
-                    nn.Conv2d(num_filters[i], num_filters[i], 3, padding=1, bias=False),
-                    _bn(num_filters[i]),
-                    nn.ReLU(),
-                ]
-            self.blocks.append(nn.Sequential(*layers))
+            self.blocks.append(
+                self._level(in_channels[i], num_filters[i], layer_strides[i], layer_nums[i])
+            )
             total_stride *= layer_strides[i]
             up = upsample_strides[i]
             if up >= 1:
@@ -89,11 +79,28 @@ class BaseBEVBackbone(nn.Module):
             out_strides.append(total_stride / upsample_strides[i])
         if len(set(out_strides)) != 1:
             raise ValueError(
-                f"BaseBEVBackbone: levels end at different strides {out_strides}; "
+                f"{type(self).__name__}: levels end at different strides {out_strides}; "
                 "choose UPSAMPLE_STRIDES so that all levels meet at one stride"
             )
         self.output_stride = out_strides[0]
         self.num_bev_features = int(sum(num_upsample_filters))
+
+    @staticmethod
+    def _level(in_channels: int, channels: int, stride: int, num_layers: int) -> nn.Module:
+        """One level: a strided 3x3 conv then ``num_layers`` 3x3 convs, each with BN and ReLU."""
+        layers: list[nn.Module] = [
+            nn.ZeroPad2d(1),
+            nn.Conv2d(in_channels, channels, 3, stride=stride, bias=False),
+            _bn(channels),
+            nn.ReLU(),
+        ]
+        for _ in range(num_layers):
+            layers += [
+                nn.Conv2d(channels, channels, 3, padding=1, bias=False),
+                _bn(channels),
+                nn.ReLU(),
+            ]
+        return nn.Sequential(*layers)
 
     @classmethod
     def from_config(cls, cfg: Mapping, model_info: Mapping) -> BaseBEVBackbone:
