@@ -18,7 +18,7 @@ import pytest
 import torch
 import yaml
 from easydict import EasyDict
-from malicious_files import malicious_checkpoint
+from malicious_files import malicious_checkpoint, malicious_pickle
 
 from pcdet_atlas.attacks.atlas_dataset import AtlasWaymoDataset as ProjectAtlasDataset
 from pcdet_atlas.config import REPO_ROOT, cfg_from_yaml_file
@@ -49,6 +49,8 @@ OPENPCDET_SIGNATURES = {
     "class_names, training=True, root_path=None, logger=None)",
     "pcdet.datasets.waymo.waymo_dataset:WaymoDataset.set_split": "(self, split)",
     "pcdet.datasets.waymo.waymo_dataset:WaymoDataset.include_waymo_data": "(self, mode)",
+    "pcdet.datasets.waymo.waymo_dataset:WaymoDataset.load_pred_boxes_to_dict": "(self, "
+    "pred_boxes_path)",
     "pcdet.datasets.waymo.waymo_dataset:WaymoDataset.get_lidar": "(self, sequence_name, "
     "sample_idx)",
     "pcdet.datasets.waymo.waymo_dataset:WaymoDataset.get_sequence_data": "(self, info, points, "
@@ -59,6 +61,8 @@ OPENPCDET_SIGNATURES = {
     # Detector3DTemplate's, which every OpenPCDet detector inherits
     "pcdet.models.detectors.point_count_oracle:PointCountOracle.load_params_from_file": "(self, "
     "filename, logger, to_cpu=False, pre_trained_path=None)",
+    "pcdet.models.detectors.point_count_oracle:PointCountOracle._load_state_dict": "(self, "
+    "model_state_disk, *, strict=True)",
 }
 
 
@@ -94,7 +98,8 @@ def test_the_stand_in_has_openpcdets_signatures(openpcdet):
                       "collate_batch"), staticmethod)  # fmt: skip
     # the integration's overrides keep OpenPCDet's signatures (its constructor adds `attack`)
     ours, theirs = openpcdet.AtlasWaymoDataset, resolve("pcdet.datasets:WaymoDataset")
-    for method in ("get_lidar", "__getitem__", "set_split", "collate_batch"):
+    for method in ("get_lidar", "__getitem__", "set_split", "collate_batch", "include_waymo_data",
+                   "load_pred_boxes_to_dict"):  # fmt: skip
         assert inspect.signature(getattr(ours, method)) == inspect.signature(
             getattr(theirs, method)
         ), method
@@ -250,6 +255,79 @@ def test_a_checkpoint_that_could_run_code_is_refused_before_openpcdet_reads_it(o
             tmp_path / "out", config="x.yaml", model_name="x", device="cpu",
         )  # fmt: skip
     assert not marker.exists() and not (tmp_path / "out").exists()
+
+
+def test_the_datasets_pickles_are_read_by_the_restricted_unpickler(
+    openpcdet, synthetic_root, tmp_path
+):
+    """OpenPCDet reads a sequence's info pkl and a USE_PREDBOX file with pickle.load (the
+    stand-in does too); the integration's dataset reads both without running what they name."""
+    marker = tmp_path / "ran"
+    root = tmp_path / "data"
+    (root / "ImageSets").mkdir(parents=True)
+    (root / "ImageSets" / "val.txt").write_text("segment-evil_with_camera_labels.tfrecord\n")
+    tag = "waymo_processed_data_v0_5_0"
+    pkl = root / tag / "segment-evil_with_camera_labels" / "segment-evil_with_camera_labels.pkl"
+    malicious_pickle(pkl, marker, value=[])
+    log = logging.getLogger("t")
+    with pytest.raises(ValueError, match=r"camera_labels\.pkl: .*refused to unpickle"):
+        openpcdet.AtlasWaymoDataset(openpcdet_data_cfg(root), CLASSES, training=False, logger=log)
+    assert not marker.exists()
+    # the split file and the processed-data folder are named by one path component each
+    for key, value in (("DATA_SPLIT", {"train": "train", "test": "../val"}),
+                       ("PROCESSED_DATA_TAG", "../data")):  # fmt: skip
+        cfg = openpcdet_data_cfg(root)
+        cfg[key] = value
+        with pytest.raises(ValueError, match=r"\.\./"):
+            openpcdet.AtlasWaymoDataset(cfg, CLASSES, training=False, logger=log)
+    # a listed sequence without its info file is an error (OpenPCDet skips it)
+    pkl.unlink()
+    with pytest.raises(ValueError, match="segment-evil_with_camera_labels.*no info pkl"):
+        openpcdet.AtlasWaymoDataset(openpcdet_data_cfg(root), CLASSES, training=False, logger=log)
+    # the predicted boxes of a USE_PREDBOX config
+    boxes = malicious_pickle(tmp_path / "roi_boxes.pkl", marker, value=[])
+    cfg = openpcdet_data_cfg(synthetic_root)
+    cfg.USE_PREDBOX, cfg.ROI_BOXES_PATH = True, {"train": str(boxes), "test": str(boxes)}
+    attack = ATTACKS / "rem_40.yaml"
+    with pytest.raises(RefusedGlobalError, match="roi_boxes.pkl"):
+        openpcdet.AtlasWaymoDataset(cfg, CLASSES, training=False, logger=log, attack=attack)
+    assert not marker.exists()
+
+
+def test_the_weights_loaded_are_the_ones_read_with_weights_only(openpcdet, synthetic_root,
+                                                                tmp_path, monkeypatch):  # fmt: skip
+    """The checkpoint is read once: a file swapped for one that runs code after the check is
+    never unpickled (OpenPCDet's load_params_from_file would read it again)."""
+    marker = tmp_path / "ran"
+    ckpt = tmp_path / "oracle.pth"
+    torch.save({"model_state": {"scale": torch.tensor(0.25)}, "version": "x"}, ckpt)
+    checked = openpcdet.evaluate.read_checkpoint
+
+    def read_then_swap(path, **kwargs):
+        got = checked(path, **kwargs)
+        malicious_checkpoint(Path(path), marker, model_state={"scale": torch.tensor(0.5)})
+        return got
+
+    class Stop(Exception):
+        pass
+
+    def capture(model, loader, class_names):
+        raise Stop(model)
+
+    monkeypatch.setattr(openpcdet.evaluate, "read_checkpoint", read_then_swap)
+    monkeypatch.setattr(openpcdet.evaluate, "predict_variant", capture)
+    cfg = {"CLASS_NAMES": CLASSES, "DATA_CONFIG": openpcdet_data_cfg(synthetic_root, interval=50),
+           "MODEL": EasyDict(NAME="PointCountOracle", MIN_POINTS=1, SCORE_POINTS=1)}  # fmt: skip
+    with pytest.raises(Stop) as stopped:
+        openpcdet.evaluate_openpcdet(
+            cfg, ckpt, "clean", tmp_path / "out", config="x.yaml", model_name="x", device="cpu"
+        )
+    assert float(stopped.value.args[0].scale.detach()) == 0.25
+    assert not marker.exists()
+    with pytest.raises(ValueError, match="no 'model_state'"):
+        openpcdet.evaluate.load_checkpoint_weights(
+            stopped.value.args[0], {"state": {}}, "x.pth", logging.getLogger("t")
+        )
 
 
 def test_without_openpcdet_the_tool_names_the_import_error(monkeypatch, tmp_path, capsys):

@@ -9,7 +9,10 @@ rows of the frame file (no-label-zone rows included; the added rows carry the NL
 the loader's row filter and feature transform apply afterwards (OpenPCDet 0.6.0's: rows with
 NLZ flag -1 unless ``DISABLE_NLZ_FLAG_ON_POINTS``, ``tanh`` on ``POINTS_TANH_DIM``, default the
 intensity). A clean frame is OpenPCDet's own ``get_lidar``. The rest is OpenPCDet's: infos,
-sampling, sequence stacking, ``prepare_data``, ``collate_batch``, ``generate_prediction_dicts``.
+sampling, sequence stacking, ``prepare_data``, ``collate_batch``, ``generate_prediction_dicts``,
+except the two readers of pickles: the sequence infos and a ``USE_PREDBOX`` box file are read
+through the project's restricted unpickler, not ``pickle.load``, so that no data file can run
+code under this dataset (see :meth:`AtlasWaymoDataset.include_waymo_data`).
 
 Each sample also carries ``atlas_attack``, the current frame's attack record (the one
 :class:`~pcdet_atlas.attacks.atlas_dataset.AtlasWaymoDataset` serves), collated as a list that
@@ -29,7 +32,14 @@ from pcdet.datasets.waymo.waymo_dataset import WaymoDataset
 
 from pcdet_atlas.attacks.base import BaseAttack, SequenceData, build_attack
 from pcdet_atlas.config import ConfigError, cfg_from_yaml_file
-from pcdet_atlas.datasets.waymo_format import load_frame_points, load_sequence_infos
+from pcdet_atlas.datasets.waymo_format import (
+    find_sequence_pkl,
+    load_frame_points,
+    load_sequence_infos,
+    sequence_name_from_line,
+)
+from pcdet_atlas.utils.paths import safe_component
+from pcdet_atlas.utils.safe_pickle import load_pickle
 
 __all__ = ["ATTACK_KEY", "NAME", "RECORD_KEY", "AtlasWaymoDataset", "register"]
 
@@ -53,6 +63,10 @@ class AtlasWaymoDataset(WaymoDataset):
     def __init__(
         self, dataset_cfg, class_names, training=True, root_path=None, logger=None, attack=None
     ):
+        # OpenPCDet's constructor opens ImageSets/<split>.txt and reads under <tag>/ first
+        mode = "train" if training else "test"
+        safe_component(str(dataset_cfg.DATA_SPLIT[mode]), f"DATA_SPLIT.{mode}", "DATA_CONFIG")
+        safe_component(str(dataset_cfg.PROCESSED_DATA_TAG), "PROCESSED_DATA_TAG", "DATA_CONFIG")
         super().__init__(
             dataset_cfg=dataset_cfg, class_names=class_names, training=training,
             root_path=root_path, logger=logger,
@@ -79,8 +93,59 @@ class AtlasWaymoDataset(WaymoDataset):
         self._sequences: dict[str, SequenceData] = {}
         self._by_frame_id = {info["frame_id"]: info for info in self.infos}
 
+    def include_waymo_data(self, mode):
+        """OpenPCDet's reader of the split's infos, with the project's reader of a sequence's
+        info pkl (:func:`~pcdet_atlas.datasets.waymo_format.load_sequence_infos`: the restricted
+        unpickler and the info layout checked) in place of ``pickle.load``, and the sequence
+        names of ``ImageSets`` kept to one path component. A listed sequence without an info
+        file is an error naming the paths tried (OpenPCDet skips it). As OpenPCDet's:
+        ``self.infos`` extended, then every ``SAMPLED_INTERVAL[mode]``-th kept; returns
+        ``{sequence: infos}`` for a sequence input (``SEQUENCE_CONFIG.ENABLED``), else None."""
+        tag = self.dataset_cfg.PROCESSED_DATA_TAG
+        listing = f"{self.root_path / 'ImageSets' / self.split}.txt"
+        seq_name_to_infos = {}
+        for line_no, line in enumerate(self.sample_sequence_list, 1):
+            if not line.strip():
+                continue
+            where = f"{listing} line {line_no}"
+            sequence = safe_component(sequence_name_from_line(line), "sequence name", where)
+            infos = load_sequence_infos(find_sequence_pkl(self.root_path, sequence, tag))
+            self.infos.extend(infos)
+            seq_name_to_infos[infos[0]["point_cloud"]["lidar_sequence"]] = infos
+        interval = int(self.dataset_cfg.SAMPLED_INTERVAL[mode])
+        if interval > 1:
+            self.infos = self.infos[::interval]
+        sequence_cfg = self.dataset_cfg.get("SEQUENCE_CONFIG", None)
+        return seq_name_to_infos if sequence_cfg is not None and sequence_cfg.ENABLED else None
+
+    def load_pred_boxes_to_dict(self, pred_boxes_path):
+        """OpenPCDet's ``USE_PREDBOX`` reader (``{sequence: {sample_idx: (R, 9) boxes, score,
+        label}}`` from a ``result.pkl``-style list of prediction dicts), with the project's
+        restricted unpickler in place of ``pickle.load``."""
+        pred_dicts = load_pickle(pred_boxes_path)
+        if not isinstance(pred_dicts, list):
+            raise ValueError(
+                f"{pred_boxes_path}: expected a list of prediction dicts (a result.pkl), got "
+                f"{type(pred_dicts).__name__}"
+            )
+        table: dict = {}
+        for index, box_dict in enumerate(pred_dicts):
+            missing = {"frame_id", "name", "boxes_lidar", "score"} - set(box_dict)
+            if missing:
+                raise ValueError(f"{pred_boxes_path} [{index}]: missing keys {sorted(missing)}")
+            frame_id = str(box_dict["frame_id"])
+            sequence = frame_id[:-4].replace("training_", "").replace("validation_", "")
+            labels = np.array(
+                [self.class_names.index(name) + 1 for name in box_dict["name"]], dtype=np.float64
+            )
+            table.setdefault(sequence, {})[int(frame_id[-3:])] = np.concatenate(
+                (box_dict["boxes_lidar"], box_dict["score"][:, None], labels[:, None]), axis=-1
+            )
+        return table
+
     def set_split(self, split):
         """OpenPCDet's ``set_split``; the sequences and frames of the previous split forgotten."""
+        safe_component(str(split), "split", "set_split")
         super().set_split(split)
         self._sequences, self._simulated = {}, collections.OrderedDict()
         self._by_frame_id = {info["frame_id"]: info for info in self.infos}

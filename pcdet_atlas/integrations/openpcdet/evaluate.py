@@ -1,8 +1,9 @@
 """An OpenPCDet checkpoint on ATLAS variants, scored into ``results.json``
 (``tools/openpcdet_test.py``).
 
-The model is OpenPCDet's own (``pcdet.models.build_network`` from the config's ``MODEL``,
-``load_params_from_file``), fed by OpenPCDet's own loader (``pcdet.datasets.build_dataloader``)
+The model is OpenPCDet's own (``pcdet.models.build_network`` from the config's ``MODEL``; its
+weights read once with ``weights_only=True`` and loaded as ``load_params_from_file`` loads
+them), fed by OpenPCDet's own loader (``pcdet.datasets.build_dataloader``)
 over :class:`~pcdet_atlas.integrations.openpcdet.dataset.AtlasWaymoDataset`, and run as
 OpenPCDet's ``eval_one_epoch`` runs it (``load_data_to_gpu``, ``model(batch_dict)`` under
 ``no_grad``, ``generate_prediction_dicts``). Each variant's predictions and the attack records
@@ -41,6 +42,7 @@ __all__ = [
     "SPLIT_KEYS",
     "default_temporal_window",
     "evaluate_openpcdet",
+    "load_checkpoint_weights",
     "predict_variant",
     "split_data_cfg",
 ]
@@ -50,6 +52,33 @@ __all__ = [
 SPLIT_KEYS = ("DATA_PATH", "PROCESSED_DATA_TAG", "DATA_SPLIT", "SAMPLED_INTERVAL",
               "POINT_CLOUD_RANGE", "DISABLE_NLZ_FLAG_ON_POINTS")  # fmt: skip
 WAYMO_DATA_CFG = REPO_ROOT / "cfgs" / "dataset_configs" / "waymo_dataset.yaml"
+
+
+def load_checkpoint_weights(
+    model: torch.nn.Module, checkpoint: Mapping, source: str, logger: logging.Logger
+) -> None:
+    """Load an OpenPCDet checkpoint's ``model_state`` (already read, ``weights_only``) into
+    ``model`` as OpenPCDet's ``load_params_from_file`` does after its own ``torch.load``: through
+    the detector's ``_load_state_dict(state, strict=False)`` (which lays out spconv weights
+    for the installed spconv), logging the weights the file does not update."""
+    state = checkpoint.get("model_state") if isinstance(checkpoint, Mapping) else None
+    if not isinstance(state, Mapping):
+        raise ValueError(
+            f"checkpoint {source}: no 'model_state' mapping (an OpenPCDet checkpoint holds the "
+            "weights under 'model_state')"
+        )
+    if not hasattr(model, "_load_state_dict"):
+        raise TypeError(
+            f"{type(model).__name__} has no _load_state_dict: OpenPCDet's detectors inherit it "
+            "from Detector3DTemplate, which tools/openpcdet_test.py expects"
+        )
+    if checkpoint.get("version") is not None:
+        logger.info(f"==> Checkpoint trained from version: {checkpoint['version']}")
+    state_dict, updated = model._load_state_dict(dict(state), strict=False)
+    for key in state_dict:
+        if key not in updated:
+            logger.info(f"Not updated weight {key}: {tuple(state_dict[key].shape)}")
+    logger.info(f"==> {source}: loaded {len(updated)}/{len(state_dict)}")
 
 
 def split_data_cfg(data_cfg: Mapping, root_path: str | Path | None = None):
@@ -130,10 +159,10 @@ def evaluate_openpcdet(
         temporal_window: the lifecycle window; None: :func:`default_temporal_window`.
     """
     logger = logger or logging.getLogger("pcdet_atlas")
-    # OpenPCDet's load_params_from_file unpickles the file as torch.load does by default; it is
-    # read here first with weights_only=True, so a file that could run code is refused (named)
-    # before anything else is built
-    read_checkpoint(ckpt, safe_globals=OPENPCDET_SAFE_GLOBALS)
+    # read once, with weights_only=True, before anything else is built: a file that could run
+    # code is refused (named), and the weights loaded below are the ones read here (OpenPCDet's
+    # load_params_from_file would unpickle the file again, as torch.load does by default)
+    checkpoint = read_checkpoint(ckpt, safe_globals=OPENPCDET_SAFE_GLOBALS)
     class_names = list(cfg["CLASS_NAMES"])
     variants = _variants(attacks)
     split_cfg = split_data_cfg(cfg["DATA_CONFIG"], root_path)
@@ -157,9 +186,7 @@ def evaluate_openpcdet(
             model = build_network(
                 model_cfg=cfg["MODEL"], num_class=len(class_names), dataset=loader.dataset
             )
-            model.load_params_from_file(
-                filename=str(ckpt), logger=logger, to_cpu=torch.device(device).type == "cpu"
-            )
+            load_checkpoint_weights(model, checkpoint, str(ckpt), logger)
             model.to(torch.device(device))
             model.eval()
         det_annos, records = predict_variant(model, loader, class_names)

@@ -1,13 +1,15 @@
 """OpenPCDet's ``WaymoDataset``: the per-sequence infos of a split, sampled; frames read by
-``get_lidar``; a sequence input stacked by ``get_sequence_data``."""
+``get_lidar``; a sequence input stacked by ``get_sequence_data``. Its pickles are read as
+OpenPCDet reads them, with ``pickle.load`` (which runs code a file names): the integration
+must not let these readers see a dataset's files."""
 
 import copy
 import os
+import pickle
 
 import numpy as np
 
 from pcdet.datasets.dataset import DatasetTemplate
-from pcdet_atlas.utils.safe_pickle import load_pickle
 
 
 class WaymoDataset(DatasetTemplate):
@@ -20,6 +22,12 @@ class WaymoDataset(DatasetTemplate):
         self.sample_sequence_list = [x.strip() for x in open(split_dir).readlines()]
         self.infos = []
         self.seq_name_to_infos = self.include_waymo_data(self.mode)
+        if self.dataset_cfg.get("USE_PREDBOX", False):
+            self.pred_boxes_dict = self.load_pred_boxes_to_dict(
+                pred_boxes_path=self.dataset_cfg.ROI_BOXES_PATH[self.mode]
+            )
+        else:
+            self.pred_boxes_dict = {}
 
     def set_split(self, split):
         super().__init__(
@@ -41,7 +49,8 @@ class WaymoDataset(DatasetTemplate):
             info_path = self.data_path / sequence_name / f"{sequence_name}.pkl"
             if not info_path.exists():
                 continue
-            infos = load_pickle(info_path)
+            with open(info_path, "rb") as f:
+                infos = pickle.load(f)
             self.infos.extend(infos)
             seq_name_to_infos[infos[0]["point_cloud"]["lidar_sequence"]] = infos
         interval = self.dataset_cfg.SAMPLED_INTERVAL[mode]
@@ -49,6 +58,20 @@ class WaymoDataset(DatasetTemplate):
             self.infos = self.infos[::interval]
         sequence_cfg = self.dataset_cfg.get("SEQUENCE_CONFIG", None)
         return seq_name_to_infos if sequence_cfg is not None and sequence_cfg.ENABLED else None
+
+    def load_pred_boxes_to_dict(self, pred_boxes_path):
+        with open(pred_boxes_path, "rb") as f:
+            pred_dicts = pickle.load(f)
+        pred_boxes_dict = {}
+        for box_dict in pred_dicts:
+            seq_name = box_dict["frame_id"][:-4].replace("training_", "").replace("validation_", "")
+            sample_idx = int(box_dict["frame_id"][-3:])
+            labels = np.array([self.class_names.index(n) + 1 for n in box_dict["name"]])
+            pred_boxes_dict.setdefault(seq_name, {})[sample_idx] = np.concatenate(
+                (box_dict["boxes_lidar"], box_dict["score"][:, np.newaxis], labels[:, np.newaxis]),
+                axis=-1,
+            )
+        return pred_boxes_dict
 
     def get_lidar(self, sequence_name, sample_idx):
         point_features = np.load(self.data_path / sequence_name / f"{sample_idx:04d}.npy")

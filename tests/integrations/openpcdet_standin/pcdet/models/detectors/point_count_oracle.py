@@ -4,7 +4,9 @@ It detects each ground-truth box of the batch that holds at least ``MODEL.MIN_PO
 current frame's points, with score ``min(1, points / MODEL.SCORE_POINTS) * scale`` (``scale``:
 its one weight, from the checkpoint), so an attack changes its output through the points alone:
 a removal that thins a box out hides it. It has OpenPCDet's detector interface: ``forward`` in
-eval mode returns ``(pred_dicts, recall_dict)``; ``load_params_from_file``.
+eval mode returns ``(pred_dicts, recall_dict)``; ``load_params_from_file``, which unpickles
+the file as OpenPCDet's does on a torch that does not default to ``weights_only`` (so it runs
+code a file names: the integration must not call it), and ``_load_state_dict``.
 """
 
 import torch
@@ -21,9 +23,22 @@ class PointCountOracle(nn.Module):
         self.scale = nn.Parameter(torch.ones(()))
 
     def load_params_from_file(self, filename, logger, to_cpu=False, pre_trained_path=None):
-        checkpoint = torch.load(filename, map_location="cpu", weights_only=True)
-        self.load_state_dict(checkpoint["model_state"])
+        checkpoint = torch.load(filename, map_location="cpu", weights_only=False)
+        self._load_state_dict(checkpoint["model_state"], strict=False)
         logger.info(f"loaded {filename}")
+
+    def _load_state_dict(self, model_state_disk, *, strict=True):
+        state_dict = self.state_dict()
+        update_model_state = {
+            key: val for key, val in model_state_disk.items()
+            if key in state_dict and state_dict[key].shape == val.shape
+        }  # fmt: skip
+        if strict:
+            self.load_state_dict(update_model_state)
+        else:
+            state_dict.update(update_model_state)
+            self.load_state_dict(state_dict)
+        return state_dict, update_model_state
 
     def forward(self, batch_dict):
         if self.training:
