@@ -44,8 +44,8 @@ from pcdet_atlas.attacks.counters import COUNTERS
 from pcdet_atlas.attacks.ground import GROUND_SLACK_M, GroundConfig, GroundEstimator
 from pcdet_atlas.attacks.intensity import IntensityConfig, RangeIntensityModel
 from pcdet_atlas.attacks.raycast import disc_wedges, raycast_merge, wedge_rows
-from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary
-from pcdet_atlas.config import REPO_ROOT, ConfigError
+from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, library_file
+from pcdet_atlas.config import REPO_ROOT, ConfigError, key_source
 from pcdet_atlas.config_values import config_files, fields_of, section, setting
 from pcdet_atlas.ops.lidar_model import LidarModel
 from pcdet_atlas.registry import ATTACKS
@@ -231,12 +231,15 @@ class InjectionAttack(BaseAttack):
     @classmethod
     def from_config(cls, cfg: Mapping, data_root: str | Path | None = None) -> InjectionAttack:
         """Relative ``TRACE_LIBRARY.PATH`` resolves under ``data_root`` (the dataset root) when
-        given, else under the repository root."""
+        given, else under the repository root, and must stay under it
+        (:func:`~pcdet_atlas.attacks.trace_library.library_file`)."""
         settings = cls.read_config(cfg)
         trace_filter = TraceFilter.from_config(cfg["TRACE_LIBRARY"])  # with its cross-key check
-        path = Path(trace_filter.path)
-        if not path.is_absolute():
-            path = Path(data_root if data_root is not None else REPO_ROOT) / path
+        path = library_file(
+            trace_filter.path,
+            data_root if data_root is not None else REPO_ROOT,
+            key_source(cfg["TRACE_LIBRARY"], "PATH"),
+        )
         try:
             return cls(
                 library=path,

@@ -34,12 +34,13 @@ from typing import Any
 
 import numpy as np
 
-from pcdet_atlas.config import ConfigError, cfg_from_list, cfg_from_yaml_file
+from pcdet_atlas.config import ConfigError, cfg_from_list, cfg_from_yaml_file, key_source
 from pcdet_atlas.config_values import config_files, read_section, setting
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.ops.boxes import points_in_boxes_mask
 from pcdet_atlas.ops.lidar_model import LidarModel
 from pcdet_atlas.utils.common import write_atomic
+from pcdet_atlas.utils.paths import UnsafePathError, regular_file, resolve_under, safe_component
 from pcdet_atlas.utils.safe_pickle import load_pickle
 from pcdet_atlas.utils.seeding import numpy_generator
 
@@ -48,6 +49,7 @@ __all__ = [
     "TraceLibrary",
     "TraceFilter",
     "build_trace_library",
+    "library_file",
     "write_trace_library",
 ]
 
@@ -124,8 +126,10 @@ class TraceFilter:
 
     @classmethod
     def from_config(cls, cfg: Mapping | None) -> TraceFilter:
-        """Read a ``TRACE_LIBRARY`` section (every key optional)."""
+        """Read a ``TRACE_LIBRARY`` section (every key optional); ``SPLIT`` names
+        ``ImageSets/<SPLIT>.txt``, so it must be one safe file name (``UnsafePathError``)."""
         out = read_section(cls, cfg, "TRACE_LIBRARY")
+        safe_component(out.split, "TRACE_LIBRARY.SPLIT", key_source(cfg or {}, "SPLIT"))
         if out.max_points_per_trace < out.min_points:
             raise ConfigError(
                 f"TRACE_LIBRARY (from {config_files(cfg)}): need MIN_POINTS <= "
@@ -247,13 +251,16 @@ class TraceLibrary:
 
     @classmethod
     def load(cls, path: str | Path) -> TraceLibrary:
+        """Read a library written by :meth:`save`; ``path`` must be a regular file (a FIFO or a
+        device is an ``UnsafePathError``)."""
         path = Path(path)
-        if not path.is_file():
+        if not path.exists():
             raise FileNotFoundError(
                 f"trace library not found: {path}. Build it with "
                 "`python tools/data/build_trace_library.py --cfg <injection yaml> "
                 "--data_path <root>`"
             )
+        regular_file(path, "trace library")
         try:
             with np.load(path, allow_pickle=False) as data:
                 missing = [
@@ -302,7 +309,7 @@ def build_trace_library(
     """
     root = Path(root_path)
     origin = np.asarray(list(sensor_origin), dtype=np.float64)
-    split_file = root / "ImageSets" / f"{split}.txt"
+    split_file = wf.image_set_path(root, split, "the split of build_trace_library")
     sequences = wf.read_image_set(split_file)
     if not sequences:
         raise ValueError(f"{split_file}: split {split!r} lists no sequence")
@@ -422,9 +429,10 @@ def write_trace_library(
         raise ConfigError(f"{cfg_path}: no TRACE_LIBRARY section (not an injection attack?)")
     filters = TraceFilter.from_config(cfg.TRACE_LIBRARY)
     root = Path(data_root)
-    out = Path(out) if out is not None else Path(filters.path)
-    if not out.is_absolute():
-        out = root / out
+    if out is not None:  # the caller's (--out) choice: anywhere
+        out = Path(out) if Path(out).is_absolute() else root / out
+    else:
+        out = library_file(filters.path, root, key_source(cfg.TRACE_LIBRARY, "PATH"), write=True)
     lidar = LidarModel.from_config(cfg.get("LIDAR"))
     if out.is_file() and not overwrite:
         check_same_build(out, filters, list(lidar.origin_xyz))
@@ -440,6 +448,26 @@ def write_trace_library(
             f"{sizes.min()}/{int(np.median(sizes))}/{sizes.max()}"
         )
     return out
+
+
+def library_file(value: str, root: str | Path, source: str, *, write: bool = False) -> Path:
+    """The file ``TRACE_LIBRARY.PATH`` = ``value`` (from ``source``) names. A relative ``value``
+    lies under ``root`` (:func:`~pcdet_atlas.utils.paths.resolve_under`: no ``..``, symlinks
+    resolved). An absolute one is read as it is but never written (``write``): a YAML does not
+    make a tool create a file outside the dataset root; ``--out`` does. An existing file must be
+    a regular one (it is hashed and loaded: a FIFO or a device would never end)."""
+    if Path(value).is_absolute():
+        if write:
+            raise UnsafePathError(
+                f"TRACE_LIBRARY.PATH {value!r} (from {source}) is absolute: a library is written "
+                f"under the dataset root {root} (a relative PATH), or where --out says"
+            )
+        path = Path(value)
+    else:
+        path = resolve_under(root, value, "TRACE_LIBRARY.PATH", source)
+    if path.exists():
+        regular_file(path, f"TRACE_LIBRARY.PATH (from {source})")
+    return path
 
 
 def check_same_build(path: Path, filters: TraceFilter, sensor_origin: list[float]) -> None:

@@ -17,9 +17,16 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
-from pcdet_atlas.config import resolve_repo_path
-from pcdet_atlas.datasets.waymo_format import PROCESSED_DATA_TAG, find_sequence_pkl, read_image_set
+from pcdet_atlas.config import key_source, resolve_repo_path
+from pcdet_atlas.datasets.waymo_format import (
+    PROCESSED_DATA_TAG,
+    data_dir,
+    find_sequence_pkl,
+    image_set_path,
+    read_image_set,
+)
 from pcdet_atlas.utils.hashing import file_sha256
+from pcdet_atlas.utils.paths import safe_component
 
 __all__ = ["data_config_fingerprint", "dataset_fingerprint"]
 
@@ -29,9 +36,11 @@ def dataset_fingerprint(root: str | Path, split: str, tag: str = PROCESSED_DATA_
 
     Raises:
         WaymoFormatError: the split file or a listed sequence's pkl is missing (naming it).
+        UnsafePathError: ``split`` or ``tag`` is not one safe path component (``../x``).
     """
     root = Path(root)
-    split_file = root / "ImageSets" / f"{split}.txt"
+    data_dir(root, tag)  # the tag checked before anything is read
+    split_file = image_set_path(root, split, "the split of dataset_fingerprint")
     sequences = read_image_set(split_file)
     digest = hashlib.sha256(f"split={split}|tag={tag}|".encode())
     digest.update(file_sha256(split_file).encode())
@@ -49,8 +58,8 @@ def dataset_fingerprint(root: str | Path, split: str, tag: str = PROCESSED_DATA_
 def data_config_fingerprint(data_cfg: Mapping, mode: str) -> str:
     """:func:`dataset_fingerprint` of the split a ``DATA_CONFIG`` reads in ``mode`` (``'train'``
     or ``'test'``: its ``DATA_SPLIT[mode]`` under ``DATA_PATH`` and ``PROCESSED_DATA_TAG``)."""
-    return dataset_fingerprint(
-        resolve_repo_path(data_cfg["DATA_PATH"]),
-        str(data_cfg["DATA_SPLIT"][mode]),
-        data_cfg.get("PROCESSED_DATA_TAG", PROCESSED_DATA_TAG),
-    )
+    split = str(data_cfg["DATA_SPLIT"][mode])
+    tag = data_cfg.get("PROCESSED_DATA_TAG", PROCESSED_DATA_TAG)
+    safe_component(split, f"DATA_SPLIT.{mode}", key_source(data_cfg, "DATA_SPLIT"))
+    safe_component(tag, "PROCESSED_DATA_TAG", key_source(data_cfg, "PROCESSED_DATA_TAG"))
+    return dataset_fingerprint(resolve_repo_path(data_cfg["DATA_PATH"]), split, tag)

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from easydict import EasyDict
 
-from pcdet_atlas.config import ConfigError
+from pcdet_atlas.config import ConfigError, key_source
 from pcdet_atlas.config_values import setting, unsupported
 from pcdet_atlas.datasets.dataset import DatasetConfig, DatasetTemplate
 from pcdet_atlas.datasets.multiframe import (
@@ -38,11 +38,13 @@ from pcdet_atlas.datasets.waymo_format import (
     WaymoFormatError,
     find_sequence_pkl,
     frame_npy_path,
+    image_set_path,
     load_frame_points,
     load_sequence_infos,
     read_image_set,
 )
 from pcdet_atlas.registry import DATASETS
+from pcdet_atlas.utils.paths import safe_component
 
 __all__ = ["WaymoDataset", "WaymoDatasetConfig"]
 
@@ -110,7 +112,11 @@ class WaymoDataset(DatasetTemplate):
         super().__init__(dataset_cfg, class_names, training, root_path, logger)
         settings = self.settings
         self.sequence_cfg = SequenceConfig.from_settings(settings.sequence_config)
-        self.processed_data_tag = settings.processed_data_tag
+        self.processed_data_tag = safe_component(
+            settings.processed_data_tag,
+            "DATA_CONFIG.PROCESSED_DATA_TAG",
+            key_source(dataset_cfg, "PROCESSED_DATA_TAG"),
+        )
         self.data_path = self.root_path / self.processed_data_tag
         self.disable_nlz_flag = settings.disable_nlz_flag_on_points
         tanh_dims = settings.points_tanh_dim
@@ -134,13 +140,18 @@ class WaymoDataset(DatasetTemplate):
         self.proposals: Mapping[str, np.ndarray] | None = None
         self.proposals_source = ""
         self.proposal_history = 0
-        self.set_split(settings.data_split[self.mode])
+        split = settings.data_split[self.mode]
+        safe_component(
+            split, f"DATA_CONFIG.DATA_SPLIT.{self.mode}", key_source(dataset_cfg, "DATA_SPLIT")
+        )
+        self.set_split(split)
 
     # ------------------------------------------------------------------ infos
     def set_split(self, split: str) -> None:
-        """Load the sequences of ``ImageSets/<split>.txt`` (OpenPCDet's ``set_split``)."""
+        """Load the sequences of ``ImageSets/<split>.txt`` (OpenPCDet's ``set_split``); a split
+        that is not one safe file name (``../x``) is an ``UnsafePathError``."""
+        split_file = image_set_path(self.root_path, split, f"{type(self).__name__}.set_split")
         self.split = split
-        split_file = self.root_path / "ImageSets" / f"{split}.txt"
         self.sample_sequence_list = read_image_set(split_file)
         if not self.sample_sequence_list:
             raise WaymoFormatError(f"{split_file}: split {split!r} lists no sequence")

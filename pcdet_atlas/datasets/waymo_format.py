@@ -57,7 +57,16 @@ class WaymoFormatError(ValueError):
 
 # ---------------------------------------------------------------------------- paths
 def data_dir(root: str | Path, tag: str = PROCESSED_DATA_TAG) -> Path:
-    return Path(root) / tag
+    """``root/<tag>``; a ``PROCESSED_DATA_TAG`` that is not one safe path component is an
+    :class:`~pcdet_atlas.utils.paths.UnsafePathError`."""
+    return Path(root) / safe_component(tag, "PROCESSED_DATA_TAG", f"data under {root}")
+
+
+def image_set_path(root: str | Path, split: str, source: str) -> Path:
+    """``root/ImageSets/<split>.txt``; a ``split`` (from ``source``: a flag, a config key) that is
+    not one safe path component (``../x``) is an :class:`~pcdet_atlas.utils.paths.UnsafePathError`.
+    """
+    return Path(root) / "ImageSets" / f"{safe_component(split, 'split', source)}.txt"
 
 
 def sequence_name_from_line(line: str) -> str:

@@ -28,13 +28,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pcdet_atlas.config import cfg_from_yaml_file, resolve_repo_path, to_plain
+from pcdet_atlas.config import cfg_from_yaml_file, key_source, resolve_repo_path, to_plain
 from pcdet_atlas.datasets import build_dataloader
 from pcdet_atlas.datasets.fingerprint import data_config_fingerprint
 from pcdet_atlas.models.detectors.two_stage import TwoStageDetector
 from pcdet_atlas.train_utils.dist import get_dist_info
 from pcdet_atlas.train_utils.eval_utils import predict_dataset
 from pcdet_atlas.utils.common import write_atomic
+from pcdet_atlas.utils.paths import safe_component
 
 __all__ = ["PROPOSAL_FORMAT", "proposal_cache_file", "training_proposals"]
 
@@ -71,7 +72,8 @@ def _cache_file(model: TwoStageDetector, ident: Mapping, split: str,
                 cache_dir: str | Path | None = None) -> Path:  # fmt: skip
     key = hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:16]
     root = resolve_repo_path(cache_dir or model.rpn_info.get("cache_dir") or DEFAULT_CACHE_DIR)
-    return root / f"{Path(model.rpn_info['cfg']).stem}-{key}" / f"{split}.pt"
+    name = safe_component(split, "split", "the proposal cache's file name")
+    return root / f"{Path(model.rpn_info['cfg']).stem}-{key}" / f"{name}.pt"
 
 
 def proposal_cache_file(model: TwoStageDetector, data_cfg: Mapping, split: str,
@@ -141,6 +143,7 @@ def training_proposals(
     """
     logger = logger or logging.getLogger(__name__)
     split = str(data_cfg.DATA_SPLIT["train"])
+    safe_component(split, "DATA_SPLIT.train", key_source(data_cfg, "DATA_SPLIT"))
     rpn_cfg, rpn_data = _rpn_data_config(model, data_cfg, split)
     ident = _identity(model, rpn_cfg, rpn_data, split)
     path = _cache_file(model, ident, split)

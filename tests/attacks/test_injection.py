@@ -1,4 +1,6 @@
 import math
+import os
+import re
 
 import numpy as np
 import pytest
@@ -21,6 +23,7 @@ from pcdet_atlas.datasets.waymo_format import (
     sequence_pkl_path,
 )
 from pcdet_atlas.ops.boxes import transform_boxes
+from pcdet_atlas.utils.paths import UnsafePathError
 
 SEQ = "segment-tinyval_with_camera_labels"
 BUDGETS = {"easy": (100, 200), "medium": (300, 500), "hard": (500, 1000)}
@@ -186,6 +189,39 @@ def test_config_errors_and_library_checks(tiny, tmp_path):
     mismatch = InjectionAttack.from_config(cfg, data_root=tmp_path)
     with pytest.raises(ConfigError, match="rebuild"):
         _ = mismatch.library
+
+
+@pytest.mark.parametrize("kind", ["dotdot", "inner_dotdot", "symlink_out", "fifo"])
+def test_a_trace_library_path_leaving_the_data_root_is_refused(tiny, tmp_path, kind):
+    """A relative ``TRACE_LIBRARY.PATH`` stays under the dataset root (no ``..``, no symlink out
+    of it), and the file it names must be a regular one: it is hashed and loaded, and a FIFO or
+    a device would never end. An absolute PATH is read as it is (written only with --out)."""
+    root, lib, _ = tiny
+    data_root = tmp_path / "root"
+    data_root.mkdir()
+    outside = lib.save(tmp_path / "outside.npz")
+    value = {"dotdot": "../outside.npz", "inner_dotdot": "sub/../../outside.npz"}.get(
+        kind, "atlas_trace_library.npz"
+    )
+    if kind == "symlink_out":
+        (data_root / value).symlink_to(outside)
+    elif kind == "fifo":
+        os.mkfifo(data_root / value)
+    yaml = tmp_path / "inj.yaml"
+    yaml.write_text(f"_BASE_CONFIG_: {REPO_ROOT / 'cfgs/attacks/inj_rel_easy.yaml'}\n"
+                    f"TRACE_LIBRARY:\n  PATH: {value}\n  MIN_POINTS: 100\n")  # fmt: skip
+    cfg = cfg_from_yaml_file(yaml)
+    expected = {
+        "dotdot": rf"TRACE_LIBRARY\.PATH '\.\./outside\.npz' \(from {re.escape(str(yaml))}\) is "
+        "not a relative path",
+        "inner_dotdot": r"TRACE_LIBRARY\.PATH 'sub/\.\./\.\./outside\.npz' \(from .*inj\.yaml\)",
+        "symlink_out": rf"resolves to {re.escape(str(outside.resolve()))}, outside its root",
+        "fifo": r"TRACE_LIBRARY\.PATH \(from .*inj\.yaml\) .*atlas_trace_library\.npz is a FIFO",
+    }[kind]
+    with pytest.raises(UnsafePathError, match=expected):
+        InjectionAttack.from_config(cfg, data_root=data_root)
+    cfg.TRACE_LIBRARY.PATH = str(outside)  # absolute: read where it says
+    assert InjectionAttack.from_config(cfg, data_root=data_root).library_path == outside
 
 
 @pytest.mark.parametrize(

@@ -1,4 +1,5 @@
 import os
+import re
 
 import numpy as np
 import pytest
@@ -8,6 +9,7 @@ from malicious_files import malicious_pickle
 from pcdet_atlas.attacks.trace_library import TraceFilter, TraceLibrary, build_trace_library
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
 from pcdet_atlas.datasets.waymo_format import WaymoFormatError, read_image_set, sequence_pkl_path
+from pcdet_atlas.utils.paths import UnsafePathError
 from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
 
@@ -161,3 +163,47 @@ def test_a_sequence_pkl_that_would_run_code_is_refused(tmp_path):
     with pytest.raises(RefusedGlobalError, match=rf"{pkl}: refused to unpickle the global "):
         build_trace_library(root, TraceFilter(min_points=50))
     assert not marker.exists()
+
+
+def test_a_split_leaving_the_data_root_is_refused(tiny_root, tmp_path):
+    """``TRACE_LIBRARY.SPLIT`` names ``ImageSets/<SPLIT>.txt``: ``../x`` is refused, naming
+    the YAML."""
+    yaml = tmp_path / "inj.yaml"
+    yaml.write_text(f"_BASE_CONFIG_: {REPO_ROOT / 'cfgs/attacks/inj_rel_easy.yaml'}\n"
+                    "TRACE_LIBRARY:\n  SPLIT: ../../x\n")  # fmt: skip
+    with pytest.raises(UnsafePathError, match=rf"TRACE_LIBRARY\.SPLIT '\.\./\.\./x' \(from "
+                       rf"{re.escape(str(yaml))}\)"):  # fmt: skip
+        TraceFilter.from_config(cfg_from_yaml_file(yaml).TRACE_LIBRARY)
+    (tiny_root.parent / "x.txt").write_text((tiny_root / "ImageSets" / "train.txt").read_text())
+    with pytest.raises(UnsafePathError, match=r"split '\.\./\.\./x' \(from the split of build"):
+        build_trace_library(tiny_root, TraceFilter(min_points=50), split="../../x")
+
+
+@pytest.mark.parametrize("path", ["../outside.npz", "sub/../../outside.npz", "ABSOLUTE"])
+def test_the_build_tool_writes_no_library_outside_the_data_root(tiny_root, tmp_path, path):
+    """A relative ``TRACE_LIBRARY.PATH`` stays under ``--data_path``; an absolute one is never
+    written (``--out`` writes elsewhere, the user's choice): nothing is created outside."""
+    path = str(tmp_path / "outside.npz") if path == "ABSOLUTE" else path
+    yaml = tmp_path / "inj.yaml"
+    yaml.write_text(f"_BASE_CONFIG_: {REPO_ROOT / 'cfgs/attacks/inj_rel_easy.yaml'}\n"
+                    f"TRACE_LIBRARY:\n  PATH: {path}\n")  # fmt: skip
+    args = ["--cfg", str(yaml), "--data_path", str(tiny_root)]
+    with pytest.raises(UnsafePathError, match=rf"TRACE_LIBRARY\.PATH '{re.escape(path)}' \(from "
+                       rf"{re.escape(str(yaml))}\)"):  # fmt: skip
+        load_tool("data/build_trace_library").main(args)
+    assert (
+        not (tmp_path / "outside.npz").exists() and not (tiny_root.parent / "outside.npz").exists()
+    )
+
+
+@pytest.mark.parametrize("kind", ["fifo", "folder"])
+def test_a_library_that_is_not_a_regular_file_is_refused(tmp_path, kind):
+    """A FIFO (or a device) would make loading and hashing the library read forever."""
+    path = tmp_path / "lib.npz"
+    if kind == "fifo":
+        os.mkfifo(path)
+    else:
+        path.mkdir()
+    shown = "a FIFO" if kind == "fifo" else "a folder"
+    with pytest.raises(UnsafePathError, match=rf"trace library .*lib\.npz is {shown}, not a reg"):
+        TraceLibrary.load(path)

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import pickle
+import re
+import threading
 
 import numpy as np
 import pytest
@@ -35,6 +39,7 @@ from pcdet_atlas.datasets.multiframe import (
 from pcdet_atlas.datasets.waymo_format import WaymoFormatError
 from pcdet_atlas.ops.boxes import boxes_to_corners_bev, points_in_boxes_mask
 from pcdet_atlas.registry import TRANSFORMS
+from pcdet_atlas.utils.paths import UnsafePathError
 
 
 def _scene(seed=0, n_boxes=6, n_points=3000):
@@ -517,6 +522,104 @@ def test_gt_sampling_waymo_class_not_trained_is_left_out_and_logged(tmp_path, ca
         "gt_sampling.SAMPLE_GROUPS (my.yaml): ['Cyclist', 'Sign'] not in CLASS_NAMES "
         "['Vehicle']; left out",
     ]
+
+
+def _empty_scene():
+    return {
+        "points": np.zeros((0, 5), np.float32),
+        "gt_boxes": np.zeros((0, 7)),
+        "gt_boxes_mask": np.zeros(0, bool),
+        "gt_names": np.array([], dtype=str),
+    }
+
+
+@pytest.mark.parametrize("where", ["absolute", "dotdot", "inner_dotdot", "empty"])
+def test_gt_sampling_refuses_a_db_info_path_outside_the_data_root(tmp_path, where):
+    """A db_info ``path`` is data: an absolute one or one with ``..`` is refused when the
+    database is loaded, naming the info file and the entry, before anything is read."""
+    root = tmp_path / "root"
+    box = [0, 0, 0, 4, 2, 1.6, 0, 0, 0]
+    rng = np.random.default_rng(0)
+    _write_db(root, [("Vehicle", box, _obj_points(box, 10, rng)) for _ in range(2)])
+    secret = tmp_path / "secret.bin"
+    _obj_points(box, 10, rng).astype(np.float32).tofile(secret)
+    bad = {"absolute": str(secret), "dotdot": "../secret.bin",
+           "inner_dotdot": "db/../../secret.bin", "empty": ""}[where]  # fmt: skip
+    with open(root / "dbinfos.pkl", "rb") as f:
+        infos = pickle.load(f)
+    infos["Vehicle"][1]["path"] = bad
+    with open(root / "dbinfos.pkl", "wb") as f:
+        pickle.dump(infos, f)
+    info_file = re.escape(str(root / "dbinfos.pkl"))
+    with pytest.raises(UnsafePathError, match=rf"path '{re.escape(bad)}' \(from {info_file} "
+                       r"Vehicle\[1\]\) is not a relative path"):  # fmt: skip
+        GTSampling(root, CLASS_NAMES, ["dbinfos.pkl"], {"Vehicle": 2}, 5)
+
+
+@pytest.mark.parametrize("key", ["DB_INFO_PATH", "DB_DATA_PATH"])
+def test_gt_sampling_refuses_db_paths_outside_the_data_root(tmp_path, key):
+    """``DB_INFO_PATH`` / ``DB_DATA_PATH`` are relative to the data root and stay under it."""
+    root = tmp_path / "root"
+    box = [0, 0, 0, 4, 2, 1.6, 0, 0, 0]
+    for folder in (root, tmp_path):  # a database under the root, and one beside it
+        _write_db(folder, [("Vehicle", box, _obj_points(box, 10, np.random.default_rng(0)))])
+    value = "../dbinfos.pkl" if key == "DB_INFO_PATH" else str(tmp_path / "global.npy")
+    paths = {"DB_INFO_PATH": ["dbinfos.pkl"], "DB_DATA_PATH": ["global.npy"], key: [value]}
+    with pytest.raises(UnsafePathError, match=rf"gt_sampling\.{key} '{re.escape(value)}' "
+                       r"\(from my\.yaml\) is not a relative path"):  # fmt: skip
+        GTSampling(
+            root, CLASS_NAMES, paths["DB_INFO_PATH"], {"Vehicle": 1}, 5,
+            db_data_paths=paths["DB_DATA_PATH"], use_shared_memory=True, section="my.yaml",
+        )  # fmt: skip
+
+
+@pytest.mark.parametrize("kind", ["symlink_out", "fifo"])
+def test_gt_sampling_reads_only_regular_files_under_the_data_root(tmp_path, kind):
+    """A lexically fine ``path`` that is a symlink leading out of the root, or a FIFO (a read
+    that never ends, as ``/dev/zero``), is refused when the object is read."""
+    root = tmp_path / "root"
+    box = [0, 0, 0, 4, 2, 1.6, 0, 0, 0]
+    rng = np.random.default_rng(0)
+    _write_db(root, [("Vehicle", box, _obj_points(box, 10, rng))])
+    obj = root / "db" / "obj_0.bin"
+    obj.unlink()
+    if kind == "symlink_out":
+        secret = tmp_path / "secret.bin"
+        _obj_points(box, 10, rng).astype(np.float32).tofile(secret)
+        obj.symlink_to(secret)
+        expected = (
+            rf"obj_0\.bin \(from a db_info of .*dbinfos\.pkl\) resolves to "
+            rf"{re.escape(str(secret.resolve()))}, outside its root"
+        )
+    else:
+        os.mkfifo(obj)
+        expected = r"GT database object .*obj_0\.bin is a FIFO, not a regular file"
+    sampler = GTSampling(root, CLASS_NAMES, ["dbinfos.pkl"], {"Vehicle": 1}, 5)
+    with _fifo_read_ends(obj), pytest.raises(UnsafePathError, match=expected):
+        sampler(_empty_scene(), np.random.default_rng(0))
+
+
+@contextlib.contextmanager
+def _fifo_read_ends(path):
+    """Were the FIFO at ``path`` opened for reading (the read would never end), a writer opens
+    and closes it, which ends the read: the test then fails instead of hanging."""
+    done = threading.Event()
+
+    def writer():
+        while path.is_fifo() and not done.wait(0.2):
+            try:
+                os.close(os.open(path, os.O_WRONLY | os.O_NONBLOCK))
+                return
+            except OSError:  # no reader yet
+                pass
+
+    thread = threading.Thread(target=writer, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
 
 
 # ---------------------------------------------------------------------------- determinism

@@ -2,12 +2,15 @@
 info pkls and every frame file's size and mtime; it stays put otherwise."""
 
 import os
+import re
 
 import numpy as np
 import pytest
 
+from pcdet_atlas.config import cfg_from_yaml_file
 from pcdet_atlas.datasets.fingerprint import data_config_fingerprint, dataset_fingerprint
 from pcdet_atlas.datasets.waymo_format import PROCESSED_DATA_TAG, WaymoFormatError
+from pcdet_atlas.utils.paths import UnsafePathError
 
 
 def tiny_dataset(root):
@@ -56,3 +59,21 @@ def test_the_fingerprint_follows_infos_and_frames(tmp_path):
     (root / "ImageSets" / "val.txt").write_text("seq_a.tfrecord\nseq_x.tfrecord\n")
     with pytest.raises(WaymoFormatError, match="'seq_x'.*no info pkl"):
         dataset_fingerprint(root, "val")
+
+
+def test_a_split_or_tag_leaving_the_root_is_refused(tmp_path):
+    """``ImageSets/../outside.txt`` or ``../data/<tag>`` would be read beside the root: the
+    split and the tag must each be one file name, named with the config file they came from."""
+    root = tiny_dataset(tmp_path / "data")
+    (root / "outside.txt").write_text("seq_a.tfrecord\n")
+    with pytest.raises(UnsafePathError, match=r"split '\.\./outside' \(from the split of "):
+        dataset_fingerprint(root, "../outside")
+    with pytest.raises(
+        UnsafePathError, match=rf"PROCESSED_DATA_TAG '\.\./data/{PROCESSED_DATA_TAG}'"
+    ):
+        dataset_fingerprint(root, "train", f"../data/{PROCESSED_DATA_TAG}")
+    yaml_path = tmp_path / "data.yaml"
+    yaml_path.write_text(f"DATA_PATH: {root}\nDATA_SPLIT: {{train: ../outside}}\n")
+    with pytest.raises(UnsafePathError, match=rf"DATA_SPLIT\.train '\.\./outside' \(from "
+                       rf"{re.escape(str(yaml_path))}\)"):  # fmt: skip
+        data_config_fingerprint(cfg_from_yaml_file(yaml_path), "train")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pickle
+import re
 import sys
 import types
 
@@ -31,6 +32,7 @@ from pcdet_atlas.datasets.multiframe import (
 )
 from pcdet_atlas.ops.boxes import points_in_boxes_mask, transform_points
 from pcdet_atlas.registry import DATASETS
+from pcdet_atlas.utils.paths import UnsafePathError
 from pcdet_atlas.utils.seeding import derive_seed
 
 SEQ_A = "segment-111_with_camera_labels"
@@ -90,6 +92,29 @@ def test_data_path_resolves_against_the_repository_root(tiny_root, monkeypatch, 
     # a plain dict works as well as an EasyDict
     plain = WaymoDataset(dict(dataset_cfg()), CLASS_NAMES, training=False, root_path=tiny_root)
     assert len(plain) == 6
+
+
+@pytest.mark.parametrize("key", ["DATA_SPLIT", "PROCESSED_DATA_TAG"])
+def test_a_split_or_data_tag_leaving_the_root_is_refused(tmp_path, key):
+    """``DATA_SPLIT`` names ``ImageSets/<split>.txt`` and ``PROCESSED_DATA_TAG`` the frames'
+    folder: each must be one file name (``../x`` would read beside the root), named with its
+    file; ``set_split`` (``--split`` of the GT-database tool) is held to the same rule."""
+    root = write_tiny_waymo(tmp_path / "root")
+    (root / "val_copy.txt").write_text((root / "ImageSets" / "val.txt").read_text())
+    if key == "DATA_SPLIT":  # ImageSets/../val_copy.txt
+        value, shown, entry = "../val_copy", "DATA_SPLIT.test", "DATA_SPLIT: {test: '../val_copy'}"
+    else:  # the root's own frames, reached from outside it
+        value = f"../root/{wf.PROCESSED_DATA_TAG}"
+        shown, entry = key, f"PROCESSED_DATA_TAG: '{value}'"
+    yaml_path = tmp_path / "data.yaml"
+    yaml_path.write_text(f"_BASE_CONFIG_: {DATASET_CFG}\n{entry}\n")
+    expected = rf"DATA_CONFIG\.{shown} '{re.escape(value)}' \(from {re.escape(str(yaml_path))}\)"
+    with pytest.raises(UnsafePathError, match=expected + " is not one file or folder name"):
+        WaymoDataset(cfg_from_yaml_file(yaml_path), CLASS_NAMES, training=False, root_path=root)
+    ds = WaymoDataset(dataset_cfg(), CLASS_NAMES, training=False, root_path=root)
+    with pytest.raises(UnsafePathError, match=r"split '\.\./val_copy' \(from WaymoDataset\.set_"):
+        ds.set_split("../val_copy")
+    assert ds.split == "val" and len(ds) == 6  # left as it was
 
 
 def test_get_lidar_nlz_and_tanh(tiny_root):
@@ -580,7 +605,8 @@ def test_num_points_in_gt_of_tiny_data_matches_points(tiny_root):
 @pytest.mark.parametrize("multiframe", [False, True], ids=["1frame", "4frame"])
 def test_loads_the_synthetic_dataset(synthetic_root, tmp_path, multiframe):
     """The embedded synthetic dataset reads like real data, in test and in training mode
-    (with a GT database built beside it: the fixture root is shared and read-only)."""
+    (with a GT database built in a root that links to the fixture's data: the fixture root is
+    shared and read-only, and database paths stay under their root)."""
     from pcdet_atlas.datasets.gt_database import create_groundtruth_database, gt_database_paths
 
     cfg = dataset_cfg(multiframe=multiframe, shuffle=True)
@@ -595,20 +621,24 @@ def test_loads_the_synthetic_dataset(synthetic_root, tmp_path, multiframe):
         assert sample["poses"].shape == (16, 4)
         assert set(np.round(sample["points"][:, 5].astype(np.float64), 6)) == {0, 0.1, 0.2, 0.3}
 
-    db_builder = WaymoDataset(cfg, CLASS_NAMES, training=False, root_path=synthetic_root)
+    root = tmp_path / "root"
+    root.mkdir()
+    for name in ("ImageSets", wf.PROCESSED_DATA_TAG):
+        (root / name).symlink_to(synthetic_root / name)
+    db_builder = WaymoDataset(cfg, CLASS_NAMES, training=False, root_path=root)
     db_builder.set_split("train")
     db_builder.all_infos = db_builder.all_infos[::5]  # a small database is enough here
     offset = (-4, 0) if multiframe else None
-    create_groundtruth_database(db_builder, save_path=tmp_path)
-    paths = gt_database_paths(tmp_path, wf.PROCESSED_DATA_TAG, "train", 1, offset)
+    create_groundtruth_database(db_builder)
+    paths = gt_database_paths(root, wf.PROCESSED_DATA_TAG, "train", 1, offset)
     train_cfg = dataset_cfg(multiframe=multiframe, augment=True, shuffle=True)
     shipped = cfg_from_yaml_file(MULTIFRAME_CFG if multiframe else DATASET_CFG)
     sampling = shipped.DATA_AUGMENTOR.AUG_CONFIG_LIST[0]
     assert sampling.NAME == "gt_sampling"
-    sampling.DB_INFO_PATH = [str(paths["info"])]
-    sampling.DB_DATA_PATH = [str(paths["global"])]
+    sampling.DB_INFO_PATH = [paths["info"].name]
+    sampling.DB_DATA_PATH = [paths["global"].name]
     train_cfg.DATA_AUGMENTOR.AUG_CONFIG_LIST = [sampling, *train_cfg.DATA_AUGMENTOR.AUG_CONFIG_LIST]
-    train_ds = WaymoDataset(train_cfg, CLASS_NAMES, training=True, root_path=synthetic_root)
+    train_ds = WaymoDataset(train_cfg, CLASS_NAMES, training=True, root_path=root)
     assert len(train_ds) == 20
     batch = train_ds.collate_batch([train_ds[i] for i in (0, 9, 15)])
     assert batch["points"].shape[1] == width + 1 and batch["gt_boxes"].shape[0] == 3

@@ -14,6 +14,7 @@ from easydict import EasyDict
 from pcdet_atlas.config import REPO_ROOT
 from pcdet_atlas.datasets.waymo_format import PROCESSED_DATA_TAG
 from pcdet_atlas.train_utils import proposals
+from pcdet_atlas.utils.paths import UnsafePathError
 
 RPN_CFG = REPO_ROOT / "cfgs" / "atlas" / "synthetic" / "cp4f.yaml"
 
@@ -103,3 +104,15 @@ def test_a_file_whose_record_disagrees_with_its_name_is_refused(setup):
         err.value
     )
     assert runs == [0]
+
+
+def test_a_split_leaving_the_cache_folder_is_refused(setup):
+    """``DATA_SPLIT.train`` names the cache file ``<split>.pt``: ``../x`` is refused before the
+    RPN runs or anything is written."""
+    model, data_cfg, _, runs = setup
+    data = Path(data_cfg.DATA_PATH)
+    (data / "x.txt").write_text("seq_a.tfrecord\n")  # ImageSets/../x.txt exists
+    data_cfg.DATA_SPLIT = {"train": "../x"}
+    with pytest.raises(UnsafePathError, match=r"DATA_SPLIT\.train '\.\./x' \(from "):
+        proposals_of(model, data_cfg)
+    assert runs == [] and not Path(model.rpn_info["cache_dir"]).exists()

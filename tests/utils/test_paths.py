@@ -1,5 +1,6 @@
 """Names from data, configs and flags stay one path component inside their root."""
 
+import os
 import pickle
 import re
 
@@ -12,7 +13,14 @@ from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.train_utils.atlas_eval import resolve_variants
 from pcdet_atlas.train_utils.eval_utils import write_prediction_files
 from pcdet_atlas.train_utils.setup import load_cfg, output_dir_for
-from pcdet_atlas.utils.paths import UnsafePathError, join_under, safe_component
+from pcdet_atlas.utils.paths import (
+    UnsafePathError,
+    join_under,
+    regular_file,
+    relative_parts,
+    resolve_under,
+    safe_component,
+)
 
 UNSAFE = ["..", ".", "", "../../x", "a/b", "/etc", "a\\b", ".hidden", "-rf", "a b", "x\n", 3]
 
@@ -42,6 +50,42 @@ def test_join_under_refuses_a_symlink_out_of_the_root(tmp_path):
         join_under(root, ("link", "x"), ("b", "y"), source="s")
     with pytest.raises(UnsafePathError, match=r"y '\.\.' \(from s\)"):
         join_under(root, ("a", "x"), ("..", "y"), source="s")
+
+
+@pytest.mark.parametrize("value", ["a.bin", "db_1/seg-1_0001_Vehicle_0.bin", "a/b/c"])
+def test_a_relative_path_of_safe_names_resolves_under_its_root(tmp_path, value):
+    assert resolve_under(tmp_path, value, "path", "s") == tmp_path / value
+    assert relative_parts(value, "path", "s") == tuple(value.split("/"))
+
+
+@pytest.mark.parametrize(
+    "value", ["/etc/passwd", "../x", "a/../../x", "a/..", "./a", "a//b", "a/", "", ".", "a/.b", 3]
+)
+def test_a_path_that_is_absolute_or_has_dot_parts_is_refused(tmp_path, value):
+    with pytest.raises(UnsafePathError) as err:
+        resolve_under(tmp_path, value, "path", "x.pkl Vehicle[3]")
+    assert f"path {value!r} (from x.pkl Vehicle[3]) is not a relative path: names joined by '/'" \
+        in str(err.value)  # fmt: skip
+
+
+def test_resolve_under_refuses_a_symlink_out_of_the_root(tmp_path):
+    root, outside = tmp_path / "root", tmp_path / "outside"
+    root.mkdir(), outside.mkdir()
+    (root / "db").symlink_to(outside)
+    with pytest.raises(UnsafePathError, match=r"db/x\.bin \(from s\) resolves to .*/outside/x"):
+        resolve_under(root, "db/x.bin", "path", "s")
+
+
+def test_regular_file_refuses_fifos_devices_and_folders(tmp_path):
+    (tmp_path / "f.bin").write_bytes(b"")
+    os.mkfifo(tmp_path / "fifo")
+    assert regular_file(tmp_path / "f.bin", "object") == tmp_path / "f.bin"
+    for path, kind in [(tmp_path / "fifo", "a FIFO"), ("/dev/zero", "a character device"),
+                       (tmp_path, "a folder")]:  # fmt: skip
+        with pytest.raises(UnsafePathError, match=rf"object {path} is {kind}, not a regular file"):
+            regular_file(path, "object")
+    with pytest.raises(FileNotFoundError):
+        regular_file(tmp_path / "missing", "object")
 
 
 def test_save_to_file_refuses_a_frame_id_that_leaves_its_folder(tmp_path):

@@ -5,10 +5,11 @@
 
 Filters and split (``SPLIT``, train by default) come from the ``TRACE_LIBRARY`` section of the
 injection YAML, the sensor origin from its ``LIDAR`` section; the file is written to
-``TRACE_LIBRARY.PATH`` (relative: under ``--data_path``) unless ``--out`` is given. Every injection
-variant naming that file shares it, so an existing library built with other filters (or another
-split, or another ``LIDAR.ORIGIN``) is not replaced unless ``--overwrite`` is given: write it to
-another file instead.
+``TRACE_LIBRARY.PATH`` (relative, under ``--data_path``: an absolute PATH or one with ``..`` is
+refused) unless ``--out`` is given, which may name any file. Every injection variant naming that
+file shares it, so an existing library built with other filters (or another split, or another
+``LIDAR.ORIGIN``) is not replaced unless ``--overwrite`` is given: write it to another file
+instead.
 """
 
 from __future__ import annotations
@@ -35,7 +36,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument(
         "--overwrite", action="store_true", help="replace a library built with other filters"
     )
-    parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None, help='KEY VALUE pairs overriding config keys (last on the command line)')
+    parser.add_argument(
+        "--set",
+        dest="set_cfgs",
+        nargs=argparse.REMAINDER,
+        default=None,
+        help="KEY VALUE pairs overriding config keys (last on the command line)",
+    )
     return parser.parse_args(argv)
 
 

@@ -40,6 +40,7 @@ from pcdet_atlas.datasets.multiframe import compress_rows
 from pcdet_atlas.datasets.waymo_format import WAYMO_CLASSES, WaymoFormatError
 from pcdet_atlas.ops.boxes import boxes_bev_overlap
 from pcdet_atlas.registry import TRANSFORMS
+from pcdet_atlas.utils.paths import regular_file, relative_parts, resolve_under
 from pcdet_atlas.utils.safe_pickle import load_pickle
 
 __all__ = ["GTSampling", "parse_class_counts"]
@@ -142,7 +143,8 @@ class GTSampling:
     ):
         """
         Args:
-            root_path: data root; database paths are relative to it.
+            root_path: data root; database paths are relative to it and stay under it (an
+                absolute path or a ``..`` part is an ``UnsafePathError``, in the info files too).
             class_names: classes the detector trains on (database classes outside are ignored).
             db_info_paths: dbinfos pickles (``{class: [db_info]}``), merged.
             sample_groups: class -> number of objects wanted per frame.
@@ -173,8 +175,14 @@ class GTSampling:
                 f"{time_range!r}"
             )
         self.time_range = tuple(float(t) for t in time_range) if time_range is not None else None
-        self.db_info_paths = [self.root_path / p for p in db_info_paths]
-        self.db_data_paths = [self.root_path / p for p in db_data_paths]
+        self.db_info_paths = [
+            resolve_under(self.root_path, p, "gt_sampling.DB_INFO_PATH", section)
+            for p in db_info_paths
+        ]
+        self.db_data_paths = [
+            resolve_under(self.root_path, p, "gt_sampling.DB_DATA_PATH", section)
+            for p in db_data_paths
+        ]
         if self.use_shared_memory and len(self.db_data_paths) != len(self.db_info_paths):
             raise ConfigError(
                 "gt_sampling: USE_SHARED_MEMORY needs one DB_DATA_PATH per DB_INFO_PATH, got "
@@ -216,12 +224,14 @@ class GTSampling:
         num_features = settings.num_point_features
         backup = settings.backup_db_info
         root = Path(root_path)
-        if backup is not None and not (root / info_paths[0]).exists():
+        first = resolve_under(root, info_paths[0], "gt_sampling.DB_INFO_PATH", section)
+        if backup is not None and not first.exists():
             if len(info_paths) != 1:
                 raise ConfigError("gt_sampling: BACKUP_DB_INFO needs exactly one DB_INFO_PATH")
+            what = "gt_sampling.BACKUP_DB_INFO.DB_INFO_PATH"
             (logger or logging.getLogger(__name__)).warning(
-                f"gt_sampling: {root / info_paths[0]} not found; using BACKUP_DB_INFO "
-                f"{root / backup.db_info_path}"
+                f"gt_sampling: {first} not found; using BACKUP_DB_INFO "
+                f"{resolve_under(root, backup.db_info_path, what, section)}"
             )
             info_paths = [backup.db_info_path]
             data_paths = [backup.db_data_path]
@@ -251,7 +261,7 @@ class GTSampling:
         db_infos: dict[str, list[dict]] = {name: [] for name in self.class_names}
         for data_index, path in enumerate(self.db_info_paths):
             try:
-                infos = load_pickle(path)
+                infos = load_pickle(regular_file(path, "GT database info file"))
             except FileNotFoundError as err:
                 raise WaymoFormatError(
                     f"{path}: GT database info file not found (build it with "
@@ -266,6 +276,8 @@ class GTSampling:
                     for key in DB_INFO_KEYS:
                         if key not in info:
                             raise WaymoFormatError(f"{path}: {class_name}[{j}] lacks key {key!r}")
+                    # the text only (a database holds millions); the read resolves symlinks
+                    relative_parts(info["path"], "path", f"{path} {class_name}[{j}]")
                     if self.use_shared_memory and "global_data_offset" not in info:
                         raise WaymoFormatError(
                             f"{path}: {class_name}[{j}] lacks 'global_data_offset' "
@@ -279,7 +291,9 @@ class GTSampling:
         if arr is None:
             path = self.db_data_paths[data_index]
             try:
-                arr = np.load(path, mmap_mode="r", allow_pickle=False)
+                arr = np.load(
+                    regular_file(path, "GT database points"), mmap_mode="r", allow_pickle=False
+                )
             except (OSError, ValueError) as err:
                 raise WaymoFormatError(f"{path}: cannot read GT database points: {err}") from err
             if arr.ndim != 2 or arr.shape[1] != self.num_point_features:
@@ -297,10 +311,12 @@ class GTSampling:
             points = np.array(self._global_array(info["_data_index"])[start:end], np.float32)
             where = f"{self.db_data_paths[info['_data_index']]}[{start}:{end}]"
         else:
-            path = self.root_path / info["path"]
+            index = info.get("_data_index")  # set by _load_db_infos
+            source = "a db_info" if index is None else f"a db_info of {self.db_info_paths[index]}"
+            path = resolve_under(self.root_path, info["path"], "path", source)
             where = str(path)
             try:
-                flat = np.fromfile(path, dtype=np.float32)
+                flat = np.fromfile(regular_file(path, "GT database object"), dtype=np.float32)
             except OSError as err:
                 raise WaymoFormatError(f"{path}: cannot read GT database object: {err}") from err
             if flat.size % self.num_point_features:
