@@ -24,6 +24,8 @@ from typing import Any
 import yaml
 from easydict import EasyDict
 
+from pcdet_atlas.utils.files import write_atomic
+
 BASE_KEY = "_BASE_CONFIG_"
 REPO_ROOT = Path(__file__).resolve().parent.parent
 _SOURCES_ATTR = "_key_sources"
@@ -278,12 +280,11 @@ def to_plain(obj: Any) -> Any:
 
 
 def save_config(cfg: Mapping, path: str | Path) -> Path:
-    """Write the fully merged config as YAML (the file saved beside every output)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w") as f:
-        yaml.safe_dump(to_plain(cfg), f, sort_keys=False)
-    return path
+    """Write the fully merged config as YAML (the file saved beside every output), whole
+    (:func:`~pcdet_atlas.utils.files.write_atomic`): a symlink at ``path`` in a received output
+    folder is replaced, not written through."""
+    text = yaml.safe_dump(to_plain(cfg), sort_keys=False)
+    return write_atomic(path, lambda f: f.write(text.encode()))
 
 
 def log_config_to_file(cfg: Mapping, logger, pre: str = "cfg") -> None:

@@ -146,6 +146,20 @@ def test_save_config_roundtrip(tree, tmp_path):
     assert again == cfg
 
 
+def test_save_config_replaces_a_planted_symlink_instead_of_writing_through_it(tree, tmp_path):
+    """A resumed output folder received with ``<TAG>.yaml -> ~/.bashrc``: the merged config
+    replaces the link; the file it pointed at keeps its content."""
+    victim = tmp_path / "victim"
+    victim.write_text("IMPORTANT USER DATA\n")
+    out = tmp_path / "out" / "child.yaml"
+    out.parent.mkdir()
+    out.symlink_to(victim)
+    cfg = cfg_from_yaml_file(tree / "cfgs" / "models" / "child.yaml")
+    save_config(cfg, out)
+    assert victim.read_text() == "IMPORTANT USER DATA\n"
+    assert not out.is_symlink() and cfg_from_yaml_file(out) == cfg
+
+
 def test_repo_configs_load(tmp_path, monkeypatch):
     """Every shipped YAML loads with its whole _BASE_CONFIG_ chain, from any working directory."""
     root = Path(__file__).resolve().parent.parent / "cfgs"

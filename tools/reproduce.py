@@ -12,7 +12,9 @@ For each model config (default: every config under ``cfgs/atlas/synthetic/`` who
 whole run appended to ``report.md`` and written to ``run.json``. The report is made from copies
 of the results files archived in ``--out``'s ``results/`` (gzip-compressed, deterministic bytes;
 ``run.json`` names each by its path relative to ``--out``), so ``--report_only`` or
-``tools/report.py --results <out>/results`` rebuild it from that folder alone. The injection
+``tools/report.py --results <out>/results`` rebuild it from that folder alone (``--report_only``
+reads a model's evaluated ``results.json`` only from under ``--eval_dir``, whatever path a
+received ``run.json`` names, and its archived copy otherwise). The injection
 variants' trace library is built from the dataset's train split first if it is missing. The
 dataset: docs/synthetic.md "A larger validation split".
 
@@ -83,6 +85,7 @@ from pcdet_atlas.train_utils.eval_folder import eval_dir, finished_variants, res
 from pcdet_atlas.train_utils.setup import load_cfg, lock_output_folder
 from pcdet_atlas.utils.cli import RenamedFlag, add_debug_flag, run_tool
 from pcdet_atlas.utils.common import create_logger, resolve_device, write_atomic
+from pcdet_atlas.utils.files import open_regular_file
 from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.processes import die_with_parent
 
@@ -158,7 +161,8 @@ def parse_args(argv=None):
     run.add_argument(
         "--report_only",
         action="store_true",
-        help="write the report of the run in --out_dir's run.json again, evaluating nothing",
+        help="write the report of the run in --out_dir's run.json again, evaluating nothing "
+        "(from the results under --eval_dir, else the copies archived in --out_dir)",
     )
     args = p.parse_args(argv)
     if args.jobs < 1 or (args.threads is not None and args.threads < 1):
@@ -213,7 +217,12 @@ def store_of(cfg: Path, rpns, args) -> Path | None:
 
 
 def store_path(args) -> Path:
-    return Path(args.eval_dir or REPO_ROOT / "output") / "prediction_store"
+    return eval_root(args) / "prediction_store"
+
+
+def eval_root(args) -> Path:
+    """The root of the evaluations (``--eval_dir``, tools/test.py's output root)."""
+    return Path(args.eval_dir or REPO_ROOT / "output")
 
 
 def evaluation_of(
@@ -352,6 +361,16 @@ def rpn_config(cfg: Path) -> Path | None:
     return None if rpn is None else repo_relative(resolve_repo_path(rpn["CFG"]))
 
 
+def open_log(path: Path, append: bool):
+    """``path`` opened for ``tools/test.py``'s output, appended to (``append``) or emptied; a
+    symlink or anything but a regular file there is refused naming it, not written through
+    (:func:`~pcdet_atlas.utils.files.open_regular_file`)."""
+    flags = os.O_WRONLY | (os.O_APPEND if append else os.O_TRUNC)
+    return os.fdopen(
+        open_regular_file(path, flags, "the log of tools/test.py"), "a" if append else "w"
+    )
+
+
 def evaluation_time(results: dict) -> float:
     """Seconds a model's evaluation took: its variants' prediction and metric times (from
     ``extra.timing_s`` of each variant), whichever calls of ``tools/test.py`` ran them."""
@@ -370,7 +389,7 @@ def reproduce(args, argv=None) -> dict:
     """The work of :func:`main` (``argv``: its command line, recorded in ``run.json``), under
     the lock of ``--out``."""
     if args.report_only:
-        return rewrite_report(Path(args.out_dir))
+        return rewrite_report(Path(args.out_dir), eval_root(args))
     root = resolve_cli_path(args.data_path)  # the tools/test.py processes run in the repo root
     if not (root / "ImageSets").is_dir():
         raise FileNotFoundError(
@@ -447,7 +466,7 @@ def reproduce(args, argv=None) -> dict:
             print("$ " + shlex.join(command[1:]), flush=True)
             log = results.parent.parent / "reproduce.log"
             log.parent.mkdir(parents=True, exist_ok=True)
-            with log.open("a" if resumable else "w") as stream:
+            with open_log(log, append=resumable) as stream:
                 code = subprocess.run(  # killed with this process: no orphan writes on
                     command, stdout=stream, stderr=subprocess.STDOUT, cwd=REPO_ROOT,
                     preexec_fn=die_with_parent(),
@@ -468,7 +487,7 @@ def reproduce(args, argv=None) -> dict:
     save_state()
     order = {str(cfg): i for i, cfg in enumerate(cfgs)}
     state["runs"] = sorted(state["runs"], key=lambda r: order[r["config"]])
-    out = write_run_report(state, out_dir)
+    out = write_run_report(state, out_dir, eval_root(args))
     write_state()
     print(f"report: {out['report']}  total {state['total_wall_s'] / 60:.1f} min")
     return {**out, "run": state}
@@ -487,11 +506,12 @@ def cpu_model() -> str:
     return platform.processor() or "unknown CPU"
 
 
-def write_run_report(state: dict, out_dir: Path) -> dict:
+def write_run_report(state: dict, out_dir: Path, evaluations: Path) -> dict:
     """The report of a run (``state``: its ``run.json``) into ``out_dir``, with how it was
     produced (command, machine, wall times), from the results archived in ``out_dir/results``
-    (``state['runs'][i]['archived']``); sets ``state['device']``."""
-    state["runs"] = archive_run_results(state["runs"], out_dir)
+    (``state['runs'][i]['archived']``; a run's evaluated results are read from under
+    ``evaluations``, the ``--eval_dir``, only); sets ``state['device']``."""
+    state["runs"] = archive_run_results(state["runs"], out_dir, eval_root=evaluations)
     found = collect_results([out_dir / r["archived"] for r in state["runs"]])
     results = [r for _, r in found]
     device = str(results[0].get("extra", {}).get("device", "?"))
@@ -543,9 +563,10 @@ def write_run_report(state: dict, out_dir: Path) -> dict:
     )  # fmt: skip
 
 
-def rewrite_report(out_dir: Path) -> dict:
+def rewrite_report(out_dir: Path, evaluations: Path) -> dict:
     """``--report_only``: the report of the run recorded in ``out_dir/run.json`` again, from its
-    models' ``results.json`` (after a change to the report, say), evaluating nothing."""
+    models' ``results.json`` under ``evaluations`` (the ``--eval_dir``) or else their archived
+    copies (after a change to the report, say), evaluating nothing."""
     run_file = out_dir / "run.json"
     if not run_file.is_file():
         raise FileNotFoundError(f"--report_only: no {run_file} (run tools/reproduce.py first)")
@@ -553,7 +574,7 @@ def rewrite_report(out_dir: Path) -> dict:
     missing = [k for k in ("runs", "command", "cpu_cores", "machine") if not state.get(k)]
     if missing:
         raise ValueError(f"--report_only: {run_file} has no {', '.join(missing)}")
-    out = write_run_report(state, out_dir)
+    out = write_run_report(state, out_dir, evaluations)
     write_atomic(run_file, lambda f: f.write((json.dumps(state, indent=2) + "\n").encode()))
     print(f"report: {out['report']}")
     return {**out, "run": state}

@@ -178,7 +178,8 @@ def _frame_objects(job: tuple, k: int) -> list[tuple[dict, np.ndarray]]:
         gt_points = points[inside[bounds[i] : bounds[i + 1]]].astype(np.float32)
         gt_points[:, :3] -= gt_boxes[i, :3].astype(np.float32)
         file_path = db_dir / f"{sequence_name}_{sample_idx:04d}_{names[i]}_{i}.bin"
-        gt_points.tofile(file_path)
+        # whole, and a symlink planted at the name in an existing database is replaced
+        write_atomic(file_path, lambda f, pts=gt_points: pts.tofile(f), sync=False)
         db_info = {
             "name": str(names[i]),
             "path": str(file_path.relative_to(dataset.root_path))

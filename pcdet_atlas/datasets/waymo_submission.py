@@ -26,6 +26,7 @@ from google.protobuf.message import DecodeError
 from google.protobuf.unknown_fields import UnknownFieldSet
 
 from pcdet_atlas.datasets.waymo_format import WAYMO_CLASSES
+from pcdet_atlas.utils.files import write_atomic
 
 __all__ = [
     "BOX_FIELDS",
@@ -214,5 +215,5 @@ def write_waymo_bin(frames: Sequence[Mapping], path: str | Path) -> Path:
                 setattr(obj.object.box, field, float(value))
             if len(row) == 9:
                 obj.object.metadata.speed_x, obj.object.metadata.speed_y = map(float, row[7:])
-    path.write_bytes(message.SerializeToString())
+    write_atomic(path, lambda f: f.write(message.SerializeToString()))
     return path

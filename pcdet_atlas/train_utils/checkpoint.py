@@ -33,6 +33,7 @@ from pcdet_atlas.models.detectors.detector3d_template import (
     read_checkpoint,
 )
 from pcdet_atlas.train_utils.dist import unwrap_model
+from pcdet_atlas.utils.files import write_atomic
 from pcdet_atlas.version import __version__
 
 __all__ = [
@@ -89,17 +90,11 @@ def checkpoint_state(
 
 
 def save_checkpoint(state: dict, path: str | Path) -> Path:
-    """Write atomically and durably: a temporary file, flushed to disk, renamed into place, and
-    the folder flushed too (where the platform can), so that neither a crash nor a power loss
-    leaves a truncated or empty file under ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "wb") as f:
-        torch.save(state, f)
-        f.flush()
-        os.fsync(f.fileno())
-    tmp.replace(path)
+    """Write atomically and durably: a temporary file of its own (a name no other process and
+    no planted symlink holds: :func:`~pcdet_atlas.utils.files.write_atomic`), flushed to disk,
+    renamed into place, and the folder flushed too (where the platform can), so that neither a
+    crash nor a power loss leaves a truncated or empty file under ``path``."""
+    path = write_atomic(path, lambda f: torch.save(state, f))
     if hasattr(os, "O_DIRECTORY"):  # POSIX: the rename is durable once the folder is synced
         fd = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
         try:

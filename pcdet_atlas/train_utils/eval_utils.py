@@ -17,7 +17,8 @@ from pcdet_atlas.train_utils.cpu_memory import trim_cpu_memory
 from pcdet_atlas.train_utils.dist import all_gather_objects, get_dist_info, unwrap_model
 from pcdet_atlas.train_utils.eval_caches import VariantCache
 from pcdet_atlas.train_utils.proposal_bank import ProposalBank
-from pcdet_atlas.utils.paths import join_under
+from pcdet_atlas.utils.files import write_atomic
+from pcdet_atlas.utils.paths import join_under, safe_component
 
 __all__ = ["predict_dataset", "eval_one_epoch", "write_prediction_files"]
 
@@ -158,19 +159,22 @@ def write_prediction_files(det_annos: Sequence[dict], out_dir: str | Path) -> Pa
     """``--save_to_file``: one ``<frame_id>.txt`` per frame in ``out_dir``, one line per box:
     ``name x y z dx dy dz heading [vx vy] score`` (LiDAR frame, metres and radians, the
     columns of ``boxes_lidar``; ``%.4f``). A frame without detections gets an empty file. A
-    ``frame_id`` that is not one safe file name (``../x``) is an ``UnsafePathError``, before any
-    file is written."""
+    ``frame_id`` that is not one safe file name (``../x``), or a ``<frame_id>.txt`` already there
+    that leads out of ``out_dir`` (a symlink), is an ``UnsafePathError``, before any file is
+    written; each file is written whole (:func:`~pcdet_atlas.utils.files.write_atomic`), replacing
+    a symlink inside ``out_dir`` rather than writing through it."""
     out_dir = Path(out_dir)
-    paths = [
-        join_under(out_dir, (anno["frame_id"], "frame_id"), source=f"prediction {i}")
-        for i, anno in enumerate(det_annos)
-    ]
-    paths = [path.with_name(f"{path.name}.txt") for path in paths]
+    paths = []
+    for i, anno in enumerate(det_annos):
+        frame_id = safe_component(anno["frame_id"], "frame_id", f"prediction {i}")
+        paths.append(join_under(out_dir, (f"{frame_id}.txt", "prediction file"),
+                                source=f"prediction {i}"))  # fmt: skip
     out_dir.mkdir(parents=True, exist_ok=True)
     for path, anno in zip(paths, det_annos):
         lines = [
             " ".join([str(name), *(f"{v:.4f}" for v in box), f"{score:.4f}"])
             for name, box, score in zip(anno["name"], anno["boxes_lidar"], anno["score"])
         ]
-        path.write_text("".join(f"{line}\n" for line in lines))
+        text = "".join(f"{line}\n" for line in lines)
+        write_atomic(path, lambda f, text=text: f.write(text.encode()), sync=False)
     return out_dir

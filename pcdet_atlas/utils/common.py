@@ -6,17 +6,15 @@ import contextlib
 import importlib.util
 import logging
 import math
-import os
 import pickle
-import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
-from typing import BinaryIO
 
 import numpy as np
 import torch
 
 from pcdet_atlas.config import REPO_ROOT
+from pcdet_atlas.utils.files import write_atomic  # its home before utils/files.py
 
 LOG_FORMAT = "%(asctime)s  %(levelname)5s  %(message)s"
 
@@ -96,34 +94,6 @@ def load_tool(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
-
-
-_UMASK = os.umask(0)
-os.umask(_UMASK)
-
-
-def write_atomic(
-    path: str | Path, write: Callable[[BinaryIO], object], *, sync: bool = True
-) -> Path:
-    """Write ``path`` by ``write(file)`` into a temporary file of its folder (created if
-    needed), renamed into place: an interrupted write never leaves a truncated file, and
-    processes writing the same path at once each rename a whole file of their own. ``sync``:
-    flush the file to disk before the rename (off for bulk data that is cheap to regenerate)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp's 0600 -> what open() would have made
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            if sync:  # the rename never publishes an unwritten file
-                f.flush()
-                os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def save_pickle(obj, path: str | Path) -> Path:

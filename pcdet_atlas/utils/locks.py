@@ -3,7 +3,9 @@
 The lock is ``flock`` on ``.<folder name>.lock`` beside the folder (inside it, ``--overwrite``
 would delete it with the folder's files). The kernel releases a ``flock`` when its holder dies, so
 a killed run leaves no lock to clear by hand; the file records the holder's PID, host and start
-time for the message of a second run, and is removed when the holder releases it.
+time for the message of a second run, and is removed when the holder releases it. A symlink or
+anything but a regular file at the lock's name (planted in a folder received from someone else)
+is refused, never followed: the lock file is truncated and rewritten by its holder.
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ import json
 import os
 import socket
 from pathlib import Path
+
+from pcdet_atlas.utils.files import open_regular_file
 
 __all__ = ["FolderLock", "FolderLockedError", "lock_path"]
 
@@ -34,7 +38,9 @@ class FolderLock:
     """An exclusive lock on ``folder`` for one run (``purpose``: what it writes there, for the
     message a second run gets). ``with FolderLock(folder, "training"):`` or
     :meth:`acquire` / :meth:`release`; a lock already held raises :class:`FolderLockedError`
-    at once, naming the folder and the holder's PID, host and start time."""
+    at once, naming the folder and the holder's PID, host and start time; a lock path that is a
+    symlink or not a regular file, a :class:`~pcdet_atlas.utils.files.NotARegularFileError`
+    naming it."""
 
     def __init__(self, folder: str | Path, purpose: str):
         self.folder = Path(folder)
@@ -51,7 +57,7 @@ class FolderLock:
             raise RuntimeError(f"{self.path}: this FolderLock is held already")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         while True:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+            fd = open_regular_file(self.path, os.O_RDWR, f"the lock file of {self.folder}")
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -100,8 +106,9 @@ class FolderLock:
 
 
 def _same_file(fd: int, path: Path) -> bool:
+    """Whether ``path`` itself (not a symlink's target) is the file open as ``fd``."""
     try:
-        return os.path.samestat(os.fstat(fd), os.stat(path))
+        return os.path.samestat(os.fstat(fd), os.lstat(path))
     except FileNotFoundError:
         return False
 

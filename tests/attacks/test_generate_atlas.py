@@ -11,6 +11,7 @@ from malicious_files import malicious_pickle
 from pcdet_atlas.attacks.lidar_fit import top_lidar_points
 from pcdet_atlas.config import REPO_ROOT
 from pcdet_atlas.datasets import waymo_format as wf
+from pcdet_atlas.utils.paths import UnsafePathError
 from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
 
 ATTACKS = REPO_ROOT / "cfgs" / "attacks"
@@ -134,3 +135,42 @@ def test_a_rerun_refuses_attack_metadata_that_would_run_code(source, tmp_path):
     with pytest.raises(RefusedGlobalError, match=rf"{meta}: refused to unpickle the global "):
         load_tool("data/generate_atlas").main(gen_args(cfg_path, out_dir))
     assert not marker.exists()
+
+
+def test_a_resumed_out_dir_with_planted_symlinks_writes_nothing_through_them(source, tmp_path):
+    """A received ``--out_dir`` to resume: a symlink at a file name the tool writes is replaced
+    (its target keeps its content); a sequence folder or ``ImageSets/`` that is a symlink
+    leading out of ``--out_dir`` is refused, naming it, before anything is written there."""
+    root, cfg_path = source
+    out_dir = tmp_path / "out"
+    victims = {name: tmp_path / f"victim_{name}" for name in ("split", "yaml")}
+    for victim in victims.values():
+        victim.write_text("IMPORTANT USER DATA\n")
+    (out_dir / "ImageSets").mkdir(parents=True)
+    (out_dir / "ImageSets" / "val.txt").symlink_to(victims["split"])
+    (out_dir / "atlas_attack.yaml").symlink_to(victims["yaml"])
+    load_tool("data/generate_atlas").main(gen_args(cfg_path, out_dir))
+    assert [v.read_text() for v in victims.values()] == ["IMPORTANT USER DATA\n"] * 2
+    assert not (out_dir / "ImageSets" / "val.txt").is_symlink()
+    assert (out_dir / "ImageSets" / "val.txt").read_text().endswith(".tfrecord\n")
+    assert not (out_dir / "atlas_attack.yaml").is_symlink()
+
+    (seq_dir,) = wf.data_dir(out_dir).iterdir()
+    elsewhere = tmp_path / "elsewhere"
+    seq_dir.rename(elsewhere)  # the sequence folder now leads out of --out_dir
+    seq_dir.symlink_to(elsewhere, target_is_directory=True)
+    for path in elsewhere.iterdir():
+        path.unlink()  # unfinished: the tool would write the sequence there again
+    with pytest.raises(UnsafePathError, match=rf"{seq_dir.name} \(from --out_dir {out_dir}\) "
+                       rf"resolves to {elsewhere}, outside its root"):  # fmt: skip
+        load_tool("data/generate_atlas").main(gen_args(cfg_path, out_dir))
+    assert list(elsewhere.iterdir()) == []
+    seq_dir.unlink()
+    (out_dir / "ImageSets" / "val.txt").unlink()
+    (out_dir / "ImageSets").rmdir()
+    (tmp_path / "sets").mkdir()
+    (out_dir / "ImageSets").symlink_to(tmp_path / "sets", target_is_directory=True)
+    with pytest.raises(UnsafePathError, match=r"ImageSets \(from --out_dir .*\) resolves to "
+                       r".*/sets, outside its root"):  # fmt: skip
+        load_tool("data/generate_atlas").main(gen_args(cfg_path, out_dir))
+    assert list((tmp_path / "sets").iterdir()) == []

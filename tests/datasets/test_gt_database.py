@@ -283,10 +283,35 @@ def test_a_rebuild_killed_before_the_info_file_leaves_none(db_root, tmp_path, mo
     paths = create_groundtruth_database(dataset, save_path=tmp_path)
     assert paths["info"].is_file() and paths["global"].is_file()
 
-    def killed(path, write, **kw):
+    def killed(path, write, **kw):  # the objects' .bin files are written, then the points
+        if not str(path).endswith("_global.npy"):
+            return real_write_atomic(path, write, **kw)
         raise KeyboardInterrupt(f"killed while writing {path}")
+
+    real_write_atomic = gt_database.write_atomic
 
     monkeypatch.setattr(gt_database, "write_atomic", killed)
     with pytest.raises(KeyboardInterrupt, match="_global.npy"):
         create_groundtruth_database(dataset, save_path=tmp_path)
     assert not paths["info"].exists()
+
+
+def test_a_rebuild_replaces_symlinks_planted_in_the_database_folder(db_root, tmp_path):
+    """A dataset received with a ``*_gt_database_*`` folder holding ``<object>.bin -> ~/.bashrc``:
+    rebuilding the database replaces the link by the object's points, the target is untouched."""
+    dataset = WaymoDataset(
+        cfg_from_yaml_file(CFG_DIR / "waymo_dataset.yaml"), CLASS_NAMES, training=False,
+        root_path=db_root,
+    )  # fmt: skip
+    dataset.set_split("train")
+    paths = create_groundtruth_database(dataset, save_path=tmp_path)
+    entry = _load(paths["info"])["Cyclist"][0]
+    planted = paths["dir"] / Path(entry["path"]).name
+    points = planted.read_bytes()
+    victim = tmp_path / "victim"
+    victim.write_text("IMPORTANT USER DATA\n")
+    planted.unlink()
+    planted.symlink_to(victim)
+    create_groundtruth_database(dataset, save_path=tmp_path)
+    assert victim.read_text() == "IMPORTANT USER DATA\n"
+    assert not planted.is_symlink() and planted.read_bytes() == points

@@ -33,6 +33,7 @@ from pcdet_atlas.evaluation.results.style import (
     MASKED_HATCH,
     SINGLE_COLUMN_IN,
     paper_style,
+    save_figure,
     variant_series,
     variant_styles,
 )
@@ -213,6 +214,27 @@ def test_files_are_png_and_pdf_with_stable_bytes_and_no_leak(models, tmp_path):
     for suffix in (".png", ".pdf"):
         first = (tmp_path / "a" / "accuracy_vs_time").with_suffix(suffix)
         assert again.with_suffix(suffix).read_bytes() == first.read_bytes(), suffix
+
+
+def test_a_figure_replaces_planted_symlinks_instead_of_writing_through_them(tmp_path):
+    """A received report folder with ``<figure>.png`` / ``.pdf`` linking elsewhere: the figure
+    files replace the links, their targets keep their content."""
+    from matplotlib.figure import Figure
+
+    out = tmp_path / "report"
+    out.mkdir()
+    for suffix in (".png", ".pdf"):
+        (tmp_path / f"victim{suffix}").write_text("IMPORTANT USER DATA\n")
+        (out / f"fig{suffix}").symlink_to(tmp_path / f"victim{suffix}")
+    with paper_style():
+        fig = Figure()
+        fig.add_subplot().plot([0, 1], [1, 0])
+        save_figure(fig, out / "fig.png")
+    for suffix, magic in ((".png", b"\x89PNG"), (".pdf", b"%PDF-")):
+        assert (tmp_path / f"victim{suffix}").read_text() == "IMPORTANT USER DATA\n"
+        assert not (out / f"fig{suffix}").is_symlink()
+        assert (out / f"fig{suffix}").read_bytes().startswith(magic)
+    assert sorted(p.name for p in out.iterdir()) == ["fig.pdf", "fig.png"]
 
 
 def test_without_matplotlib_the_report_is_written_and_names_the_extra(

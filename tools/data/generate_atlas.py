@@ -26,7 +26,9 @@ truth).
 Resumable: a sequence whose ``<seq>.pkl`` and ``<seq>_atlas.pkl`` exist for the same variant and
 the same merged attack config is skipped; another config (e.g. ``--set SEED 1``) is an error naming
 the keys that differ, never a silent mix; a sequence interrupted midway is redone. An ``--out_dir``
-that is, contains or lies inside the source ``DATA_PATH`` (symlinks resolved) is an error.
+that is, contains or lies inside the source ``DATA_PATH`` (symlinks resolved) is an error, and so
+is a folder in it that leads out of it (a symlink); a file at a name the tool writes is replaced
+whole, a symlink there included, never written through.
 """
 
 from __future__ import annotations
@@ -51,6 +53,8 @@ from pcdet_atlas.config import (
 from pcdet_atlas.datasets import waymo_format as wf
 from pcdet_atlas.utils.cli import add_debug_flag, run_tool
 from pcdet_atlas.utils.common import create_logger, save_pickle
+from pcdet_atlas.utils.files import write_atomic
+from pcdet_atlas.utils.paths import join_under, safe_component
 from pcdet_atlas.utils.safe_pickle import load_pickle
 
 CLASS_NAMES = ["Vehicle", "Pedestrian", "Cyclist"]
@@ -94,7 +98,7 @@ def write_sequence(
     """Attack and write every frame of one sequence; returns ``{frame_id: meta}``."""
     attack = dataset.attack
     seq = dataset.sequence_data(seq_name)
-    out_seq = wf.sequence_dir(out_root, seq_name, dataset.processed_data_tag)
+    out_seq = output_sequence_dir(out_root, seq_name, dataset.processed_data_tag)
     out_seq.mkdir(parents=True, exist_ok=True)
     infos, metas = [], {}
     for idx in range(seq.num_frames):
@@ -123,6 +127,16 @@ def write_sequence(
     save_pickle(saved, out_seq / f"{seq_name}_atlas.pkl")
     wf.save_sequence_infos(out_seq / f"{seq_name}.pkl", infos)  # written last: the done marker
     return metas
+
+
+def output_sequence_dir(out_root: Path, seq_name: str, tag: str) -> Path:
+    """A sequence's folder under ``--out_dir`` (the path ``waymo_format.sequence_dir`` names),
+    kept there with its symlinks resolved: a resumed ``--out_dir`` whose sequence folder is a
+    symlink leading out of it is refused, not written through."""
+    return join_under(
+        out_root, (tag, "PROCESSED_DATA_TAG"), (seq_name, "sequence name"),
+        source=f"--out_dir {out_root}",
+    )  # fmt: skip
 
 
 def _source(dataset: AtlasWaymoDataset, seq_name: str) -> dict:
@@ -195,15 +209,17 @@ def main(argv=None) -> Path:
     data_cfg.SAMPLED_INTERVAL["test"] = 1
     dataset = AtlasWaymoDataset(data_cfg, CLASS_NAMES, attack_cfg, training=False, logger=logger)
     plain_cfg = to_plain(attack_cfg)
-    (out_root / "ImageSets").mkdir(parents=True, exist_ok=True)
     names = list(dataset.seq_name_to_infos)[: args.max_sequences]
     listing = "".join(f"{name}.tfrecord\n" for name in names)
-    (out_root / "ImageSets" / f"{dataset.split}.txt").write_text(listing)
+    image_sets = join_under(out_root, ("ImageSets", "folder"), source=f"--out_dir {out_root}")
+    where = "--split" if args.split is not None else f"DATA_SPLIT.test of {args.data_cfg}"
+    split = safe_component(dataset.split, "split", where)
+    write_atomic(image_sets / f"{split}.txt", lambda f: f.write(listing.encode()))
     total = sum(len(dataset.seq_name_to_infos[n]) for n in names)
     frames: dict[str, dict] = {}
     with tqdm(total=total, desc=dataset.attack.variant, unit="frame") as progress:
         for name in names:
-            out_seq = wf.sequence_dir(out_root, name, dataset.processed_data_tag)
+            out_seq = output_sequence_dir(out_root, name, dataset.processed_data_tag)
             done = _done(out_seq, name, dataset.attack.variant, plain_cfg, _source(dataset, name))
             if done is not None:
                 frames.update(done)

@@ -43,7 +43,10 @@ def closed(properties: dict, optional: tuple[str, ...] = ()) -> dict:
 
 FRAC = {"type": "number", "minimum": 0.0, "maximum": 1.0}
 COUNT = {"type": "integer", "minimum": 0}
-NAME = {"type": "string", "minLength": 1}
+#: A name (model, config, checkpoint, class, sequence ...): one line of printable text, as it
+#: becomes a line of report.md and a cell of its tables; a newline or another control character
+#: (C0, DEL, C1) is refused. ``(?!\n)``: Python's ``$`` also matches before a final newline.
+NAME = {"type": "string", "minLength": 1, "pattern": "^[^\x00-\x1f\x7f-\x9f]+$(?!\n)"}
 SIGNED_FRAC = {"type": "number", "minimum": -1.0, "maximum": 1.0}
 HISTOGRAM = closed(
     {

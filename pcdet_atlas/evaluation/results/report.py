@@ -42,6 +42,7 @@ from pcdet_atlas.evaluation.results.tables import (
     ordered_variants,
     variant_label,
 )
+from pcdet_atlas.utils.files import write_atomic
 
 __all__ = [
     "DEFAULT_LOT_CONTROL",
@@ -345,7 +346,9 @@ def write_report(
 
     Returns ``{'report': path, 'latex': path | None, 'figures': {file: path | reason}}``; a
     figure that cannot be drawn from these results is named in the report with the reason, and
-    what a figure leaves out is written under it.
+    what a figure leaves out is written under it. Each file is written whole
+    (:func:`~pcdet_atlas.utils.files.write_atomic`): a symlink at its name in a received report
+    folder is replaced, not written through.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -386,8 +389,7 @@ def write_report(
         lines += [format_table(r, "markdown"), ""]
     if appendix:
         lines += [appendix, ""]
-    report = out_dir / "report.md"
-    report.write_text("\n".join(lines))
+    report = write_atomic(out_dir / "report.md", lambda f: f.write("\n".join(lines).encode()))
     tex = None
     if latex:
         parts = ["% ATLAS report tables (booktabs)", ""]
@@ -396,6 +398,5 @@ def write_report(
         for title, table in tables:
             parts += [f"% {title}", "\\begin{table}[t]", "\\centering", "\\small", table,
                       f"\\caption{{{latex_escape(title)}}}", "\\end{table}", ""]  # fmt: skip
-        tex = out_dir / "report.tex"
-        tex.write_text("\n".join(parts))
+        tex = write_atomic(out_dir / "report.tex", lambda f: f.write("\n".join(parts).encode()))
     return {"report": report, "latex": tex, "figures": drawn}

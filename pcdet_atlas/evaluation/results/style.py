@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from pcdet_atlas.evaluation.results.tables import ordered_variants, variant_label
+from pcdet_atlas.utils.files import write_atomic
 
 __all__ = [
     "DOUBLE_COLUMN_IN",
@@ -202,13 +203,16 @@ def data_norm(values, pad: float = 0.05):
 
 def save_figure(fig, path: Path) -> Path:
     """Write ``fig`` as a PNG at ``path`` and as a PDF beside it (``path`` with ``.pdf``), folder
-    made, with :data:`PNG_METADATA` / :data:`PDF_METADATA`; -> ``path`` (the PNG)."""
+    made, with :data:`PNG_METADATA` / :data:`PDF_METADATA`, each file whole
+    (:func:`~pcdet_atlas.utils.files.write_atomic`: a symlink at its name is replaced, not
+    written through); -> ``path`` (the PNG)."""
     path = Path(path)
     if path.suffix != ".png":
         raise ValueError(f"{path}: a figure is written as <name>.png (and <name>.pdf beside it)")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, format="png", metadata=PNG_METADATA)
-    fig.savefig(path.with_suffix(".pdf"), format="pdf", metadata=PDF_METADATA)
+    write_atomic(path, lambda f: fig.savefig(f, format="png", metadata=PNG_METADATA))
+    write_atomic(
+        path.with_suffix(".pdf"), lambda f: fig.savefig(f, format="pdf", metadata=PDF_METADATA)
+    )
     return path
 
 
