@@ -26,7 +26,13 @@ import argparse
 from pcdet_atlas.config import cfg_from_list, cfg_from_yaml_file, resolve_cli_path
 from pcdet_atlas.train_utils.atlas_eval import atlas_section
 from pcdet_atlas.train_utils.score_predictions import FORMATS, score_predictions
-from pcdet_atlas.utils.cli import add_debug_flag, add_plugin_flag, import_plugins, run_tool
+from pcdet_atlas.utils.cli import (
+    add_debug_flag,
+    add_plugin_flag,
+    add_set_flag,
+    import_plugins,
+    run_tool,
+)
 from pcdet_atlas.utils.common import create_logger
 
 DEFAULT_CLASSES = "Vehicle,Pedestrian,Cyclist"
@@ -47,10 +53,7 @@ def parse_args(argv=None):
         "--data_cfg", required=True, help="DATA_CONFIG YAML, or a model config holding one"
     )
     parser.add_argument("--data_path", default=None, help="the dataset root (its DATA_PATH)")
-    parser.add_argument(
-        "--set", dest="set_cfgs", default=None, nargs=argparse.REMAINDER,
-        help="KEY VALUE ... overrides of --data_cfg (last on the line)",
-    )  # fmt: skip
+    add_set_flag(parser, help="KEY VALUE ... overrides of --data_cfg (last on the line)")
     parser.add_argument(
         "--predictions", type=prediction_arg, nargs="+", required=True, metavar="VARIANT=FILE",
         help="per variant, the file of its per-frame predictions",

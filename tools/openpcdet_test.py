@@ -22,7 +22,13 @@ from pathlib import Path
 from pcdet_atlas.config import resolve_cli_path
 from pcdet_atlas.integrations import openpcdet
 from pcdet_atlas.train_utils.setup import count_arg
-from pcdet_atlas.utils.cli import add_debug_flag, add_plugin_flag, import_plugins, run_tool
+from pcdet_atlas.utils.cli import (
+    add_debug_flag,
+    add_plugin_flag,
+    add_set_flag,
+    import_plugins,
+    run_tool,
+)
 from pcdet_atlas.utils.common import create_logger
 
 
@@ -38,10 +44,9 @@ def parse_args(argv=None):
     model.add_argument(
         "--data_path", default=None, help="the Waymo data root (default: DATA_CONFIG.DATA_PATH)"
     )
-    model.add_argument(
-        "--set", dest="set_cfgs", default=None, nargs=argparse.REMAINDER,
-        help="KEY VALUE ... overrides of the config, by OpenPCDet's cfg_from_list (last)",
-    )  # fmt: skip
+    add_set_flag(
+        model, help="KEY VALUE ... overrides of the config, by OpenPCDet's cfg_from_list (last)"
+    )
     evaluation = parser.add_argument_group("evaluation")
     evaluation.add_argument("--attacks", default="all", help="'all' or a comma list of variants")
     evaluation.add_argument(

@@ -83,7 +83,7 @@ from pcdet_atlas.train_utils.atlas_eval import (
 )
 from pcdet_atlas.train_utils.eval_folder import eval_dir, finished_variants, resolve_checkpoint
 from pcdet_atlas.train_utils.setup import load_cfg, lock_output_folder
-from pcdet_atlas.utils.cli import RenamedFlag, add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import RenamedFlag, add_debug_flag, add_set_flag, run_tool
 from pcdet_atlas.utils.common import create_logger, resolve_device, write_atomic
 from pcdet_atlas.utils.files import open_regular_file
 from pcdet_atlas.utils.hashing import file_sha256
@@ -130,13 +130,7 @@ def parse_args(argv=None):
     )
     io.add_argument("--cfgs", nargs="+", default=None, help="model configs (default: shipped)")
     io.add_argument("--attacks", default="all", help="variants of tools/test.py (default: all)")
-    io.add_argument(
-        "--set",
-        nargs=argparse.REMAINDER,
-        default=[],
-        dest="set_cfgs",
-        help="KEY VALUE pairs passed on to tools/test.py's --set",
-    )
+    add_set_flag(io, help="KEY VALUE pairs passed on to tools/test.py's --set", default=[])
     run = p.add_argument_group("how it runs")
     run.add_argument("--device", default=None, help="cpu / cuda (default: auto)")
     run.add_argument("--workers", default="2", help="loader workers of tools/test.py")

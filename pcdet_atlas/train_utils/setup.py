@@ -19,7 +19,7 @@ from pcdet_atlas.config import (
 )
 from pcdet_atlas.models.optimization import check_optimization_config
 from pcdet_atlas.train_utils.dist import init_dist_pytorch, init_dist_slurm
-from pcdet_atlas.utils.cli import RenamedFlag
+from pcdet_atlas.utils.cli import RenamedFlag, add_set_flag
 from pcdet_atlas.utils.common import resolve_device
 from pcdet_atlas.utils.locks import FolderLock, FolderLockedError
 from pcdet_atlas.utils.paths import (
@@ -82,10 +82,7 @@ def add_common_args(parser: argparse.ArgumentParser) -> dict[str, argparse._Argu
         help=f"dataloader workers per process (default: {DEFAULT_WORKERS}, OpenPCDet's 4 capped "
         "at the CPU count)",
     )  # fmt: skip
-    model.add_argument(
-        "--set", dest="set_cfgs", default=None, nargs=argparse.REMAINDER,
-        help="KEY VALUE pairs overriding the config (last on the command line)",
-    )  # fmt: skip
+    add_set_flag(model)
     outputs = parser.add_argument_group("outputs")
     outputs.add_argument(
         "--out_dir", "--output_root", action=RenamedFlag, old=("--output_root",),

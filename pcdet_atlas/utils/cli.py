@@ -34,6 +34,7 @@ __all__ = [
     "PluginError",
     "add_debug_flag",
     "add_plugin_flag",
+    "add_set_flag",
     "check_package_tree",
     "import_plugins",
     "is_user_error",
@@ -47,6 +48,17 @@ USER_ERROR_EXIT = 2
 def add_debug_flag(parser: argparse.ArgumentParser) -> None:
     """List ``--debug`` in the tool's ``--help`` (:func:`run_tool` reads and removes it)."""
     parser.add_argument(DEBUG_FLAG, action="store_true", help="show the full traceback of an error")
+
+
+def add_set_flag(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+    help: str = "KEY VALUE pairs overriding the config (last on the command line)",
+    default: list | None = None,
+) -> None:
+    """``--set KEY VALUE ...`` (``args.set_cfgs``): config overrides, the rest of the line."""
+    parser.add_argument(
+        "--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=default, help=help
+    )
 
 
 class PluginError(ValueError):

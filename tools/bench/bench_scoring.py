@@ -55,7 +55,7 @@ from pcdet_atlas.train_utils.score_predictions import (
     ATLAS_METADATA,
     score_predictions,
 )
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import add_debug_flag, add_set_flag, run_tool
 from pcdet_atlas.utils.common import save_pickle
 from pcdet_atlas.utils.safe_pickle import load_pickle
 
@@ -68,10 +68,9 @@ def parse_args(argv=None):
     parser.add_argument("--data_path", default=None, help="the dataset root (its DATA_PATH)")
     parser.add_argument("--repeats", type=int, default=1, help="rounds of both sides")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
-    parser.add_argument(
-        "--set", dest="set_cfgs", default=None, nargs=argparse.REMAINDER,
-        help="KEY VALUE ... overrides of --cfg, as the run had them (last on the line)",
-    )  # fmt: skip
+    add_set_flag(
+        parser, help="KEY VALUE ... overrides of --cfg, as the run had them (last on the line)"
+    )
     return parser.parse_args(argv)
 
 

@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from pcdet_atlas.attacks.trace_library import write_trace_library
 from pcdet_atlas.config import REPO_ROOT, resolve_cli_path
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import add_debug_flag, add_set_flag, run_tool
 from pcdet_atlas.utils.common import create_logger
 
 
@@ -36,13 +36,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument(
         "--overwrite", action="store_true", help="replace a library built with other filters"
     )
-    parser.add_argument(
-        "--set",
-        dest="set_cfgs",
-        nargs=argparse.REMAINDER,
-        default=None,
-        help="KEY VALUE pairs overriding config keys (last on the command line)",
-    )
+    add_set_flag(parser, help="KEY VALUE pairs overriding config keys (last on the command line)")
     return parser.parse_args(argv)
 
 

@@ -27,7 +27,7 @@ from pathlib import Path
 from pcdet_atlas.config import cfg_from_list, cfg_from_yaml_file
 from pcdet_atlas.models import build_network_from_config
 from pcdet_atlas.models.openpcdet_checkpoint import SPCONV_LAYOUTS, convert_openpcdet_checkpoint
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import add_debug_flag, add_set_flag, run_tool
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -43,10 +43,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--overwrite", action="store_true", default=False, help="replace an existing --out"
     )
-    parser.add_argument(
-        "--set", dest="set_cfgs", default=None, nargs=argparse.REMAINDER,
-        help="KEY VALUE pairs overriding the config",
-    )  # fmt: skip
+    add_set_flag(parser, help="KEY VALUE pairs overriding the config")
     return parser.parse_args(argv)
 
 

@@ -14,7 +14,7 @@ import argparse
 from pcdet_atlas.config import cfg_from_list, cfg_from_yaml_file, resolve_cli_path
 from pcdet_atlas.datasets import WaymoDataset
 from pcdet_atlas.datasets.gt_database import create_groundtruth_database, write_split_infos
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import add_debug_flag, add_set_flag, run_tool
 from pcdet_atlas.utils.common import create_logger
 
 
@@ -31,7 +31,7 @@ def main(argv: list[str] | None = None) -> None:
         help="processes cutting out the frames' objects (0: this one); the output does not "
         "depend on it",
     )  # fmt: skip
-    parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None, help='KEY VALUE pairs overriding config keys (last on the command line)')
+    add_set_flag(parser, help="KEY VALUE pairs overriding config keys (last on the command line)")
     args = parser.parse_args(argv)
     logger = create_logger()
     for cfg_file in args.cfg_file:

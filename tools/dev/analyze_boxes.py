@@ -26,7 +26,7 @@ from pcdet_atlas.evaluation.localization import (
     localization_errors,
     projected_ap,
 )
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import add_debug_flag, add_set_flag, run_tool
 from pcdet_atlas.utils.safe_pickle import load_pickle
 
 #: Components scaled by ``--project`` (the centre's along / across errors move together).
@@ -45,13 +45,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument(
         "--project", action="store_true", help="AP with the matched boxes' errors scaled"
     )
-    parser.add_argument(
-        "--set",
-        dest="set_cfgs",
-        nargs=argparse.REMAINDER,
-        default=None,
-        help="KEY VALUE pairs overriding config keys (last on the command line)",
-    )
+    add_set_flag(parser, help="KEY VALUE pairs overriding config keys (last on the command line)")
     return parser.parse_args(argv)
 
 

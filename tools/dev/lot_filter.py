@@ -36,7 +36,7 @@ from pcdet_atlas.train_utils.lot_analysis import (
     threshold_for_recall,
 )
 from pcdet_atlas.train_utils.setup import count_arg, load_cfg, require_dataset
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import add_debug_flag, add_set_flag, run_tool
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -49,13 +49,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--frames", type=count_arg(1), default=60, help="test frames")
     parser.add_argument("--recall", type=float, default=0.95, help="in-box keep rate of the rule")
     parser.add_argument("--attack", default=None, help="an injection variant for phantom voxels")
-    parser.add_argument(
-        "--set",
-        dest="set_cfgs",
-        nargs=argparse.REMAINDER,
-        default=None,
-        help="KEY VALUE pairs overriding config keys (last on the command line)",
-    )
+    add_set_flag(parser, help="KEY VALUE pairs overriding config keys (last on the command line)")
     return parser.parse_args(argv)
 
 

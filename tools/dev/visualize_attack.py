@@ -42,7 +42,7 @@ from pcdet_atlas.config import (  # noqa: E402
     resolve_cli_path,
 )
 from pcdet_atlas.ops.boxes import boxes_to_corners_3d  # noqa: E402
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import add_debug_flag, add_set_flag, run_tool
 
 CLASS_NAMES = ["Vehicle", "Pedestrian", "Cyclist"]
 
@@ -62,13 +62,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--bev_range", type=float, nargs=4, default=[-25.0, 55.0, -30.0, 30.0],
                         metavar=("XMIN", "XMAX", "YMIN", "YMAX"),
                         help="bird's-eye extent in metres")  # fmt: skip
-    parser.add_argument(
-        "--set",
-        dest="set_cfgs",
-        nargs=argparse.REMAINDER,
-        default=None,
-        help="KEY VALUE pairs overriding config keys (last on the command line)",
-    )
+    add_set_flag(parser, help="KEY VALUE pairs overriding config keys (last on the command line)")
     return parser.parse_args(argv)
 
 
