@@ -263,13 +263,14 @@ class TraceLibrary:
         regular_file(path, "trace library")
         try:
             with np.load(path, allow_pickle=False) as data:
-                missing = [
-                    k
-                    for k in (*cls.ARRAYS, "sequence", "obj_id", "num_frames", "build_info")
-                    if k not in data
-                ]
-                if missing:
-                    raise ValueError(f"{path}: not a trace library (missing arrays {missing})")
+                expected = (*cls.ARRAYS, "sequence", "obj_id", "num_frames", "build_info")
+                missing = [k for k in expected if k not in data]
+                unexpected = sorted(set(data.files) - set(expected))
+                if missing or unexpected:
+                    raise ValueError(
+                        f"{path}: not a trace library (missing arrays {missing}, unexpected "
+                        f"arrays {unexpected}; expected exactly {list(expected)})"
+                    )
                 arrays = {k: data[k] for k in data.files}
         except (OSError, EOFError, zipfile.BadZipFile, ValueError) as err:
             if str(path) in str(err):
@@ -278,8 +279,22 @@ class TraceLibrary:
                 f"{path}: cannot read the trace library (truncated or not a .npz written by "
                 f"tools/data/build_trace_library.py; rebuild it): {type(err).__name__}: {err}"
             ) from err
-        info = json.loads(str(arrays.pop("build_info")))
-        return cls(**arrays, build_info=info, path=path)
+        try:
+            info = json.loads(str(arrays.pop("build_info")))
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path}: build_info is not valid JSON ({err}); rebuild it") from err
+        if not isinstance(info, dict):
+            raise ValueError(
+                f"{path}: build_info must be a JSON object, got {type(info).__name__}; rebuild it"
+            )
+        try:
+            return cls(**arrays, build_info=info, path=path)
+        except (TypeError, ValueError) as err:
+            if str(path) in str(err):
+                raise
+            raise ValueError(
+                f"{path}: malformed trace library arrays: {type(err).__name__}: {err}"
+            ) from err
 
 
 # ---------------------------------------------------------------------------- building

@@ -11,6 +11,7 @@ Layout under ``root``::
 
 from __future__ import annotations
 
+import math
 import os
 import pickle
 from collections.abc import Sequence
@@ -310,15 +311,19 @@ def load_frame_points(path: str | Path, spare_rows: int = 0) -> np.ndarray:
             (the returned array is ``(N + spare_rows, 6)``): room for rows a caller appends
             without copying the frame (an injection attack's phantom).
 
-    Any read failure (missing, truncated, not an ``.npy``, object array) is re-raised as
-    :class:`WaymoFormatError` naming the file, chained to numpy's error.
+    Any read failure (missing, truncated, not an ``.npy``, a header shape the file's size does
+    not hold, object array) is re-raised as :class:`WaymoFormatError` naming the file, chained to
+    numpy's error.
     """
     path = Path(path)
     try:
         if spare_rows:
             points = _read_npy_with_spare_rows(path, int(spare_rows))
         else:
-            points = np.load(path, allow_pickle=False)
+            with open(path, "rb") as f:
+                _read_npy_header(f)
+                f.seek(0)
+                points = np.load(f, allow_pickle=False)
     except FileNotFoundError as err:
         raise WaymoFormatError(f"{path}: frame file not found") from err
     except (OSError, ValueError, EOFError) as err:
@@ -330,16 +335,34 @@ def load_frame_points(path: str | Path, spare_rows: int = 0) -> np.ndarray:
     return points
 
 
+def _read_npy_header(f) -> tuple[tuple[int, ...], bool, np.dtype]:
+    """``(shape, fortran_order, dtype)`` from the header of the ``.npy`` file open as ``f``,
+    checked against the file's size: the data after the header must be exactly ``shape`` times
+    the item size (else a header declaring a huge shape is allocated before the read fails).
+    Object arrays are left to ``np.load``, which refuses them."""
+    version = np.lib.format.read_magic(f)
+    if version == (1, 0):
+        shape, fortran_order, dtype = np.lib.format.read_array_header_1_0(f)
+    else:
+        shape, fortran_order, dtype = np.lib.format.read_array_header_2_0(f)
+    if not dtype.hasobject:
+        declared = math.prod(shape) * dtype.itemsize
+        file_size, header_size = os.fstat(f.fileno()).st_size, f.tell()
+        if file_size - header_size != declared:
+            raise ValueError(
+                f"the header declares shape {shape} of {dtype} ({declared} data bytes) but the "
+                f"file holds {file_size} bytes ({file_size - header_size} after the "
+                f"{header_size}-byte header)"
+            )
+    return shape, fortran_order, dtype
+
+
 def _read_npy_with_spare_rows(path: Path, spare_rows: int) -> np.ndarray:
     """``np.load`` of a 2-D C-ordered ``.npy`` file into a fresh array with ``spare_rows``
     uninitialised rows after the data (one read, no copy); any other layout or dtype is loaded
     by ``np.load`` and copied (so the checks and errors are those of a plain load)."""
     with open(path, "rb") as f:
-        version = np.lib.format.read_magic(f)
-        if version == (1, 0):
-            shape, fortran_order, dtype = np.lib.format.read_array_header_1_0(f)
-        else:
-            shape, fortran_order, dtype = np.lib.format.read_array_header_2_0(f)
+        shape, fortran_order, dtype = _read_npy_header(f)
         if len(shape) != 2 or fortran_order or dtype != np.float32:
             loaded = np.load(path, allow_pickle=False)
             if loaded.ndim != 2:

@@ -100,7 +100,8 @@ def load_generated_variant(folder: str | Path) -> GeneratedVariant:
 
     Raises:
         PredictionError: naming the file, for a folder without the metadata or the attack
-            config, or metadata that is not the generator's.
+            config, or metadata that is not the generator's (and the frame, for a record that is
+            not a dict).
     """
     folder = Path(folder)
     meta_path, yaml_path = folder / ATLAS_METADATA, folder / ATLAS_ATTACK_YAML
@@ -120,6 +121,12 @@ def load_generated_variant(folder: str | Path) -> GeneratedVariant:
             f"{meta_path}: expected a dict with 'variant' (a name) and 'frames' ({{frame_id: "
             "record}}), as tools/data/generate_atlas.py writes it"
         )
+    for frame, record in summary["frames"].items():
+        if not isinstance(record, Mapping):
+            raise PredictionError(
+                f"{meta_path}: 'frames'[{frame!r}] is a {type(record).__name__}, expected a dict "
+                "(the frame's attack record), as tools/data/generate_atlas.py writes it"
+            )
     return GeneratedVariant(summary["variant"], yaml_path.resolve(), summary["frames"])
 
 

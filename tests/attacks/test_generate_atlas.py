@@ -2,6 +2,7 @@
 writes per-LiDAR row counts that match the written frames."""
 
 import hashlib
+import re
 
 import numpy as np
 import pytest
@@ -11,8 +12,9 @@ from malicious_files import malicious_pickle
 from pcdet_atlas.attacks.lidar_fit import top_lidar_points
 from pcdet_atlas.config import REPO_ROOT
 from pcdet_atlas.datasets import waymo_format as wf
+from pcdet_atlas.utils.common import save_pickle
 from pcdet_atlas.utils.paths import UnsafePathError
-from pcdet_atlas.utils.safe_pickle import RefusedGlobalError
+from pcdet_atlas.utils.safe_pickle import RefusedGlobalError, load_pickle
 
 ATTACKS = REPO_ROOT / "cfgs" / "attacks"
 
@@ -135,6 +137,29 @@ def test_a_rerun_refuses_attack_metadata_that_would_run_code(source, tmp_path):
     with pytest.raises(RefusedGlobalError, match=rf"{meta}: refused to unpickle the global "):
         load_tool("data/generate_atlas").main(gen_args(cfg_path, out_dir))
     assert not marker.exists()
+
+
+def test_a_rerun_names_attack_metadata_that_is_not_the_tools(source, tmp_path):
+    """A finished sequence's ``<seq>_atlas.pkl`` that is no dict, or whose frames are not a
+    dict of dict records, is an error naming the file (``saved.get`` of a list was a bare
+    AttributeError)."""
+    root, cfg_path = source
+    out_dir = tmp_path / "out"
+    load_tool("data/generate_atlas").main(gen_args(cfg_path, out_dir))
+    (meta,) = wf.data_dir(out_dir).glob("*/*_atlas.pkl")
+    saved = load_pickle(meta)
+    (frame, record), *_ = saved["frames"].items()
+    for bad, message in [
+        ([saved], r"expected a dict, as this tool writes it, got list"),
+        ({**saved, "frames": list(saved["frames"])}, r"'frames' is a list, expected a dict"),
+        (
+            {**saved, "frames": {frame: list(record)}},
+            rf"'frames'\[{re.escape(repr(frame))}\] is a list",
+        ),
+    ]:
+        save_pickle(bad, meta)
+        with pytest.raises(ValueError, match=rf"{re.escape(str(meta))}: {message}"):
+            load_tool("data/generate_atlas").main(gen_args(cfg_path, out_dir))
 
 
 def test_a_resumed_out_dir_with_planted_symlinks_writes_nothing_through_them(source, tmp_path):

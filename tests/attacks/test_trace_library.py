@@ -1,3 +1,4 @@
+import json
 import os
 import re
 
@@ -115,6 +116,39 @@ def test_truncated_library_names_its_path(tiny_root, tmp_path):
         path.write_bytes(data[:size])
         with pytest.raises(ValueError, match=rf"{path}: cannot read the trace library"):
             TraceLibrary.load(path)
+
+
+def _library_arrays():
+    """The arrays of a one-trace library as :meth:`TraceLibrary.save` writes them."""
+    return dict(
+        points=np.zeros((2, 3), np.float32), intensity=np.zeros(2, np.float32),
+        elongation=np.zeros(2, np.float32), src_range=np.full(2, 10.0, np.float32),
+        offsets=np.array([0, 2]), box_size=np.array([[4.0, 2.0, 1.5]], np.float32),
+        sequence=np.array(["seq"]), obj_id=np.array(["obj"]), num_frames=np.array([1]),
+        build_info=np.array('{"split": "train"}'),
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        ({"extra": np.zeros(1)}, r"not a trace library \(missing arrays \[\], unexpected arrays "
+                                 r"\['extra'\]; expected exactly \['points', "),
+        ({"build_info": np.array("{not json")}, r"build_info is not valid JSON \(Expecting"),
+        ({"build_info": np.array("[1, 2]")}, r"build_info must be a JSON object, got list"),
+        ({"points": np.array(["a", "b"])}, r"malformed trace library arrays: ValueError: could"),
+    ],
+)  # fmt: skip
+def test_malformed_library_names_its_path(tmp_path, edit, message):
+    """A loadable .npz with an extra array, bad build_info JSON or an array of the wrong type is
+    a ValueError naming the library, not a bare TypeError/JSONDecodeError."""
+    path = tmp_path / "lib.npz"
+    arrays = _library_arrays()
+    info = json.loads(str(arrays.pop("build_info")))
+    assert TraceLibrary.load(TraceLibrary(**arrays, build_info=info).save(path)).build_info == info
+    np.savez(path, **{**_library_arrays(), **edit})
+    with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: {message}"):
+        TraceLibrary.load(path)
 
 
 def test_build_from_an_empty_split_names_the_split(tiny_root, tmp_path):

@@ -556,6 +556,36 @@ def test_gt_sampling_refuses_a_db_info_path_outside_the_data_root(tmp_path, wher
         GTSampling(root, CLASS_NAMES, ["dbinfos.pkl"], {"Vehicle": 2}, 5)
 
 
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        ("name path box3d_lidar num_points_in_gt difficulty", r"Vehicle\[1\] is a str, expected "
+                                                              r"a db_info dict with keys \['name'"),
+        (["name", "path"], r"Vehicle\[1\] is a list, expected a db_info dict"),
+    ],
+)  # fmt: skip
+def test_gt_sampling_refuses_a_db_info_that_is_not_a_dict(tmp_path, bad, message):
+    """``key not in info`` holds for a string naming every key: an entry that is no dict is
+    refused when the database loads, naming the info file, the class and the index."""
+    root = tmp_path / "root"
+    box = [0, 0, 0, 4, 2, 1.6, 0, 0, 0]
+    rng = np.random.default_rng(0)
+    _write_db(root, [("Vehicle", box, _obj_points(box, 10, rng)) for _ in range(2)])
+    with open(root / "dbinfos.pkl", "rb") as f:
+        infos = pickle.load(f)
+    infos["Vehicle"][1] = bad
+    with open(root / "dbinfos.pkl", "wb") as f:
+        pickle.dump(infos, f)
+    info_file = re.escape(str(root / "dbinfos.pkl"))
+    with pytest.raises(WaymoFormatError, match=rf"{info_file}: {message}"):
+        GTSampling(root, CLASS_NAMES, ["dbinfos.pkl"], {"Vehicle": 2}, 5)
+    infos["Vehicle"] = {"name": "Vehicle"}  # a class's entries that are no list
+    with open(root / "dbinfos.pkl", "wb") as f:
+        pickle.dump(infos, f)
+    with pytest.raises(WaymoFormatError, match=rf"{info_file}: Vehicle is a dict, expected a list"):
+        GTSampling(root, CLASS_NAMES, ["dbinfos.pkl"], {"Vehicle": 2}, 5)
+
+
 @pytest.mark.parametrize("key", ["DB_INFO_PATH", "DB_DATA_PATH"])
 def test_gt_sampling_refuses_db_paths_outside_the_data_root(tmp_path, key):
     """``DB_INFO_PATH`` / ``DB_DATA_PATH`` are relative to the data root and stay under it."""

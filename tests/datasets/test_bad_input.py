@@ -80,6 +80,25 @@ def test_not_an_npy_file(root):
         _dataset(root).get_lidar(SEQ, 1)
 
 
+@pytest.mark.parametrize("spare_rows", [0, 1000])  # a plain load and the injection's
+@pytest.mark.parametrize("rows", [10**13, 3])  # 218 TiB, or fewer rows than the file holds
+def test_npy_header_shape_not_matching_the_file_size(root, spare_rows, rows):
+    """The header's shape is checked against the file's size before anything is allocated: a
+    declared (10**13, 6) was a bare MemoryError."""
+    npy = wf.frame_npy_path(root, SEQ, 1)
+    with open(npy, "wb") as f:
+        header = {"descr": "<f4", "fortran_order": False, "shape": (rows, 6)}
+        np.lib.format.write_array_header_1_0(f, header)
+        f.write(np.zeros((10, 6), np.float32).tobytes())
+    size = npy.stat().st_size
+    with pytest.raises(
+        wf.WaymoFormatError,
+        match=rf"0001\.npy: cannot read frame points .*declares shape \({rows}, 6\) of float32 "
+        rf"\({rows * 24} data bytes\) but the file holds {size} bytes",
+    ):
+        wf.load_frame_points(npy, spare_rows)
+
+
 @pytest.mark.parametrize("columns", [5, 7])
 def test_wrong_column_count(root, columns):
     np.save(wf.frame_npy_path(root, SEQ, 1), np.zeros((10, columns), np.float32))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,7 @@ from pcdet_atlas.train_utils.eval_caches import EvalCaches
 from pcdet_atlas.train_utils.score_predictions import (
     PredictionError,
     is_generated_spec,
+    load_generated_variant,
     match_predictions,
     score_predictions,
 )
@@ -378,6 +380,24 @@ def test_absent_frames_of_a_submission_are_frames_without_detections():
         match_predictions([_frame(0)], infos, CLASSES, "f.bin", absent_is_empty=True)
     with pytest.raises(PredictionError, match=r"1 of the test split's 3 frames have no pred"):
         match_predictions([_frame(0), _frame(2)], infos, CLASSES, "f.pkl")
+
+
+@pytest.mark.parametrize(
+    "frames, pattern",
+    [
+        ([], r"expected a dict with 'variant' \(a name\) and 'frames'"),
+        ({"seq_000": {"spoofed": True}, "seq_001": [1, 2]},
+         r"'frames'\['seq_001'\] is a list, expected a dict \(the frame's attack record\)"),
+    ],
+)  # fmt: skip
+def test_generated_variant_records_must_be_dicts(tmp_path, frames, pattern):
+    """Each attack record of a generate_atlas output is a dict, or an error naming the file
+    and the frame (``{**record}`` of a list was a bare TypeError when the variant was scored)."""
+    meta = save_pickle({"variant": "rem_40", "attack_cfg": {}, "frames": frames},
+                       tmp_path / "atlas_attack_metadata.pkl")  # fmt: skip
+    (tmp_path / "atlas_attack.yaml").write_text("NAME: rem_40\n")
+    with pytest.raises(PredictionError, match=rf"{re.escape(str(meta))}: {pattern}"):
+        load_generated_variant(tmp_path)
 
 
 def test_frames_are_matched_in_any_order_and_by_time():

@@ -51,7 +51,7 @@ from pcdet_atlas.config import (
     to_plain,
 )
 from pcdet_atlas.datasets import waymo_format as wf
-from pcdet_atlas.utils.cli import add_debug_flag, run_tool
+from pcdet_atlas.utils.cli import add_debug_flag, add_set_flag, run_tool
 from pcdet_atlas.utils.common import create_logger, save_pickle
 from pcdet_atlas.utils.files import write_atomic
 from pcdet_atlas.utils.paths import join_under, safe_component
@@ -68,8 +68,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--out_dir", required=True, help="root of the written dataset")
     parser.add_argument("--split", default=None, help="split name (default: DATA_SPLIT.test)")
     parser.add_argument("--max_sequences", type=int, default=None, help="first N sequences only")
-    parser.add_argument("--set", dest="set_cfgs", nargs=argparse.REMAINDER, default=None,
-                        help="overrides of the attack config")  # fmt: skip
+    add_set_flag(parser, help="overrides of the attack config")
     return parser.parse_args(argv)
 
 
@@ -153,6 +152,23 @@ def _done(
     if not (meta_pkl.is_file() and info_pkl.is_file()):
         return None
     saved = load_pickle(meta_pkl)
+    if not isinstance(saved, dict):
+        raise ValueError(
+            f"{meta_pkl}: expected a dict, as this tool writes it, got {type(saved).__name__}; "
+            "use another --out_dir or delete it"
+        )
+    frames = saved.get("frames")
+    if not isinstance(frames, dict):
+        raise ValueError(
+            f"{meta_pkl}: 'frames' is a {type(frames).__name__}, expected a dict "
+            "{frame_id: record}; use another --out_dir or delete it"
+        )
+    for frame, record in frames.items():
+        if not isinstance(record, dict):
+            raise ValueError(
+                f"{meta_pkl}: 'frames'[{frame!r}] is a {type(record).__name__}, expected a dict "
+                "(the frame's attack record); use another --out_dir or delete it"
+            )
     if saved.get("variant") != variant:
         raise ValueError(
             f"{meta_pkl}: holds variant {saved.get('variant')!r}, not {variant!r}; "
@@ -171,7 +187,7 @@ def _done(
             f"{[old.get(k) for k in differ]} there, {[new.get(k) for k in differ]} now); "
             "use another --out_dir or delete it"
         )
-    return saved["frames"]
+    return frames
 
 
 def check_out_dir(out_root: Path, data_root: Path) -> None:

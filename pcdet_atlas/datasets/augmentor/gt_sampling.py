@@ -272,7 +272,18 @@ class GTSampling:
             if not isinstance(infos, dict):
                 raise WaymoFormatError(f"{path}: expected {{class: [db_info]}}, got {type(infos)}")
             for class_name in self.class_names:
-                for j, info in enumerate(infos.get(class_name, [])):
+                entries = infos.get(class_name, [])
+                if not isinstance(entries, list):
+                    raise WaymoFormatError(
+                        f"{path}: {class_name} is a {type(entries).__name__}, expected a list of "
+                        "db_info dicts"
+                    )
+                for j, info in enumerate(entries):
+                    if not isinstance(info, dict):
+                        raise WaymoFormatError(
+                            f"{path}: {class_name}[{j}] is a {type(info).__name__}, expected a "
+                            f"db_info dict with keys {list(DB_INFO_KEYS)}"
+                        )
                     for key in DB_INFO_KEYS:
                         if key not in info:
                             raise WaymoFormatError(f"{path}: {class_name}[{j}] lacks key {key!r}")
