@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import hashlib
 import logging
 import shutil
 from collections.abc import Mapping
@@ -45,11 +46,13 @@ from pcdet_atlas.train_utils.checkpoint import (
     model_config_sha256,
     training_seed,
 )
+from pcdet_atlas.train_utils.dist import all_gather_objects
 from pcdet_atlas.train_utils.eval_caches import EvalCaches
 from pcdet_atlas.train_utils.eval_folder import (
     check_eval_dir,
     eval_dir,
     finished_variants,
+    proposal_hashes,
     proposal_part,
     resolve_checkpoint,
 )
@@ -67,7 +70,7 @@ from pcdet_atlas.train_utils.setup import (
 from pcdet_atlas.utils.common import create_logger, save_pickle
 from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.provenance import source_revision
-from pcdet_atlas.utils.safe_pickle import load_pickle
+from pcdet_atlas.utils.safe_pickle import loads
 
 __all__ = [
     "EvalRun",
@@ -264,6 +267,32 @@ def _run(settings: EvalSettings, held: contextlib.ExitStack) -> dict:
     return {**runs[-1], "runs": runs}
 
 
+def _save_proposals(caches: EvalCaches, variant_dir: Path, rank: int) -> dict[str, str]:
+    """Write this process's clean proposals (if any; an earlier call's part is removed
+    otherwise), for a later resume; every process calls it. Returns the entry's
+    ``proposals_sha256`` (:func:`.proposal_hashes`)."""
+    part = proposal_part(variant_dir, rank)
+    if caches.clean_proposals:
+        save_pickle(caches.clean_proposals, part)
+    else:
+        part.unlink(missing_ok=True)
+    mine = file_sha256(part) if caches.clean_proposals else None
+    return proposal_hashes(variant_dir, all_gather_objects(mine))
+
+
+def _read_kept(path: Path, sha256: str | None) -> object:
+    """Unpickle a finished variant's file (restricted unpickler) from the bytes whose SHA-256
+    is checked against ``sha256``, the one its entry recorded (None: an older version's entry,
+    which records none)."""
+    data = path.read_bytes()
+    if sha256 is not None and (now := hashlib.sha256(data).hexdigest()) != sha256:
+        raise RuntimeError(
+            f"{path} changed since this call checked it (SHA-256 {now}, its entry recorded "
+            f"{sha256}); run --resume again to evaluate its variant again"
+        )
+    return loads(data, source=str(path))
+
+
 def _prediction_store(
     settings: EvalSettings, model: torch.nn.Module, logger: logging.Logger
 ) -> PredictionStore | None:
@@ -290,9 +319,11 @@ def evaluate_checkpoint(
 ) -> dict:
     """Every variant of one checkpoint; ``results.json`` is rewritten after each variant.
     ``finished``: the entries of the variants an earlier call finished (``resume``), kept; the
-    clean one's predictions (and this process's clean proposals) are read back for the others.
-    Each new entry's ``extra`` records its ``attack_sha256``, the file's the test split's
-    fingerprint; ``training_seed``: the checkpoint's (``results.json``'s), or None."""
+    clean one's predictions (and this process's clean proposals) are read back for the others,
+    each file checked against the SHA-256 its entry recorded. Each new entry's ``extra`` records
+    its ``attack_sha256`` and ``result_sha256`` (the clean one's also ``proposals_sha256``:
+    :func:`.proposal_hashes`), the file's the test split's fingerprint; ``training_seed``: the
+    checkpoint's (``results.json``'s), or None."""
     settings, cfg, rank, caches = run.settings, run.cfg, run.rank, run.caches
     atlas_cfg = cfg.get("ATLAS", {})
     context = run.context(logger)
@@ -303,26 +334,39 @@ def evaluate_checkpoint(
     for variant, attack in run.attacks.items():
         if variant in finished:
             entry = finished[variant]
+            recorded = entry["extra"]  # the hashes finished_variants compared
             write_files = settings.save_to_file and rank == 0  # the earlier call may not have
             if variant == "clean" or write_files:
-                kept_annos = load_pickle(out_dir / variant / "result.pkl")
+                kept_annos = _read_kept(
+                    out_dir / variant / "result.pkl", recorded.get("result_sha256")
+                )
             if write_files:
                 write_prediction_files(kept_annos, out_dir / variant / "final_result" / "data")
             if variant == "clean":  # its predictions are reused, its proposals seed the banks
                 part = proposal_part(out_dir / variant, rank)  # this process's frames
-                caches.keep_clean(kept_annos, load_pickle(part) if part.is_file() else None)
+                hashes = recorded.get("proposals_sha256")
+                if hashes is None:  # an older version's entry: the parts there, unverified
+                    proposals = _read_kept(part, None) if part.is_file() else None
+                else:
+                    sha = hashes.get(part.name)
+                    proposals = _read_kept(part, sha) if sha is not None else None
+                caches.keep_clean(kept_annos, proposals, source=str(part))
             logger.info(f"{variant}: kept from an earlier call (--resume)")
         else:
             entry, det_annos = evaluate_variant(
                 model, variant, attack, context, caches=caches, out_dir=out_dir / variant
             )
+            files = {}  # the hashes a resumed call checks before it reuses them
             if variant == "clean":
                 caches.keep_clean(det_annos)
-                if caches.clean_proposals:  # each rank's part, for a later resume
-                    save_pickle(caches.clean_proposals, proposal_part(out_dir / variant, rank))
+                files["proposals_sha256"] = _save_proposals(caches, out_dir / variant, rank)
+            if rank == 0:  # result.pkl is rank 0's
+                files["result_sha256"] = file_sha256(out_dir / variant / "result.pkl")
+                entry = {**entry, "extra": {**entry.get("extra", {}), **files}}
         if rank != 0:
             continue
-        # a kept entry holds this fingerprint already (finished_variants compared it)
+        # a kept entry holds this fingerprint and its files' hashes already (finished_variants
+        # compared them)
         extra = {**entry.get("extra", {}), "attack_sha256": run.fingerprints[variant]}
         entries[variant] = {**entry, "extra": extra}
         results = build_results(

@@ -22,11 +22,45 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
+import numpy as np
+
+from pcdet_atlas.datasets.proposal_history import PROPOSAL_COLUMNS
 from pcdet_atlas.models.prediction_store import PredictionStore
 from pcdet_atlas.train_utils.dist import all_gather_objects
 from pcdet_atlas.train_utils.proposal_bank import ProposalBank, frame_batches
 
-__all__ = ["EvalCaches", "VariantCache"]
+__all__ = ["EvalCaches", "VariantCache", "check_proposals"]
+
+
+def check_proposals(proposals, source: str) -> None:
+    """Check proposals read back (``source``: their file, named in errors) against the layout of
+    :meth:`~pcdet_atlas.train_utils.proposal_bank.ProposalBank.seedable`:
+    ``{(sequence_name, sample_idx): float32 (R, 11) rows}``.
+
+    Raises:
+        ValueError: naming ``source``, the key and what was expected.
+    """
+    if not isinstance(proposals, Mapping):
+        raise ValueError(
+            f"{source}: expected a dict {{(sequence_name, sample_idx): (R, {PROPOSAL_COLUMNS}) "
+            f"float32 rows}}, got {type(proposals).__name__}"
+        )
+    for key, rows in proposals.items():
+        if not (
+            isinstance(key, tuple) and len(key) == 2 and isinstance(key[0], str)
+            and isinstance(key[1], int) and not isinstance(key[1], bool)
+        ):  # fmt: skip
+            raise ValueError(f"{source}: key {key!r} is not a (sequence_name, sample_idx) pair")
+        if not (
+            isinstance(rows, np.ndarray) and rows.dtype == np.float32 and rows.ndim == 2
+            and rows.shape[1] == PROPOSAL_COLUMNS
+        ):  # fmt: skip
+            got = (f"{rows.dtype} array of shape {rows.shape}" if isinstance(rows, np.ndarray)
+                   else type(rows).__name__)  # fmt: skip
+            raise ValueError(
+                f"{source}[{key!r}]: expected float32 rows of shape (R, {PROPOSAL_COLUMNS}), "
+                f"got {got}"
+            )
 
 
 @dataclass(frozen=True)
@@ -77,11 +111,15 @@ class EvalCaches:
         self.clean_predictions = None
         self.clean_proposals = {}
 
-    def keep_clean(self, det_annos: list[dict], proposals: Mapping | None = None) -> None:
+    def keep_clean(
+        self, det_annos: list[dict], proposals: Mapping | None = None, *, source: str = "proposals"
+    ) -> None:
         """The clean variant's detections (and a process's clean proposals, read back by a
-        resumed call), for the variants after it."""
+        resumed call from ``source``: checked by :func:`check_proposals`), for the variants
+        after it."""
         self.clean_predictions = det_annos
-        if proposals:
+        if proposals is not None:
+            check_proposals(proposals, source)
             self.clean_proposals.update(proposals)
 
     def reuses_clean(self) -> bool:

@@ -6,6 +6,9 @@ Layout, per checkpoint: ``<output_root>/<group>/<tag>/<extra_tag>/eval/<name>/<s
 without ``.pth`` otherwise) holding ``results.json``, ``<TAG>.yaml`` (the merged config),
 ``log_eval_<time>.txt`` and per variant ``<variant>/result.pkl`` (and, for the clean variant of a
 model with a proposal bank, ``clean/proposals_rank<r>.pkl``: each process's clean proposals).
+A variant's ``results.json`` entry records the SHA-256 of those files (``extra.result_sha256``,
+the clean one's ``extra.proposals_sha256``: ``{file name: SHA-256}``), which a resumed call
+compares before it reuses them (:func:`finished_variants`).
 ``extra_tag``, ``eval_tag``, the checkpoint's and each variant's file name and the data's frame
 ids must each be one file or folder name (letters, digits, ``.``, ``_``, ``-``; not ``..``).
 While it writes an evaluation folder, a run (its rank 0) holds that folder's lock
@@ -24,14 +27,17 @@ from pcdet_atlas.evaluation import load_results
 from pcdet_atlas.train_utils.atlas_eval import atlas_section
 from pcdet_atlas.train_utils.checkpoint import CHECKPOINT_NAME
 from pcdet_atlas.train_utils.setup import output_dir_for
+from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.paths import join_under
 
 __all__ = [
+    "changed_kept_file",
     "check_eval_dir",
     "eval_dir",
     "eval_name",
     "finished_variants",
     "missing_proposal_parts",
+    "proposal_hashes",
     "proposal_part",
     "resolve_checkpoint",
 ]
@@ -110,7 +116,9 @@ def finished_variants(
     differs (or is missing), or it has targets but no per-run counts (``runs``: a file of
     schema 4 or older), or it is an attack variant evaluated without the clean predictions
     while this call evaluates ``clean``, or it is ``clean`` and a process's
-    ``clean/proposals_rank<r>.pkl`` is missing where another's is there: each of those is
+    ``clean/proposals_rank<r>.pkl`` is missing where another's is there, or its ``result.pkl``
+    (or the clean proposals) has another SHA-256 than its entry recorded
+    (:func:`changed_kept_file`; an older version's entry records none): each of those is
     evaluated again, as one uninterrupted call would. Every finished variant is evaluated again
     when ``dataset_fingerprint`` (this call's test split) differs from the file's
     ``extra.dataset_fingerprint``, or the file has none. Returns the kept entries and
@@ -163,6 +171,8 @@ def finished_variants(
             again[name] = "it was evaluated without the clean predictions this call has"
         elif name == "clean" and (missing := missing_proposal_parts(out_dir / name, world)):
             again[name] = f"{missing[0]} is missing (the clean proposals of its process)"
+        elif changed := changed_kept_file(out_dir / name, recorded, world):
+            again[name] = changed
         else:  # without targets there are no runs: an older file's null is []
             kept[name] = entry if entry["runs"] is not None else {**entry, "runs": []}
     return kept, again
@@ -175,3 +185,41 @@ def missing_proposal_parts(variant_dir: Path, world: int) -> list[Path]:
     if not any(part.is_file() for part in parts):
         return []
     return [part for part in parts if not part.is_file()]
+
+
+def changed_kept_file(variant_dir: Path, recorded: Mapping, world: int) -> str | None:
+    """Why a finished variant's files may not be reused (None: they may): its ``result.pkl``
+    (and the clean variant's ``proposals_rank<r>.pkl`` of ``world`` processes: those there) must
+    have the SHA-256 its entry's ``extra`` (``recorded``) holds. An entry of an older version
+    records none: its files are reused unverified, as that version reused them (evaluating
+    again every finished model of a shared output folder would cost hours; the hashes guard
+    against a file swapped or rewritten by mistake, as whoever can write the folder can also
+    rewrite ``results.json``)."""
+    if "result_sha256" not in recorded:
+        return None
+    expected, names = {"result.pkl": recorded["result_sha256"]}, ["result.pkl"]
+    if variant_dir.name == "clean":
+        if "proposals_sha256" not in recorded:
+            return None
+        expected.update(recorded["proposals_sha256"])
+        names += [proposal_part(variant_dir, rank).name for rank in range(world)]
+    if unknown := sorted(set(expected) - set(names)):
+        return f"its entry records {unknown[0]}, not a proposal file of {world} processes"
+    for path in (variant_dir / name for name in names):
+        if path.name not in expected:
+            if path.is_file():
+                return f"{path} is not recorded by its entry (extra.proposals_sha256)"
+        elif not path.is_file():
+            return f"{path} is missing (its entry recorded its SHA-256)"
+        elif (now := file_sha256(path)) != expected[path.name]:
+            return (
+                f"the SHA-256 of {path} differs from the one its entry recorded "
+                f"({expected[path.name]}, now {now})"
+            )
+    return None
+
+
+def proposal_hashes(variant_dir: Path, hashes: list[str | None]) -> dict[str, str]:
+    """The clean variant's ``extra.proposals_sha256``: ``{file name: SHA-256}`` of each
+    process's proposal part (``hashes[rank]``; None: that process wrote none)."""
+    return {proposal_part(variant_dir, rank).name: sha for rank, sha in enumerate(hashes) if sha}

@@ -30,7 +30,12 @@ from pcdet_atlas.models.detectors.detector3d_template import CheckpointMismatchE
 from pcdet_atlas.train_utils import atlas_run
 from pcdet_atlas.train_utils.atlas_eval import attack_sha256, build_variant_attacks
 from pcdet_atlas.train_utils.eval_caches import EvalCaches
-from pcdet_atlas.train_utils.eval_folder import finished_variants, resolve_checkpoint
+from pcdet_atlas.train_utils.eval_folder import (
+    changed_kept_file,
+    finished_variants,
+    proposal_hashes,
+    resolve_checkpoint,
+)
 from pcdet_atlas.train_utils.setup import load_cfg
 from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.provenance import source_revision
@@ -430,27 +435,151 @@ def test_resume_names_a_corrupt_results_file(eval_setup, tmp_path):
         test.main(args)
 
 
+def resume_clean(tmp_path, clean_files):
+    """``evaluate_checkpoint`` keeping a finished clean variant whose ``clean/`` holds
+    ``clean_files`` (``{name: bytes}``), its entry recording their SHA-256."""
+    clean = tmp_path / "clean"
+    clean.mkdir(exist_ok=True)
+    for name, data in clean_files.items():
+        (clean / name).write_bytes(data)
+    recorded = {"result_sha256": file_sha256(clean / "result.pkl"),
+                "proposals_sha256": {name: file_sha256(clean / name)
+                                     for name in clean_files if name != "result.pkl"}}  # fmt: skip
+    run = atlas_run.EvalRun(
+        settings=atlas_run.EvalSettings(cfg_file=str(CFG)), cfg=cfg_from_yaml_file(CFG),
+        attacks={"clean": None}, fingerprints={}, dataset_fingerprint=None,
+        device=torch.device("cpu"), batch_size=1, caches=EvalCaches(),
+    )  # fmt: skip
+    return lambda: atlas_run.evaluate_checkpoint(
+        run, None, tmp_path / "a.pth", tmp_path, finished={"clean": {"extra": recorded}},
+        ckpt_sha256="", logger=logging.getLogger("test_resume"),
+    )  # fmt: skip
+
+
+CLEAN_ANNOS = pickle.dumps([{"frame_id": "f", "score": np.zeros(0)}])
+
+
 @pytest.mark.parametrize("evil", ["result.pkl", "proposals_rank0.pkl"])
 def test_resume_refuses_kept_files_that_would_run_code(tmp_path, evil):
     """``--resume`` reads a finished variant's ``result.pkl`` and the clean run's proposals
     with the restricted unpickler."""
-    cfg = cfg_from_yaml_file(CFG)
-    run = atlas_run.EvalRun(
-        settings=atlas_run.EvalSettings(cfg_file=str(CFG)), cfg=cfg, attacks={"clean": None},
-        fingerprints={}, dataset_fingerprint=None, device=torch.device("cpu"), batch_size=1,
-        caches=EvalCaches(),
+    marker = tmp_path / "marker"
+    data = malicious_pickle(tmp_path / "evil.pkl", marker).read_bytes()
+    resume = resume_clean(tmp_path, {"result.pkl": CLEAN_ANNOS, evil: data})
+    path = tmp_path / "clean" / evil
+    with pytest.raises(RefusedGlobalError, match=rf"{path}: refused to unpickle the global "):
+        resume()
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize(
+    "proposals, message",
+    [
+        ([np.zeros((1, 11), np.float32)], "expected a dict"),
+        ({"seq_0": np.zeros((1, 11), np.float32)}, "key 'seq_0' is not a (sequence_name"),
+        ({("seq", 0): np.zeros((1, 9), np.float32)}, "float32 array of shape (1, 9)"),
+        ({("seq", 0): np.zeros((1, 11), np.float64)}, "float64 array of shape (1, 11)"),
+        ({("seq", 0): [[0.0] * 11]}, "expected float32 rows of shape (R, 11), got list"),
+    ],
+)  # fmt: skip
+def test_resume_refuses_malformed_clean_proposals(tmp_path, proposals, message):
+    """The clean proposals read back must be ``{(sequence_name, sample_idx): float32 (R, 11)}``,
+    as the proposal bank gives them; the error names the file (and the key)."""
+    resume = resume_clean(
+        tmp_path, {"result.pkl": CLEAN_ANNOS, "proposals_rank0.pkl": pickle.dumps(proposals)}
+    )
+    part = tmp_path / "clean" / "proposals_rank0.pkl"
+    with pytest.raises(ValueError, match=re.escape(str(part)) + ".*" + re.escape(message)):
+        resume()
+
+
+def test_resume_refuses_kept_files_changed_after_the_check(tmp_path):
+    """A kept file whose bytes differ from the SHA-256 finished_variants compared (rewritten
+    since) is an error naming it, not read."""
+    rows = {("seq", 0): np.zeros((2, 11), np.float32)}
+    resume = resume_clean(
+        tmp_path, {"result.pkl": CLEAN_ANNOS, "proposals_rank0.pkl": pickle.dumps(rows)}
+    )
+    part = tmp_path / "clean" / "proposals_rank0.pkl"
+    part.write_bytes(pickle.dumps({("seq", 0): np.ones((2, 11), np.float32)}))
+    with pytest.raises(RuntimeError, match=re.escape(f"{part} changed since this call checked")):
+        resume()
+
+
+def test_resume_evaluates_again_a_variant_whose_kept_files_changed(
+    eval_setup, tmp_path, monkeypatch
+):
+    """``results.json`` records the SHA-256 of each variant's ``result.pkl``; ``--resume``
+    evaluates again a variant whose file differs from it (its clean predictions would stand
+    for the attack variants' untouched frames) and keeps an untouched one, or one whose entry
+    recorded none (an older version's, reused as that version did)."""
+    test = load_tool("test")
+    args = with_attacks(tool_args(eval_setup, tmp_path, "hashes"), "clean")
+    eval_dir = tmp_path / "atlas/synthetic/centerpoint/hashes/eval/random/val/default"
+    test.main(args)
+    clean = eval_dir / "clean" / "result.pkl"
+    entry = load_results(eval_dir / "results.json")["variants"]["clean"]
+    assert entry["extra"]["result_sha256"] == file_sha256(clean)
+    assert entry["extra"]["proposals_sha256"] == {}  # no proposal bank: no parts
+    real, called = atlas_run.evaluate_variant, []
+    monkeypatch.setattr(
+        atlas_run, "evaluate_variant", lambda model, variant, *a, **kw: (
+            called.append(variant) or real(model, variant, *a, **kw)
+        ),
     )  # fmt: skip
+    resumed = with_flags(with_attacks(args, "clean,rem_30"), "--resume")
+
+    annos = pickle.loads(clean.read_bytes())
+    assert sum(len(anno["score"]) for anno in annos) > 0
+    annos[0]["score"] = annos[0]["score"] * 0.5  # another prediction, still a valid file
+    recorded = file_sha256(clean)
+    clean.write_bytes(pickle.dumps(annos))
+    ret = test.main(resumed)
+    assert called == ["clean", "rem_30"]
+    assert ret["results"]["variants"]["clean"]["extra"]["result_sha256"] == file_sha256(clean)
+    assert file_sha256(clean) == recorded  # evaluated again: the predictions of the model
+    logs = "".join(p.read_text() for p in eval_dir.glob("log_eval_*.txt"))
+    assert (f"clean: finished by an earlier call, evaluated again: the SHA-256 of {clean} "
+            f"differs from the one its entry recorded ({recorded}, now ") in logs  # fmt: skip
+
+    called.clear()
+    test.main(resumed)  # untouched: both kept
+    assert called == []
+
+    older = load_results(eval_dir / "results.json")
+    for variant in ("clean", "rem_30"):
+        del older["variants"][variant]["extra"]["result_sha256"]
+    del older["variants"]["clean"]["extra"]["proposals_sha256"]
+    save_results(older, eval_dir / "results.json")
+    test.main(with_attacks(resumed, "clean,rem_30,rem_40"))
+    assert called == ["rem_40"]  # the older entries kept, their clean predictions reused
+
+
+def test_changed_kept_file_compares_the_clean_proposal_parts(tmp_path):
+    """The clean variant's proposal parts: each must be there with its recorded SHA-256, and
+    none there unrecorded."""
     clean = tmp_path / "clean"
     clean.mkdir()
-    (clean / "result.pkl").write_bytes(pickle.dumps([{"frame_id": "f", "score": np.zeros(0)}]))
-    marker = tmp_path / "marker"
-    path = malicious_pickle(clean / evil, marker)
-    with pytest.raises(RefusedGlobalError, match=rf"{path}: refused to unpickle the global "):
-        atlas_run.evaluate_checkpoint(
-            run, None, tmp_path / "a.pth", tmp_path, finished={"clean": {}}, ckpt_sha256="",
-            logger=logging.getLogger("test_resume"),
-        )  # fmt: skip
-    assert not marker.exists()
+    for name in ("result.pkl", "proposals_rank0.pkl", "proposals_rank1.pkl"):
+        (clean / name).write_bytes(name.encode())
+    recorded = {"result_sha256": file_sha256(clean / "result.pkl"),
+                "proposals_sha256": proposal_hashes(clean, [
+                    file_sha256(clean / f"proposals_rank{r}.pkl") for r in range(2)])}  # fmt: skip
+    assert changed_kept_file(clean, recorded, world=2) is None
+    part = clean / "proposals_rank1.pkl"
+    part.write_bytes(b"other")
+    assert f"the SHA-256 of {part} differs from the one its entry recorded" in changed_kept_file(
+        clean, recorded, world=2)  # fmt: skip
+    part.unlink()
+    missing = changed_kept_file(clean, recorded, world=2)
+    assert missing == f"{part} is missing (its entry recorded its SHA-256)"
+    rank0 = file_sha256(clean / "proposals_rank0.pkl")
+    one = {**recorded, "proposals_sha256": {"proposals_rank0.pkl": rank0}}
+    assert changed_kept_file(clean, one, world=2) is None
+    part.write_bytes(b"planted")
+    assert f"{part} is not recorded by its entry" in changed_kept_file(clean, one, world=2)
+    assert changed_kept_file(clean, {"result_sha256": recorded["result_sha256"]}, world=2) is None
+    assert changed_kept_file(clean, {}, world=2) is None  # an older version's entry
 
 
 def test_eval_all_from_start_epoch_and_save_to_file(eval_setup, tmp_path, capsys, monkeypatch):

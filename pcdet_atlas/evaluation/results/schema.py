@@ -36,6 +36,7 @@ __all__ = [
 SCHEMA_VERSION = 8
 METRIC_KEYS = ("L1/mAP", "L1/mAPH", "L2/mAP", "L2/mAPH")
 CLASS_METRIC_KEYS = ("L1/AP", "L1/APH", "L2/AP", "L2/APH")
+SHA256 = {"type": "string", "pattern": "^[0-9a-f]{64}$"}
 
 
 # ---------------------------------------------------------------------------- JSON Schema
@@ -53,7 +54,20 @@ def _core_properties() -> dict:
         # frames that took the clean run's prediction / ran the model; None before schema 4
         "num_reused_frames": nullable(COUNT),
         "num_recomputed_frames": nullable(COUNT),
-        "extra": {"type": "object"},
+        # free-form, but for the keys stated; an older entry without them stays valid
+        "extra": {
+            "type": "object",
+            "properties": {
+                # the SHA-256 of the variant's result.pkl, and of the clean variant's proposal
+                # parts (pcdet_atlas.train_utils.eval_folder: a resumed call checks them)
+                "result_sha256": SHA256,
+                "proposals_sha256": {
+                    "type": "object",
+                    "propertyNames": {"pattern": "^proposals_rank[0-9]+[.]pkl$"},
+                    "additionalProperties": SHA256,
+                },
+            },
+        },
     }
 
 
@@ -104,7 +118,7 @@ def results_schema() -> dict:
                     "type": "object",
                     "properties": {
                         # the test split's pcdet_atlas.datasets.fingerprint.dataset_fingerprint
-                        "dataset_fingerprint": {"type": "string", "pattern": "^[0-9a-f]{64}$"},
+                        "dataset_fingerprint": SHA256,
                     },
                 },
             },
