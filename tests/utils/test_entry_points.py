@@ -18,7 +18,7 @@ def test_pyproject_declares_each_command_and_each_runs_an_existing_tool():
             getattr(entry_points, function)
         )
         assert (REPO_ROOT / COMMANDS[command]).is_file(), command
-    assert project["dynamic"] == ["version"] and "torch>=2.1" in project["dependencies"]
+    assert project["dynamic"] == ["version"] and "torch>=2.5" in project["dependencies"]
 
 
 def test_a_command_runs_its_tool_with_the_given_flags(capsys, monkeypatch):
