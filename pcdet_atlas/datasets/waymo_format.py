@@ -317,13 +317,7 @@ def load_frame_points(path: str | Path, spare_rows: int = 0) -> np.ndarray:
     """
     path = Path(path)
     try:
-        if spare_rows:
-            points = _read_npy_with_spare_rows(path, int(spare_rows))
-        else:
-            with open(path, "rb") as f:
-                _read_npy_header(f)
-                f.seek(0)
-                points = np.load(f, allow_pickle=False)
+        points = _read_npy_with_spare_rows(path, int(spare_rows))
     except FileNotFoundError as err:
         raise WaymoFormatError(f"{path}: frame file not found") from err
     except (OSError, ValueError, EOFError) as err:
@@ -359,8 +353,9 @@ def _read_npy_header(f) -> tuple[tuple[int, ...], bool, np.dtype]:
 
 def _read_npy_with_spare_rows(path: Path, spare_rows: int) -> np.ndarray:
     """``np.load`` of a 2-D C-ordered ``.npy`` file into a fresh array with ``spare_rows``
-    uninitialised rows after the data (one read, no copy); any other layout or dtype is loaded
-    by ``np.load`` and copied (so the checks and errors are those of a plain load)."""
+    (possibly 0) uninitialised rows after the data: one header parse (checked against the file's
+    size, :func:`_read_npy_header`), one read, no copy; any other layout or dtype is loaded by
+    ``np.load`` and copied (so the checks and errors are those of a plain load)."""
     with open(path, "rb") as f:
         shape, fortran_order, dtype = _read_npy_header(f)
         if len(shape) != 2 or fortran_order or dtype != np.float32:

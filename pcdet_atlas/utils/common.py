@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from pcdet_atlas.config import REPO_ROOT
-from pcdet_atlas.utils.files import write_atomic  # its home before utils/files.py
+from pcdet_atlas.utils.files import write_atomic  # save_pickle's writer, also imported from here
 
 LOG_FORMAT = "%(asctime)s  %(levelname)5s  %(message)s"
 
