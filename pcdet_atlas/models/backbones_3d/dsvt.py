@@ -66,8 +66,8 @@ class SetAttention(nn.Module):
         set_feats = src[voxel_inds]  # (S, T, C)
         qk = set_feats + pos[voxel_inds]
         out = self.self_attn(qk, qk, set_feats, key_padding_mask=key_padding_mask)[0]
-        # back to voxels: a voxel in two sets (the last slot of one, the first of the next)
-        # takes its first occurrence, as the released code does
+        # back to voxels: a voxel repeated to fill a window's sets (its copies sit in one set,
+        # next to each other) takes the output of its first occurrence, as the released code does
         flat = voxel_inds.reshape(-1)
         first = torch.full((src.shape[0],), flat.numel(), dtype=torch.long, device=src.device)
         first = first.scatter_reduce(
