@@ -10,6 +10,7 @@ from malicious_files import malicious_checkpoint
 from model_batches import make_batch
 
 from pcdet_atlas.config import REPO_ROOT, ConfigError, cfg_from_yaml_file
+from pcdet_atlas.evaluation.results.archive import archive_name
 from pcdet_atlas.models import build_network, build_network_from_config, num_point_features_of
 from pcdet_atlas.models.detectors.detector3d_template import CheckpointMismatchError
 from pcdet_atlas.registry import DETECTORS
@@ -36,6 +37,26 @@ def test_there_are_configs():
     assert {"centerpoint.yaml", "cp4f.yaml", "synthetic/centerpoint.yaml"} <= names
     assert "synthetic/cp4f.yaml" in names
     assert {"centerpoint_voxel.yaml", "cp4f_voxel.yaml"} | NOT_SHIPPED <= names
+
+
+@pytest.mark.parametrize("folder", ["cfgs/atlas", "cfgs/atlas/synthetic"])
+def test_models_that_can_be_reported_together_have_names_apart(folder):
+    """A report (and make reproduce's archive) takes one results file per ATLAS.MODEL_NAME, and
+    its archive one per name's letters and digits: the configs of one dataset whose checkpoint
+    is named (shipped or to be trained; for real Waymo every config) must differ there, or
+    reporting them together stops at the end of the evaluations."""
+    paths = sorted((REPO_ROOT / folder).rglob("*.yaml") if "synthetic" in folder
+                   else (REPO_ROOT / folder).glob("*.yaml"))  # fmt: skip
+    named = {}
+    for path in paths:
+        atlas = cfg_from_yaml_file(path).get("ATLAS", {})
+        if "synthetic" in folder and not atlas.get("CHECKPOINT"):
+            continue  # a training stage or a development config: nothing evaluates it by default
+        named.setdefault(archive_name(atlas.get("MODEL_NAME") or path.stem), []).append(
+            str(path.relative_to(REPO_ROOT))
+        )
+    assert len(named) >= 8
+    assert not {name: cfgs for name, cfgs in named.items() if len(cfgs) > 1}
 
 
 def cropped_model(cfg):
