@@ -27,7 +27,6 @@ NOT_SHIPPED = {
     "synthetic/centerformer.yaml",
     "synthetic/centerpoint_seed667.yaml",
     "synthetic/centerpoint_voxel.yaml",
-    "synthetic/cp4f_voxel.yaml",
     "synthetic/dsvt.yaml",
 }
 
