@@ -30,6 +30,15 @@ class RegistryError(KeyError):
         return str(self.args[0]) if self.args else ""
 
 
+def _describe(obj: Any) -> str:
+    """``module.QualName`` of a registered class or function; for an instance (an analysis, a
+    confidence kind), that of its class."""
+    qualname = getattr(obj, "__qualname__", None)
+    if qualname is None:
+        return f"an instance of {type(obj).__module__}.{type(obj).__qualname__}"
+    return f"{getattr(obj, '__module__', '?')}.{qualname}"
+
+
 class Registry:
     """A named mapping from string keys to classes (or factory functions)."""
 
@@ -50,11 +59,10 @@ class Registry:
         def decorator(obj: T) -> T:
             key = name or obj.__name__
             if key in self._items and self._items[key] is not obj:
-                existing = self._items[key]
                 raise RegistryError(
                     f"{self.name} registry: name {key!r} is already registered to "
-                    f"{existing.__module__}.{existing.__qualname__}; "
-                    f"cannot register {obj.__module__}.{obj.__qualname__} under the same name"
+                    f"{_describe(self._items[key])}; cannot register {_describe(obj)} under the "
+                    "same name"
                 )
             self._items[key] = obj
             return obj

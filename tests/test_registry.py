@@ -49,6 +49,25 @@ def test_duplicate_name_raises():
     reg.register("X")(A)
 
 
+def test_a_taken_name_names_both_instances():
+    """Analyses and confidence kinds register instances, which have no ``__qualname__``: the
+    error still names both (it was an AttributeError)."""
+    from pcdet_atlas.evaluation.analyses import ConfidenceKind, register_confidence_kind
+
+    class Kind:
+        pass
+
+    reg = Registry("thing")
+    reg.register("k")(Kind())
+    with pytest.raises(RegistryError, match=r"'k' is already registered to an instance of .*Kind;"
+                       r" cannot register an instance of .*Kind"):  # fmt: skip
+        reg.register("k")(Kind())
+    with pytest.raises(RegistryError, match="'injection' is already registered"):
+        register_confidence_kind(
+            ConfidenceKind(name="injection", compute=lambda data: {}, shown="x")
+        )
+
+
 def test_unknown_name_lists_known_and_suggests():
     reg = Registry("attack")
     reg.register("InjectionAttack")(type("InjectionAttack", (), {}))

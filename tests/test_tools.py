@@ -160,6 +160,32 @@ def test_a_user_error_is_one_line_and_exit_2_and_debug_shows_the_traceback():
     assert "--debug" in helped.stdout
 
 
+def test_a_tools_own_exit_message_is_a_user_error(monkeypatch, capsys):
+    """``raise SystemExit("...")`` in a tool (a missing dataset, a refused stage) ends as every
+    user error does: one line naming the tool, exit status 2 (Python's default for a message is
+    1); an exit status passes through."""
+    from pcdet_atlas.utils.cli import run_tool
+
+    monkeypatch.setattr(sys, "argv", [str(TOOLS / "test.py")])
+
+    def stops(code):
+        def main():
+            raise SystemExit(code)
+
+        return main
+
+    with pytest.raises(SystemExit) as done:
+        run_tool(stops("cfgs/x.yaml: DATA_CONFIG.DATA_PATH 'data/x' does not exist"), argv=[])
+    assert done.value.code == 2
+    assert capsys.readouterr().err == (
+        "test.py: error: cfgs/x.yaml: DATA_CONFIG.DATA_PATH 'data/x' does not exist\n"
+    )
+    for code in (0, 3, None):
+        with pytest.raises(SystemExit) as done:
+            run_tool(stops(code), argv=[])
+        assert done.value.code == code
+
+
 def test_a_bug_keeps_its_traceback():
     from pcdet_atlas.utils.cli import is_user_error, run_tool
 

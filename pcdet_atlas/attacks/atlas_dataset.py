@@ -53,7 +53,9 @@ class AtlasWaymoDataset(WaymoDataset):
     """A Waymo-format split with an ATLAS attack applied per frame.
 
     Args:
-        dataset_cfg, class_names, training, root_path, logger: as :class:`WaymoDataset`.
+        dataset_cfg, class_names, root_path, logger: as :class:`WaymoDataset`.
+        training: as :class:`WaymoDataset`, but the third argument here is ``attack_cfg`` and
+            ``training`` defaults to False (an attacked split is a test split).
         attack_cfg: a loaded attack YAML (``EasyDict``), the path of one, or a built
             :class:`~pcdet_atlas.attacks.base.BaseAttack`. Relative trace-library paths resolve
             under the dataset root.
@@ -136,8 +138,8 @@ class AtlasWaymoDataset(WaymoDataset):
         """Attacked points of one frame, ``(N', 5)`` float32 in the loader's feature space.
 
         A spoofed frame is simulated once and kept in the frame cache, so the windows of a
-        multi-frame input read in order reuse it as history; history frames come back
-        read-only, the current frame as a copy the sample owns.
+        multi-frame input read in order reuse it as history; with the cache on, history frames
+        come back read-only, the current frame as a copy the sample owns.
         """
         seq = self.sequence_data(sequence_name)
         if not self.attack.needs_simulation(sample_idx, seq.num_frames):

@@ -585,7 +585,10 @@ def waymo_evaluate(
 ) -> dict[str, float]:
     """Waymo L1/L2 AP and APH, identical to the official ``waymo-open-dataset`` 1.6.7 metric.
 
-    Args: as :func:`compute_waymo_curves`.
+    Args:
+        gt_annos, det_annos, class_names, matcher: as :func:`compute_waymo_curves` (whose
+            ``iou_thresholds`` this takes as Waymo's: Vehicle 0.7, Pedestrian and Cyclist 0.5;
+            other thresholds: :func:`compute_waymo_curves` and :func:`summarize_waymo_curves`).
 
     Returns:
         ``{'<Class>/L1/AP', '<Class>/L1/APH', '<Class>/L2/AP', '<Class>/L2/APH', ...,

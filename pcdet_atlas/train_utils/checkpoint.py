@@ -2,7 +2,8 @@
 
 A checkpoint is a dict ``{'epoch', 'it', 'epoch_it', 'epoch_loss_sums', 'model_state',
 'optimizer_state', 'scheduler_state', 'scaler_state', 'rng_state', 'cuda_rng_state',
-'train_settings', 'train_runs', 'version'}``; ``epoch`` counts the finished epochs and ``it``
+'train_settings', 'train_runs', 'version'}``, plus ``model_info`` (the model's class names and
+point features) where the model gives it; ``epoch`` counts the finished epochs and ``it``
 the optimizer steps taken; ``epoch_it`` the batches of the next epoch already trained (0 at an
 epoch's end; a ``latest_model.pth`` written mid-epoch has more) and ``epoch_loss_sums`` their
 summed losses; ``rng_state`` is torch's CPU generator and ``cuda_rng_state`` the CUDA generators
@@ -67,7 +68,8 @@ def checkpoint_state(
     train_settings: Mapping | None = None,
     train_runs: Sequence[Mapping] = (),
 ) -> dict:
-    """The checkpoint dict (tensors moved to CPU)."""
+    """The checkpoint dict (the model's tensors moved to CPU; the optimizer, scheduler and
+    scaler states as they are)."""
     state = {k: v.detach().cpu() for k, v in unwrap_model(model).state_dict().items()}
     info = getattr(unwrap_model(model), "checkpoint_info", None)
     return {

@@ -27,7 +27,8 @@ def init_dist_pytorch(backend: str | None = None, timeout_min: int = 30) -> tupl
     Args:
         backend: ``'nccl'`` / ``'gloo'``; default nccl if CUDA is available, else gloo.
     Returns:
-        ``(world_size, rank, local_rank)``; on GPU the process is bound to ``cuda:local_rank``.
+        ``(world_size, rank, local_rank)``; with the nccl backend the process is bound to
+        ``cuda:(local_rank % device_count)``.
     """
     for key in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
         if key not in os.environ:

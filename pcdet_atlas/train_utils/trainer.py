@@ -140,6 +140,8 @@ def train_one_epoch(
 
     Raises:
         RuntimeError: ``batches`` ran out before the epoch's ``epoch_batches``.
+        ValueError: only one of ``batches`` and ``epoch_batches`` is given.
+        FloatingPointError: a non-finite loss (the step and its batch are named).
     """
     if (batches is None) != (epoch_batches is None):
         raise ValueError("train_one_epoch: give both batches and epoch_batches, or neither")

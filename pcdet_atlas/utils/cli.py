@@ -5,7 +5,9 @@ error* is an exception the project raises on purpose about its input (any class 
 ``pcdet_atlas``, such as ``ConfigError`` or ``WaymoFormatError``) or a ``ValueError`` /
 ``OSError`` (a bad value, a missing or unreadable file): it prints ``<tool>: error: <message>``
 and exits with status 2, as argparse does for a bad flag. ``--debug`` anywhere on the command line
-shows the traceback instead. Any other exception is a bug and keeps its traceback.
+shows the traceback instead. A tool's own ``raise SystemExit("<message>")`` is a user error too
+(the same line and status; ``--debug`` prints the traceback before it). Any other exception is a
+bug and keeps its traceback.
 
 A tool refuses to run on the package of another tree (:func:`check_package_tree`): with two
 clones, an editable install of one would otherwise serve the other's tools its code, configs and
@@ -24,6 +26,7 @@ import importlib
 import importlib.util
 import os
 import sys
+import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -187,13 +190,23 @@ def run_tool(main: Callable[[], object], argv: list[str] | None = None) -> None:
     args = list(sys.argv[1:] if argv is None else argv)
     debug = DEBUG_FLAG in args
     sys.argv = [sys.argv[0], *(a for a in args if a != DEBUG_FLAG)]
+    tool = Path(sys.argv[0]).name
     try:
         check_package_tree(sys.argv[0])
         main()
+    except SystemExit as err:  # raise SystemExit("message"): a user error stated by the tool
+        if not isinstance(err.code, str):
+            raise  # an exit status (argparse's 2, a tool's own)
+        if debug:
+            traceback.print_exc()
+        message = " ".join(err.code.split())
+        if message.startswith(f"{tool}: error: "):  # stated in full already
+            message = message[len(f"{tool}: error: ") :]
+        print(f"{tool}: error: {message}", file=sys.stderr)
+        sys.exit(USER_ERROR_EXIT)
     except Exception as err:  # noqa: BLE001 - sorted into user errors and bugs below
         if debug or not is_user_error(err):
             raise
-        tool = Path(sys.argv[0]).name
         message = " ".join(str(err).split()) or type(err).__name__
         print(f"{tool}: error: {message} ({DEBUG_FLAG} shows the traceback)", file=sys.stderr)
         sys.exit(USER_ERROR_EXIT)

@@ -12,6 +12,7 @@ import runpy
 import sys
 
 from pcdet_atlas.config import REPO_ROOT
+from pcdet_atlas.utils.cli import USER_ERROR_EXIT
 
 __all__ = ["COMMANDS", "demo", "evaluate_predictions", "report", "reproduce", "test", "train"]
 
@@ -35,10 +36,12 @@ def run_command(command: str, argv: list[str] | None = None) -> None:
     """
     tool = REPO_ROOT / COMMANDS[command]
     if not tool.is_file():
-        raise SystemExit(
+        print(
             f"{command}: error: {tool} is missing; the console commands run the tools of a source "
-            "checkout: clone the repository and `pip install -e .` in it"
+            "checkout: clone the repository and `pip install -e .` in it",
+            file=sys.stderr,
         )
+        sys.exit(USER_ERROR_EXIT)
     sys.argv = [str(tool), *(sys.argv[1:] if argv is None else argv)]
     runpy.run_path(str(tool), run_name="__main__")
 

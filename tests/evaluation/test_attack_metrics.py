@@ -27,6 +27,7 @@ from pcdet_atlas.evaluation.analyses import (
     score_peak,
 )
 from pcdet_atlas.evaluation.intervals import asr_interval, wilson_cluster_interval
+from pcdet_atlas.evaluation.results import format_ranks
 from pcdet_atlas.ops.iou3d_nms import boxes_iou3d
 
 TARGET = np.array([20.0, 2.0, 1.0, 4.0, 2.0, 2.0, 0.3], dtype=np.float32)
@@ -486,6 +487,10 @@ def test_robustness_ranks_known_answer():
     assert low["per_setting"]["i2"] == {"A": 1.0, "B": 1.0, "C": 3.0}
     two = robustness_ranks({m: asr[m] for m in "AB"}, fam)
     assert two["fit"] is None  # two points always fit exactly
+    tied = {m: {**asr[m], "i1": 0.2, "i2": 0.2} for m in asr}  # one injection rank for all
+    flat = robustness_ranks(tied, fam)
+    assert flat["fit"] is None
+    assert "every model has the same injection rank" in format_ranks(flat)
     with pytest.raises(AttackMetricError, match="'C'.*'r2'"):
         robustness_ranks({**asr, "C": {"i1": 0.3, "i2": 0.5, "r1": 0.1}}, fam)
 

@@ -32,8 +32,9 @@ def run_counts(matches: TargetMatches) -> list[dict]:
     ``[{'sequence', 'run_id', 'num_targets', 'num_success', 'num_success_lenient'}, ...]``
     sorted by ``(sequence, run_id)``, one entry per run with at least one target. The unit of
     the ASR's interval, and what a paired comparison of two models needs
-    (:func:`paired_asr_differences`). ``run_counts(matches.select(mask))`` counts any subset
-    (the lifecycle counts the targets at one position k, shadows included)."""
+    (:func:`paired_asr_differences`). ``run_counts(matches.select(mask))`` counts the attacked
+    targets of a subset; :func:`counts_per_run` counts every target given, shadows included
+    (the lifecycle's count at one position k)."""
     attacked = matches.attacked()
     return counts_per_run(attacked)
 

@@ -40,9 +40,13 @@ def evaluate_attack(
     in the order they registered: the built-ins' :func:`~.asr.asr_from_matches`, ``confidence``
     (the kind the family's metadata names, :func:`~.confidence.confidence_of`: 'injection' or
     'removal', None for removal without ``clean_det_annos``; None without targets or kind) and
-    ``lifecycle`` (:func:`~.lifecycle.lifecycle_asr` when ``window`` is given, else None).
-    Arguments as :func:`~.matching.match_targets`; ``clean_det_annos``: the clean run's
-    predictions (removal confidence, the lifecycle's clean baseline).
+    ``lifecycle`` (:func:`~.lifecycle.lifecycle_asr` when ``window`` is given and there are
+    targets, else None). Arguments as :func:`~.matching.match_targets`; ``clean_det_annos``: the
+    clean run's predictions (removal confidence, the lifecycle's clean baseline);
+    ``recorded_window``: the attack schedule's window that the metadata's ``lifecycle_k`` counts
+    in (None: the default schedule's 32; an attack with another ``SCHEDULE.WINDOW`` must pass
+    it); ``high_score`` and ``num_bins``: the confidence analysis's score threshold and
+    histogram bins.
     """
     iou_fn = boxes_aligned_iou3d if iou_fn is None else iou_fn
     matches = match_targets(

@@ -29,7 +29,8 @@ def lifecycle_position(
     spoofed frames (k = 1..W) and the first W frames after the run (k = W+1..2W).
 
     Raises AttackMetricError where the record contradicts itself (a shadow target at 1..We or a
-    spoofed one outside it), which is what a wrong ``recorded_window`` produces.
+    spoofed one outside it), which is what a wrong ``recorded_window`` produces, and for a
+    ``window`` below 1 or above ``recorded_window``.
     """
     if window < 1 or recorded_window < window:
         raise AttackMetricError(

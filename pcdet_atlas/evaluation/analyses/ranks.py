@@ -62,7 +62,7 @@ def robustness_ranks(
         ``{'models': [...], 'tie_method', 'per_setting': {variant: {model: rank}},
         'group_ranks': {group: {model: r}}, 'fit_axes': [x group, y group], 'fit': {'slope',
         'intercept', 'r2', 'pearson_r', 'p_value', 'num_models'} or None}`` (None also when a
-        fit axis has no variant).
+        fit axis has no variant, or when every model has the same rank on the x axis).
     """
     from scipy.stats import rankdata
 

@@ -62,6 +62,7 @@ def archive_results(paths: Sequence[str | Path], folder: str | Path) -> list[Pat
     own models only). Returns the archived paths, in the order of ``paths``.
 
     Raises:
+        FileNotFoundError: a file of ``paths`` is missing.
         ResultsError: an unreadable or invalid file, or two files whose models share an archived
             name, naming them.
         UnsafePathError: ``folder`` is a symlink (nothing is written or removed through it).

@@ -164,6 +164,10 @@ def ranks_from_results(
 
     ``variants`` restricts the settings ranked (default: every variant of the first model with a
     ``rank_group``; every model must have them all, in the same group).
+
+    Raises:
+        ResultsError: two models of one name, or a variant missing or in another rank group.
+        AttackMetricError: a ranked variant without an ASR (no targets), naming model and variant.
     """
     models = [r["model"] for r in results_list]
     if len(set(models)) != len(models):

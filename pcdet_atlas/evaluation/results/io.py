@@ -226,7 +226,13 @@ UPGRADES = (
 
 
 def load_results_dir(root: str | Path, pattern: str = "**/results.json") -> list[dict]:
-    """All results files under ``root`` matching ``pattern``, sorted by path."""
+    """The results files under ``root`` matching ``pattern`` (by default every
+    ``results.json``; the compressed and ``<model>.results.json`` forms need their own pattern, or
+    :func:`~pcdet_atlas.evaluation.results.report.collect_results`), sorted by path.
+
+    Raises:
+        ResultsError: no file matches, or a file is invalid (naming it).
+    """
     paths = sorted(Path(root).glob(pattern))
     if not paths:
         raise ResultsError(f"{root}: no file matches {pattern!r}")

@@ -286,7 +286,10 @@ def format_ranks(ranks: Mapping, fmt: str = "text") -> str:
     table = _render(fmt, None, header, rows)
     fit, (x, y) = ranks["fit"], ranks["fit_axes"]
     if fit is None:
-        return table + f"\n\nlinear fit of the {y} rank on the {x} rank: not enough models"
+        why = "not enough models"
+        if x in ranks["group_ranks"] and len(set(ranks["group_ranks"][x].values())) == 1:
+            why = f"every model has the same {x} rank"
+        return table + f"\n\nlinear fit of the {y} rank on the {x} rank: {why}"
     return table + (
         f"\n\n{y} rank = {fit['slope']:.4f} * {x} rank + {fit['intercept']:.4f}"
         f"  (R^2 = {fit['r2']:.3f}, {fit['num_models']} models)"
