@@ -185,7 +185,7 @@ def train(args, held: contextlib.ExitStack) -> dict:
     )  # fmt: skip
 
     out_dir = output_dir_for(cfg, args.output_root, args.extra_tag)
-    ckpt_dir = out_dir / "ckpt"
+    ckpt_dir = output_dir_for(cfg, args.output_root, args.extra_tag, ("ckpt", "folder"))
     if rank == 0:
         lock_output_folder(out_dir, held, "tools/train.py training")
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -268,7 +268,8 @@ def train(args, held: contextlib.ExitStack) -> dict:
     if rank == 0:  # only once the resumed checkpoint agrees with it
         save_config(cfg, out_dir / f"{cfg.TAG}.yaml")
         log_config_to_file(cfg, logger)
-    tb_log = SummaryWriter(log_dir=str(out_dir / "tensorboard")) if rank == 0 else None
+    tb_dir = output_dir_for(cfg, args.output_root, args.extra_tag, ("tensorboard", "folder"))
+    tb_log = SummaryWriter(log_dir=str(tb_dir)) if rank == 0 else None
     if dist:
         model = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None

@@ -169,7 +169,8 @@ def checkpoints_to_evaluate(settings: EvalSettings, cfg, atlas_cfg) -> list[Path
     if not settings.eval_all:
         return [resolve_checkpoint(settings.ckpt, atlas_cfg)]
     ckpt_dir = Path(
-        settings.ckpt_dir or output_dir_for(cfg, settings.output_root, settings.extra_tag) / "ckpt"
+        settings.ckpt_dir
+        or output_dir_for(cfg, settings.output_root, settings.extra_tag, ("ckpt", "folder"))
     )
     start = settings.start_epoch
     found = [path for epoch, path in list_epoch_checkpoints(ckpt_dir) if epoch >= start]

@@ -28,7 +28,6 @@ from pcdet_atlas.train_utils.atlas_eval import atlas_section
 from pcdet_atlas.train_utils.checkpoint import CHECKPOINT_NAME
 from pcdet_atlas.train_utils.setup import output_dir_for
 from pcdet_atlas.utils.hashing import file_sha256
-from pcdet_atlas.utils.paths import join_under
 
 __all__ = [
     "changed_kept_file",
@@ -70,10 +69,10 @@ def eval_dir(cfg, output_root: str, extra_tag: str, ckpt: Path, eval_tag: str) -
     """Where one checkpoint's evaluation is written (module docstring):
     ``<output_root>/<group>/<tag>/<extra_tag>/eval/<name>/<split>/<eval_tag>/``."""
     split = cfg.DATA_CONFIG.DATA_SPLIT["test"]
-    return join_under(
-        output_dir_for(cfg, output_root, extra_tag) / "eval",
-        (eval_name(ckpt), "checkpoint name"), (split, "DATA_CONFIG.DATA_SPLIT.test"),
-        (eval_tag, "eval_tag"), source=f"the evaluation folder of checkpoint {ckpt}",
+    return output_dir_for(
+        cfg, output_root, extra_tag, ("eval", "folder"), (eval_name(ckpt), "checkpoint name"),
+        (split, "DATA_CONFIG.DATA_SPLIT.test"), (eval_tag, "eval_tag"),
+        source=f"the evaluation folder of checkpoint {ckpt}",
     )  # fmt: skip
 
 

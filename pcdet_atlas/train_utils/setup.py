@@ -170,13 +170,19 @@ def exp_group_and_tag(cfg_file: str | Path) -> tuple[str, str]:
     return group or "default", path.stem
 
 
-def output_dir_for(cfg, output_root: str | Path, extra_tag: str) -> Path:
-    """``<output_root>/<EXP_GROUP_PATH>/<TAG>/<extra_tag>/``; each name one safe path component
-    and the folder inside ``output_root`` (:func:`~pcdet_atlas.utils.paths.join_under`)."""
+def output_dir_for(
+    cfg, output_root: str | Path, extra_tag: str, *below: tuple[object, str], source: str = ""
+) -> Path:
+    """``<output_root>/<EXP_GROUP_PATH>/<TAG>/<extra_tag>/``, and under it the ``below`` parts
+    (``(name, what)``: ``('ckpt', 'folder')``, an evaluation's names); each name one safe path
+    component and the whole path, symlinks resolved, inside ``output_root``
+    (:func:`~pcdet_atlas.utils.paths.join_under`): a linked ``ckpt/`` or ``eval/`` that leads
+    elsewhere is refused, not written or emptied through."""
     group = [(part, "config folder") for part in str(cfg.EXP_GROUP_PATH).split("/")]
+    run = f"{output_root}/{cfg.EXP_GROUP_PATH}/{cfg.TAG}/{extra_tag}"
     return join_under(
-        output_root, *group, (cfg.TAG, "config name"), (extra_tag, "extra_tag"),
-        source=f"the output folder {output_root}/{cfg.EXP_GROUP_PATH}/{cfg.TAG}/{extra_tag}",
+        output_root, *group, (cfg.TAG, "config name"), (extra_tag, "extra_tag"), *below,
+        source=source or f"the output folder {run}",
     )  # fmt: skip
 
 

@@ -131,7 +131,7 @@ def stage_init_checkpoint(
             "STAGE.INIT_FROM or --pretrained_model"
         )
     predecessor = load_cfg(str(stage.init_from), None)
-    ckpt_dir = output_dir_for(predecessor, output_root, extra_tag) / "ckpt"
+    ckpt_dir = output_dir_for(predecessor, output_root, extra_tag, ("ckpt", "folder"))
     found = find_latest_checkpoint(ckpt_dir)
     if found is None:
         raise FileNotFoundError(

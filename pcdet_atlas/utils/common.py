@@ -6,6 +6,7 @@ import contextlib
 import importlib.util
 import logging
 import math
+import os
 import pickle
 from collections.abc import Iterator
 from pathlib import Path
@@ -14,25 +15,46 @@ import numpy as np
 import torch
 
 from pcdet_atlas.config import REPO_ROOT
-from pcdet_atlas.utils.files import write_atomic  # save_pickle's writer, also imported from here
+from pcdet_atlas.utils.files import (  # write_atomic: save_pickle's, also imported from here
+    open_regular_file,
+    write_atomic,
+)
 
 LOG_FORMAT = "%(asctime)s  %(levelname)5s  %(message)s"
 
 
+class _LogFileHandler(logging.StreamHandler):
+    """Appends to a log file opened by :func:`~pcdet_atlas.utils.files.open_regular_file` (a
+    symlink or special file at the log's name is refused, not written through); closes it."""
+
+    def __init__(self, path: Path):
+        fd = open_regular_file(path, os.O_WRONLY | os.O_APPEND, "log file")
+        super().__init__(os.fdopen(fd, "a", encoding="utf-8"))
+
+    def close(self) -> None:
+        try:
+            self.stream.close()
+        finally:
+            super().close()
+
+
 def create_logger(log_file: str | Path | None = None, rank: int = 0, name: str = "pcdet_atlas"):
-    """OpenPCDet-style logger: INFO on rank 0 (ERROR elsewhere), to the console and ``log_file``."""
+    """OpenPCDet-style logger: INFO on rank 0 (ERROR elsewhere), to the console and ``log_file``
+    (appended to; a symlink there is refused)."""
     logger = logging.getLogger(name)
     logger.setLevel(logging.INFO if rank == 0 else logging.ERROR)
     logger.propagate = False
     for handler in list(logger.handlers):
         logger.removeHandler(handler)
+        if isinstance(handler, _LogFileHandler):
+            handler.close()
     formatter = logging.Formatter(LOG_FORMAT)
     console = logging.StreamHandler()
     console.setFormatter(formatter)
     logger.addHandler(console)
     if log_file is not None:
         Path(log_file).parent.mkdir(parents=True, exist_ok=True)
-        file_handler = logging.FileHandler(filename=str(log_file))
+        file_handler = _LogFileHandler(Path(log_file))
         file_handler.setFormatter(formatter)
         logger.addHandler(file_handler)
     return logger

@@ -77,3 +77,26 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def test_a_log_file_is_appended_to_and_a_planted_link_refused(tmp_path):
+    """The tools' log files (``train_*.log``, ``log_eval_*.txt``) go through the same check as
+    the other files they write: a symlink at the log's name is refused, its target untouched."""
+    import logging
+
+    from pcdet_atlas.utils.common import create_logger
+
+    log = tmp_path / "run" / "train.log"
+    logger = create_logger(log, name="atlas-test-log")
+    logger.info("first")
+    logger = create_logger(log, name="atlas-test-log")  # a second call appends, closes the first
+    logger.info("second")
+    logging.getLogger("atlas-test-log").handlers[-1].flush()
+    assert [line.split()[-1] for line in log.read_text().splitlines()] == ["first", "second"]
+    victim = tmp_path / "victim.txt"
+    victim.write_text("IMPORTANT\n")
+    planted = tmp_path / "run" / "planted.log"
+    planted.symlink_to(victim)
+    with pytest.raises(NotARegularFileError, match=r"planted\.log: a symlink to .*victim\.txt"):
+        create_logger(planted, name="atlas-test-log")
+    assert victim.read_text() == "IMPORTANT\n"

@@ -52,6 +52,28 @@ def test_join_under_refuses_a_symlink_out_of_the_root(tmp_path):
         join_under(root, ("a", "x"), ("..", "y"), source="s")
 
 
+def test_a_linked_checkpoint_or_evaluation_folder_is_refused(tmp_path):
+    """A run folder's fixed subfolders (``ckpt/``, ``eval/``, ``tensorboard/``) are checked as
+    the run folder is: one linked elsewhere would have had checkpoints pruned, or an evaluation
+    emptied by ``--overwrite``, where it points."""
+    from pcdet_atlas.train_utils.eval_folder import eval_dir
+
+    cfg = load_cfg(str(REPO_ROOT / "cfgs/atlas/synthetic/cp4f.yaml"), [])
+    out, elsewhere = tmp_path / "output", tmp_path / "elsewhere"
+    run = output_dir_for(cfg, out, "default")
+    assert output_dir_for(cfg, out, "default", ("ckpt", "folder")) == run / "ckpt"
+    ckpt = tmp_path / "checkpoint_epoch_3.pth"
+    assert eval_dir(cfg, str(out), "default", ckpt, "t") == run / "eval" / "epoch_3" / "val" / "t"
+    run.mkdir(parents=True), elsewhere.mkdir()
+    for sub in ("ckpt", "eval", "tensorboard"):
+        (run / sub).symlink_to(elsewhere)
+    for sub in ("ckpt", "tensorboard"):
+        with pytest.raises(UnsafePathError, match=rf"{sub} \(from .*\) resolves to .*elsewhere"):
+            output_dir_for(cfg, out, "default", (sub, "folder"))
+    with pytest.raises(UnsafePathError, match=r"resolves to .*elsewhere/epoch_3/val/t, outside"):
+        eval_dir(cfg, str(out), "default", ckpt, "t")
+
+
 @pytest.mark.parametrize("value", ["a.bin", "db_1/seg-1_0001_Vehicle_0.bin", "a/b/c"])
 def test_a_relative_path_of_safe_names_resolves_under_its_root(tmp_path, value):
     assert resolve_under(tmp_path, value, "path", "s") == tmp_path / value
