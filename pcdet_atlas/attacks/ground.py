@@ -10,7 +10,8 @@ is widened once to ``fallback_radius``; when that also fails the ground is taken
 ``fallback_z`` (default 0.0 m, the Waymo vehicle frame's origin lies on the ground under the ego),
 i.e. the ground plane under the ego vehicle is assumed to extend to the phantom. The estimate's
 ``source`` says which; the injection attack counts its phantoms set on the fallback height in
-the ``ground_fallbacks`` counter (:mod:`pcdet_atlas.attacks.counters`).
+the ``ground_fallbacks`` work counter of its process (:mod:`pcdet_atlas.attacks.counters`; the
+frame's metadata does not record it).
 """
 
 from __future__ import annotations
