@@ -384,6 +384,11 @@ def match_predictions(
     missing = [info["frame_id"] for info, anno in zip(infos, out) if anno is None]
     if missing and absent_is_empty:
         _check_sequences_present(infos, out, source)
+        logging.getLogger("pcdet_atlas").warning(
+            f"{source}: {len(missing)} of the test split's {len(infos)} frames have no "
+            f"predictions there, scored as frames without detections (the first "
+            f"{missing[0]!r}); a lost frame scores as a missed target"
+        )
         for index, anno in enumerate(out):
             if anno is None:
                 info = infos[index]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import json
+import logging
 import re
 from pathlib import Path
 
@@ -369,10 +370,15 @@ def test_bad_predictions_are_clear_errors(frames, pattern):
         match_predictions(frames, _infos(), CLASSES, "f.pkl")
 
 
-def test_absent_frames_of_a_submission_are_frames_without_detections():
+def test_absent_frames_of_a_submission_are_frames_without_detections(caplog, monkeypatch):
+    monkeypatch.setattr(logging.getLogger("pcdet_atlas"), "propagate", True)  # create_logger: off
     infos = [{**info, "point_cloud": {"lidar_sequence": "seq_a" if i < 2 else "seq_b"}}
              for i, info in enumerate(_infos())]  # fmt: skip
-    out = match_predictions([_frame(0), _frame(2)], infos, CLASSES, "f.bin", absent_is_empty=True)
+    with caplog.at_level(logging.WARNING, logger="pcdet_atlas"):
+        out = match_predictions(
+            [_frame(0), _frame(2)], infos, CLASSES, "f.bin", absent_is_empty=True
+        )
+    assert "f.bin: 1 of the test split's 3 frames have no predictions there" in caplog.text
     assert out[1]["frame_id"] == "seq_001" and out[1]["boxes_lidar"].shape == (0, 7)
     assert out[1]["name"].shape == out[1]["score"].shape == out[1]["pred_labels"].shape == (0,)
     with pytest.raises(PredictionError, match=r"f\.bin: 1 of the test split's 2 sequences have "
