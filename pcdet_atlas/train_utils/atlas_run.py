@@ -27,7 +27,7 @@ import torch
 import torch.distributed as torch_dist
 
 from pcdet_atlas.attacks.base import BaseAttack
-from pcdet_atlas.config import REPO_ROOT, save_config
+from pcdet_atlas.config import REPO_ROOT, repo_relative, save_config
 from pcdet_atlas.datasets.fingerprint import data_config_fingerprint
 from pcdet_atlas.evaluation import build_results, format_table, save_results
 from pcdet_atlas.models import build_network_from_config
@@ -372,7 +372,7 @@ def evaluate_checkpoint(
         entries[variant] = {**entry, "extra": extra}
         results = build_results(
             model=atlas_section(atlas_cfg).model_name or cfg.TAG, config=str(settings.cfg_file),
-            checkpoint=str(ckpt), class_names=cfg.CLASS_NAMES, variants=entries,
+            checkpoint=str(repo_relative(ckpt)), class_names=cfg.CLASS_NAMES, variants=entries,
             training_seed=training_seed, model_sha256=model_config_sha256(cfg), source=source,
             extra={"processes": run.world, "device": str(run.device),
                    "batch_size": run.batch_size, "checkpoint_sha256": ckpt_sha256,

@@ -60,6 +60,7 @@ from pcdet_atlas.evaluation.results.seeds import (
 )
 from pcdet_atlas.evaluation.results.tables import variant_label
 from pcdet_atlas.utils.files import NotARegularFileError
+from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.paths import UnsafePathError
 
 sys.path.insert(0, str(REPO_ROOT / "tests" / "models"))
@@ -398,6 +399,12 @@ def test_time_of_proposals_read_from_the_store_is_added_back(models, tmp_path):
     msf = stored(models[2], "MSF-4f", "cfgs/atlas/synthetic/msf_4f.yaml",
                  "checkpoints/msf_4f_synthetic.pth", 50.0, 150)  # fmt: skip
     assert queries.rpn_results(msf, [rpn, msf]) == (rpn, "")
+    # written in another clone: the checkpoint's path differs, its recorded bytes are the same
+    elsewhere = copy.deepcopy(rpn)
+    elsewhere["checkpoint"] = "/elsewhere/clone/checkpoints/cp4f_synthetic.pth"
+    assert queries.rpn_results(msf, [elsewhere, msf])[0] is None
+    elsewhere["extra"] = {"checkpoint_sha256": file_sha256(REPO_ROOT / rpn["checkpoint"])}
+    assert queries.rpn_results(msf, [elsewhere, msf]) == (elsewhere, "")
     ms, lower_bound, note = queries.frame_cost(msf, [rpn, msf])
     assert ms == pytest.approx(50.0 + 80.0 * 150 / 200) and not lower_bound
     assert note == (
@@ -589,6 +596,9 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path, monkeypatch):
     results = collect_results([run["runs"][0]["results"]])[0][1]
     # CenterPoint's config declares its checkpoint's seed; both record their model's digest
     assert results["training_seed"] == 666 and len(results["model_sha256"]) == 64
+    # files inside the repository are named from its root, as the configs are (any clone)
+    assert results["checkpoint"] == "checkpoints/centerpoint_synthetic.pth"
+    assert "| `checkpoints/centerpoint_synthetic.pth` |" in text
     rem = results["variants"]["rem_30"]
     # frames 0, 14, 28, 42, 56: the run 32..63 spoofs 42 and 56, the other three are reused
     assert rem["num_reused_frames"] == 3 and rem["num_recomputed_frames"] == 2

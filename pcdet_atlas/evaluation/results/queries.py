@@ -11,6 +11,7 @@ import numpy as np
 
 from pcdet_atlas.config import cfg_from_yaml_file, repo_relative, resolve_repo_path
 from pcdet_atlas.evaluation.results.tables import ordered_variants
+from pcdet_atlas.utils.hashing import file_sha256
 
 __all__ = [
     "attack_variants",
@@ -68,9 +69,18 @@ def rpn_results(results: Mapping, results_list: Sequence[Mapping]) -> tuple[Mapp
 
     want = (same(rpn["CFG"]), same(rpn["CHECKPOINT"]))
     for r in results_list:
-        if r.get("checkpoint") and (same(r["config"]), same(r["checkpoint"])) == want:
-            return r, ""
+        if r.get("checkpoint") and same(r["config"]) == want[0]:
+            if same(r["checkpoint"]) == want[1] or _same_bytes(r, want[1]):
+                return r, ""
     return None, f"its RPN ({want[0]} with {want[1]}) is not in the report"
+
+
+def _same_bytes(results: Mapping, checkpoint: Path) -> bool:
+    """Whether ``results`` recorded the SHA-256 of ``checkpoint``'s bytes (a results file written
+    in another clone names the same checkpoint by another path)."""
+    recorded = results.get("extra", {}).get("checkpoint_sha256")
+    path = resolve_repo_path(checkpoint)
+    return recorded is not None and path.is_file() and file_sha256(path) == recorded
 
 
 def frame_cost(
