@@ -28,7 +28,18 @@ from pcdet_atlas.datasets.waymo_format import (
 from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.paths import safe_component
 
-__all__ = ["data_config_fingerprint", "dataset_fingerprint"]
+__all__ = ["data_config_fingerprint", "dataset_fingerprint", "sequence_label_sha256"]
+
+
+def sequence_label_sha256(root: str | Path, sequences, tag: str = PROCESSED_DATA_TAG) -> dict:
+    """``{sequence: SHA-256 of its info pkl}`` for ``sequences`` of the dataset at ``root``: the
+    labels an attack was generated against, by content (a copied dataset keeps them, whatever
+    its files' times).
+
+    Raises:
+        WaymoFormatError: a sequence's pkl is missing (naming the paths tried).
+    """
+    return {str(name): file_sha256(find_sequence_pkl(root, name, tag)) for name in sequences}
 
 
 def dataset_fingerprint(root: str | Path, split: str, tag: str = PROCESSED_DATA_TAG) -> str:

@@ -37,6 +37,7 @@ import numpy as np
 
 from pcdet_atlas.attacks.base import BaseAttack, build_attack
 from pcdet_atlas.config import ConfigError, cfg_from_yaml_file
+from pcdet_atlas.datasets.fingerprint import sequence_label_sha256
 from pcdet_atlas.datasets.waymo_submission import PredictionError, read_waymo_bin
 from pcdet_atlas.evaluation import (
     build_results,
@@ -80,12 +81,39 @@ ATLAS_ATTACK_YAML = "atlas_attack.yaml"
 
 @dataclass(frozen=True)
 class GeneratedVariant:
-    """A variant written by ``tools/data/generate_atlas.py``: its name, merged attack config and
-    per-frame attack records (``{frame_id: record}``, the records ``AtlasWaymoDataset`` gives)."""
+    """A variant written by ``tools/data/generate_atlas.py``: its name, merged attack config,
+    per-frame attack records (``{frame_id: record}``, the records ``AtlasWaymoDataset`` gives) and
+    the SHA-256 of each source sequence's info pkl (``{sequence: sha}``; None from an output
+    written before it was recorded)."""
 
     name: str
     attack_yaml: Path
     records: Mapping[str, Mapping]
+    source_label_sha256: Mapping[str, str] | None = None
+
+
+def check_generated_source(variant: GeneratedVariant, split, folder: str | Path) -> None:
+    """Refuse scoring ``variant``'s records against a test split whose sequences carry other
+    labels than the ones it was generated from (synthetic sequence names repeat across datasets
+    generated with one seed); an output that recorded no source is scored with a warning."""
+    meta = Path(folder) / ATLAS_METADATA
+    if variant.source_label_sha256 is None:
+        logging.getLogger("pcdet_atlas").warning(
+            f"{meta}: records no source labels (written by an older version): its frames are "
+            "matched to the test split by frame_id alone"
+        )
+        return
+    recorded = variant.source_label_sha256
+    names = sorted({i["point_cloud"]["lidar_sequence"] for i in split.infos} & set(recorded))
+    now = sequence_label_sha256(split.root_path, names, split.processed_data_tag)
+    differ = [n for n in names if recorded[n] != now[n]]  # one not recorded: its records lack
+    if differ:
+        raise PredictionError(
+            f"{meta}: generated from other labels than the test split's for {len(differ)} of its "
+            f"{len(names)} sequences, the first {differ[0]!r} (info pkl SHA-256 "
+            f"{recorded[differ[0]]} there, {now[differ[0]]} in "
+            f"{split.root_path}): generated from another dataset?"
+        )
 
 
 def is_generated_spec(spec: str) -> bool:
@@ -127,7 +155,13 @@ def load_generated_variant(folder: str | Path) -> GeneratedVariant:
                 f"{meta_path}: 'frames'[{frame!r}] is a {type(record).__name__}, expected a dict "
                 "(the frame's attack record), as tools/data/generate_atlas.py writes it"
             )
-    return GeneratedVariant(summary["variant"], yaml_path.resolve(), summary["frames"])
+    source = summary.get("source_label_sha256")
+    if source is not None and not isinstance(source, Mapping):
+        raise PredictionError(
+            f"{meta_path}: 'source_label_sha256' is a {type(source).__name__}, expected a dict "
+            "({sequence: sha256}), as tools/data/generate_atlas.py writes it"
+        )
+    return GeneratedVariant(summary["variant"], yaml_path.resolve(), summary["frames"], source)
 
 
 def _frame_label(index: int, frame: object) -> str:
@@ -581,6 +615,7 @@ def score_predictions(
                 f"{variant.attack_yaml}: variant {built[name].variant!r}, but its "
                 f"{ATLAS_METADATA} holds {name!r}"
             )
+        check_generated_source(variant, split, variant.attack_yaml.parent)
         missing = [i["frame_id"] for i in split.infos if i["frame_id"] not in variant.records]
         if missing:
             raise PredictionError(

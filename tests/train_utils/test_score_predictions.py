@@ -222,6 +222,17 @@ def test_attack_records_of_a_generate_atlas_output_score_as_drawn_on_the_fly(
     assert (written["variants"]["rem_40"]["extra"]["attack_sha256"]
             == on_the_fly["variants"]["rem_40"]["extra"]["attack_sha256"])  # fmt: skip
 
+    # records generated from other labels (a same-named sequence of another dataset) are refused
+    meta = folders["rem_40"] / "atlas_attack_metadata.pkl"
+    summary = load_pickle(meta)
+    recorded = summary["source_label_sha256"]
+    assert recorded and all(re.fullmatch(r"[0-9a-f]{64}", sha) for sha in recorded.values())
+    save_pickle({**summary, "source_label_sha256": dict.fromkeys(recorded, "0" * 64)}, meta)
+    with pytest.raises(PredictionError, match=r"atlas_attack_metadata\.pkl: generated from other "
+                       r"labels than the test split's for \d+ of its \d+ sequences"):  # fmt: skip
+        tool.main(tool_args(run, tmp_path / "other", [f"{folders['rem_40']}={files['rem_40']}"]))
+    save_pickle(summary, meta)
+
     # a bare variant name is the attack even beside a folder of that name (predictions in it)
     monkeypatch.chdir(tmp_path)
     (tmp_path / "clean").mkdir()

@@ -51,6 +51,7 @@ from pcdet_atlas.config import (
     to_plain,
 )
 from pcdet_atlas.datasets import waymo_format as wf
+from pcdet_atlas.datasets.fingerprint import sequence_label_sha256
 from pcdet_atlas.utils.cli import add_debug_flag, add_set_flag, run_tool
 from pcdet_atlas.utils.common import create_logger, save_pickle
 from pcdet_atlas.utils.files import write_atomic
@@ -246,6 +247,9 @@ def main(argv=None) -> Path:
         "variant": dataset.attack.variant,
         "attack_cfg": plain_cfg,
         "frames": frames,
+        "source_label_sha256": sequence_label_sha256(
+            dataset.root_path, names, dataset.processed_data_tag
+        ),
     }
     save_pickle(summary, out_root / "atlas_attack_metadata.pkl")
     save_config(attack_cfg, out_root / "atlas_attack.yaml")
