@@ -92,11 +92,11 @@ class GeneratedVariant:
     source_label_sha256: Mapping[str, str] | None = None
 
 
-def check_generated_source(variant: GeneratedVariant, split, folder: str | Path) -> None:
+def check_generated_source(variant: GeneratedVariant, split) -> None:
     """Refuse scoring ``variant``'s records against a test split whose sequences carry other
     labels than the ones it was generated from (synthetic sequence names repeat across datasets
     generated with one seed); an output that recorded no source is scored with a warning."""
-    meta = Path(folder) / ATLAS_METADATA
+    meta = variant.attack_yaml.parent / ATLAS_METADATA
     if variant.source_label_sha256 is None:
         logging.getLogger("pcdet_atlas").warning(
             f"{meta}: records no source labels (written by an older version): its frames are "
@@ -615,7 +615,7 @@ def score_predictions(
                 f"{variant.attack_yaml}: variant {built[name].variant!r}, but its "
                 f"{ATLAS_METADATA} holds {name!r}"
             )
-        check_generated_source(variant, split, variant.attack_yaml.parent)
+        check_generated_source(variant, split)
         missing = [i["frame_id"] for i in split.infos if i["frame_id"] not in variant.records]
         if missing:
             raise PredictionError(

@@ -199,17 +199,17 @@ def run_tool(main: Callable[[], object], argv: list[str] | None = None) -> None:
             raise  # an exit status (argparse's 2, a tool's own)
         if debug:
             traceback.print_exc()
-        message = " ".join(err.code.split())
-        if message.startswith(f"{tool}: error: "):  # stated in full already
-            message = message[len(f"{tool}: error: ") :]
-        print(f"{tool}: error: {message}", file=sys.stderr)
-        sys.exit(USER_ERROR_EXIT)
+        _stop(tool, err.code)
     except Exception as err:  # noqa: BLE001 - sorted into user errors and bugs below
         if debug or not is_user_error(err):
             raise
-        message = " ".join(str(err).split()) or type(err).__name__
-        print(f"{tool}: error: {message} ({DEBUG_FLAG} shows the traceback)", file=sys.stderr)
-        sys.exit(USER_ERROR_EXIT)
+        _stop(tool, str(err) or type(err).__name__, f" ({DEBUG_FLAG} shows the traceback)")
+
+
+def _stop(tool: str, message: str, hint: str = "") -> None:
+    """Print a user error as one line, ``<tool>: error: <message><hint>``, and exit with 2."""
+    print(f"{tool}: error: {' '.join(message.split())}{hint}", file=sys.stderr)
+    sys.exit(USER_ERROR_EXIT)
 
 
 class RenamedFlag(argparse.Action):

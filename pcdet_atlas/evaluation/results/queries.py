@@ -68,19 +68,18 @@ def rpn_results(results: Mapping, results_list: Sequence[Mapping]) -> tuple[Mapp
         return repo_relative(resolve_repo_path(path))
 
     want = (same(rpn["CFG"]), same(rpn["CHECKPOINT"]))
-    for r in results_list:
-        if r.get("checkpoint") and same(r["config"]) == want[0]:
-            if same(r["checkpoint"]) == want[1] or _same_bytes(r, want[1]):
+    candidates = [r for r in results_list if r.get("checkpoint") and same(r["config"]) == want[0]]
+    for r in candidates:
+        if same(r["checkpoint"]) == want[1]:
+            return r, ""
+    # written in another clone, the same checkpoint has another path: its recorded bytes match
+    path = resolve_repo_path(want[1])
+    if candidates and path.is_file():
+        sha = file_sha256(path)
+        for r in candidates:
+            if r.get("extra", {}).get("checkpoint_sha256") == sha:
                 return r, ""
     return None, f"its RPN ({want[0]} with {want[1]}) is not in the report"
-
-
-def _same_bytes(results: Mapping, checkpoint: Path) -> bool:
-    """Whether ``results`` recorded the SHA-256 of ``checkpoint``'s bytes (a results file written
-    in another clone names the same checkpoint by another path)."""
-    recorded = results.get("extra", {}).get("checkpoint_sha256")
-    path = resolve_repo_path(checkpoint)
-    return recorded is not None and path.is_file() and file_sha256(path) == recorded
 
 
 def frame_cost(
