@@ -158,6 +158,38 @@ def test_decomposed_conv_reads_its_neighbours_and_nothing_else():
         assert not torch.allclose(block(x3, nb)[0], y[0])
 
 
+def test_sector_buffer_point_offsets_tell_where_in_the_cell_the_points_lie():
+    from pcdet_atlas.models.map_to_bev.sector_feature_buffer import SectorFeatureBuffer
+
+    def bev(point_offsets: bool, xy: list[list[float]]) -> torch.Tensor:
+        torch.manual_seed(0)
+        stage = SectorFeatureBuffer(
+            input_channels=4, num_bev_features=8, point_cloud_range=(0, 0, -2, 4, 4, 4),
+            bev_cell_m=(1.0, 1.0), point_offsets=point_offsets,
+        ).eval()  # fmt: skip
+        batch = {
+            "voxel_features": torch.arange(8.0).view(2, 4),
+            "voxel_coords": torch.zeros(2, 4, dtype=torch.long),
+            "voxel_point_idx": torch.tensor([0, 0, 1]),
+            "voxel_point_xy": torch.tensor(xy),
+            "batch_size": 1,
+        }
+        with torch.no_grad():
+            return stage(batch)["spatial_features"][0]  # (C, ny, nx)
+
+    # one voxel's two points at two places in cell (x 1, y 2); the other voxel's point far off
+    near = [[1.1, 2.1], [1.2, 2.2], [3.5, 0.5]]
+    far = [[1.9, 2.9], [1.8, 2.8], [3.5, 0.5]]
+    off_near, off_far = bev(False, near), bev(False, far)
+    assert torch.equal(off_near, off_far)  # without offsets a cell only knows which voxel
+    on_near, on_far = bev(True, near), bev(True, far)
+    assert not torch.allclose(on_near[:, 2, 1], on_far[:, 2, 1])  # with them, where in the cell
+    assert torch.equal(on_near[:, 0, 3], on_far[:, 0, 3])  # the other cell is untouched
+    empty = torch.ones(4, 4, dtype=torch.bool)
+    empty[2, 1] = empty[0, 3] = False
+    assert not on_near[:, empty].any() and not off_near[:, empty].any()
+
+
 def test_pack_sequences_round_trip_and_reverse():
     seq = torch.tensor([1, 0, 1, 1, 2, 0])
     key = torch.tensor([5, 3, 1, 2, 0, 0])
