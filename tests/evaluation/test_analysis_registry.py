@@ -161,7 +161,13 @@ def results_of(dets, infos, model="M") -> dict:
 
 
 def test_builtin_analyses_register_in_the_order_of_their_keys():
-    assert [a.name for a in registered_analyses()] == ["asr", "confidence", "lifecycle", "ranks"]
+    assert [a.name for a in registered_analyses()] == [
+        "asr",
+        "attributable",
+        "confidence",
+        "lifecycle",
+        "ranks",
+    ]
     assert list(registered_analyses()[0].schema())[:4] == ["asr", "asr_ci", "num_runs", "runs"]
 
 

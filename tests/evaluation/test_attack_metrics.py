@@ -730,3 +730,47 @@ def test_paired_differences_refuse_unpaired_inputs():
         paired_asr_differences({"A": one, "B": other})
     single = paired_asr_differences({"A": {"inj": _runs([1], [3])}, "B": {"inj": _runs([2], [3])}})
     assert single["ci"] is None and single["difference"]["B"]["A"] == pytest.approx(1 / 3)
+
+
+# ---------------------------------------------------------------------------- attributable ASR
+def test_attributable_asr_leaves_out_what_the_clean_run_already_gives():
+    """Injection: a phantom on a box the clean model detects anyway is confounded; removal: a
+    target the clean model misses too. The rest is the attributable ASR, with its runs."""
+    from pcdet_atlas.evaluation.analyses.attributable_analysis import attributable_asr
+
+    attacked = [anno("f0", [TARGET]), anno("f1", [TARGET]), anno("f2", []), anno("f3", [])]
+    clean = [anno("f3", []), anno("f2", [FAR]), anno("f1", []), anno("f0", [IOU_075])]
+    infos = [{**info(TARGET, run_id=r), "frame_id": f"f{i}"} for i, r in enumerate((0, 0, 1, 1))]
+    m = match_targets(attacked, infos)
+    a = attributable_asr(m, clean)
+    # f0's phantom lies on a box the clean model detects (IoU 0.75): confounded, and a success
+    assert (a["num_confounded"], a["num_confounded_success"]) == (1, 1)
+    assert (a["num_targets"], a["num_success"], a["asr"]) == (3, 1, pytest.approx(1 / 3))
+    assert a["num_runs"] == 2 and a["asr_ci"] == list(asr_interval(run_counts(m.select(
+        np.array([False, True, True, True])))))  # fmt: skip
+    assert attack_success_rate(attacked, infos)["asr"] == 0.5  # the paper's ASR counts f0
+
+    rem = [{**i, **info(TARGET, family="removal", run_id=i["run_id"])} for i in infos]
+    m = match_targets(attacked, rem)  # removal: f2, f3 missed -> successes
+    a = attributable_asr(m, clean)  # the clean model misses f1, f2, f3's target
+    assert (a["num_confounded"], a["num_confounded_success"]) == (3, 2)
+    assert (a["num_targets"], a["num_success"], a["asr"]) == (1, 0, 0.0)
+    assert a["asr_ci"] is None  # one run left
+
+
+def test_attributable_asr_reaches_the_results_entry_and_its_checks():
+    from pcdet_atlas.evaluation.analyses.attributable_analysis import AttributableAnalysis
+    from pcdet_atlas.evaluation.analyses.schema_parts import ResultsError
+
+    dets, infos = four_frames("injection")
+    clean = [anno(d["frame_id"], [IOU_075] if i == 0 else []) for i, d in enumerate(dets)]
+    infos = [{**i, "frame_id": d["frame_id"]} for i, d in zip(infos, dets)]
+    out = evaluate_attack(dets, infos, clean_det_annos=clean)
+    a = out["attributable"]
+    assert (out["num_targets"], out["num_success"]) == (3, 1)
+    assert (a["num_confounded"], a["num_confounded_success"], a["num_targets"]) == (1, 1, 2)
+    assert a["asr"] == 0.0
+    assert evaluate_attack(dets, infos)["attributable"] is None  # no clean run: unknown
+    AttributableAnalysis().check(out, "v")
+    with pytest.raises(ResultsError, match="num_success"):
+        AttributableAnalysis().check({**out, "num_success": 2}, "v")

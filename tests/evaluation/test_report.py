@@ -193,7 +193,13 @@ def test_report_has_every_table_row_and_figure(models, tmp_path):
         assert f"]({name})" in text
     assert set(out["figures"]) == {f.file for f in report_figures()}
     tex = out["latex"].read_text()
-    assert tex.count("\\begin{tabular}") == 7 and "\\textbf{" in tex and "PHiM+LOT" in tex
+    attributable = md_table(report_part(text, "## Attributable ASR, removal"))
+    # the clean run detects every removal target and no phantom: nothing is confounded
+    assert attributable["CP-4f"]["Removal 40"] == "missing"
+    asr = models[1]["variants"]["rem_10"]["asr"]
+    assert attributable["CP-4f"]["Removal 10"].startswith(f"{asr:.2f} [")
+    assert attributable["CP-4f"]["Removal 10"].endswith("; 0")
+    assert tex.count("\\begin{tabular}") == 9 and "\\textbf{" in tex and "PHiM+LOT" in tex
     removal_tex = tex.split("% Point removal")[1].split("\\end{tabular}")[0].splitlines()
     cp4f_tex = next(line for line in removal_tex if line.startswith("CP-4f & "))
     assert cp4f_tex.removesuffix(" \\\\").split(" & ")[3:] == ["missing", "missing"]

@@ -84,6 +84,7 @@ def attack(variant: str, family: str, asr: float, num_targets: int = 100) -> dic
         "target_class": "Vehicle",
         "confidence": None,
         "lifecycle": None,
+        "attributable": None,
     }
 
 

@@ -6,13 +6,16 @@ The computation of each concern lives in its own module: :mod:`.asr` (success ra
 counts, paired differences), :mod:`.confidence` (score statistics by confidence kind),
 :mod:`.lifecycle` (ASR by lifecycle position), :mod:`.ranks` (robustness ranks) and
 :mod:`.scores` (histograms, peaks); the registered analyses that bring them into results and
-the report are :mod:`.asr_analysis`, :mod:`.confidence_analysis`, :mod:`.lifecycle_analysis`
-and :mod:`.ranks_analysis`, imported last here so that they register in that order.
+the report are :mod:`.asr_analysis`, :mod:`.attributable_analysis` (computation and analysis in
+one module: the ASR over the targets whose outcome the clean run would not already give),
+:mod:`.confidence_analysis`, :mod:`.lifecycle_analysis` and :mod:`.ranks_analysis`, imported
+last here so that they register in that order.
 """
 
 # the built-in analyses register on import, in this order (their keys' order in an entry)
 from pcdet_atlas.evaluation.analyses import (
     asr_analysis,  # noqa: E402, I001
+    attributable_analysis,  # noqa: E402
     confidence_analysis,  # noqa: E402
     lifecycle_analysis,  # noqa: E402
     ranks_analysis,  # noqa: E402
@@ -85,6 +88,7 @@ __all__ = [
     "asr_analysis",
     "asr_from_matches",
     "attack_success_rate",
+    "attributable_analysis",
     "clean_matched_scores",
     "confidence_analysis",
     "evaluate_attack",
