@@ -18,20 +18,20 @@ received ``run.json`` names, and its archived copy otherwise). The injection
 variants' trace library is built from the dataset's train split first if it is missing. The
 dataset: docs/synthetic.md "A larger validation split".
 
-``--jobs N`` evaluates N models at once, each a ``tools/test.py`` process with ``--threads``
-torch threads (default: the cores divided among the jobs); its output goes to ``reproduce.log``
-in the folder above the model's ``reproduce/results.json``. The run resumes: a later call
-skips each model whose variants ``tools/test.py --resume`` would all keep (same merged config,
-checkpoint bytes, variants, device and test split: its info pkls and frame files, by the dataset
-fingerprint in ``results.json``) and lets a model left unfinished go on from its last finished
-variant; any other model is evaluated again. A call with the same data, models, variants,
+``--jobs N`` evaluates N models at once, each a ``tools/test.py`` process with ``--threads`` torch
+threads (default: the cores divided among the jobs); its output goes to ``reproduce.log`` in the
+folder above the model's ``reproduce/results.json``. The run resumes: a later call predicts
+nothing again for a model whose variants ``tools/test.py --resume`` would all keep (same merged
+config, checkpoint bytes, variants, device and test split: its info pkls and frame files, by the
+dataset fingerprint in ``results.json``), whose kept predictions that call scores again with this
+version's metric and analyses (seconds), and lets a model left unfinished go on from its last
+finished variant; any other model is evaluated again. A call with the same data, models, variants,
 ``--set`` and ``--no_reuse`` as the one ``run.json`` in ``--out`` records continues that run (its
-calls and wall time add up); a call with another model set starts a new run that still keeps
-what earlier calls evaluated of its models, and the report marks those models (their time is
-their own evaluation's, not in the run's total; the run's first call finds them, ``run.json``'s
-``earlier_run_models``); a ``--no_reuse`` call keeps only its own run's.
-A ``run.json`` that is truncated or holds a key of the wrong type is an error naming the file
-and the key.
+calls and wall time add up); a call with another model set starts a new run that still keeps what
+earlier calls evaluated of its models, and the report marks those models (their time is their own
+evaluation's, not in the run's total; the run's first call finds them, ``run.json``'s
+``earlier_run_models``); a ``--no_reuse`` call keeps only its own run's. A ``run.json`` that is
+truncated or holds a key of the wrong type is an error naming the file and the key.
 ``--overwrite`` evaluates everything again. The models share a prediction store
 (``tools/test.py --prediction_store``, under ``--eval_dir``; ``--no_store``: none) that the
 two-stage models and the configs that are their RPN use, so a two-stage model reads the
@@ -453,20 +453,21 @@ def reproduce(args, argv=None) -> dict:
         resumable = evaluated is not None and not args.overwrite and (resume or not args.no_reuse)
         earlier_run = resumable and str(cfg) in earlier
         done = resumable and wanted <= evaluated
-        if not done:
-            store = store_of(cfg, rpns, args)
-            command = [sys.executable, str(REPO_ROOT / "tools" / "test.py"),
-                       *test_argv(cfg, args, root, threads, resumable, store)]  # fmt: skip
-            print("$ " + shlex.join(command[1:]), flush=True)
-            log = results.parent.parent / "reproduce.log"
-            log.parent.mkdir(parents=True, exist_ok=True)
-            with open_log(log, append=resumable) as stream:
-                code = subprocess.run(  # killed with this process: no orphan writes on
-                    command, stdout=stream, stderr=subprocess.STDOUT, cwd=REPO_ROOT,
-                    preexec_fn=die_with_parent(),
-                ).returncode  # fmt: skip
-            if code != 0:
-                raise RuntimeError(f"{cfg}: tools/test.py exited with {code}; its output: {log}")
+        # a finished model runs too: tools/test.py --resume scores its kept predictions again
+        # with this version's metric and analyses (seconds), predicting nothing
+        store = store_of(cfg, rpns, args)
+        command = [sys.executable, str(REPO_ROOT / "tools" / "test.py"),
+                   *test_argv(cfg, args, root, threads, resumable, store)]  # fmt: skip
+        print("$ " + shlex.join(command[1:]), flush=True)
+        log = results.parent.parent / "reproduce.log"
+        log.parent.mkdir(parents=True, exist_ok=True)
+        with open_log(log, append=resumable) as stream:
+            code = subprocess.run(  # killed with this process: no orphan writes on
+                command, stdout=stream, stderr=subprocess.STDOUT, cwd=REPO_ROOT,
+                preexec_fn=die_with_parent(),
+            ).returncode  # fmt: skip
+        if code != 0:
+            raise RuntimeError(f"{cfg}: tools/test.py exited with {code}; its output: {log}")
         wall = evaluation_time(json.loads(results.read_text()))
         when = "done in an earlier call, " if done else ""
         when += "evaluated by a run of another model set, " if earlier_run else ""

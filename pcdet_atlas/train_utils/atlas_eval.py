@@ -354,6 +354,48 @@ def variant_entry(
     )  # fmt: skip
 
 
+def rescore_variant(
+    variant: str,
+    attack: Mapping | Path | BaseAttack,
+    entry: Mapping,
+    det_annos: Sequence[Mapping],
+    context: EvalContext,
+    *,
+    clean_det_annos: Sequence[Mapping] | None,
+) -> dict:
+    """A finished variant's entry scored again from its stored predictions ``det_annos`` (each
+    with its ``attack`` record, as ``result.pkl`` holds them) by this version's metric and
+    analyses, so that a resumed run's entries are those one uninterrupted call would write
+    (:func:`variant_entry`). What only the prediction pass knew is kept from ``entry``: the reuse
+    count, the timings, the proposal bank's and prediction store's counts and the files' hashes.
+
+    Raises:
+        ValueError: ``det_annos`` do not cover the variant's test split frame for frame.
+    """
+    dataset = DATASETS.get("AtlasWaymoDataset")(
+        dataset_cfg=context.data_cfg, class_names=context.class_names, attack_cfg=attack,
+        training=False, logger=context.logger,
+    )  # fmt: skip
+    frame_ids = [info.get("frame_id") for info in dataset.infos]
+    if len(det_annos) != len(frame_ids) or any(
+        a.get("frame_id") != f for a, f in zip(det_annos, frame_ids)
+    ):
+        raise ValueError(
+            f"{variant}: its stored predictions ({len(det_annos)} frames) are not the test "
+            f"split's {len(frame_ids)} frames in order"
+        )
+    old = dict(entry.get("extra", {}))
+    timing = old.pop("timing_s", {})
+    old.pop("clean_predictions", None)
+    rescored = variant_entry(
+        variant, dataset, det_annos, [a["attack"] for a in det_annos],
+        class_names=context.class_names, clean_det_annos=clean_det_annos,
+        temporal_window=context.temporal_window, timings={},
+        num_reused_frames=entry["num_reused_frames"], extra=old,
+    )  # fmt: skip
+    return {**rescored, "extra": {**rescored["extra"], "timing_s": timing}}
+
+
 def entry_summary(variant: str, entry: Mapping) -> str:
     """One log line of a variant's entry: its L2 mAP/mAPH (or ``no labels``) and ASR."""
     asr, l2 = entry["asr"], entry["L2/mAP"]

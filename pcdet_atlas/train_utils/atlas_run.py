@@ -8,8 +8,9 @@ evaluates each checkpoint's variants in turn, the clean one first, rewriting ``r
 after each (a failure keeps the variants done). The run's caches (:class:`.EvalCaches`: the
 clean run's predictions and proposals, the prediction store) are built once and consulted by
 each variant. With ``resume``, the variants an earlier call finished are kept
-(:func:`.finished_variants`) and the clean one's predictions and proposals are read back for
-the others.
+(:func:`.finished_variants`): their predictions are read back and scored again by this version
+(:func:`~.atlas_eval.rescore_variant`), and the clean one's proposals are read back for the
+others.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from pcdet_atlas.train_utils.atlas_eval import (
     build_variant_attacks,
     check_test_split,
     evaluate_variant,
+    rescore_variant,
     resolve_variants,
     variant_fingerprints,
 )
@@ -337,10 +339,11 @@ def evaluate_checkpoint(
             entry = finished[variant]
             recorded = entry["extra"]  # the hashes finished_variants compared
             write_files = settings.save_to_file and rank == 0  # the earlier call may not have
-            if variant == "clean" or write_files:
+            if variant == "clean" or rank == 0:
                 kept_annos = _read_kept(
                     out_dir / variant / "result.pkl", recorded.get("result_sha256")
                 )
+            clean_annos = caches.clean_predictions  # what scored it (None for clean itself)
             if write_files:
                 write_prediction_files(kept_annos, out_dir / variant / "final_result" / "data")
             if variant == "clean":  # its predictions are reused, its proposals seed the banks
@@ -352,7 +355,11 @@ def evaluate_checkpoint(
                     sha = hashes.get(part.name)
                     proposals = _read_kept(part, sha) if sha is not None else None
                 caches.keep_clean(kept_annos, proposals, source=str(part))
-            logger.info(f"{variant}: kept from an earlier call (--resume)")
+            if rank == 0:  # this version's metric and analyses on the kept predictions
+                entry = rescore_variant(
+                    variant, attack, entry, kept_annos, context, clean_det_annos=clean_annos
+                )
+            logger.info(f"{variant}: kept from an earlier call (--resume), scored again")
         else:
             entry, det_annos = evaluate_variant(
                 model, variant, attack, context, caches=caches, out_dir=out_dir / variant

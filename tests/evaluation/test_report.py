@@ -566,8 +566,9 @@ def test_reproduce_names_a_truncated_or_mistyped_run_json(tmp_path):
 def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path, monkeypatch):
     """tools/reproduce.py end to end on the fixture data: two models evaluated at once, clean and
     one removal variant on 5 frames; the report and its run record with the wall time and reuse
-    counts; a second call resumes (evaluates nothing), a model stopped mid-way goes on from its
-    last finished variant, a retrained checkpoint or a changed --set evaluates again."""
+    counts; a second call resumes (predicts nothing, scores the kept predictions again), a model
+    stopped mid-way goes on from its last finished variant, a retrained checkpoint or a changed
+    --set evaluates again."""
     reproduce = load_tool("reproduce")
     cfgs = [REPO_ROOT / "cfgs" / "atlas" / "synthetic" / f"{name}.yaml"
             for name in ("centerpoint", "cp4f")]  # fmt: skip
@@ -614,6 +615,16 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path, monkeypatch):
     assert "cp4f" in log.read_text()
 
     stamps = [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]]
+
+    def predicted(results: str) -> dict[str, int]:  # when each variant's result.pkl was written
+        pkls = Path(results).parent.glob("*/result.pkl")
+        return {p.parent.name: p.stat().st_mtime_ns for p in pkls}
+
+    def variants_of(results: str) -> dict:
+        return collect_results([results])[0][1]["variants"]
+
+    predictions = [predicted(r["results"]) for r in run["runs"]]
+    entries = [variants_of(r["results"]) for r in run["runs"]]
     # --report_only writes the same report again from run.json and the results, evaluating nothing
     out["report"].unlink()
     rewritten = reproduce.main(["--out_dir", str(tmp_path / "report"), "--report_only"])
@@ -621,10 +632,14 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path, monkeypatch):
     assert [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]] == stamps
     with pytest.raises(FileNotFoundError, match="--report_only: no .*run.json"):
         reproduce.main(["--out_dir", str(tmp_path / "elsewhere"), "--report_only"])
-    again = reproduce.main(argv(14))  # resumes: both models are done
+    older = json.loads(Path(run["runs"][0]["results"]).read_text())  # as an older metric wrote
+    older["variants"]["rem_30"]["L2/mAP"] = 0.5
+    Path(run["runs"][0]["results"]).write_text(json.dumps(older))
+    again = reproduce.main(argv(14))  # resumes: both models are done, scored again
     assert again["run"]["runs"] == run["runs"]
     assert again["run"]["total_wall_s"] >= run["total_wall_s"]
-    assert [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]] == stamps
+    assert [predicted(r["results"]) for r in run["runs"]] == predictions  # nothing predicted
+    assert [variants_of(r["results"]) for r in run["runs"]] == entries  # the same numbers
     # a model stopped after its clean variant goes on from there (tools/test.py --resume)
     record = json.loads((tmp_path / "report" / "run.json").read_text())
     results_file = Path(record["runs"][0]["results"])
@@ -640,7 +655,7 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path, monkeypatch):
     assert resumed["run"]["calls"] == 3 and "over 3 calls" in resumed["report"].read_text()
     assert resumed["run"]["cpus"] == [reproduce.cpu_model()]  # one entry per distinct CPU
     assert resumed["run"]["runs"][0]["wall_s"] > 0
-    stamps = [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]]
+    predictions = [predicted(r["results"]) for r in run["runs"]]
     # a retrained checkpoint (its SHA-256 differs from the one results.json records) is
     # evaluated again from scratch, the other model not
     stale = json.loads(results_file.read_text())
@@ -649,13 +664,12 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path, monkeypatch):
     pkl_stamps = {v: p.stat().st_mtime_ns for v, p in pkl.items()}
     reproduce.main(argv(14))
     assert all(p.stat().st_mtime_ns > pkl_stamps[v] for v, p in pkl.items())
-    now = [Path(r["results"]).stat().st_mtime_ns for r in run["runs"]]
-    assert now[0] > stamps[0] and now[1] == stamps[1]
-    stamps = now
+    assert predicted(run["runs"][1]["results"]) == predictions[1]  # the other model: kept
+    predictions = [predicted(r["results"]) for r in run["runs"]]
     changed = reproduce.main(argv(20))  # another setting: evaluated again
-    assert all(Path(r["results"]).stat().st_mtime_ns > s
-               for r, s in zip(changed["run"]["runs"], stamps))  # fmt: skip
-    stamps = [Path(r["results"]).stat().st_mtime_ns for r in changed["run"]["runs"]]
+    assert all(all(predicted(r["results"])[v] > t for v, t in p.items())
+               for r, p in zip(changed["run"]["runs"], predictions))  # fmt: skip
+    predictions = [predicted(r["results"]) for r in changed["run"]["runs"]]
     assert not any(r["earlier_run"] for r in changed["run"]["runs"])
     # another model set is another run: its time and calls are not added to this one's, and it
     # keeps the model an earlier call evaluated, marked in the report
@@ -672,7 +686,7 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path, monkeypatch):
     monkeypatch.setattr(reproduce, "evaluation_of", evaluation_of)
     assert looked_up == ["cfgs/atlas/synthetic/centerpoint.yaml"]
     assert alone["run"]["calls"] == 1 and len(alone["run"]["runs"]) == 1
-    assert Path(alone["run"]["runs"][0]["results"]).stat().st_mtime_ns == stamps[0]
+    assert predicted(alone["run"]["runs"][0]["results"]) == predictions[0]  # nothing predicted
     assert alone["run"]["runs"][0]["earlier_run"] is True
     assert alone["run"]["runs"][0]["wall_s"] == changed["run"]["runs"][0]["wall_s"]
     text = alone["report"].read_text()
@@ -683,7 +697,8 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path, monkeypatch):
     assert again["run"]["earlier_run_models"] == ["cfgs/atlas/synthetic/centerpoint.yaml"]
     # ... and a --no_reuse run evaluates it again: it times what reuse skips
     alone = reproduce.main(["--no_reuse", *one])
-    assert Path(alone["run"]["runs"][0]["results"]).stat().st_mtime_ns > stamps[0]
+    assert all(predicted(alone["run"]["runs"][0]["results"])[v] > t
+               for v, t in predictions[0].items())  # fmt: skip
     assert alone["run"]["runs"][0]["earlier_run"] is False
 
 

@@ -311,6 +311,35 @@ def test_resume_goes_on_from_the_last_finished_variant(eval_setup, tmp_path, mon
     assert called == []
 
 
+def test_resume_scores_kept_variants_again_with_this_version(eval_setup, tmp_path, monkeypatch):
+    """A kept variant's entry is scored again from its ``result.pkl`` by this version's metric
+    and analyses (an entry written before an analysis existed gets it), without running the
+    model; what only the prediction pass knew (timings, reuse counts) is kept."""
+    test = load_tool("test")
+    args = tool_args(eval_setup, tmp_path, "rescore")
+    whole = test.main(args)
+    variant = Path(eval_setup["variant"]).stem
+    results_file = whole["output_dir"] / "results.json"
+    older = json.loads(results_file.read_text())  # as an older version would have written it
+    entry = older["variants"][variant]
+    assert entry["attributable"] is not None and entry["L2/mAP"] != 0.5
+    entry.update({"attributable": None, "L2/mAP": 0.5})
+    entry["extra"]["timing_s"]["model"] = 1234.5
+    results_file.write_text(json.dumps(older))
+    real, called = atlas_run.evaluate_variant, []
+    monkeypatch.setattr(
+        atlas_run, "evaluate_variant", lambda model, variant, *a, **kw: (
+            called.append(variant) or real(model, variant, *a, **kw)
+        ),
+    )  # fmt: skip
+    ret = test.main(with_flags(args, "--resume"))
+    assert called == []
+    assert strip_runtime(ret["results"]) == strip_runtime(whole["results"])
+    kept = ret["results"]["variants"][variant]
+    assert kept["extra"]["timing_s"]["model"] == 1234.5
+    assert kept["num_reused_frames"] == whole["results"]["variants"][variant]["num_reused_frames"]
+
+
 def test_resume_evaluates_again_what_changed(eval_setup, tmp_path, monkeypatch):
     """``--resume`` keeps a finished variant only where one uninterrupted call gives the same
     entry: a removal variant evaluated without the clean predictions this call has (its
