@@ -355,11 +355,17 @@ def evaluate_checkpoint(
                     sha = hashes.get(part.name)
                     proposals = _read_kept(part, sha) if sha is not None else None
                 caches.keep_clean(kept_annos, proposals, source=str(part))
-            if rank == 0:  # this version's metric and analyses on the kept predictions
+            # this version's metric and analyses on the kept predictions, unless the entry was
+            # scored with clean predictions that this call (not evaluating clean) lacks
+            rescore = clean_annos is not None or not recorded.get("clean_predictions")
+            if rank == 0 and rescore:
                 entry = rescore_variant(
                     variant, attack, entry, kept_annos, context, clean_det_annos=clean_annos
                 )
-            logger.info(f"{variant}: kept from an earlier call (--resume), scored again")
+            logger.info(
+                f"{variant}: kept from an earlier call (--resume), "
+                + ("scored again" if rescore else "as scored then (no clean predictions here)")
+            )
         else:
             entry, det_annos = evaluate_variant(
                 model, variant, attack, context, caches=caches, out_dir=out_dir / variant

@@ -427,6 +427,15 @@ def test_resume_evaluates_again_what_changed(eval_setup, tmp_path, monkeypatch):
     assert f"{again}its entry has no per-run counts (results.json schema 4 or older)" in logs
     assert not list(eval_dir.rglob("*.tmp"))
 
+    called.clear()  # a call without clean keeps the entry as its clean predictions scored it
+    scored = load_results(eval_dir / "results.json")["variants"]["rem_30"]
+    alone = with_flags(with_attacks(args, str(variant)), "--resume")
+    kept = test.main(alone)["results"]["variants"]["rem_30"]
+    assert called == [] and kept["confidence"] == scored["confidence"] is not None
+    assert kept["attributable"] == scored["attributable"] is not None
+    logs = "".join(p.read_text() for p in eval_dir.glob("log_eval_*.txt"))
+    assert "rem_30: kept from an earlier call (--resume), as scored then (no clean" in logs
+
 
 def test_attack_sha256_follows_the_yaml_and_the_trace_library(eval_setup, tmp_path):
     library = tmp_path / "lib.npz"
