@@ -17,6 +17,7 @@ from pcdet_atlas.evaluation.analyses.registry import (
 from pcdet_atlas.evaluation.analyses.schema_parts import (
     COUNT,
     FRAC,
+    INTERVAL,
     NAME,
     RUN,
     ResultsError,
@@ -138,7 +139,7 @@ class AsrAnalysis(Analysis):
         return {
             "asr": nullable(FRAC),
             # [lo, hi] intervals.asr_interval; None with < 2 runs or from before schema 3
-            "asr_ci": nullable({"type": "array", "items": FRAC, "minItems": 2, "maxItems": 2}),
+            "asr_ci": nullable(INTERVAL),
             "num_runs": nullable(COUNT),
             # per-run counts, sorted by (sequence, run_id); None before schema 5
             "runs": nullable({"type": "array", "items": RUN}),

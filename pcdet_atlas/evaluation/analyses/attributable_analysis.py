@@ -30,6 +30,7 @@ from pcdet_atlas.evaluation.analyses.registry import (
 from pcdet_atlas.evaluation.analyses.schema_parts import (
     COUNT,
     FRAC,
+    INTERVAL,
     check_rate,
     closed,
     fail,
@@ -50,7 +51,7 @@ __all__ = ["AttributableAnalysis", "attributable_asr", "confounded_targets"]
 ATTRIBUTABLE = closed(
     {
         "asr": nullable(FRAC),
-        "asr_ci": nullable({"type": "array", "items": FRAC, "minItems": 2, "maxItems": 2}),
+        "asr_ci": nullable(INTERVAL),
         "num_runs": COUNT,
         "num_targets": COUNT,
         "num_success": COUNT,

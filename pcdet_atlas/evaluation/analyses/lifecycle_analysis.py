@@ -21,6 +21,7 @@ from pcdet_atlas.evaluation.analyses.registry import (
 from pcdet_atlas.evaluation.analyses.schema_parts import (
     COUNT,
     FRAC,
+    INTERVAL,
     RUN,
     check_histogram,
     check_rate,
@@ -75,7 +76,7 @@ LIFECYCLE_SCHEMA = closed(
         "asr_ci": nullable(
             {
                 "type": "array",
-                "items": nullable({"type": "array", "items": FRAC, "minItems": 2, "maxItems": 2}),
+                "items": nullable(INTERVAL),
             }
         ),  # fmt: skip
         # per k the per-run counts behind it (pooled intervals); None before schema 6

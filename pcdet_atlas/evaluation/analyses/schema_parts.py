@@ -9,6 +9,7 @@ __all__ = [
     "COUNT",
     "FRAC",
     "HISTOGRAM",
+    "INTERVAL",
     "NAME",
     "RUN",
     "SIGNED_FRAC",
@@ -48,6 +49,8 @@ COUNT = {"type": "integer", "minimum": 0}
 #: (C0, DEL, C1) is refused. ``(?!\n)``: Python's ``$`` also matches before a final newline.
 NAME = {"type": "string", "minLength": 1, "pattern": "^[^\x00-\x1f\x7f-\x9f]+$(?!\n)"}
 SIGNED_FRAC = {"type": "number", "minimum": -1.0, "maximum": 1.0}
+#: A rate's interval ``[lo, hi]`` (e.g. :func:`pcdet_atlas.evaluation.intervals.asr_interval`).
+INTERVAL = {"type": "array", "items": FRAC, "minItems": 2, "maxItems": 2}
 HISTOGRAM = closed(
     {
         "bin_edges": {"type": "array", "items": {"type": "number"}, "minItems": 2},
