@@ -24,14 +24,15 @@ folder above the model's ``reproduce/results.json``. The run resumes: a later ca
 nothing again for a model whose variants ``tools/test.py --resume`` would all keep (same merged
 config, checkpoint bytes, variants, device and test split: its info pkls and frame files, by the
 dataset fingerprint in ``results.json``), whose kept predictions that call scores again with this
-version's metric and analyses (seconds), and lets a model left unfinished go on from its last
-finished variant; any other model is evaluated again. A call with the same data, models, variants,
-``--set`` and ``--no_reuse`` as the one ``run.json`` in ``--out`` records continues that run (its
-calls and wall time add up); a call with another model set starts a new run that still keeps what
-earlier calls evaluated of its models, and the report marks those models (their time is their own
-evaluation's, not in the run's total; the run's first call finds them, ``run.json``'s
-``earlier_run_models``); a ``--no_reuse`` call keeps only its own run's. A ``run.json`` that is
-truncated or holds a key of the wrong type is an error naming the file and the key.
+version's metric and analyses (seconds; not when this very commit wrote them), and lets a model
+left unfinished go on from its last finished variant; any other model is evaluated again. A call
+with the same data, models, variants, ``--set`` and ``--no_reuse`` as the one ``run.json`` in
+``--out`` records continues that run (its calls and wall time add up); a call with another model
+set starts a new run that still keeps what earlier calls evaluated of its models, and the report
+marks those models (their time is their own evaluation's, not in the run's total; the run's first
+call finds them, ``run.json``'s ``earlier_run_models``); a ``--no_reuse`` call keeps only its own
+run's. A ``run.json`` that is truncated or holds a key of the wrong type is an error naming the
+file and the key.
 ``--overwrite`` evaluates everything again. The models share a prediction store
 (``tools/test.py --prediction_store``, under ``--eval_dir``; ``--no_store``: none) that the
 two-stage models and the configs that are their RPN use, so a two-stage model reads the
@@ -88,6 +89,7 @@ from pcdet_atlas.utils.common import create_logger, resolve_device, write_atomic
 from pcdet_atlas.utils.files import open_regular_file
 from pcdet_atlas.utils.hashing import file_sha256
 from pcdet_atlas.utils.processes import die_with_parent
+from pcdet_atlas.utils.provenance import SourceRevision, source_revision
 
 DEFAULT_DATA = REPO_ROOT / "data" / "synthetic_waymo_val6"
 DEFAULT_OUT = REPO_ROOT / "docs" / "results"
@@ -252,6 +254,16 @@ def evaluation_of(
     except ValueError:
         finished = None
     return out_dir / "results.json", wanted, finished
+
+
+def scored_by(results: Path, revision: SourceRevision | None) -> bool:
+    """Whether ``results`` was written by this very source, ``revision`` (the same commit,
+    neither that tree nor this one with uncommitted changes): scoring its kept predictions again
+    would give its entries as they are."""
+    if revision is None or revision.dirty:
+        return False
+    written = json.loads(results.read_text())
+    return written.get("source_commit") == revision.commit and written.get("source_dirty") is False
 
 
 _NUMBER, _TEXT = (int, float), (str,)
@@ -453,21 +465,22 @@ def reproduce(args, argv=None) -> dict:
         resumable = evaluated is not None and not args.overwrite and (resume or not args.no_reuse)
         earlier_run = resumable and str(cfg) in earlier
         done = resumable and wanted <= evaluated
-        # a finished model runs too: tools/test.py --resume scores its kept predictions again
-        # with this version's metric and analyses (seconds), predicting nothing
-        store = store_of(cfg, rpns, args)
-        command = [sys.executable, str(REPO_ROOT / "tools" / "test.py"),
-                   *test_argv(cfg, args, root, threads, resumable, store)]  # fmt: skip
-        print("$ " + shlex.join(command[1:]), flush=True)
-        log = results.parent.parent / "reproduce.log"
-        log.parent.mkdir(parents=True, exist_ok=True)
-        with open_log(log, append=resumable) as stream:
-            code = subprocess.run(  # killed with this process: no orphan writes on
-                command, stdout=stream, stderr=subprocess.STDOUT, cwd=REPO_ROOT,
-                preexec_fn=die_with_parent(),
-            ).returncode  # fmt: skip
-        if code != 0:
-            raise RuntimeError(f"{cfg}: tools/test.py exited with {code}; its output: {log}")
+        # a finished model written by another version runs too: tools/test.py --resume scores
+        # its kept predictions again with this version's metric and analyses, predicting nothing
+        if not done or not scored_by(results, revision):
+            store = store_of(cfg, rpns, args)
+            command = [sys.executable, str(REPO_ROOT / "tools" / "test.py"),
+                       *test_argv(cfg, args, root, threads, resumable, store)]  # fmt: skip
+            print("$ " + shlex.join(command[1:]), flush=True)
+            log = results.parent.parent / "reproduce.log"
+            log.parent.mkdir(parents=True, exist_ok=True)
+            with open_log(log, append=resumable) as stream:
+                code = subprocess.run(  # killed with this process: no orphan writes on
+                    command, stdout=stream, stderr=subprocess.STDOUT, cwd=REPO_ROOT,
+                    preexec_fn=die_with_parent(),
+                ).returncode  # fmt: skip
+            if code != 0:
+                raise RuntimeError(f"{cfg}: tools/test.py exited with {code}; its output: {log}")
         wall = evaluation_time(json.loads(results.read_text()))
         when = "done in an earlier call, " if done else ""
         when += "evaluated by a run of another model set, " if earlier_run else ""
@@ -476,6 +489,7 @@ def reproduce(args, argv=None) -> dict:
                     "earlier_run": earlier_run})  # fmt: skip
 
     rpns = {rpn_config(cfg) for cfg in cfgs} - {None}
+    revision = source_revision()
     threading.Thread(target=heartbeat, daemon=True).start()
     evaluate_all(start_order(cfgs, known, rpns), evaluate, args.jobs)
     finished.set()

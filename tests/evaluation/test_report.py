@@ -634,6 +634,7 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path, monkeypatch):
         reproduce.main(["--out_dir", str(tmp_path / "elsewhere"), "--report_only"])
     older = json.loads(Path(run["runs"][0]["results"]).read_text())  # as an older metric wrote
     older["variants"]["rem_30"]["L2/mAP"] = 0.5
+    older["source_commit"] = "0" * 40  # another version (this one's results are not rescored)
     Path(run["runs"][0]["results"]).write_text(json.dumps(older))
     again = reproduce.main(argv(14))  # resumes: both models are done, scored again
     assert again["run"]["runs"] == run["runs"]
@@ -700,6 +701,25 @@ def test_reproduce_evaluates_and_reports(synthetic_root, tmp_path, monkeypatch):
     assert all(predicted(alone["run"]["runs"][0]["results"])[v] > t
                for v, t in predictions[0].items())  # fmt: skip
     assert alone["run"]["runs"][0]["earlier_run"] is False
+
+
+def test_reproduce_scores_again_what_another_version_wrote(tmp_path):
+    """A finished model is scored again (tools/test.py --resume) unless this very commit, with no
+    uncommitted change on either side, wrote its results."""
+    from pcdet_atlas.utils.provenance import SourceRevision
+
+    reproduce = load_tool("reproduce")
+    results = tmp_path / "results.json"
+    commit = "a" * 40
+    results.write_text(json.dumps({"source_commit": commit, "source_dirty": False}))
+    assert reproduce.scored_by(results, SourceRevision(commit=commit, dirty=False))
+    assert not reproduce.scored_by(results, SourceRevision(commit=commit, dirty=True))
+    assert not reproduce.scored_by(results, SourceRevision(commit="b" * 40, dirty=False))
+    assert not reproduce.scored_by(results, None)  # not a git checkout: cannot tell
+    results.write_text(json.dumps({"source_commit": commit, "source_dirty": True}))
+    assert not reproduce.scored_by(results, SourceRevision(commit=commit, dirty=False))
+    results.write_text(json.dumps({"source_commit": None, "source_dirty": None}))  # older file
+    assert not reproduce.scored_by(results, SourceRevision(commit=commit, dirty=False))
 
 
 def test_reproduce_starts_no_model_after_one_failed(capsys):
