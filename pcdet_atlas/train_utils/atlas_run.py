@@ -339,11 +339,14 @@ def evaluate_checkpoint(
             entry = finished[variant]
             recorded = entry["extra"]  # the hashes finished_variants compared
             write_files = settings.save_to_file and rank == 0  # the earlier call may not have
-            if variant == "clean" or rank == 0:
+            clean_annos = caches.clean_predictions  # what scores it (None for clean itself)
+            # this version's metric and analyses on the kept predictions, unless the entry was
+            # scored with clean predictions that this call (not evaluating clean) lacks
+            rescore = clean_annos is not None or not recorded.get("clean_predictions")
+            if variant == "clean" or write_files or (rank == 0 and rescore):
                 kept_annos = _read_kept(
                     out_dir / variant / "result.pkl", recorded.get("result_sha256")
                 )
-            clean_annos = caches.clean_predictions  # what scored it (None for clean itself)
             if write_files:
                 write_prediction_files(kept_annos, out_dir / variant / "final_result" / "data")
             if variant == "clean":  # its predictions are reused, its proposals seed the banks
@@ -355,9 +358,6 @@ def evaluate_checkpoint(
                     sha = hashes.get(part.name)
                     proposals = _read_kept(part, sha) if sha is not None else None
                 caches.keep_clean(kept_annos, proposals, source=str(part))
-            # this version's metric and analyses on the kept predictions, unless the entry was
-            # scored with clean predictions that this call (not evaluating clean) lacks
-            rescore = clean_annos is not None or not recorded.get("clean_predictions")
             if rank == 0 and rescore:
                 entry = rescore_variant(
                     variant, attack, entry, kept_annos, context, clean_det_annos=clean_annos

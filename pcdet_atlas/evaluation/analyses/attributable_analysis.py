@@ -42,6 +42,7 @@ from pcdet_atlas.evaluation.results.queries import families_present, family_vari
 from pcdet_atlas.evaluation.results.tables import (
     MISSING,
     _render,
+    format_interval,
     ordered_variants,
     variant_label,
 )
@@ -106,8 +107,7 @@ def _cell(v: Mapping | None) -> str:
         return "-"
     if a["asr"] is None:
         return f"- ({a['num_confounded']} confounded)"
-    ci = "" if a["asr_ci"] is None else f" [{a['asr_ci'][0]:.2f}, {a['asr_ci'][1]:.2f}]"
-    return f"{a['asr']:.2f}{ci}; {a['num_confounded']}"
+    return f"{a['asr']:.2f}{format_interval(a['asr_ci'])}; {a['num_confounded']}"
 
 
 def attributable_tables(results_list: Sequence[Mapping], fmt: str) -> list[tuple[str, str]]:

@@ -48,7 +48,13 @@ from pcdet_atlas.evaluation.results.style import (
     render,
     variant_styles,
 )
-from pcdet_atlas.evaluation.results.tables import _render, latex_escape, missing_of, variant_label
+from pcdet_atlas.evaluation.results.tables import (
+    _render,
+    format_interval,
+    latex_escape,
+    missing_of,
+    variant_label,
+)
 
 __all__ = [
     "LifecycleAnalysis",
@@ -385,7 +391,7 @@ def lifecycle_table(results_list: Sequence[Mapping], fmt: str = "markdown") -> s
                 hits = sum(lc["num_success"][lc["k"].index(k)] for lc in lcs if k in lc["k"])
                 total = sum(lc["num_targets"][lc["k"].index(k)] for lc in lcs if k in lc["k"])
                 ci = _pooled_lifecycle_interval(lcs, k)
-                interval = "" if ci is None else f" [{ci[0]:.2f}, {ci[1]:.2f}]"
+                interval = format_interval(ci)
                 row.append("-" if not total else f"{hits / total:.2f}{interval} ({hits}/{total})")
         rows.append(row[:1] + ["-" if window is None else str(window)] + row[1:])
     if fmt == "latex":

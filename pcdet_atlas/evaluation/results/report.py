@@ -36,6 +36,7 @@ from pcdet_atlas.evaluation.results.seeds import seed_spread_text
 from pcdet_atlas.evaluation.results.tables import (
     MISSING,
     _render,
+    format_interval,
     format_table,
     latex_escape,
     missing_of,
@@ -105,10 +106,7 @@ def _fmt(value: float | None, scale: float = 1.0, digits: int = 2) -> str:
 def _fmt_ci(entry: Mapping) -> str:
     if entry["asr"] is None:
         return "-"
-    text = f"{entry['asr']:.2f}"
-    if entry["asr_ci"] is not None:
-        text += f" [{entry['asr_ci'][0]:.2f}, {entry['asr_ci'][1]:.2f}]"
-    return text
+    return f"{entry['asr']:.2f}" + format_interval(entry["asr_ci"])
 
 
 def input_frames(results: Mapping) -> int | None:

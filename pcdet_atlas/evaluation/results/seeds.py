@@ -15,7 +15,12 @@ from collections.abc import Mapping, Sequence
 from pcdet_atlas.evaluation.results import queries
 from pcdet_atlas.evaluation.results.build import paired_from_results
 from pcdet_atlas.evaluation.results.schema import ResultsError
-from pcdet_atlas.evaluation.results.tables import _render, ordered_variants, variant_label
+from pcdet_atlas.evaluation.results.tables import (
+    _render,
+    format_interval,
+    ordered_variants,
+    variant_label,
+)
 
 __all__ = ["one_per_model_config", "seed_groups", "seed_spread", "seed_spread_text"]
 
@@ -88,10 +93,7 @@ def _diff_cell(out: dict | None, a: str, b: str, digits: int = 2) -> str:
 
 
 def _asr_cell(entry: Mapping) -> str:
-    text = f"{entry['asr']:.2f}"
-    if entry["asr_ci"] is not None:
-        text += f" [{entry['asr_ci'][0]:.2f}, {entry['asr_ci'][1]:.2f}]"
-    return text
+    return f"{entry['asr']:.2f}" + format_interval(entry["asr_ci"])
 
 
 def seed_spread(group: Sequence[Mapping]) -> dict:

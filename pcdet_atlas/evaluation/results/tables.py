@@ -57,6 +57,12 @@ def _fmt_asr(v) -> str:
     return "-" if v is None else f"{v:.2f}"
 
 
+def format_interval(ci) -> str:
+    """A rate's interval as the tables print it after the rate, `` [lo, hi]`` (two decimals);
+    ``''`` without one."""
+    return "" if ci is None else f" [{ci[0]:.2f}, {ci[1]:.2f}]"
+
+
 #: Cell of a variant a model was not evaluated on (not a zero: the value is unknown).
 MISSING = "missing"
 FORMATS = ("text", "markdown", "latex")
@@ -162,9 +168,7 @@ def format_table(
         if name not in results["variants"]:
             raise ResultsError(f"{results['model']}: no variant {name!r}")
         v = results["variants"][name]
-        asr = _fmt_asr(v["asr"])
-        if v["asr_ci"] is not None:
-            asr += f" [{v['asr_ci'][0]:.2f}, {v['asr_ci'][1]:.2f}]"
+        asr = _fmt_asr(v["asr"]) + format_interval(v["asr_ci"])
         row = [name, _fmt_map(v["L2/mAP"]), _fmt_map(v["L2/mAPH"]), asr]
         if lenient:
             row.append(_fmt_asr(v["asr_lenient"]))
@@ -254,10 +258,7 @@ def format_comparison_table(
             m, a = maps[i] or "-", asrs[i] or "-"
             if fmt in ("markdown", "latex") and mark_best and len(models) > 1:
                 m, a = _mark(m, map_marks[i], fmt), _mark(a, asr_marks[i], fmt)
-            ci = entry["asr_ci"]
-            if ci is not None:
-                a += f" [{ci[0]:.2f}, {ci[1]:.2f}]"
-            cells[(model, name)] = (m, a)
+            cells[(model, name)] = (m, a + format_interval(entry["asr_ci"]))
     if models_as == "rows":
         groups = [("", 1)] + [(variant_label(n), 2) for n in variants]
         header = ["Detector"] + ["L2 mAP", "ASR"] * len(variants)
