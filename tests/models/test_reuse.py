@@ -44,15 +44,22 @@ FRAMES = list(range(0, 70, INTERVAL))
 SPOOFED = [f for f in FRAMES if 32 <= f <= 63]
 
 
+# PTT's tests crop tighter: its proposal bank runs the RPN on every frame of the 31-frame
+# history, and a +-10.24 m crop keeps about 20 detections a frame to compare
+PTT_HALF = 10.24
+PTT_RANGE = f"-{PTT_HALF},-{PTT_HALF},-2,{PTT_HALF},{PTT_HALF},4"
+
+
 def setup_model(name: str, root):
     """A shipped synthetic model (real weights: real detections to compare) on the fixture
-    data, its BEV cropped to +-20.48 m."""
+    data, its BEV cropped to +-20.48 m (PTT: +-10.24 m)."""
     cfg = cfg_from_yaml_file(CFGS / f"{name}.yaml")
+    half = PTT_HALF if name == "ptt_32f" else 20.48
     data_cfg = copy.deepcopy(cfg.DATA_CONFIG)
     data_cfg.DATA_PATH = str(root)
     data_cfg.SAMPLED_INTERVAL = {"train": 1, "test": INTERVAL}
-    data_cfg.POINT_CLOUD_RANGE = [-20.48, -20.48, *cfg.DATA_CONFIG.POINT_CLOUD_RANGE[2:3], 20.48,
-                                  20.48, cfg.DATA_CONFIG.POINT_CLOUD_RANGE[5]]  # fmt: skip
+    data_cfg.POINT_CLOUD_RANGE = [-half, -half, *cfg.DATA_CONFIG.POINT_CLOUD_RANGE[2:3], half,
+                                  half, cfg.DATA_CONFIG.POINT_CLOUD_RANGE[5]]  # fmt: skip
     cfg.DATA_CONFIG = data_cfg
     model = build_network_from_config(cfg)
     model.load_params_from_file(REPO_ROOT / cfg.ATLAS.CHECKPOINT)
@@ -297,31 +304,15 @@ def composition_sensitive_rpn(model, monkeypatch) -> None:
 
 
 @pytest.mark.slow
-def test_ptt_seeded_bank_at_batch_size_3(synthetic_root, injection, monkeypatch):
+def test_ptt_at_batch_size_3_with_any_workers(synthetic_root, injection, monkeypatch):
     """PTT at batch size 3, with an RPN whose output depends on its batch: a reusing run whose
     proposal bank starts from the clean run's is bitwise a full run. Every frame is proposed
     with the frames of its loader batch (a frame no batch holds, alone), wherever it is read
-    first; a frame is seeded when its whole batch has a clean RPN input."""
-    model, cfg = setup_model("ptt_32f", synthetic_root)
-    composition_sensitive_rpn(model, monkeypatch)
-    proposals = {}
-    _, clean = run(model, cfg, ATTACKS / "clean.yaml", None, reuse=False, batch_size=3,
-                   proposals=proposals)  # fmt: skip
-    full_entry, reuse_entry = check_variant(model, cfg, injection, clean, proposals, batch_size=3)
-    bank = reuse_entry["extra"]["proposal_bank"]
-    assert full_entry["extra"]["proposal_bank"]["rpn_frames"] == 66
-    # seeded: frames 0..31 but 30, whose batch (30, 35, 40) has attacked RPN inputs; through
-    # the RPN, each once: 30 (with 35 and 40) and 32..65
-    assert bank["seeded"] == 31 and bank["rpn_frames"] == 1 + 34
-
-
-@pytest.mark.slow
-def test_ptt_predictions_do_not_depend_on_the_workers(synthetic_root, injection, monkeypatch):
-    """With loader workers the batches arrive interleaved (worker k reads the k-th contiguous
-    chunk), so a worker's first batch reads history that another worker's batches hold: those
-    frames are still proposed with their own batch, and the detections of a full and of a
-    reusing run equal those of one worker bitwise, with an RPN whose output depends on its
-    batch."""
+    first; a frame is seeded when its whole batch has a clean RPN input. With loader workers
+    the batches arrive interleaved (worker k reads the k-th contiguous chunk), so a worker's
+    first batch reads history that another worker's batches hold: those frames are still
+    proposed with their own batch, and the clean and the reusing run with two workers equal
+    those of one bitwise."""
     model, cfg = setup_model("ptt_32f", synthetic_root)
     composition_sensitive_rpn(model, monkeypatch)
 
@@ -330,13 +321,25 @@ def test_ptt_predictions_do_not_depend_on_the_workers(synthetic_root, injection,
                    workers=workers)  # fmt: skip
 
     proposals = {}
-    _, clean = predict(ATTACKS / "clean.yaml", None, reuse=False, workers=2, proposals=proposals)
-    _, clean_one = predict(ATTACKS / "clean.yaml", None, reuse=False, workers=0)
-    assert_annos_equal(clean, clean_one)
-    full_entry, full = predict(injection, clean_one, reuse=False, workers=0)
-    reuse_entry, reused = predict(injection, clean, reuse=True, workers=2, proposals=proposals)
+    _, clean = predict(ATTACKS / "clean.yaml", None, reuse=False, workers=0, proposals=proposals)
+    full_entry, full = predict(injection, clean, reuse=False, workers=0)
+    reuse_entry, reused = predict(injection, clean, reuse=True, workers=0, proposals=proposals)
     assert_annos_equal(reused, full)
     assert strip(reuse_entry) == strip(full_entry)
+    bank = reuse_entry["extra"]["proposal_bank"]
+    assert full_entry["extra"]["proposal_bank"]["rpn_frames"] == 66
+    # seeded: frames 0..31 but 30, whose batch (30, 35, 40) has attacked RPN inputs; through
+    # the RPN, each once: 30 (with 35 and 40) and 32..65
+    assert bank["seeded"] == 31 and bank["rpn_frames"] == 1 + 34
+
+    workers_bank = {}
+    _, clean_two = predict(ATTACKS / "clean.yaml", None, reuse=False, workers=2,
+                           proposals=workers_bank)  # fmt: skip
+    assert_annos_equal(clean_two, clean)
+    two_entry, reused_two = predict(injection, clean_two, reuse=True, workers=2,
+                                    proposals=workers_bank)  # fmt: skip
+    assert_annos_equal(reused_two, full)
+    assert strip(two_entry) == strip(full_entry)
 
 
 @pytest.mark.slow
@@ -356,7 +359,7 @@ def test_ptt_resume_seeds_from_the_saved_clean_bank(synthetic_root, injection, t
         "--out_dir", str(tmp_path), "--workers", "0", "--no_progress", "--device", "cpu",
         "--set", "DATA_CONFIG.DATA_PATH", str(synthetic_root),
         "DATA_CONFIG.SAMPLED_INTERVAL", f"train:1,test:{INTERVAL}",
-        "DATA_CONFIG.POINT_CLOUD_RANGE", "-20.48,-20.48,-2,20.48,20.48,4",
+        "DATA_CONFIG.POINT_CLOUD_RANGE", PTT_RANGE,
     ]  # fmt: skip
     whole = test.main(args)
     eval_dir = whole["output_dir"]
@@ -405,7 +408,7 @@ def test_ptt_two_processes_equal_one(synthetic_root, injection, tmp_path):
             "--out_dir", str(out), "--workers", "0", "--no_progress", "--device", "cpu",
             "--set", "DATA_CONFIG.DATA_PATH", str(synthetic_root),
             "DATA_CONFIG.SAMPLED_INTERVAL", "train:1,test:10",  # 7 frames, 4 + 3 per process
-            "DATA_CONFIG.POINT_CLOUD_RANGE", "-20.48,-20.48,-2,20.48,20.48,4",
+            "DATA_CONFIG.POINT_CLOUD_RANGE", PTT_RANGE,
         ]  # fmt: skip
 
     one = load_tool("test").main(args(tmp_path / "one"))
