@@ -353,6 +353,35 @@ def test_lot_keeps_points_with_their_voxels():
     assert after["lot_voxel_confidence"].shape == keep.shape
 
 
+def test_lot_masked_pooling_scores_a_sparse_cell_as_its_voxels():
+    """An occupancy cell holding one voxel: the paper's average pooling divides its score by the
+    cell's bins (empty bins count as zero occupancy), below a full cell of voxels with the same
+    score; masked pooling gives each cell the mean score of its voxels."""
+    maps = {}
+    for pooling in ("masked", "average"):
+        lot = lot_model(POOLING=pooling)[0].lot
+        with torch.no_grad():  # every voxel scores sigmoid(0) = 0.5
+            lot.score_mlp[-1].weight.zero_()
+            lot.score_mlp[-1].bias.zero_()
+        pa, pr = lot.pool_size
+        # cell (0, 0): one voxel; cell (0, 1): every bin at two heights
+        coords = [[0, 1, 0, 0]] + [
+            [0, z, a, pr + r] for z in range(2) for a in range(pa) for r in range(pr)
+        ]  # fmt: skip
+        batch = {
+            "voxel_features": torch.randn(len(coords), lot.score_mlp[0].in_features),
+            "voxel_coords": torch.tensor(coords), "batch_size": 1,
+        }  # fmt: skip
+        maps[pooling] = lot.current_map(batch)[0]
+    bins = pa * pr
+    assert maps["masked"][0, 0] == 0.5 and maps["masked"][0, 1] == 0.5
+    assert maps["average"][0, 0] == 0.5 / bins and maps["average"][0, 1] == 0.5
+    for m in maps.values():  # every other cell is empty
+        assert m.sum() == m[0, 0] + m[0, 1]
+    with pytest.raises(ValueError, match="POOLING"):
+        lot_model(POOLING="max")
+
+
 def test_occupancy_target_across_the_azimuth_seam():
     grid = PolarGrid((0.0, 76.8), (-2.0, 4.0), (96, 384, 4), 8)
     box = torch.tensor([[[-20.0, 0.0, 0.8, 4.6, 2.0, 1.6, 0.0, 1.0]]])  # straddles +-pi

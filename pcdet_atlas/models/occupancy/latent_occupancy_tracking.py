@@ -2,10 +2,11 @@
 Implementation Details"; docs/model_zoo.md "PHiM+LOT").
 
 Between the VFE and the backbone: a score MLP (Linear, GELU, Linear) gives every polar voxel an
-occupancy probability; the scores fill a dense ``(z, azimuth, range)`` grid, which is collapsed
-over height by a masked mean and average-pooled over azimuth and range: the frame's occupancy
-map. A :class:`~pcdet_atlas.models.ssm.ConvSSM` forecasts the current map from ``K`` earlier
-maps (``forecast_from``):
+occupancy probability; the scores fill a dense ``(z, azimuth, range)`` grid, pooled to
+occupancy cells (``pooling``: the mean score of each cell's voxels, or the paper's masked mean
+over height average-pooled over the cell's bins, in which empty bins count as zero occupancy):
+the frame's occupancy map. A :class:`~pcdet_atlas.models.ssm.ConvSSM` forecasts the current map
+from ``K`` earlier maps (``forecast_from``):
 
 - ``frames``: the maps of the ``K`` previous frames, each made by the same VFE and score MLP
   from that frame's points, which the data pipeline has already moved into the current vehicle
@@ -44,6 +45,7 @@ from pcdet_atlas.registry import MODEL_STAGES
 __all__ = ["LOTConfig", "LatentOccupancyTracking"]
 
 CONFIDENCE_MAPS = ("final", "forecast")
+POOLINGS = ("masked", "average")
 FORECAST_SOURCES = ("frames", "sectors")
 
 
@@ -62,6 +64,11 @@ class LOTConfig(StageConfig):
     confidence_map: str = setting("final", choices=CONFIDENCE_MAPS, doc="final or forecast")
     gt_min_sigma: float = setting(0.5, gt=0, doc="smallest sigma of the occupancy target, cells")
     forecast_from: str = setting("frames", choices=FORECAST_SOURCES, doc="frames or sectors")
+    pooling: str = setting(
+        "masked", choices=POOLINGS,
+        doc="masked: an occupancy cell is the mean score of its voxels; average: the paper's "
+        "average pooling of the height-collapsed map (empty bins count as 0)",
+    )  # fmt: skip
 
 
 @MODEL_STAGES.register()
@@ -89,6 +96,7 @@ class LatentOccupancyTracking(nn.Module):
         confidence_map: str = LOTConfig.confidence_map,
         gt_min_sigma: float = LOTConfig.gt_min_sigma,
         forecast_from: str = LOTConfig.forecast_from,
+        pooling: str = LOTConfig.pooling,
     ):
         """
         Args:
@@ -101,6 +109,9 @@ class LatentOccupancyTracking(nn.Module):
             confidence_map: ``final`` (0.5 current + 0.5 forecast) or ``forecast``.
             gt_min_sigma: smallest Gaussian sigma of the occupancy target, in cells.
             forecast_from: ``frames`` or ``sectors`` (module docstring).
+            pooling: ``masked`` (the mean score of the voxels in each occupancy cell) or
+                ``average`` (the paper's average pooling of the height-collapsed map, in which
+                empty bins count as zero, so a sparse object's cell scores below dense ground).
         """
         super().__init__()
         pa, pr = (int(v) for v in pool_size)
@@ -119,7 +130,10 @@ class LatentOccupancyTracking(nn.Module):
             raise ValueError(
                 f"LOT: FORECAST_FROM must be one of {FORECAST_SOURCES}, got {forecast_from!r}"
             )
+        if pooling not in POOLINGS:
+            raise ValueError(f"LOT: POOLING must be one of {POOLINGS}, got {pooling!r}")
         self.forecast_from = forecast_from
+        self.pooling = pooling
         self.grid = grid
         self.pool_size = (pa, pr)
         self.buffer_length = int(buffer_length)
@@ -146,8 +160,9 @@ class LatentOccupancyTracking(nn.Module):
         return self.buffer_length if self.forecast_from == "frames" else 0
 
     def current_map(self, batch_dict: Mapping) -> torch.Tensor:
-        """(B, A', R') occupancy map of the voxels in ``batch_dict``: the score MLP's
-        probabilities, a masked mean over height, average-pooled to occupancy cells."""
+        """(B, A', R') occupancy map of the voxels in ``batch_dict`` from the score MLP's
+        probabilities: per occupancy cell, the mean over its voxels (``pooling`` ``masked``), or
+        the average pooling of their masked mean over height (``average``)."""
         feats, coords = batch_dict["voxel_features"], batch_dict["voxel_coords"]
         B = int(batch_dict["batch_size"])
         nr, na, nz = self.grid.grid_size
@@ -157,8 +172,14 @@ class LatentOccupancyTracking(nn.Module):
         occ = score.new_zeros(B * nz * na * nr).index_put((flat,), score).view(B, nz, na, nr)
         valid = score.new_zeros(B * nz * na * nr).index_put((flat,), torch.ones_like(score))
         valid = valid.view(B, nz, na, nr)
-        occ_2d = occ.sum(1) / valid.sum(1).clamp(min=1)  # (B, na, nr) masked mean over height
-        return F.avg_pool2d(occ_2d[:, None], self.pool_size)[:, 0]  # (B, A', R')
+        if self.pooling == "average":
+            occ_2d = occ.sum(1) / valid.sum(1).clamp(min=1)  # (B, na, nr) masked mean over height
+            return F.avg_pool2d(occ_2d[:, None], self.pool_size)[:, 0]  # (B, A', R')
+        # masked: the scores' and the voxels' means over each cell's bins; their ratio is the
+        # mean score of its voxels (a non-empty cell's voxel mean is at least 1 / its bins)
+        means = F.avg_pool2d(torch.stack([occ.sum(1), valid.sum(1)], 1), self.pool_size)
+        bins = self.pool_size[0] * self.pool_size[1]
+        return means[:, 0] / means[:, 1].clamp(min=1.0 / bins)  # (B, A', R')
 
     def forecast_logits(self, batch_dict: Mapping, current: torch.Tensor) -> torch.Tensor:
         """(B, A', R') forecast logits of the current map (module docstring)."""
