@@ -25,7 +25,6 @@ CELLS = 64  # smoke runs use a cropped grid of CELLS x CELLS pillars / voxels, s
 #: ships
 NOT_SHIPPED = {
     "synthetic/centerformer.yaml",
-    "synthetic/centerpoint_seed667.yaml",
     "synthetic/centerpoint_voxel.yaml",
     "synthetic/dsvt.yaml",
 }
