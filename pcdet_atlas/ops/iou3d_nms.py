@@ -23,6 +23,7 @@ Conventions (documented, tested):
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -35,6 +36,7 @@ __all__ = [
     "boxes_aligned_iou3d",
     "boxes_iou3d_grouped",
     "nms_bev",
+    "nms_bev_per_class",
 ]
 
 #: Pairs processed at once by the clipping kernel (~0.3 GB peak on float64 at this size).
@@ -476,3 +478,44 @@ def nms_bev(
             break
         removed[ib[row_ptr[i] : row_ptr[i + 1]]] = True
     return order[torch.as_tensor(kept, dtype=torch.long, device=order.device)]
+
+
+def nms_bev_per_class(
+    boxes: torch.Tensor,
+    scores: torch.Tensor,
+    labels: torch.Tensor,
+    iou_thresh: Sequence[float],
+    pre_max_size: Sequence[int],
+    post_max_size: Sequence[int],
+) -> torch.Tensor:
+    """:func:`nms_bev` class by class: the boxes of 0-based label ``k`` with ``iou_thresh[k]``,
+    ``pre_max_size[k]`` and ``post_max_size[k]`` (OpenPCDet's ``class_specific_nms``).
+
+    Raises:
+        ValueError: the three settings differ in length, or a label has no setting.
+
+    Returns:
+        ``(K,)`` int64 indices into ``boxes``, all classes together by descending score
+        (stable: equal scores keep class order, then each class's NMS order).
+    """
+    num_class = len(iou_thresh)
+    if len(pre_max_size) != num_class or len(post_max_size) != num_class:
+        raise ValueError(
+            f"nms_bev_per_class: one iou_thresh, pre_max_size and post_max_size per class, got "
+            f"{len(iou_thresh)}, {len(pre_max_size)} and {len(post_max_size)} values"
+        )
+    if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= num_class):
+        raise ValueError(
+            f"nms_bev_per_class: labels must lie in [0, {num_class - 1}] (one setting per "
+            f"class), got {int(labels.min())}..{int(labels.max())}"
+        )
+    kept = []
+    for k in range(num_class):
+        idx = torch.nonzero(labels == k).squeeze(1)
+        keep = nms_bev(
+            boxes[idx], scores[idx], float(iou_thresh[k]), int(pre_max_size[k]),
+            int(post_max_size[k]),
+        )  # fmt: skip
+        kept.append(idx[keep])
+    kept = torch.cat(kept)
+    return kept[torch.sort(scores[kept], descending=True, stable=True).indices]

@@ -21,6 +21,7 @@ from pcdet_atlas.ops.iou3d_nms import (
     boxes_iou_bev,
     boxes_overlap_bev,
     nms_bev,
+    nms_bev_per_class,
 )
 
 
@@ -279,6 +280,30 @@ def test_nms_bev_bad_arguments_are_named_errors():
         nms_bev(two, scores, 0.5, post_max_size=2.5)
     assert nms_bev(two, scores, 0.5, pre_max_size=np.int64(1)).tolist() == [0]
     assert nms_bev(two, scores, 0.5, pre_max_size=0).numel() == 0
+
+
+def test_nms_bev_per_class_against_a_reference():
+    # the Python NMS per label with that label's settings, pooled, by score (ties: class order)
+    boxes = _random_boxes(90, seed=11, spread=6.0)
+    g = torch.Generator().manual_seed(12)
+    scores = torch.rand(90, generator=g)
+    scores[5:25] = 0.5  # ties across and within classes
+    labels = torch.randint(0, 3, (90,), generator=g)
+    thresh, pre, post = (0.1, 0.3, 0.05), (30, 25, 40), (8, 30, 5)
+    expected = []
+    for k in range(3):
+        idx = torch.nonzero(labels == k).squeeze(1)
+        kept = _nms_reference(boxes[idx], scores[idx], thresh[k], pre[k], post[k])
+        expected += [int(idx[i]) for i in kept]
+    expected.sort(key=lambda i: -float(scores[i]))  # stable: class order, then NMS order
+    keep = nms_bev_per_class(boxes, scores, labels, thresh, pre, post)
+    assert keep.tolist() == expected
+    assert len(set(labels[keep].tolist())) == 3  # every class kept something
+    with pytest.raises(ValueError, match=r"labels must lie in \[0, 1\]"):
+        nms_bev_per_class(boxes, scores, labels, thresh[:2], pre[:2], post[:2])
+    with pytest.raises(ValueError, match="one iou_thresh, pre_max_size and post_max_size"):
+        nms_bev_per_class(boxes, scores, labels, thresh, pre[:2], post)
+    assert nms_bev_per_class(boxes[:0], scores[:0], labels[:0], thresh, pre, post).numel() == 0
 
 
 @settings(max_examples=60, deadline=None)

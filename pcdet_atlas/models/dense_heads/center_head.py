@@ -32,7 +32,7 @@ from pcdet_atlas.models.dense_heads.center_config import (
 )
 from pcdet_atlas.models.model_utils import centernet_utils as cu
 from pcdet_atlas.models.stage_config import StageConfig, read_stage
-from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d, nms_bev
+from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d, nms_bev, nms_bev_per_class
 from pcdet_atlas.registry import MODEL_STAGES
 
 REG_HEADS = {"center": 2, "center_z": 1, "dim": 3, "rot": 2, "vel": 2, "iou": 1}
@@ -206,15 +206,7 @@ class CenterHead(nn.Module):
         self.point_cloud_range = tuple(float(v) for v in point_cloud_range)
         self.voxel_size = tuple(float(v) for v in voxel_size)
         self.feature_map_stride = int(feature_map_stride)
-        if grid_size[0] % self.feature_map_stride or grid_size[1] % self.feature_map_stride:
-            raise ValueError(
-                f"CenterHead: grid {tuple(grid_size[:2])} not divisible by FEATURE_MAP_STRIDE "
-                f"{feature_map_stride}"
-            )
-        self.feature_map_size = (
-            int(grid_size[1]) // self.feature_map_stride,
-            int(grid_size[0]) // self.feature_map_stride,
-        )  # (H, W)
+        self.feature_map_size = cu.head_map_size(grid_size, feature_map_stride, "CenterHead")
         self.with_velocity = with_velocity
         self.code_size = 10 if with_velocity else 8
         if code_weights is None:
@@ -494,17 +486,9 @@ class CenterHead(nn.Module):
     def _nms(self, boxes: torch.Tensor, scores: torch.Tensor, labels: torch.Tensor):
         """Indices kept by NMS over all boxes, or class by class with that class's threshold
         and sizes (``class_specific_nms``), by decreasing score."""
-        if self.nms_type != "class_specific_nms":
-            return nms_bev(
-                boxes, scores, self.nms_thresh, self.nms_pre_maxsize, self.nms_post_maxsize
-            )
-        kept = []
-        for k in range(self.num_class):
-            idx = torch.nonzero(labels == k).squeeze(1)
-            keep = nms_bev(
-                boxes[idx], scores[idx], float(self.nms_thresh[k]),
-                int(self.nms_pre_maxsize[k]), int(self.nms_post_maxsize[k]),
+        if self.nms_type == "class_specific_nms":
+            return nms_bev_per_class(
+                boxes, scores, labels, self.nms_thresh, self.nms_pre_maxsize,
+                self.nms_post_maxsize,
             )  # fmt: skip
-            kept.append(idx[keep])
-        kept = torch.cat(kept)
-        return kept[torch.sort(scores[kept], descending=True, stable=True).indices]
+        return nms_bev(boxes, scores, self.nms_thresh, self.nms_pre_maxsize, self.nms_post_maxsize)

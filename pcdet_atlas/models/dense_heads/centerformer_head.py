@@ -37,7 +37,7 @@ from pcdet_atlas.models.model_utils.center_transformer import (
     select_center_queries,
 )
 from pcdet_atlas.models.stage_config import StageConfig, read_stage
-from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d, nms_bev
+from pcdet_atlas.ops.iou3d_nms import boxes_aligned_iou3d, nms_bev_per_class
 from pcdet_atlas.registry import MODEL_STAGES
 
 #: per-query outputs and their widths (the box code is the first four, CenterPoint's order)
@@ -243,15 +243,7 @@ class CenterFormerHead(nn.Module):
         self.point_cloud_range = tuple(float(v) for v in point_cloud_range)
         self.voxel_size = tuple(float(v) for v in voxel_size)
         self.feature_map_stride = int(feature_map_stride)
-        if grid_size[0] % self.feature_map_stride or grid_size[1] % self.feature_map_stride:
-            raise ValueError(
-                f"CenterFormerHead: grid {tuple(grid_size[:2])} not divisible by "
-                f"FEATURE_MAP_STRIDE {feature_map_stride}"
-            )
-        self.feature_map_size = (
-            int(grid_size[1]) // self.feature_map_stride,
-            int(grid_size[0]) // self.feature_map_stride,
-        )  # (H, W)
+        self.feature_map_size = cu.head_map_size(grid_size, feature_map_stride, "CenterFormerHead")
         self.num_queries = int(num_queries)
         if self.num_queries < 1:
             raise ValueError(f"CenterFormerHead: NUM_QUERIES must be >= 1, got {num_queries}")
@@ -564,16 +556,13 @@ class CenterFormerHead(nn.Module):
         rectified = scores * iou.pow(power)
         out = []
         for b in range(boxes.shape[0]):
-            kept = []
-            for c in range(self.num_class):
-                idx = torch.nonzero(keep[b] & (labels[b] == c), as_tuple=True)[0]
-                sel = nms_bev(
-                    boxes[b, idx], rectified[b, idx], self.nms_thresh[c],
-                    self.nms_pre_maxsize[c], self.nms_post_maxsize[c],
-                )  # fmt: skip
-                kept.append(idx[sel])
-            idx = torch.cat(kept)
-            idx = idx[torch.sort(rectified[b, idx], descending=True, stable=True).indices]
+            idx = torch.nonzero(keep[b]).squeeze(1)
+            idx = idx[
+                nms_bev_per_class(
+                    boxes[b, idx], rectified[b, idx], labels[b, idx], self.nms_thresh,
+                    self.nms_pre_maxsize, self.nms_post_maxsize,
+                )
+            ]  # fmt: skip
             out.append({
                 "pred_boxes": boxes[b, idx],
                 "pred_scores": rectified[b, idx],

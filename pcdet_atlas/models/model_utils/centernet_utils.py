@@ -14,6 +14,7 @@ import torch
 import torch.nn.functional as F
 
 __all__ = [
+    "head_map_size",
     "gaussian_radius",
     "CenterTargets",
     "encode_center_targets",
@@ -24,6 +25,19 @@ __all__ = [
     "boxes_at_cells",
     "diou3d_axis_aligned",
 ]
+
+
+def head_map_size(grid_size, feature_map_stride: int, owner: str) -> tuple[int, int]:
+    """``(H, W)`` cells of a head's map over the VFE grid ``grid_size`` (x, y, ...) at
+    ``feature_map_stride`` voxels per cell; a ValueError naming ``owner`` when the stride does
+    not divide the grid."""
+    stride = int(feature_map_stride)
+    if grid_size[0] % stride or grid_size[1] % stride:
+        raise ValueError(
+            f"{owner}: grid {tuple(grid_size[:2])} not divisible by FEATURE_MAP_STRIDE "
+            f"{feature_map_stride}"
+        )
+    return int(grid_size[1]) // stride, int(grid_size[0]) // stride
 
 
 def gaussian_radius(height: torch.Tensor, width: torch.Tensor, min_overlap: float) -> torch.Tensor:
