@@ -504,7 +504,7 @@ def nms_bev_per_class(
             f"nms_bev_per_class: one iou_thresh, pre_max_size and post_max_size per class, got "
             f"{len(iou_thresh)}, {len(pre_max_size)} and {len(post_max_size)} values"
         )
-    if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= num_class):
+    if bool(((labels < 0) | (labels >= num_class)).any()):  # one device sync per call
         raise ValueError(
             f"nms_bev_per_class: labels must lie in [0, {num_class - 1}] (one setting per "
             f"class), got {int(labels.min())}..{int(labels.max())}"
